@@ -1,0 +1,52 @@
+# Every target creates/uses the virtual environment at .venv/ (nothing is installed system-wide).
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+SHARED ?= ../shared/data
+
+DATASET ?= sample
+ROOT ?= data/$(DATASET)
+OUT ?= out/labels/$(DATASET)
+JOBS ?= 2
+PYTEST_ARGS ?=
+
+.PHONY: install test test-slow test-all bench demo labels results lint clean
+
+install: $(STAMP)
+
+# torch is installed first with an exact pin so pip takes the local CPU wheel instead of a multi-GB CUDA build.
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "torch==2.13.0"
+	$(PY) -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q --runslow -m "slow or perf" $(PYTEST_ARGS)
+
+test-all: $(STAMP)
+	$(PY) -m pytest -q --runslow $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	$(PY) -m pipelines.bench --shared $(SHARED) --out bench
+
+labels: $(STAMP)
+	$(VENV)/bin/pvm-label run --dataset $(DATASET) --root $(ROOT) --out $(OUT) --jobs $(JOBS)
+
+demo: $(STAMP)
+	$(PY) -m pipelines.demo --out out/demo
+
+results: $(STAMP)
+	$(PY) -m pipelines.results --shared $(SHARED) --out results
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf out .pytest_cache

@@ -1,0 +1,81 @@
+"""Typed configuration of the PVM labeler (no I/O).
+
+The defaults are the ones measured best on the KITTI 2015 frames in ../shared/data (see README).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from pvm_labeler.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class LabelerConfig:
+    """All knobs of one PVM labeling run.
+
+    Attributes:
+        k: number of pyramid scales K (scale k uses downsampling factor k + eps_k, eps_1 = 0).
+        kappa1: threshold on the std-dev of disparity across scales, in full-resolution pixels.
+        kappa2: threshold on the std-dev of the normalized inverse cost c across scales (unitless).
+        max_disp: disparity search range [0, max_disp) at full resolution, in pixels.
+        lr_threshold: left-right consistency threshold, in pixels.
+        seed: global seed; eps_k of a frame is drawn from a generator seeded by (seed, frame id).
+        census_window: side of the census window (odd).
+        paths: SGM aggregation paths, 4 or 8.
+        p1: SGM penalty for |d - d'| == 1.
+        p2: SGM penalty for |d - d'| > 1 (upper bound when p2_adaptive).
+        p2_adaptive: divide P2 by the image gradient along the path (Hirschmueller 2008, eq. 13-like).
+        extra: free-form extra settings recorded with the run (JSON-serialisable).
+    """
+
+    k: int = 6
+    kappa1: float = 1.0
+    kappa2: float = 0.08
+    max_disp: int = 192
+    lr_threshold: float = 1.0
+    seed: int = 0
+    census_window: int = 5
+    paths: int = 8
+    p1: int = 8
+    p2: int = 64
+    p2_adaptive: bool = False
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def validate(self) -> LabelerConfig:
+        """Raise ConfigError naming the option if any value is out of range; return self."""
+        if self.k < 1:
+            raise ConfigError(f"--k must be >= 1 (K = 1 is plain SGM + LR check), got {self.k}")
+        if self.kappa1 < 0 or self.kappa2 < 0:
+            raise ConfigError(f"--kappa1/--kappa2 must be >= 0, got kappa1={self.kappa1}, kappa2={self.kappa2}")
+        if self.max_disp < 2:
+            raise ConfigError(f"--max-disp must be >= 2, got {self.max_disp}")
+        if self.lr_threshold < 0:
+            raise ConfigError(f"--lr-threshold must be >= 0, got {self.lr_threshold}")
+        if self.census_window < 3 or self.census_window % 2 == 0:
+            raise ConfigError(f"census_window must be odd and >= 3, got {self.census_window}")
+        if self.paths not in (4, 8):
+            raise ConfigError(f"paths must be 4 or 8, got {self.paths}")
+        if not 0 <= self.p1 <= self.p2:
+            raise ConfigError(f"SGM penalties need 0 <= p1 <= p2, got p1={self.p1}, p2={self.p2}")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (JSON-serialisable)."""
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        """Canonical JSON (sorted keys), used to compare the configs of existing shards."""
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> LabelerConfig:
+        """Build from a dict, rejecting unknown keys with a clear message."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ConfigError(f"unknown labeler config keys {unknown}; known: {sorted(names)}")
+        return cls(**values).validate()

@@ -1,0 +1,22 @@
+"""Exception hierarchy of the labeler: every message names the file/option and the actual vs expected value."""
+
+from __future__ import annotations
+
+
+class PVMError(Exception):
+    """Base class of every error the labeler raises on purpose (the CLI turns these into exit code 1)."""
+
+
+class InputError(PVMError, ValueError):
+    """Bad user input: array shapes/dtypes, image files, options.
+
+    Example: ``InputError("left/right sizes differ: (480, 640) vs (480, 642) for pair 0012")``.
+    """
+
+
+class ConfigError(InputError):
+    """A configuration value out of range or inconsistent with the data."""
+
+
+class ShardError(PVMError):
+    """A shard or shard directory is missing, corrupt, half-written or of another schema/config."""
