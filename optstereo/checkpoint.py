@@ -1,0 +1,240 @@
+"""Checkpoints: atomic save, safe load (never unpickles arbitrary objects).
+
+A training checkpoint (``.pt``/``.pth``/``.ckpt``) is a dict of tensors and plain Python values only::
+
+    {"format": CHECKPOINT_FORMAT, "step": int, "model": state_dict, "optimizer": state_dict,
+     "scheduler": state_dict | None, "scaler": state_dict | None, "model_name": str,
+     "model_config": dict, "train_config": dict, "code_version": {"optstereo": str, "git_commit": str},
+     "rng": {"torch": ByteTensor}}
+
+It is loaded with ``torch.load(weights_only=True)``, which refuses pickled classes/functions. A weights-only export
+``.safetensors`` stores the model state dict with the model name/config as JSON metadata.
+
+Writing goes to ``<name>.tmp`` in the same directory followed by ``os.replace`` (atomic on POSIX), so a crash never
+leaves a half-written file under the final name (TIMM ``checkpoint_saver.py`` does the same).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pickle
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+import optstereo
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "optstereo-checkpoint-v1"
+CHECKPOINT_SUFFIXES = (".pt", ".pth", ".ckpt", ".safetensors")
+LAST = "last.pt"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, unreadable, of another format or incompatible with the model."""
+
+
+def code_version() -> dict[str, str]:
+    """Package version and git commit of the code (``unknown`` outside a git checkout)."""
+    commit = "unknown"
+    try:
+        repo = Path(__file__).resolve().parents[1]
+        commit = subprocess.run(
+            ["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return {"optstereo": optstereo.__version__, "git_commit": commit}
+
+
+def _atomic_torch_save(obj: Any, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        torch.save(obj, fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def unwrap(model: nn.Module) -> nn.Module:
+    """The bare model under DistributedDataParallel / torch.compile wrappers."""
+    while True:
+        if hasattr(model, "module") and isinstance(model.module, nn.Module):
+            model = model.module
+        elif hasattr(model, "_orig_mod"):
+            model = model._orig_mod
+        else:
+            return model
+
+
+def model_spec(model: nn.Module) -> tuple[str, dict[str, Any]]:
+    """(registry name, config dict) of a model built by optstereo.models.build_model."""
+    config = getattr(unwrap(model), "config", None)
+    if config is None:
+        return type(unwrap(model)).__name__, {}
+    values = config.to_dict() if hasattr(config, "to_dict") else dict(vars(config))
+    name = values.get("name", getattr(config, "name", "optstereo"))
+    return str(name), values
+
+
+def save_checkpoint(
+    path: Path,
+    *,
+    model: nn.Module,
+    step: int,
+    optimizer: torch.optim.Optimizer | None = None,
+    scheduler: Any | None = None,
+    scaler: Any | None = None,
+    train_config: dict[str, Any] | None = None,
+) -> Path:
+    """Atomically write a full training checkpoint to ``path`` (suffix .pt/.pth/.ckpt) and return it."""
+    path = Path(path)
+    if path.suffix not in CHECKPOINT_SUFFIXES[:3]:
+        raise CheckpointError(f"checkpoint name must end in .pt, .pth or .ckpt, got {path.name}")
+    name, model_config = model_spec(model)
+    state = {
+        "format": CHECKPOINT_FORMAT,
+        "step": int(step),
+        "model": unwrap(model).state_dict(),
+        "optimizer": None if optimizer is None else optimizer.state_dict(),
+        "scheduler": None if scheduler is None else scheduler.state_dict(),
+        "scaler": None if scaler is None or not scaler.is_enabled() else scaler.state_dict(),
+        "model_name": name,
+        "model_config": model_config,
+        "train_config": train_config or {},
+        "code_version": code_version(),
+        "rng": {"torch": torch.get_rng_state()},
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_torch_save(state, path)
+    return path
+
+
+def export_safetensors(path: Path, model: nn.Module, step: int | None = None) -> Path:
+    """Write the model weights as safetensors with the model name/config (JSON) in the metadata."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    name, model_config = model_spec(model)
+    # safetensors refuses shared storage; contiguous clones make every tensor its own buffer.
+    tensors = {k: v.detach().contiguous().clone() for k, v in unwrap(model).state_dict().items()}
+    metadata = {
+        "format": CHECKPOINT_FORMAT,
+        "model_name": name,
+        "model_config": json.dumps(model_config),
+        "step": str(step if step is not None else -1),
+        "code_version": json.dumps(code_version()),
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata=metadata)
+    os.replace(tmp, path)
+    return path
+
+
+@dataclass
+class LoadedCheckpoint:
+    """What load_checkpoint returns; optimizer/scheduler states are None in a safetensors export."""
+
+    path: Path
+    step: int
+    model_name: str
+    model_config: dict[str, Any]
+    model_state: dict[str, torch.Tensor]
+    optimizer: dict[str, Any] | None = None
+    scheduler: dict[str, Any] | None = None
+    scaler: dict[str, Any] | None = None
+    train_config: dict[str, Any] | None = None
+    code_version: dict[str, str] | None = None
+    rng: dict[str, Any] | None = None
+
+
+def resolve_checkpoint(path: Path) -> Path:
+    """A checkpoint file, or a run directory (-> its last.pt, else the newest checkpoint in it)."""
+    path = Path(path)
+    if path.is_dir():
+        if (path / LAST).is_file():
+            return path / LAST
+        found = sorted((p for p in path.iterdir() if p.suffix in CHECKPOINT_SUFFIXES), key=lambda p: p.stat().st_mtime)
+        if not found:
+            raise CheckpointError(f"no checkpoint ({'/'.join(CHECKPOINT_SUFFIXES)}) in run directory {path}")
+        return found[-1]
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    if path.suffix not in CHECKPOINT_SUFFIXES:
+        raise CheckpointError(f"checkpoint {path} must end in one of {CHECKPOINT_SUFFIXES}")
+    return path
+
+
+def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> LoadedCheckpoint:
+    """Load a checkpoint file or run dir without unpickling code (weights_only=True / safetensors)."""
+    path = resolve_checkpoint(path)
+    if path.suffix == ".safetensors":
+        return _load_safetensors(path, map_location)
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        # weights_only=True refuses anything but tensors and plain containers: never execute pickled code.
+        raise CheckpointError(f"refusing to load {path}: it holds pickled objects ({exc})") from exc
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise CheckpointError(f"cannot load checkpoint {path}: {exc}") from exc
+    if not isinstance(state, dict) or "model" not in state:
+        raise CheckpointError(f"{path} is not an optstereo checkpoint (no 'model' entry)")
+    if state.get("format", CHECKPOINT_FORMAT) != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path} has format {state.get('format')!r}, expected {CHECKPOINT_FORMAT!r}")
+    return LoadedCheckpoint(
+        path=path,
+        step=int(state.get("step", 0)),
+        model_name=str(state.get("model_name", "optstereo")),
+        model_config=dict(state.get("model_config") or {}),
+        model_state=state["model"],
+        optimizer=state.get("optimizer"),
+        scheduler=state.get("scheduler"),
+        scaler=state.get("scaler"),
+        train_config=state.get("train_config"),
+        code_version=state.get("code_version"),
+        rng=state.get("rng"),
+    )
+
+
+def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedCheckpoint:
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt", device=str(map_location)) as fh:
+            metadata = fh.metadata() or {}
+            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+    except (SafetensorError, OSError) as exc:
+        raise CheckpointError(f"cannot load safetensors checkpoint {path}: {exc}") from exc
+    return LoadedCheckpoint(
+        path=path,
+        step=int(metadata.get("step", -1)),
+        model_name=metadata.get("model_name", "optstereo"),
+        model_config=json.loads(metadata.get("model_config", "{}")),
+        model_state=tensors,
+        code_version=json.loads(metadata.get("code_version", "{}")),
+    )
+
+
+def build_model_from_checkpoint(
+    ckpt: LoadedCheckpoint | Path, device: str | torch.device = "cpu", **overrides: Any
+) -> nn.Module:
+    """Rebuild the registry model recorded in a checkpoint, load its weights, move to device, eval mode."""
+    from optstereo.models import build_model
+
+    if not isinstance(ckpt, LoadedCheckpoint):
+        ckpt = load_checkpoint(ckpt)
+    kwargs = {k: v for k, v in ckpt.model_config.items() if k != "name"}
+    kwargs.update(overrides)
+    model = build_model(ckpt.model_name, **kwargs)
+    try:
+        model.load_state_dict(ckpt.model_state)
+    except RuntimeError as exc:
+        raise CheckpointError(f"weights in {ckpt.path} do not fit model {ckpt.model_name!r}: {exc}") from exc
+    return model.to(device).eval()

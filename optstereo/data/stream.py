@@ -1,0 +1,215 @@
+"""ShardStream: a torch IterableDataset over the labeler's HDF5 shards.
+
+Reads only through the schema module ``pvm_labeler.shards`` (read_index / open_shard / read_sample), so a wrong
+schema version, an empty directory or a corrupt shard fails with a ShardError naming the file.
+
+Work split (TIMM ``reader_wds.py`` ``_split_by_node_and_worker``): with R ranks and N DataLoader workers per rank
+there are R * N global workers; global worker ``g = rank * N + worker_id`` takes shards ``g, g + R*N, ...``. When
+there are fewer shards than global workers the SAMPLES are split the same way instead (and when there are fewer
+samples than global workers, worker g takes sample ``g mod n``), so every rank still gets data.
+
+Order: each epoch, a worker visits its shards in a seeded random order and passes the frame ids through a seeded
+shuffle buffer (seed, epoch, g). Shuffling ids rather than decoded samples keeps memory flat and makes skipping
+the already-consumed part of the stream on ``--resume`` free. Augmentation randomness comes from a generator
+seeded by (seed, epoch, g, sample counter), so a resumed stream continues exactly where the old one stopped.
+
+h5py files are never opened in ``__init__``; each worker opens its shards lazily (h5py docs, "multiprocessing"),
+keeping at most ``max_open`` handles.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from optstereo.data.transforms import TrainTransform, to_tensors
+from pvm_labeler.errors import ShardError
+from pvm_labeler.shards import open_shard, read_index, read_sample
+
+logger = logging.getLogger(__name__)
+
+SampleKey = tuple[str, str]  # (shard path, frame id)
+
+
+def shuffle_buffer(items: list[SampleKey], size: int, rng: np.random.Generator) -> Iterator[SampleKey]:
+    """Stream ``items`` through a shuffle buffer of ``size`` entries (webdataset-style reservoir)."""
+    buffer: list[SampleKey] = []
+    for item in items:
+        if len(buffer) < size:
+            buffer.append(item)
+            continue
+        k = int(rng.integers(len(buffer)))
+        yield buffer[k]
+        buffer[k] = item
+    order = rng.permutation(len(buffer))
+    for k in order:
+        yield buffer[int(k)]
+
+
+def skip_count(skip_batches: int, batch_size: int, worker_id: int, num_workers: int) -> int:
+    """Samples worker ``worker_id`` produced in the first ``skip_batches`` batches.
+
+    A DataLoader over an IterableDataset builds each batch from one worker and visits workers round-robin, so
+    worker w made the batches j < skip_batches with j mod num_workers == w.
+    """
+    num_workers = max(num_workers, 1)
+    batches = skip_batches // num_workers + (1 if worker_id < skip_batches % num_workers else 0)
+    return batches * batch_size
+
+
+class ShardStream(IterableDataset):
+    """Infinite (or one-epoch) stream of augmented training samples from a shard directory.
+
+    Yields ``(left, right, label, valid)``: left/right (3, h, w) float32 in [0, 255], label (1, h, w) float32
+    (0 where invalid), valid (1, h, w) bool; with ``with_ids=True`` the frame id (str) is appended.
+
+    Args:
+        labels_dir: directory with index.json and shard-*.h5.
+        supervision: "pvm" reads ``label``/``label_right``; "gt" reads ``gt``/``gt_right``.
+        transform: TrainTransform (crop, flip-swap, jitter); None = whole frames, no augmentation.
+        seed: base seed of shuffling and augmentation.
+        shuffle_size: shuffle buffer size in samples (1 = no shuffling within a worker).
+        max_disp: labels >= max_disp are invalid.
+        rank, world_size: DDP position; None = read from torch.distributed when initialised, else (0, 1).
+        infinite: loop over epochs forever (training); False = one epoch.
+        with_ids: append the frame id to every yielded tuple.
+        skip_batches, batch_size: skip what the first ``skip_batches`` batches consumed (resume).
+    """
+
+    def __init__(
+        self,
+        labels_dir: Path,
+        *,
+        supervision: str = "pvm",
+        transform: TrainTransform | None = None,
+        seed: int = 0,
+        shuffle_size: int = 16,
+        max_disp: float = float("inf"),
+        rank: int | None = None,
+        world_size: int | None = None,
+        infinite: bool = True,
+        with_ids: bool = False,
+        skip_batches: int = 0,
+        batch_size: int = 1,
+        max_open: int = 8,
+    ) -> None:
+        super().__init__()
+        if supervision not in ("pvm", "gt"):
+            raise ValueError(f"supervision must be 'pvm' or 'gt', got {supervision!r}")
+        self.labels_dir = Path(labels_dir)
+        index = read_index(self.labels_dir)  # JSON only; raises ShardError naming index.json
+        self.shards: list[tuple[str, list[str]]] = [(str(p), [str(i) for i in ids]) for p, ids in index.shards]
+        self.num_samples = sum(len(ids) for _, ids in self.shards)
+        if self.num_samples == 0:
+            raise ShardError(f"shard directory {self.labels_dir} holds no samples (index.json lists none)")
+        self.supervision = supervision
+        self.transform = transform
+        self.seed = int(seed)
+        self.shuffle_size = max(int(shuffle_size), 1)
+        self.max_disp = float(max_disp)
+        self._rank, self._world_size = rank, world_size
+        self.infinite = infinite
+        self.with_ids = with_ids
+        self.skip_batches = int(skip_batches)
+        self.batch_size = int(batch_size)
+        self.max_open = max_open
+        self._handles: OrderedDict[str, Any] = OrderedDict()
+
+    # -- work split ---------------------------------------------------------------------------------------------
+    def _dist(self) -> tuple[int, int]:
+        if self._rank is not None and self._world_size is not None:
+            return self._rank, self._world_size
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            return torch.distributed.get_rank(), torch.distributed.get_world_size()
+        return 0, 1
+
+    def assignment(self, global_worker: int, num_global: int) -> tuple[str, list[SampleKey]]:
+        """("shards" | "samples", this worker's (shard, frame id) keys in index order)."""
+        if len(self.shards) >= num_global:
+            mine = self.shards[global_worker::num_global]
+            return "shards", [(path, fid) for path, ids in mine for fid in ids]
+        keys = [(path, fid) for path, ids in self.shards for fid in ids]
+        if len(keys) >= num_global:
+            return "samples", keys[global_worker::num_global]
+        return "samples", [keys[global_worker % len(keys)]]
+
+    def epoch_order(self, epoch: int, global_worker: int, num_global: int) -> list[SampleKey]:
+        """The keys one global worker visits in ``epoch``: seeded shard order, then the shuffle buffer."""
+        mode, keys = self.assignment(global_worker, num_global)
+        rng = np.random.default_rng([self.seed, epoch, global_worker, 0])
+        if mode == "shards":
+            by_shard: dict[str, list[SampleKey]] = {}
+            for key in keys:
+                by_shard.setdefault(key[0], []).append(key)
+            shard_order = [list(by_shard)[int(k)] for k in rng.permutation(len(by_shard))]
+            keys = [key for shard in shard_order for key in by_shard[shard]]
+        return list(shuffle_buffer(keys, self.shuffle_size, rng))
+
+    # -- reading ------------------------------------------------------------------------------------------------
+    def _open(self, path: str) -> Any:
+        handle = self._handles.pop(path, None)
+        if handle is None:
+            handle = open_shard(Path(path))
+            while len(self._handles) >= self.max_open:
+                self._handles.popitem(last=False)[1].close()
+        self._handles[path] = handle
+        return handle
+
+    def close(self) -> None:
+        """Close every open shard handle of this process."""
+        while self._handles:
+            self._handles.popitem()[1].close()
+
+    def read(self, path: str, frame_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """(left, right, label, label_right or None) of one sample for the configured supervision."""
+        sample = read_sample(self._open(path), frame_id)
+        if self.supervision == "gt":
+            if sample.gt is None:
+                raise ShardError(
+                    f"--supervision gt needs ground truth, but sample {frame_id!r} in shard {path} has no 'gt' "
+                    "(label a dataset with GT, or use --supervision pvm)"
+                )
+            return sample.left, sample.right, sample.gt, sample.gt_right
+        return sample.left, sample.right, sample.label, sample.label_right
+
+    # -- iteration ----------------------------------------------------------------------------------------------
+    def __iter__(self) -> Iterator[tuple]:
+        info = get_worker_info()
+        worker_id, num_workers = (0, 1) if info is None else (info.id, info.num_workers)
+        rank, world_size = self._dist()
+        global_worker, num_global = rank * num_workers + worker_id, world_size * num_workers
+        skip = skip_count(self.skip_batches, self.batch_size, worker_id, num_workers)
+        counter, epoch = 0, 0
+        try:
+            while True:
+                order = self.epoch_order(epoch, global_worker, num_global)
+                if not order:
+                    return
+                for path, frame_id in order:
+                    counter += 1
+                    if counter <= skip:
+                        continue
+                    rng = np.random.default_rng([self.seed, epoch, global_worker, counter])
+                    yield self._make(path, frame_id, rng)
+                epoch += 1
+                if not self.infinite:
+                    return
+        finally:
+            self.close()
+
+    def _make(self, path: str, frame_id: str, rng: np.random.Generator) -> tuple:
+        left, right, label, label_right = self.read(path, frame_id)
+        if self.transform is not None:
+            left, right, label = self.transform(left, right, label, label_right, rng)
+        else:
+            h, w = left.shape[0] // 8 * 8, left.shape[1] // 8 * 8
+            left, right, label = left[:h, :w], right[:h, :w], label[:h, :w]
+        out = to_tensors(left, right, label, self.max_disp)
+        return (*out, frame_id) if self.with_ids else out
