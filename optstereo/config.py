@@ -1,0 +1,134 @@
+"""Typed configuration of the OptStereo network and the PVStereo loss (no I/O, no torch).
+
+Both dataclasses are frozen and YAML/JSON friendly: ``to_dict()`` gives plain Python values and
+``from_dict()`` rejects unknown keys, so a checkpoint or a YAML file can rebuild exactly the same
+model (``optstereo.models.build_from_config``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+UPSAMPLERS = ("conv", "convex")
+NORMS = ("instance", "batch", "group", "none")
+PHOTOMETRIC_ITERS = ("last", "all")
+SMOOTHNESS_NORMS = ("none", "mean")
+
+
+def _from_dict(cls: type, values: dict[str, Any], what: str) -> Any:
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ValueError(f"unknown {what} keys {unknown}; known: {sorted(names)}")
+    return cls(**values).validate()
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Hyper-parameters of one OptStereo network (paper Section III-B).
+
+    Attributes:
+        name: registry name the model was built from ("optstereo", "optstereo_ss_d4", ...).
+        feature_dim: C, channels of the 1/8 features F_l, F_r (paper: 256).
+        hidden_dim: channels of the ConvGRU hidden state h (the paper does not state it; RAFT uses 128).
+        corr_levels: number of cost-volume levels M0..M_{L-1} (paper: 4; Table I (a): 1).
+        corr_radius: d, lookup radius per level (paper: 4; Table I (b)-(d): 1, 2, 4).
+        iters: N_s, refinement iterations when forward() is called with iters=None (paper: 8).
+        upsampler: "conv" = the paper's upsampling layer + two convs; "convex" = RAFT's learned convex
+            combination (beyond the paper, off by default).
+        upsample_dim: width of the first conv of the "conv" upsampler.
+        head_dim: width of the first conv of the Delta-D head (two convs on h).
+        norm: normalisation in the feature extractor (RAFT's fnet uses instance norm).
+        corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
+    """
+
+    name: str = "optstereo"
+    feature_dim: int = 256
+    hidden_dim: int = 128
+    corr_levels: int = 4
+    corr_radius: int = 4
+    iters: int = 8
+    upsampler: str = "conv"
+    upsample_dim: int = 32
+    head_dim: int = 128
+    norm: str = "instance"
+    corr_scale: bool = True
+
+    @property
+    def corr_channels(self) -> int:
+        """Channels of the lookup output M_l: levels x (2d + 1) (36 for the paper's 4 levels, d = 4)."""
+        return self.corr_levels * (2 * self.corr_radius + 1)
+
+    def validate(self) -> ModelConfig:
+        """Raise ValueError naming the option if a value is out of range; return self."""
+        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
+        if self.corr_radius < 0:
+            raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
+        if self.upsampler not in UPSAMPLERS:
+            raise ValueError(f"model option upsampler must be one of {UPSAMPLERS}, got {self.upsampler!r}")
+        if self.norm not in NORMS:
+            raise ValueError(f"model option norm must be one of {NORMS}, got {self.norm!r}")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (YAML/JSON-serialisable), including ``name``."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> ModelConfig:
+        """Build from a dict, rejecting unknown keys with a clear message."""
+        return _from_dict(cls, values, "model config")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Weights of the PVStereo loss L = L_P + lambda_r L_R + lambda_s L_S (paper Section III-C).
+
+    Attributes:
+        gamma: sequence weight base; iteration i of N_s gets gamma^(N_s - i) (paper: 0.8).
+        lambda_r: weight of the reconstruction loss L_R (paper lambda_1 = 0.1; 0 = supervised mode).
+        lambda_s: weight of the edge-aware smoothness loss L_S (paper lambda_2 = 0.1; 0 = supervised mode).
+        alpha: SSIM vs L1 balance inside L_R (paper: 0.85).
+        photometric_iters: "last" applies L_R and L_S to the final prediction only; "all" applies them to
+            every iteration with the same gamma weights as L_P.
+        smoothness_norm: "none" follows the paper's eq. (on D itself); "mean" divides D by its per-image
+            mean first (Monodepth2's scale-invariant variant).
+    """
+
+    gamma: float = 0.8
+    lambda_r: float = 0.1
+    lambda_s: float = 0.1
+    alpha: float = 0.85
+    photometric_iters: str = "last"
+    smoothness_norm: str = "none"
+
+    def validate(self) -> LossConfig:
+        """Raise ValueError naming the option if a value is out of range; return self."""
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f"loss option gamma must be in (0, 1], got {self.gamma}")
+        if self.lambda_r < 0 or self.lambda_s < 0:
+            raise ValueError(f"loss weights must be >= 0, got lambda_r={self.lambda_r}, lambda_s={self.lambda_s}")
+        if not 0.0 <= self.alpha <= 1.0:
+            raise ValueError(f"loss option alpha must be in [0, 1], got {self.alpha}")
+        if self.photometric_iters not in PHOTOMETRIC_ITERS:
+            raise ValueError(
+                f"loss option photometric_iters must be one of {PHOTOMETRIC_ITERS}, got {self.photometric_iters!r}"
+            )
+        if self.smoothness_norm not in SMOOTHNESS_NORMS:
+            raise ValueError(
+                f"loss option smoothness_norm must be one of {SMOOTHNESS_NORMS}, got {self.smoothness_norm!r}"
+            )
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (YAML/JSON-serialisable)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> LossConfig:
+        """Build from a dict, rejecting unknown keys with a clear message."""
+        return _from_dict(cls, values, "loss config")

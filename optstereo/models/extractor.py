@@ -1,0 +1,48 @@
+"""Feature extraction of OptStereo (paper Section III-B): one residual network, shared by both views."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from optstereo.models.layers import ResidualBlock, make_norm
+
+
+class FeatureEncoder(nn.Module):
+    """Residual feature network: 7x7 stem, six residual blocks (two each at 1/2, 1/4, 1/8), 1x1 projection.
+
+    This is the layout of RAFT's "basic encoder" that the paper's figure draws: stem (stride 2) ->
+    2 blocks at 1/2 (64 ch) -> 2 blocks at 1/4 (96 ch) -> 2 blocks at 1/8 (128 ch) -> 1x1 conv to C.
+    Both views go through the same module in ONE call (concatenated along the batch), which is how the
+    weights are shared; instance norm keeps the statistics of the two views separate.
+
+    Shapes: (B, 3, H, W) float (normalised to [-1, 1]) -> (B, C, H / 8, W / 8) float.
+    """
+
+    def __init__(self, output_dim: int = 256, *, norm: str = "instance", widths: tuple[int, int, int] = (64, 96, 128)):
+        super().__init__()
+        w1, w2, w3 = widths
+        self.stem = nn.Sequential(
+            nn.Conv2d(3, w1, kernel_size=7, stride=2, padding=3), make_norm(norm, w1), nn.ReLU(inplace=True)
+        )
+        self.layer1 = nn.Sequential(ResidualBlock(w1, w1, norm=norm), ResidualBlock(w1, w1, norm=norm))
+        self.layer2 = nn.Sequential(ResidualBlock(w1, w2, stride=2, norm=norm), ResidualBlock(w2, w2, norm=norm))
+        self.layer3 = nn.Sequential(ResidualBlock(w2, w3, stride=2, norm=norm), ResidualBlock(w3, w3, norm=norm))
+        self.proj = nn.Conv2d(w3, output_dim, kernel_size=1)
+        self.output_dim = output_dim
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                # Same init as RAFT's encoders (kaiming fan-out for ReLU networks).
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
+            elif isinstance(m, (nn.BatchNorm2d, nn.GroupNorm)):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.stem(x)
+        x = self.layer1(x)
+        x = self.layer2(x)
+        x = self.layer3(x)
+        return self.proj(x)

@@ -1,0 +1,110 @@
+"""OptStereo (paper Section III-B), composed from injected parts.
+
+Paper symbol -> module:
+    F_l, F_r (1/8, C = 256)          FeatureEncoder (extractor.py), shared weights, one call on [I_l; I_r]
+    M0..M3, lookup U(j'/2^k)_d, M_l  CorrBlock1D (correlation.py)
+    h^0                               HiddenInit (update.py): tanh(conv3x3(F_l))
+    eq. (GRU), x^k = [D, M_l, F_l]   ConvGRU (update.py), F_l part precomputed once per forward
+    Delta D                           DispHead (update.py)
+    upsampling module, D^k            ConvUpsampler (paper) or ConvexUpsampler (upsample.py)
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from optstereo.config import ModelConfig
+from optstereo.models.correlation import CorrBlock1D
+from optstereo.models.update import ConvGRU
+
+DIVISOR = 8  # stride of the feature extractor: inputs must have H, W divisible by it
+
+
+def normalize_image(image: torch.Tensor) -> torch.Tensor:
+    """[0, 255] -> [-1, 1]: 2 * (x / 255) - 1, the same for both views and every dataset."""
+    return image * (2.0 / 255.0) - 1.0
+
+
+class OptStereo(nn.Module):
+    """Iterative 1-D stereo network of PVStereo.
+
+    forward(left, right, iters=None, test_mode=False):
+        left, right: (B, 3, H, W) float in [0, 255], H and W divisible by 8 (use optstereo.padding.InputPadder).
+        Training: returns a list of N_s full-resolution disparities D^1..D^{N_s}, each (B, 1, H, W), positive
+            (left(x) matches right(x - d)), in full-resolution pixels.
+        test_mode=True: returns (D_s^{N_s} (B, 1, H/8, W/8) in 1/8-resolution pixels, D^{N_s} (B, 1, H, W));
+            only the last iteration is upsampled.
+    """
+
+    def __init__(
+        self,
+        *,
+        feature_encoder: nn.Module,
+        corr_block: CorrBlock1D,
+        hidden_init: nn.Module,
+        update_block: ConvGRU,
+        disp_head: nn.Module,
+        upsampler: nn.Module,
+        iters: int = 8,
+        config: ModelConfig | None = None,
+    ) -> None:
+        super().__init__()
+        self.feature_encoder = feature_encoder
+        self.corr_block = corr_block
+        self.hidden_init = hidden_init
+        self.update_block = update_block
+        self.disp_head = disp_head
+        self.upsampler = upsampler
+        self.iters = iters
+        self.config = config
+
+    def _check_inputs(self, left: torch.Tensor, right: torch.Tensor) -> None:
+        if left.ndim != 4 or right.ndim != 4:
+            raise ValueError(f"left/right must be 4-D (B, 3, H, W), got {tuple(left.shape)} and {tuple(right.shape)}")
+        if left.shape != right.shape:
+            raise ValueError(f"left/right shapes differ: {tuple(left.shape)} vs {tuple(right.shape)}")
+        if left.shape[1] != 3:
+            raise ValueError(f"left/right must have 3 channels (B, 3, H, W), got {tuple(left.shape)}")
+        h, w = left.shape[-2:]
+        if h % DIVISOR or w % DIVISOR:
+            raise ValueError(
+                f"H, W must be divisible by {DIVISOR}, got ({h}, {w}); pad with optstereo.padding.InputPadder"
+            )
+        if w // DIVISOR < self.corr_block.min_width:
+            raise ValueError(
+                f"W must be >= {DIVISOR * self.corr_block.min_width} for {self.corr_block.num_levels} cost-volume "
+                f"levels, got W = {w}"
+            )
+
+    def forward(
+        self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False
+    ) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
+        self._check_inputs(left, right)
+        iters = self.iters if iters is None else iters
+        if iters < 1:
+            raise ValueError(f"iters must be >= 1, got {iters}")
+        image_left = normalize_image(left)
+        image_right = normalize_image(right)
+        feats = self.feature_encoder(torch.cat([image_left, image_right], dim=0))
+        feat_left, feat_right = feats.chunk(2, dim=0)
+
+        pyramid = self.corr_block.build_pyramid(feat_left, feat_right)
+        hidden = self.hidden_init(feat_left)
+        static = self.update_block.precompute(feat_left)
+        b, _, h8, w8 = feat_left.shape
+        disp = torch.zeros(b, 1, h8, w8, device=left.device, dtype=feat_left.dtype)  # D_s^0 = 0
+
+        preds: list[torch.Tensor] = []
+        for k in range(iters):
+            # Detached before the lookup as in RAFT: the gradient of D^k flows through Delta D^k only.
+            disp = disp.detach()
+            corr = self.corr_block.lookup(pyramid, disp).to(feat_left.dtype)
+            hidden = self.update_block(hidden, torch.cat([disp, corr], dim=1), static)
+            disp = disp + self.disp_head(hidden)
+            if test_mode and k < iters - 1:
+                continue
+            preds.append(self.upsampler(disp, hidden, image_left))
+        if test_mode:
+            return disp, preds[-1]
+        return preds
