@@ -75,6 +75,8 @@ class TrainConfig:
         threads: torch intra-op threads on CPU (0 = leave torch's default).
         max_minutes: stop early (and checkpoint) after this wall time; 0 = no limit. For time-boxed demos.
         tensorboard: write TensorBoard events when tensorboard is installed.
+        val_dataset, val_root: dataset (pvm_labeler.datasets name) evaluated on GT at the end of the run (optional).
+        val_limit: evaluate only the first N frames of the validation dataset (0 = all).
     """
 
     labels: Path | None = None
@@ -109,6 +111,9 @@ class TrainConfig:
     threads: int = 0
     max_minutes: float = 0.0
     tensorboard: bool = True
+    val_dataset: str | None = None
+    val_root: Path | None = None
+    val_limit: int = 0
 
     # -- construction -------------------------------------------------------------------------------------------
     @classmethod
@@ -199,7 +204,7 @@ class TrainConfig:
 
 def _normalise(values: dict[str, Any]) -> dict[str, Any]:
     """Coerce YAML/CLI types: paths to Path, crop to a (H, W) tuple, overrides to a dict."""
-    for key in ("labels", "out"):
+    for key in ("labels", "out", "val_root"):
         if values.get(key) is not None:
             values[key] = Path(values[key])
     if "crop" in values and values["crop"] is not None:

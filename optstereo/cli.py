@@ -1,0 +1,214 @@
+"""Thin click layer: ``optstereo-train``, ``optstereo-eval``, ``optstereo-predict``.
+
+Each command parses options, builds a config and calls the library (train.main, evaluate.*, predict.*).
+Exit codes: 0 ok; 1 runtime failure (ClickException); 2 bad usage (UsageError/BadParameter, e.g. a bad config value).
+Multi-process training: ``torchrun --nproc_per_node 2 -m optstereo.cli train --labels ... --out ...``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import click
+import yaml
+
+from optstereo.checkpoint import CheckpointError
+from optstereo.train_config import AMP_MODES, DEVICES, SCHEDULES, SUPERVISIONS, TrainConfig
+from pvm_labeler.errors import ConfigError, PVMError
+
+logger = logging.getLogger(__name__)
+
+_D = TrainConfig()
+EXISTING = click.Path(exists=True, path_type=Path)
+
+
+def _setup_logging(quiet: bool) -> None:
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+
+
+def _run_guarded(fn, *args, **kwargs):
+    """Call library code, mapping its errors to click's exit codes (2 for bad configuration, 1 otherwise)."""
+    from optstereo.train import NonFiniteLossError
+
+    try:
+        return fn(*args, **kwargs)
+    except ConfigError as exc:
+        raise click.UsageError(str(exc)) from exc
+    except (PVMError, CheckpointError, NonFiniteLossError, ValueError, RuntimeError, OSError) as exc:
+        raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
+
+
+def _parse_model_opts(values: tuple[str, ...]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in values:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise click.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="--model-opt")
+        out[key.strip().replace("-", "_")] = yaml.safe_load(value)
+    return out
+
+
+def _device_option(fn):
+    return click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
+                        help="auto = cuda when available, else cpu.")(fn)
+
+
+# -- optstereo-train -----------------------------------------------------------------------------------------------
+@click.command(context_settings={"show_default": True})
+@click.option("--labels", type=EXISTING, help="Shard directory written by pvm-label (index.json + shard-*.h5).")
+@click.option("--out", type=click.Path(path_type=Path), help="Run directory (checkpoints, logs, config.yaml).")
+@click.option("--config", "config_file", type=EXISTING, help="YAML file of options; command-line flags override it.")
+@click.option("--resume", type=EXISTING, help="Continue the run in this RUN_DIR from its last.pt at the saved step.")
+@click.option("--model", help=f"Registry model name. [default: {_D.model}]")
+@click.option("--model-opt", multiple=True, help="Model override KEY=VALUE, e.g. feature_dim=128 (repeatable).")
+@click.option("--supervision", type=click.Choice(SUPERVISIONS),
+              help=f"pvm = PVM pseudo-labels (PVStereo), gt = ground truth (supervised row). [default: {_D.supervision}]")
+@click.option("--iters", type=int, help=f"GRU iterations N_s during training. [default: {_D.iters}]")
+@click.option("--steps", type=int, help=f"Total optimiser steps. [default: {_D.steps}]")
+@click.option("--batch-size", type=int, help=f"Samples per step per rank. [default: {_D.batch_size}]")
+@click.option("--lr", type=float, help=f"Adam learning rate (paper: 1e-4). [default: {_D.lr}]")
+@click.option("--schedule", type=click.Choice(SCHEDULES), help=f"LR schedule. [default: {_D.schedule}]")
+@click.option("--clip-grad", type=float, help=f"Max gradient norm, <= 0 disables. [default: {_D.clip_grad}]")
+@click.option("--gamma", type=float, help=f"Sequence weight base of L_P. [default: {_D.gamma}]")
+@click.option("--lambda-r", type=float, help="Weight of L_R. [default: 0.1 for pvm, 0 for gt]")
+@click.option("--lambda-s", type=float, help="Weight of L_S. [default: 0.1 for pvm, 0 for gt]")
+@click.option("--crop", help=f"Random crop HxW in pixels (whole frame when smaller). [default: {_D.crop[0]}x{_D.crop[1]}]")
+@click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.flip_swap_p}]")
+@click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")
+@click.option("--device", type=click.Choice(DEVICES), help=f"auto = cuda when available. [default: {_D.device}]")
+@click.option("--amp", type=click.Choice(AMP_MODES), help=f"Mixed precision on CUDA. [default: {_D.amp}]")
+@click.option("--workers", type=int, help=f"DataLoader workers per rank. [default: {_D.workers}]")
+@click.option("--seed", type=int, help=f"Global seed. [default: {_D.seed}]")
+@click.option("--threads", type=int, help="torch CPU threads (0 = torch default). [default: 0]")
+@click.option("--log-every", type=int, help=f"Steps between metric records. [default: {_D.log_every}]")
+@click.option("--ckpt-every", type=int, help=f"Steps between checkpoints. [default: {_D.ckpt_every}]")
+@click.option("--max-minutes", type=float, help="Stop (and checkpoint) after this many minutes; 0 = no limit.")
+@click.option("--val-dataset", help="Dataset evaluated on GT at the end (e.g. sample, kitti15).")
+@click.option("--val-root", type=EXISTING, help="Root folder of --val-dataset.")
+@click.option("--val-limit", type=int, help="Evaluate only the first N validation frames (0 = all).")
+@click.option("--quiet", is_flag=True, help="Only warnings and errors.")
+def train_main(config_file: Path | None, resume: Path | None, model_opt: tuple[str, ...], quiet: bool,
+               **flags: Any) -> None:
+    """Train OptStereo on PVM shards: optstereo-train --labels SHARDS_DIR --out RUN_DIR."""
+    _setup_logging(quiet)
+    from optstereo.train import config_for_resume, main
+
+    overrides = {k: v for k, v in flags.items() if v is not None}
+    if model_opt:
+        overrides["model_overrides"] = _parse_model_opts(model_opt)
+    try:
+        if resume is not None:
+            if config_file is not None:
+                raise click.UsageError("--resume uses the run's saved config; do not combine it with --config")
+            cfg = _run_guarded(config_for_resume, resume, overrides)
+        elif config_file is not None:
+            cfg = TrainConfig.load(config_file, overrides)
+        else:
+            cfg = TrainConfig.from_dict(overrides)
+        if cfg.labels is None or cfg.out is None:
+            raise click.UsageError("--labels SHARDS_DIR and --out RUN_DIR are required (or --resume RUN_DIR)")
+    except ConfigError as exc:
+        raise click.UsageError(str(exc)) from exc
+    summary = _run_guarded(main, cfg, resume=resume is not None)
+    last = summary.get("last", {})
+    click.echo(f"trained {summary['start_step']} -> {summary['step']} steps in {summary['seconds']:.0f} s; "
+               f"last L_P {last.get('L_P', math.nan):.3f}; checkpoint {summary['checkpoint']}")
+    if "val" in summary:
+        click.echo(f"validation: {json.dumps({k: summary['val'][k] for k in ('epe', 'bad3', 'd1_all')})}")
+
+
+# -- optstereo-eval ------------------------------------------------------------------------------------------------
+@click.command(context_settings={"show_default": True})
+@click.option("--checkpoint", type=EXISTING, help="Checkpoint file (.pt/.pth/.ckpt/.safetensors) or RUN_DIR.")
+@click.option("--labels", type=EXISTING, help="Evaluate this shard directory's own PVM labels instead of a network.")
+@click.option("--dataset", help="Dataset name for --checkpoint (kitti15, kitti12, middlebury, sceneflow, sample...).")
+@click.option("--root", type=EXISTING, help="Dataset root folder (not needed for sample).")
+@click.option("--split", default="training", help="Dataset split.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Report folder.")
+@click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
+@click.option("--limit", type=int, default=None, help="Only the first N frames.")
+@click.option("--save-maps/--no-save-maps", default=True, help="Write colour disparity and error maps.")
+@_device_option
+@click.option("--quiet", is_flag=True, help="Only warnings and errors.")
+def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
+              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, quiet: bool) -> None:
+    """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
+    _setup_logging(quiet)
+    from optstereo import evaluate
+
+    if (checkpoint is None) == (labels is None):
+        raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
+    if labels is not None:
+        result = _run_guarded(evaluate.evaluate_labels, labels, out_dir=out, limit=limit, save_maps=save_maps)
+    else:
+        if dataset is None:
+            raise click.UsageError("--checkpoint needs --dataset NAME (and --root PATH)")
+        model, dev = _load_model(checkpoint, device)
+        result = _run_guarded(evaluate.evaluate_model, model, dataset, root, split=split, iters=iters, device=dev,
+                              out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)})
+    s = result.summary
+    click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
+               f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
+    click.echo(f"reports: {result.files['md']}, {result.files['csv']}, {result.files['json']}")
+
+
+def _load_model(checkpoint: Path, device: str):
+    from optstereo.checkpoint import build_model_from_checkpoint
+    from optstereo.distributed import resolve_device
+
+    dev = _run_guarded(resolve_device, device)
+    return _run_guarded(build_model_from_checkpoint, checkpoint, dev), dev
+
+
+# -- optstereo-predict ---------------------------------------------------------------------------------------------
+@click.command(context_settings={"show_default": True})
+@click.argument("left", type=EXISTING, required=False)
+@click.argument("right", type=EXISTING, required=False)
+@click.option("--checkpoint", type=EXISTING, required=True, help="Checkpoint file or RUN_DIR.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--dataset", help="Predict a whole dataset instead of one LEFT RIGHT pair (KITTI: disp_0/<frame>.png).")
+@click.option("--root", type=EXISTING, help="Dataset root folder.")
+@click.option("--split", default="training", help="Dataset split.")
+@click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
+@click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
+@click.option("--format", "formats", multiple=True, default=("png", "color"),
+              type=click.Choice(("png", "pfm", "npy", "color")),
+              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color (repeatable).")
+@_device_option
+@click.option("--quiet", is_flag=True, help="Only warnings and errors.")
+def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
+                 root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
+                 device: str, quiet: bool) -> None:
+    """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
+    _setup_logging(quiet)
+    from optstereo import predict
+
+    if dataset is None and (left is None or right is None):
+        raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
+    if dataset is not None and left is not None:
+        raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    model, dev = _load_model(checkpoint, device)
+    if dataset is None:
+        paths = _run_guarded(predict.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev)
+        click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+    else:
+        written = _run_guarded(predict.predict_dataset, model, dataset, root, out, split=split, iters=iters,
+                               formats=formats, device=dev, limit=limit)
+        click.echo(f"wrote {len(written)} frames into {out}")
+
+
+@click.group()
+def cli() -> None:
+    """optstereo commands (for `python -m optstereo.cli` and torchrun)."""
+
+
+cli.add_command(train_main, "train")
+cli.add_command(eval_main, "eval")
+cli.add_command(predict_main, "predict")
+
+if __name__ == "__main__":
+    cli()

@@ -1,0 +1,208 @@
+"""Evaluation on ground truth with the project's single ruler (``pvm_labeler.metrics``): ``optstereo-eval``.
+
+Both a network (``evaluate_model``) and a shard directory's own PVM labels (``evaluate_labels``) go through
+``evaluate_frames``, so labels and network are measured identically.
+
+Metrics (definitions in pvm_labeler/metrics.py; thresholds on the absolute error in pixels):
+    epe       AEPE over GT-valid pixels that have a prediction.
+    bad1/2/3  % of those pixels with error > 1 / 2 / 3 px.
+    f1        the paper's F1: % of pixels with error > 3 px (equal to bad3; named for the paper's tables).
+    d1_all    KITTI D1: % with error > 3 px AND > 5 % of the GT, over ``gt`` (all/occ GT where the dataset has it;
+              KITTI frames shipped with disp_noc_0 only fall back to noc, as the readers document).
+    d1_noc    the same over non-occluded GT (``gt_noc``), when the dataset has occlusion information.
+    density   % of GT-valid pixels with a prediction (100 for the network; the label density for PVM labels).
+Summary numbers pool pixels over all frames (MetricAccumulator), like the KITTI devkit; the per-frame CSV holds each
+frame's own numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+from pvm_labeler.metrics import MetricAccumulator
+
+logger = logging.getLogger(__name__)
+
+SUMMARY_KEYS = ("epe", "bad1", "bad2", "bad3", "f1", "d1_all", "epe_noc", "bad3_noc", "d1_noc", "density")
+
+
+@dataclass
+class Frame:
+    """One frame to evaluate: prediction (NaN = none) and the GT maps of the dataset/shard."""
+
+    frame_id: str
+    pred: npt.NDArray[np.float32]
+    gt: npt.NDArray[np.float32] | None
+    gt_noc: npt.NDArray[np.float32] | None = None
+    left: npt.NDArray[np.uint8] | None = None
+    seconds: float = math.nan
+
+
+@dataclass
+class EvalResult:
+    """Per-frame rows, pooled summary, and the files written."""
+
+    rows: list[dict[str, Any]]
+    summary: dict[str, Any]
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def _frame_row(frame: Frame, acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[str, Any]:
+    m_all = acc_all.update(frame.pred, frame.gt)
+    row: dict[str, Any] = {"frame_id": frame.frame_id}
+    row.update({k: m_all[k] for k in ("epe", "bad1", "bad2", "bad3")})
+    row["f1"] = m_all["bad3"]
+    row["d1_all"] = m_all["d1"]
+    row["density"] = m_all["density"]
+    row["n_valid"] = int(m_all["n_valid"])
+    if frame.gt_noc is not None:
+        m_noc = acc_noc.update(frame.pred, frame.gt_noc)
+        row.update(epe_noc=m_noc["epe"], bad3_noc=m_noc["bad3"], d1_noc=m_noc["d1"])
+    else:
+        row.update(epe_noc=math.nan, bad3_noc=math.nan, d1_noc=math.nan)
+    row["seconds"] = frame.seconds
+    return row
+
+
+def summarise(acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[str, Any]:
+    """Pooled summary dict with the keys of SUMMARY_KEYS plus frame/pixel counts."""
+    m_all, m_noc = acc_all.compute(), acc_noc.compute()
+    return {
+        "epe": m_all["epe"], "bad1": m_all["bad1"], "bad2": m_all["bad2"], "bad3": m_all["bad3"],
+        "f1": m_all["bad3"], "d1_all": m_all["d1"], "density": m_all["density"],
+        "epe_noc": m_noc["epe"], "bad3_noc": m_noc["bad3"], "d1_noc": m_noc["d1"],
+        "n_frames": acc_all.n_frames, "n_frames_noc": acc_noc.n_frames,
+        "n_valid": int(m_all["n_valid"]), "n_valid_noc": int(m_noc["n_valid"]),
+    }
+
+
+def _save_maps(out_dir: Path, frame: Frame) -> None:
+    from pvm_labeler.io import write_image
+    from pvm_labeler.viz import colorize_disparity, error_map
+
+    maps = out_dir / "maps"
+    maps.mkdir(parents=True, exist_ok=True)
+    vmax = float(np.nanmax(frame.gt)) if frame.gt is not None and np.isfinite(frame.gt).any() else None
+    write_image(maps / f"{frame.frame_id}_disp.png", colorize_disparity(frame.pred, max_disp=vmax))
+    if frame.gt is not None:
+        write_image(maps / f"{frame.frame_id}_error.png", error_map(frame.pred, frame.gt))
+
+
+def evaluate_frames(
+    frames: Iterable[Frame], out_dir: Path | None = None, *, save_maps: bool = False, meta: dict | None = None,
+    title: str = "Evaluation",
+) -> EvalResult:
+    """Measure every frame, pool the counts, and (with out_dir) write metrics.csv, summary.json, summary.md."""
+    acc_all, acc_noc = MetricAccumulator(), MetricAccumulator()
+    rows = []
+    for frame in frames:
+        if frame.gt is None or not np.isfinite(frame.gt).any():
+            logger.warning("frame %s has no ground truth; skipped", frame.frame_id)
+            continue
+        rows.append(_frame_row(frame, acc_all, acc_noc))
+        if out_dir is not None and save_maps:
+            _save_maps(Path(out_dir), frame)
+    if not rows:
+        raise ValueError("no frame with ground truth to evaluate (is this a testing split or a dataset without GT?)")
+    summary = {**summarise(acc_all, acc_noc), **(meta or {})}
+    result = EvalResult(rows=rows, summary=summary)
+    if out_dir is not None:
+        result.files = write_reports(result, Path(out_dir), title)
+    return result
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return "n/a" if math.isnan(value) else f"{value:.3f}"
+    return str(value)
+
+
+def write_reports(result: EvalResult, out_dir: Path, title: str) -> dict[str, Path]:
+    """metrics.csv (per frame), summary.json, summary.md; NaN is written as null / n/a."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files = {"csv": out_dir / "metrics.csv", "json": out_dir / "summary.json", "md": out_dir / "summary.md"}
+    with open(files["csv"], "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(result.rows[0]))
+        writer.writeheader()
+        writer.writerows(result.rows)
+    clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.summary.items()}
+    files["json"].write_text(json.dumps(clean, indent=2, default=str))
+    keys = [k for k in SUMMARY_KEYS if k in result.summary]
+    lines = [f"# {title}", "", f"{result.summary['n_frames']} frames; pixels pooled over frames. EPE in px, "
+             "the others in %; F1 = bad3 (> 3 px, the paper's definition); D1 = > 3 px and > 5 % (KITTI).", "",
+             "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys),
+             "| " + " | ".join(_fmt(result.summary[k]) for k in keys) + " |", "", "## Per frame", "",
+             "| frame | epe | bad3 | d1_all | d1_noc | density |", "|---|---|---|---|---|---|"]
+    for row in result.rows:
+        lines.append("| " + " | ".join(_fmt(row[k]) for k in ("frame_id", "epe", "bad3", "d1_all", "d1_noc",
+                                                              "density")) + " |")
+    files["md"].write_text("\n".join(lines) + "\n")
+    return files
+
+
+# -- sources of frames ---------------------------------------------------------------------------------------------
+def model_frames(
+    model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
+    device: torch.device | str = "cpu", limit: int | None = None,
+) -> Iterator[Frame]:
+    """Run the network over a dataset (pvm_labeler.datasets readers), yielding Frames with timings."""
+    from optstereo.predict import infer
+    from pvm_labeler.datasets import discover, load_pair
+
+    for ref in discover(dataset, root, split=split)[:limit]:
+        sample = load_pair(ref)
+        t0 = time.perf_counter()
+        pred = infer(model, sample.left, sample.right, iters=iters, device=device)
+        seconds = time.perf_counter() - t0
+        yield Frame(ref.frame_id, pred, sample.gt, sample.gt_noc, sample.left, seconds)
+
+
+def label_frames(labels_dir: Path, limit: int | None = None) -> Iterator[Frame]:
+    """The PVM labels (NaN = unlabelled) of every sample in a shard directory, with the shard's GT."""
+    from pvm_labeler.shards import open_shard, read_index, read_sample
+
+    index = read_index(Path(labels_dir))
+    count = 0
+    for path, ids in index.shards:
+        with open_shard(Path(path)) as h5:
+            for frame_id in ids:
+                if limit is not None and count >= limit:
+                    return
+                sample = read_sample(h5, frame_id)
+                count += 1
+                yield Frame(str(frame_id), sample.label, sample.gt, sample.gt_noc, sample.left)
+
+
+def evaluate_model(
+    model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
+    device: torch.device | str = "cpu", out_dir: Path | None = None, limit: int | None = None,
+    save_maps: bool = False, meta: dict | None = None,
+) -> EvalResult:
+    """Evaluate a network on a dataset's GT; summary also holds the mean seconds per frame."""
+    frames = list(model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit))
+    seconds = float(np.mean([f.seconds for f in frames])) if frames else math.nan
+    meta = {"source": "network", "dataset": dataset, "iters": iters, "seconds_per_frame": seconds, **(meta or {})}
+    return evaluate_frames(frames, out_dir, save_maps=save_maps, meta=meta,
+                           title=f"OptStereo on {dataset} ({len(frames)} frames)")
+
+
+def evaluate_labels(
+    labels_dir: Path, *, out_dir: Path | None = None, limit: int | None = None, save_maps: bool = False,
+) -> EvalResult:
+    """Evaluate a shard directory's own PVM labels against the GT stored in the shards (same ruler)."""
+    meta = {"source": "pvm_labels", "labels": str(labels_dir)}
+    return evaluate_frames(label_frames(labels_dir, limit), out_dir, save_maps=save_maps, meta=meta,
+                           title=f"PVM labels of {labels_dir}")

@@ -1,0 +1,150 @@
+"""Inference and disparity files in the field's formats: ``optstereo-predict``.
+
+Outputs per frame (``formats`` picks them): ``png`` KITTI 16-bit PNG (disparity x 256, 0 = invalid), ``pfm``
+(float32, Middlebury/Scene Flow), ``npy`` (float32), ``color`` (8-bit colour rendering for people). The KITTI form
+(``kitti_layout=True``) names files as the benchmark's submission expects: ``disp_0/<frame>_10.png``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+from optstereo.padding import InputPadder
+
+logger = logging.getLogger(__name__)
+
+FORMATS = ("png", "pfm", "npy", "color")
+DEFAULT_FORMATS = ("png", "color")
+
+
+def _to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor:
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) RGB image, got shape {image.shape}")
+    return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float()[None].to(device)
+
+
+@torch.inference_mode()
+def infer(
+    model: nn.Module,
+    left: npt.NDArray[np.uint8],
+    right: npt.NDArray[np.uint8],
+    iters: int | None = None,
+    device: torch.device | str = "cpu",
+) -> npt.NDArray[np.float32]:
+    """Full-resolution disparity of one pair.
+
+    Args:
+        model: OptStereo-like model (test_mode=True returns (low, full)).
+        left, right: (H, W, 3) uint8 RGB of equal shape (any H, W: padded to a multiple of 8 and un-padded).
+        iters: GRU iterations (None = the model's default).
+
+    Returns:
+        (H, W) float32 disparity in pixels (positive, left(x) matches right(x - d)).
+    """
+    if left.shape != right.shape:
+        raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
+    device = torch.device(device)
+    was_training = model.training
+    model.eval()
+    try:
+        left_t, right_t = _to_batch(left, device), _to_batch(right, device)
+        padder = InputPadder(left_t.shape, divis_by=8)
+        left_t, right_t = padder.pad(left_t, right_t)
+        _, full = model(left_t, right_t, iters=iters, test_mode=True)
+        disp = padder.unpad(full)[0, 0]
+    finally:
+        model.train(was_training)
+    return disp.float().cpu().numpy().astype(np.float32)
+
+
+def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
+    """(H, W, 3) uint8 colour rendering of a disparity map (NaN = black), via the labeler's viz module."""
+    try:
+        from pvm_labeler.viz import colorize_disparity
+    except ImportError:  # viz is optional for inference; fall back to OpenCV's turbo map
+        import cv2
+
+        finite = np.isfinite(disp)
+        vmax = max_disp or (float(disp[finite].max()) if finite.any() else 1.0)
+        grey = np.clip(np.nan_to_num(disp) / max(vmax, 1e-6) * 255.0, 0, 255).astype(np.uint8)
+        out = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)[..., ::-1].copy()
+        out[~finite] = 0
+        return out
+    return colorize_disparity(disp, max_disp=max_disp)
+
+
+def write_disparity(
+    out_dir: Path, name: str, disp: npt.NDArray[np.float32], formats: Iterable[str] = DEFAULT_FORMATS,
+    *, kitti_layout: bool = False, max_disp: float | None = None,
+) -> dict[str, Path]:
+    """Write one disparity map in the requested formats; returns format -> path.
+
+    With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
+    ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders.
+    """
+    from pvm_labeler.io import write_image, write_kitti_disp, write_pfm
+
+    formats = tuple(formats)
+    unknown = sorted(set(formats) - set(FORMATS))
+    if unknown:
+        raise ValueError(f"unknown output formats {unknown}; choose from {FORMATS}")
+    out_dir = Path(out_dir)
+    folders = {"png": "disp_0", "pfm": "pfm", "npy": "npy", "color": "color"} if kitti_layout else {}
+    paths: dict[str, Path] = {}
+    for fmt in formats:
+        folder = out_dir / folders.get(fmt, "")
+        folder.mkdir(parents=True, exist_ok=True)
+        if fmt == "png":
+            paths[fmt] = folder / f"{name}.png"
+            write_kitti_disp(paths[fmt], disp)
+        elif fmt == "pfm":
+            paths[fmt] = folder / f"{name}.pfm"
+            write_pfm(paths[fmt], disp.astype(np.float32))
+        elif fmt == "npy":
+            paths[fmt] = folder / f"{name}.npy"
+            np.save(paths[fmt], disp.astype(np.float32))
+        else:
+            paths[fmt] = folder / f"{name}_color.png"
+            write_image(paths[fmt], colorize(disp, max_disp))
+    return paths
+
+
+def predict_pair(
+    model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
+    formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
+) -> dict[str, Path]:
+    """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir."""
+    from pvm_labeler.io import read_image
+
+    left, right = read_image(left_path), read_image(right_path)
+    if left.shape != right.shape:
+        raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
+    t0 = time.perf_counter()
+    disp = infer(model, left, right, iters=iters, device=device)
+    logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
+    return write_disparity(out_dir, Path(left_path).stem, disp, formats)
+
+
+def predict_dataset(
+    model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
+    iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
+    limit: int | None = None,
+) -> list[dict[str, Path]]:
+    """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``."""
+    from pvm_labeler.datasets import discover, load_pair
+
+    refs = discover(dataset, root, split=split)[:limit]
+    written = []
+    for ref in refs:
+        sample = load_pair(ref)
+        disp = infer(model, sample.left, sample.right, iters=iters, device=device)
+        written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
+    return written

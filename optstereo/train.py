@@ -1,0 +1,382 @@
+"""Training of OptStereo from PVM shards: ``train_steps`` / ``evaluate`` / ``main(cfg)``.
+
+The loop (TV ``references/optical_flow/train.py`` split): build the model from the registry, stream the shards
+(``ShardStream``), Adam (paper: lr 1e-4) with an optional OneCycle schedule, gradient clipping, optional AMP on
+CUDA, DDP under torchrun. Logs: tqdm on stderr (rank 0, TTY only), ``RUN_DIR/metrics.jsonl``, TensorBoard scalars
+and a few disparity images when tensorboard is installed. Checkpoints are atomic (``optstereo.checkpoint``);
+``main(cfg, resume=True)`` continues at the saved step with the same schedule and the same data order.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import shutil
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from optstereo import distributed as ddp
+from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, save_checkpoint, unwrap
+from optstereo.data.stream import ShardStream
+from optstereo.data.transforms import TrainTransform, collate_min_size
+from optstereo.train_config import TrainConfig
+
+logger = logging.getLogger(__name__)
+
+METRICS_FILE = "metrics.jsonl"
+
+
+class NonFiniteLossError(RuntimeError):
+    """The loss became NaN/inf; the message names the step and the loss terms."""
+
+
+# -- building blocks ------------------------------------------------------------------------------------------------
+def build_model(cfg: TrainConfig) -> nn.Module:
+    """The registry model named by cfg.model with cfg.iters and cfg.model_overrides."""
+    from optstereo.models import build_model as registry_build
+
+    return registry_build(cfg.model, **{"iters": cfg.iters, **cfg.model_overrides})
+
+
+def build_loss(cfg: TrainConfig) -> nn.Module:
+    """PVStereoLoss with the run's weights (lambda_r/lambda_s already resolved for the supervision)."""
+    from optstereo.losses import PVStereoLoss
+
+    return PVStereoLoss(gamma=cfg.gamma, lambda_r=cfg.lambda_r, lambda_s=cfg.lambda_s)
+
+
+def build_optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Optimizer, Any | None]:
+    """Adam (lr from cfg) and, for schedule "onecycle", OneCycleLR over cfg.steps (linear, RAFT-Stereo style)."""
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if cfg.schedule == "constant":
+        return optimizer, None
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(
+        optimizer, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=cfg.pct_start,
+        cycle_momentum=False, anneal_strategy="linear",
+    )
+    return optimizer, scheduler
+
+
+def build_loader(cfg: TrainConfig, info: ddp.DistInfo, start_step: int = 0) -> DataLoader:
+    """Infinite DataLoader over the shard stream; skips the samples the first ``start_step`` batches used."""
+    if cfg.labels is None:
+        raise ValueError("--labels SHARDS_DIR is required for training")
+    stream = ShardStream(
+        cfg.labels,
+        supervision=cfg.supervision,
+        transform=TrainTransform(crop=cfg.crop, flip_swap_p=cfg.flip_swap_p, photometric=cfg.photometric),
+        seed=cfg.seed,
+        shuffle_size=cfg.shuffle_buffer,
+        max_disp=cfg.max_disp,
+        rank=info.rank,
+        world_size=info.world_size,
+        skip_batches=start_step,
+        batch_size=cfg.batch_size,
+    )
+    return DataLoader(
+        stream,
+        batch_size=cfg.batch_size,
+        num_workers=cfg.workers,
+        collate_fn=collate_min_size,
+        persistent_workers=False,
+        prefetch_factor=2 if cfg.workers > 0 else None,
+    )
+
+
+def autocast_context(cfg: TrainConfig, device: torch.device) -> contextlib.AbstractContextManager:
+    """torch.autocast for --amp bf16/fp16 on CUDA, a null context otherwise."""
+    if cfg.amp == "none" or device.type != "cuda":
+        return contextlib.nullcontext()
+    dtype = torch.bfloat16 if cfg.amp == "bf16" else torch.float16
+    return torch.autocast(device_type="cuda", dtype=dtype)
+
+
+# -- logging -------------------------------------------------------------------------------------------------------
+class RunLogger:
+    """JSONL metrics + optional TensorBoard, active on rank 0 only."""
+
+    def __init__(self, run_dir: Path, enabled: bool, tensorboard: bool) -> None:
+        self.enabled = enabled
+        self.path = Path(run_dir) / METRICS_FILE
+        self.tb = None
+        if enabled and tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+            except ImportError:
+                logger.warning("tensorboard is not installed; logging to %s only", self.path)
+            else:
+                self.tb = SummaryWriter(log_dir=str(Path(run_dir) / "tb"))
+
+    def scalars(self, step: int, values: dict[str, float]) -> None:
+        if not self.enabled:
+            return
+        with open(self.path, "a") as fh:
+            fh.write(json.dumps({"step": step, **values}) + "\n")
+        if self.tb is not None:
+            for key, value in values.items():
+                self.tb.add_scalar(f"train/{key}", value, step)
+
+    def images(self, step: int, images: dict[str, np.ndarray]) -> None:
+        """images: name -> (H, W, 3) uint8."""
+        if self.enabled and self.tb is not None:
+            for key, image in images.items():
+                self.tb.add_image(key, image, step, dataformats="HWC")
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()
+
+
+def disparity_images(left: torch.Tensor, pred: torch.Tensor, label: torch.Tensor, valid: torch.Tensor) -> dict:
+    """Colour pictures of the first sample of a batch: left image, prediction, label (for TensorBoard)."""
+    from pvm_labeler.viz import colorize_disparity
+
+    pred_np = pred[0, 0].detach().float().cpu().numpy()
+    label_np = np.where(valid[0, 0].cpu().numpy(), label[0, 0].cpu().numpy(), np.nan).astype(np.float32)
+    vmax = float(np.nanmax(label_np)) if np.isfinite(label_np).any() else float(pred_np.max())
+    return {
+        "images/left": left[0].permute(1, 2, 0).clamp(0, 255).byte().cpu().numpy(),
+        "images/prediction": colorize_disparity(pred_np, max_disp=vmax),
+        "images/label": colorize_disparity(label_np, max_disp=vmax),
+    }
+
+
+# -- the loop ------------------------------------------------------------------------------------------------------
+@dataclass
+class TrainState:
+    """Mutable state the loop advances; ``step`` counts completed optimiser steps."""
+
+    model: nn.Module
+    optimizer: torch.optim.Optimizer
+    scheduler: Any | None
+    scaler: torch.amp.GradScaler
+    step: int = 0
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def _check_finite(total: torch.Tensor, terms: dict[str, torch.Tensor], step: int, device: torch.device) -> None:
+    bad = torch.tensor([0.0 if torch.isfinite(total.detach()).item() else 1.0], device=device)
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.all_reduce(bad)  # every rank stops together instead of hanging in the next all-reduce
+    if bad.item() > 0:
+        values = {k: float(v.detach()) for k, v in terms.items()}
+        raise NonFiniteLossError(
+            f"non-finite loss at step {step + 1}: {values}; lower --lr, enable --clip-grad, or check the labels"
+        )
+
+
+def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainConfig, device: torch.device) -> dict:
+    """One optimiser step on one batch; returns float logs (loss terms, label EPE, lr, grad norm)."""
+    left, right, label, valid = (t.to(device, non_blocking=True) for t in batch[:4])
+    state.model.train()
+    with autocast_context(cfg, device):
+        preds = state.model(left, right, iters=cfg.iters)
+    preds = [p.float() for p in preds]
+    total, terms = loss_fn(preds, left, right, label, valid)
+    _check_finite(total, terms, state.step, device)
+    state.optimizer.zero_grad(set_to_none=True)
+    state.scaler.scale(total).backward()
+    state.scaler.unscale_(state.optimizer)
+    max_norm = cfg.clip_grad if cfg.clip_grad > 0 else float("inf")
+    grad_norm = torch.nn.utils.clip_grad_norm_(state.model.parameters(), max_norm)
+    state.scaler.step(state.optimizer)
+    state.scaler.update()
+    if state.scheduler is not None:
+        state.scheduler.step()
+    state.step += 1
+    with torch.no_grad():
+        err = (preds[-1] - label).abs()[valid]
+        label_epe = float(err.mean()) if err.numel() else float("nan")
+    logs = {k: float(v.detach()) for k, v in terms.items()}
+    logs.update(label_epe=label_epe, lr=state.optimizer.param_groups[0]["lr"], grad_norm=float(grad_norm))
+    return logs
+
+
+def train_steps(
+    state: TrainState,
+    batches: Iterator[tuple],
+    loss_fn: nn.Module,
+    cfg: TrainConfig,
+    device: torch.device,
+    *,
+    run_logger: RunLogger | None = None,
+    on_checkpoint: Any | None = None,
+    show_progress: bool = True,
+) -> TrainState:
+    """Run optimiser steps until ``state.step == cfg.steps`` (or the time budget), logging and checkpointing."""
+    start_time = time.perf_counter()
+    world = torch.distributed.get_world_size() if torch.distributed.is_initialized() else 1
+    bar = tqdm(total=cfg.steps, initial=state.step, desc="train", unit="step", dynamic_ncols=True,
+               disable=not (show_progress and sys.stderr.isatty()), file=sys.stderr)
+    window: list[dict[str, float]] = []
+    tick, tick_step = time.perf_counter(), state.step
+    try:
+        while state.step < cfg.steps:
+            batch = next(batches)
+            logs = train_step(state, batch, loss_fn, cfg, device)
+            window.append(logs)
+            bar.update(1)
+            if state.step % cfg.log_every == 0 or state.step == cfg.steps:
+                now = time.perf_counter()
+                mean = {k: float(np.nanmean([w[k] for w in window])) for k in window[0]}
+                mean = ddp.all_reduce_mean(mean, device)
+                mean["samples_per_s"] = (state.step - tick_step) * cfg.batch_size * world / max(now - tick, 1e-9)
+                mean["step_time_s"] = (now - tick) / max(state.step - tick_step, 1)
+                tick, tick_step, window = now, state.step, []
+                state.history.append({"step": state.step, **mean})
+                bar.set_postfix({k: f"{mean[k]:.3g}" for k in ("L_P", "L_R", "L_S", "samples_per_s") if k in mean})
+                if run_logger is not None:
+                    run_logger.scalars(state.step, mean)
+            if run_logger is not None and cfg.image_every and state.step % cfg.image_every == 0:
+                with torch.no_grad(), contextlib.suppress(ImportError):
+                    left, right, label, valid = (t.to(device) for t in batch[:4])
+                    _, pred = unwrap(state.model)(left[:1], right[:1], iters=cfg.iters, test_mode=True)
+                    run_logger.images(state.step, disparity_images(left, pred, label, valid))
+            if on_checkpoint is not None and (state.step % cfg.ckpt_every == 0):
+                on_checkpoint(state)
+            if cfg.max_minutes > 0 and _time_is_up(start_time, cfg.max_minutes, device):
+                logger.warning("stopping at step %d: --max-minutes %.1f reached", state.step, cfg.max_minutes)
+                break
+    finally:
+        bar.close()
+    return state
+
+
+def _time_is_up(start: float, max_minutes: float, device: torch.device) -> bool:
+    flag = torch.tensor([1.0 if time.perf_counter() - start > 60.0 * max_minutes else 0.0], device=device)
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.broadcast(flag, src=0)  # rank 0's clock decides so all ranks stop at the same step
+    return bool(flag.item() > 0)
+
+
+def evaluate(model: nn.Module, cfg: TrainConfig, device: torch.device, out_dir: Path | None = None) -> dict:
+    """Evaluate on cfg.val_dataset/cfg.val_root with the project's ruler (optstereo.evaluate); {} if unset."""
+    if not cfg.val_dataset:
+        return {}
+    from optstereo.evaluate import evaluate_model
+
+    result = evaluate_model(unwrap(model), cfg.val_dataset, cfg.val_root, iters=None, device=device,
+                            out_dir=out_dir, limit=cfg.val_limit or None)
+    return result.summary
+
+
+# -- checkpoints ---------------------------------------------------------------------------------------------------
+def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo):
+    """Callable(state) writing ckpt-<step>.pt and last.pt atomically on rank 0, keeping cfg.keep_ckpts files."""
+
+    def save(state: TrainState) -> None:
+        if not info.is_main:
+            return
+        numbered = run_dir / f"ckpt-{state.step:07d}.pt"
+        save_checkpoint(numbered, model=state.model, step=state.step, optimizer=state.optimizer,
+                        scheduler=state.scheduler, scaler=state.scaler, train_config=cfg.to_dict())
+        tmp = run_dir / (LAST + ".tmp")
+        shutil.copyfile(numbered, tmp)
+        tmp.replace(run_dir / LAST)
+        old = sorted(run_dir.glob("ckpt-*.pt"))[: -cfg.keep_ckpts] if cfg.keep_ckpts > 0 else []
+        for path in old:
+            path.unlink(missing_ok=True)
+        logger.info("checkpoint %s (step %d)", numbered, state.step)
+
+    return save
+
+
+def restore(state: TrainState, ckpt: LoadedCheckpoint) -> None:
+    """Load model/optimizer/scheduler/scaler/RNG state from a checkpoint into ``state``."""
+    unwrap(state.model).load_state_dict(ckpt.model_state)
+    if ckpt.optimizer is not None:
+        state.optimizer.load_state_dict(ckpt.optimizer)
+    if state.scheduler is not None and ckpt.scheduler is not None:
+        state.scheduler.load_state_dict(ckpt.scheduler)
+    if ckpt.scaler is not None and state.scaler.is_enabled():
+        state.scaler.load_state_dict(ckpt.scaler)
+    if ckpt.rng and "torch" in ckpt.rng:
+        torch.set_rng_state(ckpt.rng["torch"])
+    state.step = ckpt.step
+
+
+def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """The saved config of RUN_DIR's last checkpoint with ``overrides`` applied (e.g. more --steps, --workers)."""
+    ckpt = load_checkpoint(run_dir)
+    if not ckpt.train_config:
+        raise ValueError(f"checkpoint {ckpt.path} holds no training config; cannot resume from it")
+    cfg = TrainConfig.from_dict(ckpt.train_config)
+    return cfg.replace(**(overrides or {}), out=Path(run_dir))
+
+
+# -- entry point ---------------------------------------------------------------------------------------------------
+def main(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
+    """Train (or resume) a run; returns a summary dict (steps, final logs, checkpoint path, validation metrics).
+
+    With ``resume=True`` the run directory's last.pt is loaded and training continues at its step; pass the
+    config from ``config_for_resume`` so the schedule and data order are the original ones.
+    """
+    cfg = cfg.resolved()
+    if cfg.out is None:
+        raise ValueError("--out RUN_DIR is required")
+    run_dir = Path(cfg.out)
+    device = ddp.resolve_device(cfg.device, ddp.env_info().local_rank)
+    info = ddp.setup(device)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    if cfg.amp != "none" and device.type != "cuda":
+        logger.warning("--amp %s is ignored on %s (mixed precision is used on CUDA only)", cfg.amp, device)
+    try:
+        return _run(cfg, run_dir, device, info, resume)
+    finally:
+        ddp.cleanup()
+
+
+def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistInfo, resume: bool) -> dict:
+    ckpt = load_checkpoint(run_dir) if resume else None
+    if info.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        cfg.save(run_dir)
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg).to(device)
+    optimizer, scheduler = build_optimizer(model, cfg)
+    scaler = torch.amp.GradScaler(device.type, enabled=cfg.amp == "fp16" and device.type == "cuda")
+    state = TrainState(model=model, optimizer=optimizer, scheduler=scheduler, scaler=scaler)
+    if ckpt is not None:
+        restore(state, ckpt)
+        logger.info("resuming %s at step %d of %d", run_dir, state.step, cfg.steps)
+    state.model = ddp.wrap_model(model, device, info)
+    loss_fn = build_loss(cfg).to(device)
+    run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard)
+    save = checkpoint_saver(run_dir, cfg, info)
+    start_step, t0 = state.step, time.perf_counter()
+    try:
+        if state.step < cfg.steps:
+            loader = build_loader(cfg, info, start_step=state.step)
+            train_steps(state, iter(loader), loss_fn, cfg, device, run_logger=run_logger, on_checkpoint=save)
+            if state.step % cfg.ckpt_every != 0:
+                save(state)
+        elapsed = time.perf_counter() - t0
+        summary: dict[str, Any] = {
+            "run_dir": str(run_dir), "start_step": start_step, "step": state.step, "seconds": elapsed,
+            "last": state.history[-1] if state.history else {}, "checkpoint": str(run_dir / LAST),
+            "world_size": info.world_size, "param_checksum": ddp.param_checksum(unwrap(state.model)),
+        }
+        if info.is_main:
+            export_safetensors(run_dir / "model.safetensors", state.model, step=state.step)
+            val = evaluate(state.model, cfg, device, out_dir=run_dir / "val")
+            if val:
+                summary["val"] = val
+                run_logger.scalars(state.step, {f"val_{k}": v for k, v in val.items() if isinstance(v, float)})
+            (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+        ddp.barrier()
+        return summary
+    finally:
+        run_logger.close()
+
