@@ -12,6 +12,11 @@ from typing import Any
 
 from pvm_labeler.errors import ConfigError
 
+#: How the label of a kept pixel is formed from its K scale disparities (see pvm_labeler.multiscale.vote).
+LABEL_MODES: tuple[str, ...] = ("finest", "median", "mean", "weighted")
+#: Interpolation that brings each scale's disparity and c back to full resolution.
+UPSAMPLE_MODES: tuple[str, ...] = ("linear", "nearest")
+
 
 @dataclass(frozen=True)
 class LabelerConfig:
@@ -29,6 +34,9 @@ class LabelerConfig:
         p1: SGM penalty for |d - d'| == 1.
         p2: SGM penalty for |d - d'| > 1 (upper bound when p2_adaptive).
         p2_adaptive: divide P2 by the image gradient along the path (Hirschmueller 2008, eq. 13-like).
+        label_mode: label of a kept pixel from its K scale disparities: "finest" (D^1, the paper), "median",
+            "mean" or "weighted" (1 / factor_k**2 weights).
+        upsample: interpolation of each scale's disparity/c back to full resolution: "linear" or "nearest".
         extra: free-form extra settings recorded with the run (JSON-serialisable).
     """
 
@@ -43,6 +51,8 @@ class LabelerConfig:
     p1: int = 8
     p2: int = 64
     p2_adaptive: bool = False
+    label_mode: str = "finest"
+    upsample: str = "linear"
     extra: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> LabelerConfig:
@@ -61,6 +71,10 @@ class LabelerConfig:
             raise ConfigError(f"paths must be 4 or 8, got {self.paths}")
         if not 0 <= self.p1 <= self.p2:
             raise ConfigError(f"SGM penalties need 0 <= p1 <= p2, got p1={self.p1}, p2={self.p2}")
+        if self.label_mode not in LABEL_MODES:
+            raise ConfigError(f"label_mode must be one of {LABEL_MODES}, got {self.label_mode!r}")
+        if self.upsample not in UPSAMPLE_MODES:
+            raise ConfigError(f"upsample must be one of {UPSAMPLE_MODES}, got {self.upsample!r}")
         return self
 
     def to_dict(self) -> dict[str, Any]:

@@ -1,0 +1,339 @@
+"""Pyramid Voting Module: per-scale SGM for both views, variance voting and LRDCC -> semi-dense labels.
+
+Pipeline of :func:`label_pair` (Wang et al., "PVStereo", Section III-A):
+
+1. **Pyramid.** Scale k = 1..K uses the nominal factor ``k + eps_k`` with ``eps_k ~ U(-1, 1)``, ``eps_1 = 0``, drawn
+   by :func:`draw_eps` from a generator seeded by (global seed, CRC32 of the frame id), so a frame's labels do not
+   depend on worker order. Sizes are rounded (``w_k = round(W / f)``), so the TRUE horizontal factor ``W / w_k`` is
+   what scales disparities. Downsampling uses ``cv2.INTER_AREA`` (a box filter over the exact source footprint):
+   it anti-aliases, so the census transform at coarse scales sees a faithful low-pass image rather than aliased
+   texture.
+2. **Per-scale SGM**, left and right views from one cost volume (``pvm_labeler.sgm.sgm_pair``), search range
+   ``ceil(max_disp / factor)``.
+3. **Upsampling** of each scale's disparity (multiplied by the true factor) and normalized inverse cost c to full
+   resolution with BILINEAR interpolation (``cv2.INTER_LINEAR``, pixel-centre aligned like INTER_AREA). Bilinear
+   keeps slanted surfaces (roads) planar across scales; nearest neighbour produces staircases of up to ``factor``
+   pixels whose std over scales exceeds kappa1, which loses about a quarter of the labels (see docs/pvm.md). A NaN
+   poisons every output pixel whose 2x2 footprint touches it, which is the conservative choice for voting.
+4. **Voting** (``kernels/vote.py``): C1 = std_k D^k, C2 = std_k c^k, keep iff C1 < kappa1, C2 < kappa2 and every
+   scale is valid. Done for the left and the right view.
+5. **LRDCC** (``kernels/lrcheck.py``) between the voted left and right maps (rounded look-up, ``cfg.lr_threshold``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+import zlib
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from pvm_labeler.config import LabelerConfig
+from pvm_labeler.errors import ConfigError, InputError
+from pvm_labeler.kernels.lrcheck import lr_check_kernel
+from pvm_labeler.kernels.vote import LABEL_MEDIAN, LABEL_WEIGHTED, vote_kernel
+
+logger = logging.getLogger(__name__)
+
+_UPSAMPLE_FLAGS = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST}
+
+
+@dataclass
+class LabelResult:
+    """Output of :func:`label_pair`.
+
+    Attributes:
+        label: (H, W) float32 left-view semi-dense label, NaN = no label.
+        label_right: (H, W) float32 right-view consistent label (right(x) matches left(x + d)), NaN = no label.
+        confidence: (H, W) float32 in [0, 1], ``mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / kappa2)`` on labelled
+            pixels, 0 where there is no label.
+        eps: (K,) float64 eps_k per scale (eps_1 = 0).
+        factors: (K,) float64 true horizontal downsampling factor ``W / w_k`` per scale (after rounding sizes).
+        timings: seconds per stage: "pyramid", "sgm", "upsample", "vote", "lrcheck", "total".
+        intermediates: on request: "disp_l", "conf_l", "disp_r", "conf_r" (K, H, W) float32 full-resolution scale
+            maps; "C1", "C2", "C1_right", "C2_right" (H, W) float32; "V" (H, W) uint8 vote count (2 where some scale
+            is invalid); "voted", "voted_right" (H, W) float32 maps before the LR check.
+    """
+
+    label: npt.NDArray[np.float32]
+    label_right: npt.NDArray[np.float32]
+    confidence: npt.NDArray[np.float32]
+    eps: npt.NDArray[np.float64]
+    factors: npt.NDArray[np.float64]
+    timings: dict[str, float] = field(default_factory=dict)
+    intermediates: dict[str, np.ndarray] | None = None
+
+
+@dataclass
+class ScaleStack:
+    """Per-scale SGM outputs of both views brought to full resolution (the expensive, kappa-independent part).
+
+    Attributes:
+        disp_l, conf_l, disp_r, conf_r: (K, H, W) float32, NaN = invalid.
+        eps: (K,) float64.
+        factors: (K,) float64 true horizontal factors.
+        timings: seconds for "pyramid", "sgm", "upsample".
+    """
+
+    disp_l: npt.NDArray[np.float32]
+    conf_l: npt.NDArray[np.float32]
+    disp_r: npt.NDArray[np.float32]
+    conf_r: npt.NDArray[np.float32]
+    eps: npt.NDArray[np.float64]
+    factors: npt.NDArray[np.float64]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def draw_eps(seed: int, frame_id: str, k: int) -> npt.NDArray[np.float64]:
+    """Scale jitter eps_k ~ U(-1, 1) for k = 2..K (eps_1 = 0), reproducible per (seed, frame id).
+
+    The generator is seeded with ``[seed mod 2**64, crc32(frame_id)]``: CRC32 is stable across processes, unlike
+    Python's salted ``hash()``, so any worker labels a frame identically.
+
+    Returns:
+        (K,) float64.
+    """
+    if k < 1:
+        raise ConfigError(f"k must be >= 1, got {k}")
+    key = zlib.crc32(str(frame_id).encode("utf-8"))
+    gen = np.random.default_rng([int(seed) % 2**64, key])
+    eps = gen.uniform(-1.0, 1.0, size=k)
+    eps[0] = 0.0
+    return eps
+
+
+def scale_geometry(height: int, width: int, eps: np.ndarray, max_disp: int) -> list[tuple[int, int, float, int]]:
+    """Rounded size, true horizontal factor and search range of every scale.
+
+    Returns:
+        One ``(h_k, w_k, factor_k, max_disp_k)`` per scale: ``w_k = round(W / (k + eps_k))`` (>= 1),
+        ``factor_k = W / w_k`` and ``max_disp_k = ceil(max_disp / factor_k)``.
+    """
+    out = []
+    for idx, e in enumerate(eps):
+        nominal = (idx + 1) + float(e)
+        h_k = max(1, int(round(height / nominal)))
+        w_k = max(1, int(round(width / nominal)))
+        factor = width / w_k
+        # The 1e-9 guards against ceil(12.000000001) = 13 from float noise when the ratio is an integer.
+        d_k = max(1, math.ceil(max_disp / factor - 1e-9))
+        out.append((h_k, w_k, factor, d_k))
+    return out
+
+
+def _to_grey(image: np.ndarray, name: str) -> np.ndarray:
+    if not isinstance(image, np.ndarray):
+        raise InputError(f"{name} must be a numpy array, got {type(image).__name__}")
+    if image.dtype != np.uint8:
+        raise InputError(f"{name} must be uint8, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+    if image.ndim == 2:
+        return np.ascontiguousarray(image)
+    raise InputError(f"{name} must be (H, W, 3) RGB or (H, W) grey uint8, got shape {image.shape}")
+
+
+def _check_sizes(height: int, width: int, geometry: list[tuple[int, int, float, int]], cfg: LabelerConfig) -> None:
+    """Every scale must be wider than its search range plus the census window, and taller than the window."""
+    margin = cfg.census_window
+    for idx, (h_k, w_k, factor, d_k) in enumerate(geometry):
+        if w_k <= d_k + margin or h_k <= margin:
+            # Worst case over eps is factor K + 1; this width always works for the given K and max_disp.
+            need_w = math.ceil((cfg.k + 1) * (margin + 2)) + cfg.max_disp
+            raise InputError(
+                f"image {width}x{height} too small for k={cfg.k} and max_disp={cfg.max_disp}: scale {idx + 1} "
+                f"(factor {factor:.2f}) is {w_k}x{h_k} px with a search range of {d_k} px; every scale needs "
+                f"width > search range + census window ({margin}) and height > {margin}. Use a width >= {need_w} "
+                f"and height >= {(cfg.k + 1) * (margin + 1)}, or lower k / max_disp."
+            )
+
+
+def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str) -> ScaleStack:
+    """Run the pyramid, per-scale SGM (both views) and the upsampling to full resolution.
+
+    Args:
+        left, right: (H, W, 3) uint8 RGB or (H, W) uint8 grey, same shape.
+        cfg: labeler config (k, max_disp, seed, SGM settings, upsample).
+        frame_id: stable frame name; seeds eps together with cfg.seed.
+
+    Returns:
+        ScaleStack with (K, H, W) float32 maps of both views.
+
+    Raises:
+        InputError: wrong dtype/shape, different sizes, or an image too small for K and max_disp.
+        ConfigError: invalid config values.
+    """
+    from pvm_labeler.sgm import sgm_pair  # noqa: PLC0415  (keeps this module importable for kernel-only use)
+
+    cfg = _validated(cfg)
+    t0 = time.perf_counter()
+    grey_l = _to_grey(left, "left")
+    grey_r = _to_grey(right, "right")
+    if grey_l.shape != grey_r.shape:
+        raise InputError(f"left/right sizes differ: {grey_l.shape} vs {grey_r.shape} for frame {frame_id}")
+    height, width = grey_l.shape
+    if cfg.max_disp >= width:
+        raise InputError(f"max_disp={cfg.max_disp} must be smaller than the image width {width} (frame {frame_id})")
+    eps = draw_eps(cfg.seed, frame_id, cfg.k)
+    geometry = scale_geometry(height, width, eps, cfg.max_disp)
+    _check_sizes(height, width, geometry, cfg)
+    pyramid = []
+    for h_k, w_k, _, _ in geometry:
+        if (h_k, w_k) == (height, width):
+            pyramid.append((grey_l, grey_r))
+        else:
+            pyramid.append((cv2.resize(grey_l, (w_k, h_k), interpolation=cv2.INTER_AREA),
+                            cv2.resize(grey_r, (w_k, h_k), interpolation=cv2.INTER_AREA)))
+    timings = {"pyramid": time.perf_counter() - t0, "sgm": 0.0, "upsample": 0.0}
+
+    n = cfg.k
+    stacks = {name: np.empty((n, height, width), dtype=np.float32) for name in ("disp_l", "conf_l", "disp_r", "conf_r")}
+    interp = _UPSAMPLE_FLAGS[cfg.upsample]
+    for idx, ((img_l, img_r), (_, _, factor, d_k)) in enumerate(zip(pyramid, geometry, strict=True)):
+        t1 = time.perf_counter()
+        res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True)
+        t2 = time.perf_counter()
+        timings["sgm"] += t2 - t1
+        for name, res in (("l", res_l), ("r", res_r)):
+            stacks[f"disp_{name}"][idx] = _upsample(res.disp, height, width, interp, factor)
+            stacks[f"conf_{name}"][idx] = _upsample(res.conf, height, width, interp, 1.0)
+        timings["upsample"] += time.perf_counter() - t2
+    return ScaleStack(eps=eps, factors=np.array([g[2] for g in geometry]), timings=timings, **stacks)
+
+
+def _upsample(values: np.ndarray, height: int, width: int, interp: int, scale: float) -> np.ndarray:
+    """(h, w) float32 -> (H, W) float32 times ``scale``; identity (copy-free) at full resolution."""
+    if values.shape == (height, width):
+        return values
+    out = cv2.resize(np.ascontiguousarray(values, dtype=np.float32), (width, height), interpolation=interp)
+    if scale != 1.0:
+        out *= np.float32(scale)
+    return out
+
+
+def vote(
+    disp: np.ndarray, conf: np.ndarray, cfg: LabelerConfig, factors: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Variance voting over the scales (wrapper of ``kernels.vote.vote_kernel``).
+
+    Args:
+        disp: (K, H, W) float32 full-resolution disparities (NaN = invalid).
+        conf: (K, H, W) float32 full-resolution c maps (NaN = invalid).
+        cfg: uses kappa1, kappa2, label_mode.
+        factors: (K,) true factors, needed for label_mode "weighted" (weights 1 / factor_k**2: the disparity
+            quantisation noise of scale k grows with its factor).
+
+    Returns:
+        label (H, W) float32 (NaN = rejected), confidence (H, W) float32 (0 = rejected), C1, C2 (H, W) float32.
+    """
+    if disp.ndim != 3 or disp.shape != conf.shape:
+        raise InputError(f"disp/conf must be (K, H, W) of equal shape, got {disp.shape} and {conf.shape}")
+    n = disp.shape[0]
+    weights = np.zeros(n, dtype=np.float64)
+    mode = LABEL_WEIGHTED
+    if cfg.label_mode == "finest":
+        weights[0] = 1.0
+    elif cfg.label_mode == "mean":
+        weights[:] = 1.0
+    elif cfg.label_mode == "weighted":
+        if factors is None or len(factors) != n:
+            raise InputError(f"label_mode 'weighted' needs {n} scale factors, got {factors}")
+        weights[:] = 1.0 / np.asarray(factors, dtype=np.float64) ** 2
+    else:
+        mode = LABEL_MEDIAN
+    disp = np.ascontiguousarray(disp, dtype=np.float32)
+    conf = np.ascontiguousarray(conf, dtype=np.float32)
+    shape = disp.shape[1:]
+    label = np.empty(shape, np.float32)
+    confidence = np.empty(shape, np.float32)
+    c1 = np.empty(shape, np.float32)
+    c2 = np.empty(shape, np.float32)
+    vote_kernel(disp, conf, float(cfg.kappa1), float(cfg.kappa2), mode, weights, label, confidence, c1, c2)
+    return label, confidence, c1, c2
+
+
+def lr_check(disp_l: np.ndarray, disp_r: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """LRDCC of a left and a right disparity map (wrapper of ``kernels.lrcheck.lr_check_kernel``).
+
+    Args:
+        disp_l: (H, W) float32 left disparity (left(x) matches right(x - d)), NaN = none.
+        disp_r: (H, W) float32 right disparity (right(x) matches left(x + d)), NaN = none.
+        threshold: pixels, >= 0.
+
+    Returns:
+        (left, right) (H, W) float32 with pixels failing the check set to NaN.
+    """
+    if disp_l.ndim != 2 or disp_l.shape != disp_r.shape:
+        raise InputError(f"left/right disparities must be (H, W) of equal shape, got {disp_l.shape}, {disp_r.shape}")
+    if not threshold >= 0:
+        raise InputError(f"LR threshold must be >= 0 px, got {threshold}")
+    disp_l = np.ascontiguousarray(disp_l, dtype=np.float32)
+    disp_r = np.ascontiguousarray(disp_r, dtype=np.float32)
+    out_l = np.empty_like(disp_l)
+    out_r = np.empty_like(disp_r)
+    lr_check_kernel(disp_l, disp_r, float(threshold), out_l, out_r)
+    return out_l, out_r
+
+
+def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediates: bool = False) -> LabelResult:
+    """Voting (both views) and LRDCC on precomputed scale maps; cheap, so kappa sweeps reuse one ScaleStack."""
+    cfg = _validated(cfg)
+    if stack.disp_l.shape[0] != cfg.k:
+        raise ConfigError(f"scale stack has {stack.disp_l.shape[0]} scales but cfg.k={cfg.k}")
+    t0 = time.perf_counter()
+    voted_l, conf_l, c1_l, c2_l = vote(stack.disp_l, stack.conf_l, cfg, stack.factors)
+    voted_r, _, c1_r, c2_r = vote(stack.disp_r, stack.conf_r, cfg, stack.factors)
+    t1 = time.perf_counter()
+    label, label_right = lr_check(voted_l, voted_r, cfg.lr_threshold)
+    confidence = np.where(np.isfinite(label), conf_l, np.float32(0.0)).astype(np.float32)
+    t2 = time.perf_counter()
+    timings = dict(stack.timings)
+    timings.update(vote=t1 - t0, lrcheck=t2 - t1)
+    intermediates = None
+    if return_intermediates:
+        with np.errstate(invalid="ignore"):
+            votes = (c1_l >= cfg.kappa1).astype(np.uint8) + (c2_l >= cfg.kappa2).astype(np.uint8)
+        votes[~np.isfinite(c1_l)] = 2
+        intermediates = {
+            "disp_l": stack.disp_l, "conf_l": stack.conf_l, "disp_r": stack.disp_r, "conf_r": stack.conf_r,
+            "C1": c1_l, "C2": c2_l, "C1_right": c1_r, "C2_right": c2_r, "V": votes,
+            "voted": voted_l, "voted_right": voted_r,
+        }
+    return LabelResult(label=label, label_right=label_right, confidence=confidence, eps=stack.eps,
+                       factors=stack.factors, timings=timings, intermediates=intermediates)
+
+
+def label_pair(
+    left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str, return_intermediates: bool = False
+) -> LabelResult:
+    """PVM pseudo-label of one rectified stereo pair.
+
+    Args:
+        left, right: (H, W, 3) uint8 RGB or (H, W) uint8 grey, same shape.
+        cfg: labeler config; defaults are the values measured best on KITTI 2015 (docs/pvm.md).
+        frame_id: stable frame name (with cfg.seed it fixes the pyramid jitter eps).
+        return_intermediates: also return per-scale maps and C1/C2/V (memory: 4 x K x H x W float32).
+
+    Returns:
+        LabelResult (label, label_right, confidence, eps, factors, timings, intermediates).
+
+    Raises:
+        InputError: bad dtype/shape, mismatched sizes, image too small for K and max_disp.
+        ConfigError: invalid config values.
+    """
+    t0 = time.perf_counter()
+    stack = compute_scales(left, right, cfg, frame_id)
+    result = label_from_scales(stack, cfg, return_intermediates)
+    result.timings["total"] = time.perf_counter() - t0
+    logger.debug("frame %s: %s", frame_id, {k: round(v, 4) for k, v in result.timings.items()})
+    return result
+
+
+def _validated(cfg: LabelerConfig) -> LabelerConfig:
+    if not isinstance(cfg, LabelerConfig):
+        raise ConfigError(f"cfg must be a LabelerConfig, got {type(cfg).__name__}")
+    return cfg.validate()
