@@ -93,15 +93,16 @@ class OptStereo(nn.Module):
         hidden = self.hidden_init(feat_left)
         static = self.update_block.precompute(feat_left)
         b, _, h8, w8 = feat_left.shape
-        disp = torch.zeros(b, 1, h8, w8, device=left.device, dtype=feat_left.dtype)  # D_s^0 = 0
+        # D_s is accumulated in float32 even under autocast: bf16 has ~3 significant digits.
+        disp = torch.zeros(b, 1, h8, w8, device=left.device, dtype=torch.float32)  # D_s^0 = 0
 
         preds: list[torch.Tensor] = []
         for k in range(iters):
             # Detached before the lookup as in RAFT: the gradient of D^k flows through Delta D^k only.
             disp = disp.detach()
-            corr = self.corr_block.lookup(pyramid, disp).to(feat_left.dtype)
-            hidden = self.update_block(hidden, torch.cat([disp, corr], dim=1), static)
-            disp = disp + self.disp_head(hidden)
+            corr = self.corr_block.lookup(pyramid, disp)
+            hidden = self.update_block(hidden, torch.cat([disp, corr], dim=1).to(hidden.dtype), static)
+            disp = disp + self.disp_head(hidden).float()
             if test_mode and k < iters - 1:
                 continue
             preds.append(self.upsampler(disp, hidden, image_left))

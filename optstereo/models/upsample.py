@@ -39,8 +39,8 @@ class ConvUpsampler(nn.Module):
 
     def forward(self, disp_low: torch.Tensor, hidden: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
         up = upsample_disp(disp_low, self.factor)
-        x = torch.cat([up / self.factor, image.to(up.dtype)], dim=1)
-        return up + self.conv2(self.relu(self.conv1(x)))
+        x = torch.cat([up / self.factor, image.to(up.dtype)], dim=1).to(self.conv1.weight.dtype)
+        return up + self.conv2(self.relu(self.conv1(x))).float()
 
 
 class ConvexUpsampler(nn.Module):
@@ -63,7 +63,7 @@ class ConvexUpsampler(nn.Module):
         b, _, h, w = disp_low.shape
         f = self.factor
         # 0.25 scaling of the mask logits as in RAFT (balances the gradients of the mask head).
-        mask = (0.25 * self.mask(hidden)).view(b, 1, 9, f, f, h, w).softmax(dim=2)
+        mask = (0.25 * self.mask(hidden)).float().view(b, 1, 9, f, f, h, w).softmax(dim=2)
         neigh = F.unfold(f * disp_low, kernel_size=3, padding=1).view(b, 1, 9, 1, 1, h, w)
         up = (mask * neigh).sum(dim=2)  # (B, 1, f, f, h, w)
-        return up.permute(0, 1, 4, 2, 5, 3).reshape(b, 1, f * h, f * w)
+        return up.permute(0, 1, 4, 2, 5, 3).reshape(b, 1, f * h, f * w).float()
