@@ -414,8 +414,8 @@ def open_shard(path: Path | str) -> h5py.File:
     except OSError as exc:
         raise ShardError(f"corrupt or truncated shard {path}: {exc}") from exc
     try:
-        name = h5.attrs.get("schema_name")
-        version = h5.attrs.get("schema_version")
+        name = _decode_attr(h5.attrs.get("schema_name"))
+        version = _decode_attr(h5.attrs.get("schema_version"))
     except (OSError, KeyError) as exc:
         h5.close()
         raise ShardError(f"corrupt shard {path}: cannot read root attributes ({exc})") from exc

@@ -1,0 +1,85 @@
+"""The metrics ruler: hand-computed values, pooling exactness, NaN conventions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pvm_labeler.errors import InputError
+from pvm_labeler.metrics import MetricAccumulator, disparity_metrics
+
+NAN = np.nan
+
+
+class TestDisparityMetrics:
+    def test_feature_hand_computed(self) -> None:
+        gt = np.array([[10.0, 10.0, 10.0, 100.0], [NAN, 50.0, 20.0, 2.0]], np.float32)
+        pred = np.array([[10.5, 11.5, 12.5, 104.0], [5.0, NAN, 20.0, 6.0]], np.float32)
+        # GT-valid: 7 px; covered: 6 (gt 50 has no prediction). errors: 0.5 1.5 2.5 4 0 4
+        m = disparity_metrics(pred, gt)
+        assert m["n_valid"] == 7 and m["n_covered"] == 6
+        assert m["density"] == pytest.approx(100 * 6 / 7)
+        assert m["epe"] == pytest.approx(12.5 / 6)
+        assert m["bad1"] == pytest.approx(100 * 4 / 6)  # 1.5 2.5 4 4
+        assert m["bad2"] == pytest.approx(100 * 3 / 6)  # 2.5 4 4
+        assert m["bad3"] == pytest.approx(100 * 2 / 6)  # 4 4
+        # D1: err > 3 AND err > 5 % gt: (4 vs 100 -> 4 <= 5, not an outlier), (4 vs 2 -> outlier)
+        assert m["d1"] == pytest.approx(100 * 1 / 6)
+
+    def test_threshold_is_strict(self) -> None:
+        gt = np.zeros((1, 3), np.float32) + 10
+        pred = gt + np.array([[1.0, 2.0, 3.0]], np.float32)
+        m = disparity_metrics(pred, gt)
+        assert m["bad1"] == pytest.approx(100 * 2 / 3) and m["bad3"] == 0.0
+
+    def test_valid_mask(self) -> None:
+        gt = np.full((2, 2), 10.0, np.float32)
+        pred = np.array([[10.0, 20.0], [10.0, 10.0]], np.float32)
+        m = disparity_metrics(pred, gt, valid=np.array([[True, False], [True, True]]))
+        assert m["n_valid"] == 3 and m["bad3"] == 0.0 and m["epe"] == 0.0
+
+    def test_empty_is_nan(self) -> None:
+        gt = np.full((2, 2), NAN, np.float32)
+        m = disparity_metrics(np.zeros((2, 2), np.float32), gt)
+        assert m["n_valid"] == 0 and math.isnan(m["density"]) and math.isnan(m["epe"])
+        m = disparity_metrics(np.full((2, 2), NAN, np.float32), np.ones((2, 2), np.float32))
+        assert m["density"] == 0.0 and math.isnan(m["bad3"])
+
+    def test_inf_prediction_not_covered(self) -> None:
+        m = disparity_metrics(np.array([[np.inf, 1.0]]), np.array([[1.0, 1.0]]))
+        assert m["density"] == 50.0
+
+    def test_exception(self) -> None:
+        with pytest.raises(InputError, match=r"\(2, 3\) differs from GT shape \(2, 2\)"):
+            disparity_metrics(np.zeros((2, 3)), np.zeros((2, 2)))
+        with pytest.raises(InputError, match="valid mask shape"):
+            disparity_metrics(np.zeros((2, 2)), np.zeros((2, 2)), valid=np.zeros((1, 2), bool))
+
+
+class TestAccumulator:
+    def test_pooled_equals_concatenation(self, rng: np.random.Generator) -> None:
+        frames = []
+        for shape in ((5, 7), (9, 3), (4, 4)):
+            gt = rng.uniform(1, 60, shape)
+            gt[rng.random(shape) < 0.3] = NAN
+            pred = gt + rng.normal(0, 3, shape)
+            pred[rng.random(shape) < 0.2] = NAN
+            frames.append((pred, gt))
+        acc = MetricAccumulator()
+        for pred, gt in frames:
+            acc.update(pred, gt)
+        flat_pred = np.concatenate([p.ravel() for p, _ in frames])[None]
+        flat_gt = np.concatenate([g.ravel() for _, g in frames])[None]
+        pooled, direct = acc.compute(), disparity_metrics(flat_pred, flat_gt)
+        for key in direct:
+            assert pooled[key] == pytest.approx(direct[key], rel=1e-12)
+        assert acc.n_frames == 3
+
+    def test_merge(self) -> None:
+        a, b = MetricAccumulator(), MetricAccumulator()
+        a.update(np.array([[1.0]]), np.array([[5.0]]))
+        b.update(np.array([[5.0]]), np.array([[5.0]]))
+        merged = MetricAccumulator().merge(a).merge(b).compute()
+        assert merged["epe"] == 2.0 and merged["bad3"] == 50.0 and merged["n_covered"] == 2
