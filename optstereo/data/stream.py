@@ -80,7 +80,8 @@ class ShardStream(IterableDataset):
         rank, world_size: DDP position; None = read from torch.distributed when initialised, else (0, 1).
         infinite: loop over epochs forever (training); False = one epoch.
         with_ids: append the frame id to every yielded tuple.
-        skip_batches, batch_size: skip what the first ``skip_batches`` batches consumed (resume).
+        skip_batches, batch_size: skip what the first ``skip_batches`` batches consumed (resume); worker roles
+            are rotated so batch ``skip_batches`` comes from the worker that would have made it.
     """
 
     def __init__(
@@ -183,6 +184,9 @@ class ShardStream(IterableDataset):
     def __iter__(self) -> Iterator[tuple]:
         info = get_worker_info()
         worker_id, num_workers = (0, 1) if info is None else (info.id, info.num_workers)
+        # The DataLoader asks worker 0 for the first batch of every run, but after ``skip_batches`` batches the
+        # uninterrupted run would ask worker (skip_batches mod N) next: rotate the roles so both runs agree.
+        worker_id = (worker_id + self.skip_batches) % num_workers
         rank, world_size = self._dist()
         global_worker, num_global = rank * num_workers + worker_id, world_size * num_workers
         skip = skip_count(self.skip_batches, self.batch_size, worker_id, num_workers)
