@@ -77,6 +77,8 @@ class ScaleStack:
         eps: (K,) float64.
         factors: (K,) float64 true horizontal factors.
         timings: seconds for "pyramid", "sgm", "upsample".
+        full_res: the finest scale's raw SGM maps "disp_l", "disp_r", "uniqueness_l" (H, W) float32, used by
+            the SGM + LR (+ uniqueness) baselines in pvm_labeler.baselines.
     """
 
     disp_l: npt.NDArray[np.float32]
@@ -86,6 +88,7 @@ class ScaleStack:
     eps: npt.NDArray[np.float64]
     factors: npt.NDArray[np.float64]
     timings: dict[str, float] = field(default_factory=dict)
+    full_res: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def draw_eps(seed: int, frame_id: str, k: int) -> npt.NDArray[np.float64]:
@@ -198,11 +201,14 @@ def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, fram
         res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True)
         t2 = time.perf_counter()
         timings["sgm"] += t2 - t1
+        if idx == 0:  # eps_1 = 0: the finest scale is the full-resolution SGM
+            full_res = {"disp_l": res_l.disp, "disp_r": res_r.disp, "uniqueness_l": res_l.uniqueness}
         for name, res in (("l", res_l), ("r", res_r)):
             stacks[f"disp_{name}"][idx] = _upsample(res.disp, height, width, interp, factor)
             stacks[f"conf_{name}"][idx] = _upsample(res.conf, height, width, interp, 1.0)
         timings["upsample"] += time.perf_counter() - t2
-    return ScaleStack(eps=eps, factors=np.array([g[2] for g in geometry]), timings=timings, **stacks)
+    return ScaleStack(eps=eps, factors=np.array([g[2] for g in geometry]), timings=timings, full_res=full_res,
+                      **stacks)
 
 
 def _upsample(values: np.ndarray, height: int, width: int, interp: int, scale: float) -> np.ndarray:

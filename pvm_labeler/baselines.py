@@ -1,0 +1,189 @@
+"""Baselines the PVM labels must beat, threshold sweeps and density-vs-bad-3 curves (used by tests and results).
+
+Methods (all on the same matcher, ``pvm_labeler.sgm.sgm_pair``, at full resolution):
+
+- ``sgm_lr``: SGM left + right view, then the LR check (``cfg.lr_threshold``).
+- ``sgm_lr_uniq``: ``sgm_lr`` plus a uniqueness-ratio filter: keep pixels whose left-view
+  ``SGMResult.uniqueness`` is >= a threshold (the definition is A1's, documented in ``pvm_labeler/sgm.py``; higher
+  means a more distinctive minimum). Sweeping the threshold gives its density-vs-bad-3 curve.
+- ``pvm``: :func:`pvm_labeler.multiscale.label_pair`; its curve sweeps (kappa1, kappa2) jointly by a scale factor.
+
+Metrics come from :mod:`pvm_labeler.metrics` (density in % of GT-valid pixels, bad-3 in %, AEPE in px, pooled over
+pixels). The expensive SGM outputs can be cached under a directory (``cache_dir``) keyed by frame and by the
+SGM-relevant config fields, so sweeps over kappas do not recompute them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from pvm_labeler.config import LabelerConfig
+from pvm_labeler.errors import InputError
+from pvm_labeler.metrics import MetricAccumulator
+from pvm_labeler.multiscale import ScaleStack, compute_scales, label_from_scales, lr_check
+
+logger = logging.getLogger(__name__)
+
+#: Config fields that do not change the per-scale SGM outputs (so cached scale stacks stay valid across them).
+_POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "extra")
+#: Frame ids of ../shared/data/kitti15 (GT noc where present, 000046 has only occ).
+KITTI15_IDS = ("000000", "000001", "000002", "000004", "000005", "000006", "000007", "000009", "000010",
+               "000011", "000012", "000014", "000015", "000016", "000046")
+
+
+@dataclass
+class Frame:
+    """One evaluation frame: (H, W, 3) uint8 RGB views and (H, W) float32 GT (NaN = unknown)."""
+
+    frame_id: str
+    left: npt.NDArray[np.uint8]
+    right: npt.NDArray[np.uint8]
+    gt: npt.NDArray[np.float32]
+
+
+def load_kitti15(shared: Path, ids: Iterable[str] = KITTI15_IDS) -> list[Frame]:
+    """Read KITTI 2015 frames from ``<shared>/kitti15/training`` (GT: disp_noc_0, else disp_occ_0; /256, 0 = none).
+
+    Raises:
+        InputError: a file is missing or unreadable (the message names it).
+    """
+    root = Path(shared) / "kitti15" / "training"
+    frames = []
+    for fid in ids:
+        name = f"{fid}_10.png"
+        left = _read_rgb(root / "image_2" / name)
+        right = _read_rgb(root / "image_3" / name)
+        gt_path = root / "disp_noc_0" / name
+        if not gt_path.is_file():
+            gt_path = root / "disp_occ_0" / name
+        raw = cv2.imread(str(gt_path), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.dtype != np.uint16:
+            raise InputError(f"cannot read KITTI GT {gt_path} as uint16 PNG (got {None if raw is None else raw.dtype})")
+        gt = raw.astype(np.float32) / 256.0
+        gt[raw == 0] = np.nan
+        frames.append(Frame(fid, left, right, gt))
+    return frames
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"cannot read image {path}")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def sgm_key(cfg: LabelerConfig) -> str:
+    """Short hash of the config fields that determine the per-scale SGM outputs."""
+    values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in _POST_SGM_FIELDS}
+    return hashlib.sha1(json.dumps(values, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def scale_stack(frame: Frame, cfg: LabelerConfig, cache_dir: Path | None = None) -> ScaleStack:
+    """``compute_scales`` for one frame, read from / written to ``cache_dir/<sgm_key>/<frame_id>.npz`` if given.
+
+    The full-resolution SGM uniqueness map of the left view is stored with the stack (``stack.uniqueness``).
+    """
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / sgm_key(cfg) / f"{frame.frame_id}.npz"
+        if path.is_file():
+            with np.load(path) as data:
+                stack = ScaleStack(**{k: data[k] for k in ("disp_l", "conf_l", "disp_r", "conf_r", "eps", "factors")})
+                stack.full_res = {k[3:]: data[k] for k in data.files if k.startswith("fr_")}
+                return stack
+    stack = compute_scales(frame.left, frame.right, cfg, frame.frame_id)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, disp_l=stack.disp_l, conf_l=stack.conf_l, disp_r=stack.disp_r, conf_r=stack.conf_r,
+                 eps=stack.eps, factors=stack.factors, **{f"fr_{k}": v for k, v in stack.full_res.items()})
+        tmp.replace(path)
+    return stack
+
+
+def sgm_lr_maps(stack: ScaleStack, lr_threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution SGM + LR check from the finest scale of a stack.
+
+    Returns:
+        disp (H, W) float32 LR-checked left disparity (NaN = none), uniqueness (H, W) float32 of the left view.
+    """
+    disp_l, _ = lr_check(stack.full_res["disp_l"], stack.full_res["disp_r"], lr_threshold)
+    return disp_l, stack.full_res["uniqueness_l"]
+
+
+@dataclass
+class CurvePoint:
+    """One point of a threshold sweep: the threshold and the pooled metrics at it."""
+
+    threshold: float
+    density: float
+    bad3: float
+    epe: float
+
+
+def score_curve(preds: Sequence[np.ndarray], scores: Sequence[np.ndarray], gts: Sequence[np.ndarray],
+                thresholds: Sequence[float]) -> list[CurvePoint]:
+    """Pooled density / bad-3 / AEPE when keeping pixels with ``score >= t``, for every t (a nested filter).
+
+    Args:
+        preds: per frame (H, W) float32 disparity (NaN = none).
+        scores: per frame (H, W) float32 filter score (higher = keep).
+        gts: per frame (H, W) float32 GT (NaN = unknown).
+        thresholds: the sweep.
+    """
+    n_valid = 0
+    errs, scs = [], []
+    for pred, score, gt in zip(preds, scores, gts, strict=True):
+        valid = np.isfinite(gt)
+        n_valid += int(valid.sum())
+        covered = valid & np.isfinite(pred) & np.isfinite(score)
+        errs.append(np.abs(pred[covered].astype(np.float64) - gt[covered]))
+        scs.append(score[covered])
+    err = np.concatenate(errs)
+    sc = np.concatenate(scs)
+    out = []
+    for t in thresholds:
+        keep = sc >= t
+        n = int(keep.sum())
+        out.append(CurvePoint(float(t), 100.0 * n / n_valid, 100.0 * float((err[keep] > 3).mean()) if n else np.nan,
+                              float(err[keep].mean()) if n else np.nan))
+    return out
+
+
+def pvm_curve(stacks: Sequence[ScaleStack], gts: Sequence[np.ndarray], cfg: LabelerConfig,
+              scales: Sequence[float]) -> list[CurvePoint]:
+    """PVM sweep: (kappa1, kappa2) = s * (cfg.kappa1, cfg.kappa2) for every s in ``scales``."""
+    out = []
+    for s in scales:
+        c = dataclasses.replace(cfg, kappa1=cfg.kappa1 * s, kappa2=cfg.kappa2 * s)
+        m = evaluate([label_from_scales(st, c).label for st in stacks], gts)
+        out.append(CurvePoint(float(s), m["density"], m["bad3"], m["epe"]))
+    return out
+
+
+def evaluate(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> dict[str, float]:
+    """Pooled-over-pixels metrics (pvm_labeler.metrics) of several frames."""
+    acc = MetricAccumulator()
+    for pred, gt in zip(preds, gts, strict=True):
+        acc.update(pred, gt)
+    return acc.compute()
+
+
+def bad3_at_density(curve: Sequence[CurvePoint], density: float) -> float:
+    """bad-3 linearly interpolated along a sweep at the given density (%); NaN if the sweep never reaches it."""
+    pts = sorted((p.density, p.bad3) for p in curve if np.isfinite(p.bad3))
+    dens = np.array([p[0] for p in pts])
+    bad = np.array([p[1] for p in pts])
+    if len(pts) == 0 or density < dens[0] or density > dens[-1]:
+        return float("nan")
+    return float(np.interp(density, dens, bad))
