@@ -1,0 +1,126 @@
+"""Checkpoints: round trip of every part, atomic writes, safe loading (no unpickling), safetensors export."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from optstereo.checkpoint import (
+    CheckpointError,
+    build_model_from_checkpoint,
+    export_safetensors,
+    load_checkpoint,
+    resolve_checkpoint,
+    save_checkpoint,
+)
+from optstereo.models import build_model
+
+TINY = dict(feature_dim=16, hidden_dim=16, head_dim=16, upsample_dim=8, iters=2)
+
+
+def tiny_model(seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    return build_model("optstereo", **TINY)
+
+
+def trained_parts() -> tuple:
+    model = tiny_model()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=1e-3, total_steps=10)
+    x = torch.rand(1, 3, 32, 64) * 255
+    for _ in range(2):
+        loss = model(x, x, iters=2)[-1].abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+    return model, opt, sched
+
+
+class TestSaveLoad:
+    def test_round_trip_every_part(self, tmp_path: Path) -> None:
+        model, opt, sched = trained_parts()
+        path = save_checkpoint(tmp_path / "ckpt.pt", model=model, step=2, optimizer=opt, scheduler=sched,
+                               train_config={"lr": 1e-3, "crop": [32, 64]})
+        ckpt = load_checkpoint(path)
+        assert ckpt.step == 2 and ckpt.model_name == "optstereo" and ckpt.model_config["feature_dim"] == 16
+        assert ckpt.train_config == {"lr": 1e-3, "crop": [32, 64]}
+        assert set(ckpt.code_version) == {"optstereo", "git_commit"}
+        for key, value in model.state_dict().items():
+            assert torch.equal(ckpt.model_state[key], value)
+        opt2 = torch.optim.Adam(tiny_model(1).parameters(), lr=1e-3)
+        opt2.load_state_dict(ckpt.optimizer)
+        assert opt2.state_dict()["state"][0]["step"] == opt.state_dict()["state"][0]["step"]
+        sched2 = torch.optim.lr_scheduler.OneCycleLR(opt2, max_lr=1e-3, total_steps=10)
+        sched2.load_state_dict(ckpt.scheduler)
+        assert sched2.last_epoch == 2 and sched2.get_last_lr() == sched.get_last_lr()
+
+    def test_rebuilt_model_predicts_identically(self, tmp_path: Path) -> None:
+        model, opt, _ = trained_parts()
+        save_checkpoint(tmp_path / "a.pth", model=model, step=2, optimizer=opt)
+        export_safetensors(tmp_path / "a.safetensors", model, step=2)
+        x = torch.rand(1, 3, 32, 64) * 255
+        model.eval()
+        with torch.no_grad():
+            ref = model(x, x, test_mode=True)[1]
+            for name in ("a.pth", "a.safetensors"):
+                rebuilt = build_model_from_checkpoint(tmp_path / name)
+                assert torch.equal(rebuilt(x, x, test_mode=True)[1], ref), name
+        assert load_checkpoint(tmp_path / "a.safetensors").step == 2
+
+    def test_run_dir_resolves_to_last(self, tmp_path: Path) -> None:
+        model = tiny_model()
+        save_checkpoint(tmp_path / "ckpt-0000001.pt", model=model, step=1)
+        assert resolve_checkpoint(tmp_path).name == "ckpt-0000001.pt"
+        save_checkpoint(tmp_path / "last.pt", model=model, step=1)
+        assert resolve_checkpoint(tmp_path).name == "last.pt"
+
+
+class TestSafety:
+    def test_atomic_write_leaves_no_partial_file(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        model = tiny_model()
+        path = save_checkpoint(tmp_path / "last.pt", model=model, step=1)
+        before = path.read_bytes()
+
+        def boom(*args, **kwargs):
+            raise OSError("disk full")
+
+        monkeypatch.setattr(os, "replace", boom)
+        with pytest.raises(OSError, match="disk full"):
+            save_checkpoint(tmp_path / "last.pt", model=model, step=2)
+        assert path.read_bytes() == before  # the old checkpoint is intact, never half-overwritten
+
+    def test_refuses_pickled_objects(self, tmp_path: Path) -> None:
+        class Evil:
+            def __reduce__(self):
+                return (os.system, ("echo pwned > " + str(tmp_path / "pwned"),))
+
+        path = tmp_path / "evil.pt"
+        torch.save({"model": {}, "payload": Evil()}, path)
+        with pytest.raises(CheckpointError, match="pickled objects"):
+            load_checkpoint(path)
+        assert not (tmp_path / "pwned").exists()
+
+    def test_exceptions_name_the_file(self, tmp_path: Path) -> None:
+        with pytest.raises(CheckpointError, match="does not exist"):
+            load_checkpoint(tmp_path / "missing.pt")
+        with pytest.raises(CheckpointError, match="no checkpoint"):
+            load_checkpoint(tmp_path)
+        bad = tmp_path / "bad.pt"
+        bad.write_bytes(b"not a zip")
+        with pytest.raises(CheckpointError, match="bad.pt"):
+            load_checkpoint(bad)
+        wrong = tmp_path / "x.bin"
+        wrong.write_bytes(b"")
+        with pytest.raises(CheckpointError, match="must end in"):
+            load_checkpoint(wrong)
+        with pytest.raises(CheckpointError, match=r"\.pt, \.pth or \.ckpt"):
+            save_checkpoint(tmp_path / "x.safetensors", model=tiny_model(), step=0)
+
+    def test_mismatched_weights(self, tmp_path: Path) -> None:
+        path = save_checkpoint(tmp_path / "a.pt", model=tiny_model(), step=0)
+        with pytest.raises(CheckpointError, match="do not fit"):
+            build_model_from_checkpoint(path, feature_dim=32)
