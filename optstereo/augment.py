@@ -44,6 +44,9 @@ def flip_swap(
         (flip(right), flip(left), flip(label_right), flip(label_left)); NumPy outputs are contiguous copies.
         Applying it twice gives back the inputs.
     """
+    for x in (left, right):
+        if not isinstance(x, (np.ndarray, torch.Tensor)):
+            raise TypeError(f"flip_swap expects numpy arrays or torch tensors, got {type(x).__name__}")
     if tuple(left.shape) != tuple(right.shape):
         raise ValueError(f"left/right shapes differ: {tuple(left.shape)} vs {tuple(right.shape)}")
     return _flip(right), _flip(left), _flip(label_right), _flip(label_left)
