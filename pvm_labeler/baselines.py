@@ -187,3 +187,63 @@ def bad3_at_density(curve: Sequence[CurvePoint], density: float) -> float:
     if len(pts) == 0 or density < dens[0] or density > dens[-1]:
         return float("nan")
     return float(np.interp(density, dens, bad))
+
+
+#: Densities (% of GT-valid pixels) at which PVM and SGM + LR + uniqueness are compared.
+MATCHED_DENSITIES = (30.0, 50.0, 70.0)
+
+
+def quality_report(frames: Sequence[Frame], cfg: LabelerConfig, cache_dir: Path | None = None) -> dict:
+    """PVM vs SGM + LR vs SGM + LR + uniqueness on some frames, pooled over pixels.
+
+    Returns:
+        {"pvm": metrics, "sgm_lr": metrics, "ratios": {"bad3", "density"} (PVM / SGM+LR),
+         "matched": {density: {"pvm": bad3, "uniq": bad3}}, "curves": {"pvm": [...], "uniq": [...]}}.
+    """
+    stacks = [scale_stack(f, cfg, cache_dir) for f in frames]
+    gts = [f.gt for f in frames]
+    pvm = evaluate([label_from_scales(st, cfg).label for st in stacks], gts)
+    base = [sgm_lr_maps(st, cfg.lr_threshold) for st in stacks]
+    sgm_lr = evaluate([b[0] for b in base], gts)
+    pooled_u = np.concatenate([u[np.isfinite(d)] for d, u in base])
+    uniq_thr = np.unique(np.quantile(pooled_u[np.isfinite(pooled_u)], np.linspace(0.0, 0.98, 50)))
+    uniq_curve = score_curve([b[0] for b in base], [b[1] for b in base], gts, uniq_thr)
+    pvm_sweep = pvm_curve(stacks, gts, cfg, np.geomspace(0.1, 30.0, 40))
+    matched = {d: {"pvm": bad3_at_density(pvm_sweep, d), "uniq": bad3_at_density(uniq_curve, d)}
+               for d in MATCHED_DENSITIES}
+    return {
+        "pvm": pvm, "sgm_lr": sgm_lr,
+        "ratios": {"bad3": pvm["bad3"] / sgm_lr["bad3"], "density": pvm["density"] / sgm_lr["density"]},
+        "matched": matched,
+        "curves": {"pvm": [dataclasses.asdict(p) for p in pvm_sweep],
+                   "uniq": [dataclasses.asdict(p) for p in uniq_curve]},
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m pvm_labeler.baselines``: print the KITTI 2015 quality report of the default config as JSON."""
+    import argparse  # noqa: PLC0415
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--shared", type=Path, default=Path("../shared/data"), help="real data root")
+    parser.add_argument("--cache", type=Path, default=None, help="cache dir for per-scale SGM outputs (e.g. /tmp)")
+    parser.add_argument("--frames", default=",".join(KITTI15_IDS), help="comma-separated KITTI 2015 frame ids")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a LabelerConfig field (JSON value), e.g. --set kappa1=1.5")
+    args = parser.parse_args(argv)
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
+    cfg = LabelerConfig.from_dict({**dataclasses.asdict(LabelerConfig()), **overrides})
+    frames = load_kitti15(args.shared, [f for f in args.frames.split(",") if f])
+    report = quality_report(frames, cfg, args.cache)
+    report.pop("curves")
+    print(json.dumps({"config": cfg.to_dict(), **report}, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
