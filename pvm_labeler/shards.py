@@ -240,6 +240,10 @@ class ShardWriter:
                 group.attrs[key] = json.dumps(value, sort_keys=True, default=_jsonable)
         self._ids.append(record.frame_id)
 
+    def set_attr(self, key: str, value: str | int | float) -> None:
+        """Set a root attribute of the shard (e.g. summary statistics) before :meth:`close`."""
+        self._file.attrs[key] = value
+
     def close(self) -> Path:
         """Finish the file and atomically publish it under its final name; returns the final path."""
         self._file.attrs["samples"] = json.dumps(self._ids)

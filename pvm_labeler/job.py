@@ -1,0 +1,572 @@
+"""The labeling job: dataset in, versioned HDF5 shards out; resumable, parallel (joblib or Dask).
+
+``run(spec)`` does, in order:
+
+1. validate the options and the labeler config (nothing is written before every check passed);
+2. discover the pairs and pre-flight them from file headers (missing/unreadable files, left/right/GT size
+   mismatches, images too small for K and max_disp): ALL problems are reported at once, naming the files;
+3. check the output directory: writable; existing shards must come from the same job (config, dataset, shard
+   plan) unless ``overwrite``; ``job.json`` (the plan) and ``config.yaml`` (the resolved config) are written;
+4. label the shards that are not complete yet (a shard is complete when its final file exists, opens, has the
+   same config and plan and every array reads back), one task per shard, streaming results back;
+5. write ``failures.json`` if single pairs failed, then ``index.json`` last (atomically).
+
+Shards are assigned deterministically (sorted frame ids, ``shard_size`` per shard) and every frame's labels depend
+only on (config, frame id, pixels), so labels are identical for any ``jobs`` and backend, and a run killed at any
+point and restarted finishes only the missing shards with the same result.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from pvm_labeler.config import LabelerConfig
+from pvm_labeler.datasets import DATASETS, PairRef, check_pair_sizes, discover, load_pair
+from pvm_labeler.errors import ConfigError, InputError, PVMError, ShardError
+from pvm_labeler.metrics import MetricAccumulator
+from pvm_labeler.parallel import BACKENDS, numba_threads_per_worker, peak_rss_mb, run_tasks, thread_budget
+from pvm_labeler.shards import (
+    COMPRESSIONS,
+    INDEX_NAME,
+    TMP_SUFFIX,
+    ShardRecord,
+    ShardWriter,
+    open_shard,
+    shard_name,
+    shard_sample_ids,
+    verify_shard,
+    write_index,
+)
+
+logger = logging.getLogger(__name__)
+
+JOB_FILE = "job.json"
+CONFIG_FILE = "config.yaml"
+FAILURES_FILE = "failures.json"
+DEFAULT_LABELER = "pvm_labeler.multiscale:label_pair"
+#: Files the job owns in its output directory (``overwrite`` deletes exactly these, nothing else).
+OWNED_GLOBS: tuple[str, ...] = ("shard-*.h5", f"shard-*.h5{TMP_SUFFIX}", INDEX_NAME, JOB_FILE, CONFIG_FILE,
+                                FAILURES_FILE)
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    """Everything one labeling run needs (the CLI builds it from flags and ``--config`` YAML).
+
+    Attributes:
+        dataset: one of :data:`pvm_labeler.datasets.DATASETS`.
+        root: dataset folder (None for ``sample``).
+        out: shard output directory.
+        config: PVM labeler config.
+        split: ``training`` or ``testing``.
+        dataset_options: reader options (``folder``: left/right/gt globs, gt_scale; ``sceneflow``: pass_).
+        limit: label only the first N pairs (sorted by frame id).
+        jobs: parallel workers.
+        backend: ``loky``, ``threading`` or ``dask``.
+        scheduler: Dask scheduler address (``--backend dask``); None starts a local cluster of ``jobs`` workers.
+        shard_size: pairs per shard (the unit of parallel work and of resume).
+        resume: skip shards that are already complete (default); False relabels every shard.
+        overwrite: delete this job's existing files in ``out`` first (needed when the config changed).
+        quiet: no progress bar.
+        compression: shard compression, ``lzf`` (default), ``gzip`` or ``none``.
+        numba_threads: threads per worker (default: cores // jobs, at least 1).
+        label_fn: ``module:function`` with label_pair's signature (tests inject small fakes here).
+    """
+
+    dataset: str
+    root: Path | None
+    out: Path
+    config: LabelerConfig = field(default_factory=LabelerConfig)
+    split: str = "training"
+    dataset_options: dict[str, Any] = field(default_factory=dict)
+    limit: int | None = None
+    jobs: int = 1
+    backend: str = "loky"
+    scheduler: str | None = None
+    shard_size: int = 4
+    resume: bool = True
+    overwrite: bool = False
+    quiet: bool = False
+    compression: str = "lzf"
+    numba_threads: int | None = None
+    label_fn: str = DEFAULT_LABELER
+
+    def validate(self) -> JobSpec:
+        """Raise ConfigError naming the option for out-of-range values; returns self."""
+        if self.dataset not in DATASETS:
+            raise ConfigError(f"unknown dataset '{self.dataset}' (--dataset); expected one of {', '.join(DATASETS)}")
+        self.config.validate()
+        if self.config.k < 2:
+            raise ConfigError(f"--k must be >= 2 for pyramid voting (K = 1 has nothing to vote), got {self.config.k}")
+        if self.limit is not None and self.limit < 1:
+            raise ConfigError(f"--limit must be >= 1, got {self.limit}")
+        if self.jobs < 1:
+            raise ConfigError(f"--jobs must be >= 1, got {self.jobs}")
+        if self.shard_size < 1:
+            raise ConfigError(f"--shard-size must be >= 1, got {self.shard_size}")
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"--backend must be one of {', '.join(BACKENDS)}, got '{self.backend}'")
+        if self.scheduler is not None and self.backend != "dask":
+            raise ConfigError(f"--scheduler needs --backend dask, got --backend {self.backend}")
+        if self.compression not in COMPRESSIONS:
+            raise ConfigError(f"--compression must be one of {', '.join(COMPRESSIONS)}, got '{self.compression}'")
+        if self.numba_threads is not None and self.numba_threads < 1:
+            raise ConfigError(f"--numba-threads must be >= 1, got {self.numba_threads}")
+        return self
+
+    def dataset_info(self) -> dict[str, Any]:
+        """Dataset identity recorded in job.json / index.json (compared on resume)."""
+        return {
+            "name": self.dataset,
+            "root": None if self.root is None else str(Path(self.root).resolve()),
+            "split": self.split,
+            "options": {k: str(v) for k, v in sorted(self.dataset_options.items())},
+            "limit": self.limit,
+        }
+
+    def resolved(self) -> dict[str, Any]:
+        """The resolved run configuration written to ``config.yaml`` (loadable again with ``--config``)."""
+        return {
+            "dataset": self.dataset,
+            "root": None if self.root is None else str(self.root),
+            "out": str(self.out),
+            "split": self.split,
+            "dataset_options": {k: str(v) for k, v in self.dataset_options.items()},
+            "limit": self.limit,
+            "jobs": self.jobs,
+            "backend": self.backend,
+            "scheduler": self.scheduler,
+            "shard_size": self.shard_size,
+            "compression": self.compression,
+            "numba_threads": self.numba_threads,
+            "labeler": self.config.to_dict(),
+        }
+
+
+@dataclass
+class ShardTask:
+    """One unit of parallel work: label ``refs`` and write them into shard ``index`` (picklable)."""
+
+    index: int
+    path: str
+    refs: list[PairRef]
+    config: dict[str, Any]
+    compression: str
+    numba_threads: int
+    label_fn: str = DEFAULT_LABELER
+
+
+@dataclass
+class ShardOutcome:
+    """What a worker reports back about its shard."""
+
+    index: int
+    file: str
+    sample_ids: list[str]
+    planned: list[str]
+    failures: list[dict[str, Any]]
+    stats: dict[str, Any]
+    seconds: float
+    peak_rss_mb: float
+    pid: int
+    resumed: bool = False
+
+
+@dataclass
+class JobSummary:
+    """End-of-run summary (also stored in index.json under "summary")."""
+
+    out: str
+    pairs_total: int
+    pairs_labeled: int
+    pairs_failed: int
+    shards_total: int
+    shards_written: int
+    shards_resumed: int
+    seconds: float
+    pairs_per_s: float
+    label_fraction: float  # % of all image pixels that received a label
+    metrics: dict[str, float] | None  # labels vs the most complete GT, pooled over pixels
+    metrics_noc: dict[str, float] | None  # labels vs non-occluded GT where known
+    peak_rss_mb_per_worker: float
+    parallel: dict[str, Any]
+    failures: list[dict[str, Any]]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def format(self) -> str:
+        """Human-readable multi-line summary."""
+        lines = [
+            f"labelled {self.pairs_labeled}/{self.pairs_total} pairs into {self.out} "
+            f"({self.shards_written} shards written, {self.shards_resumed} resumed) in {self.seconds:.1f} s "
+            f"({self.pairs_per_s:.2f} pairs/s, peak RSS per worker {self.peak_rss_mb_per_worker:.0f} MiB)",
+            f"label density: {self.label_fraction:.1f} % of all pixels",
+        ]
+        for name, m in (("GT", self.metrics), ("GT noc", self.metrics_noc)):
+            if m and m.get("n_valid"):
+                lines.append(
+                    f"vs {name}: density {m['density']:.1f} % of GT-valid pixels, bad-1 {m['bad1']:.2f} %, "
+                    f"bad-3 {m['bad3']:.2f} %, AEPE {m['epe']:.3f} px, D1 {m['d1']:.2f} %"
+                )
+        if self.failures:
+            lines.append(f"{len(self.failures)} pairs FAILED (see {Path(self.out) / FAILURES_FILE}):")
+            lines += [f"  {f['frame_id']}: {f['error']}" for f in self.failures[:10]]
+        return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------------- worker
+def _resolve_labeler(name: str) -> Callable[..., Any]:
+    module, _, attr = name.partition(":")
+    try:
+        return getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"labeler '{name}' cannot be imported: {exc}") from exc
+
+
+def _acc_dict(acc: MetricAccumulator) -> dict[str, Any]:
+    return asdict(acc)
+
+
+def _record_for(ref: PairRef, cfg: LabelerConfig, labeler: Callable[..., Any]) -> tuple[ShardRecord, dict[str, Any]]:
+    sample = load_pair(ref)
+    t0 = time.perf_counter()
+    result = labeler(sample.left, sample.right, cfg, ref.frame_id)
+    seconds = time.perf_counter() - t0
+    frame_metrics: dict[str, Any] = {
+        "label_fraction": float(100.0 * np.isfinite(result.label).mean()),
+        "seconds": seconds,
+    }
+    attrs = {
+        "sources": sample.sources,
+        "eps": np.asarray(result.eps, dtype=np.float64),
+        "factors": np.asarray(result.factors, dtype=np.float64),
+        "seed": int(cfg.seed),
+        "timings": {k: float(v) for k, v in result.timings.items()},
+        "height": int(sample.left.shape[0]),
+        "width": int(sample.left.shape[1]),
+    }
+    if sample.max_disp is not None:
+        attrs["dataset_max_disp"] = int(sample.max_disp)
+    record = ShardRecord(
+        frame_id=ref.frame_id,
+        left=sample.left,
+        right=sample.right,
+        label=np.asarray(result.label, dtype=np.float32),
+        label_right=np.asarray(result.label_right, dtype=np.float32),
+        confidence=np.asarray(result.confidence, dtype=np.float32),
+        gt=sample.gt,
+        gt_noc=sample.gt_noc,
+        gt_right=sample.gt_right,
+        attrs=attrs,
+    )
+    return record, frame_metrics
+
+
+def label_shard(task: ShardTask) -> ShardOutcome:
+    """Worker entry: label every pair of one shard and publish the shard file atomically.
+
+    Single-pair failures (bad files, sizes, labeler input errors) are recorded and the rest of the shard goes on.
+    A shard in which every pair failed is not published (a resume will retry it).
+    """
+    t0 = time.perf_counter()
+    cfg = LabelerConfig.from_dict(task.config)
+    labeler = _resolve_labeler(task.label_fn)
+    failures: list[dict[str, Any]] = []
+    acc, acc_noc = MetricAccumulator(), MetricAccumulator()
+    per_frame: dict[str, Any] = {}
+    labelled_px = total_px = 0
+    path = Path(task.path)
+    planned = [ref.frame_id for ref in task.refs]
+    with thread_budget(task.numba_threads):
+        writer = ShardWriter(path, task.config, compression=task.compression, extra_attrs={"planned": planned})
+        try:
+            for ref in task.refs:
+                try:
+                    record, frame = _record_for(ref, cfg, labeler)
+                except (PVMError, OSError, ValueError) as exc:
+                    logger.error("pair %s failed: %s", ref.frame_id, exc)
+                    failures.append({"frame_id": ref.frame_id, "error": str(exc), "type": type(exc).__name__,
+                                     "files": ref.to_dict()})
+                    continue
+                if record.gt is not None:
+                    frame["gt"] = acc.update(record.label, record.gt)
+                if record.gt_noc is not None:
+                    frame["gt_noc"] = acc_noc.update(record.label, record.gt_noc)
+                labelled_px += int(np.isfinite(record.label).sum())
+                total_px += record.label.size
+                record.attrs["metrics"] = frame
+                per_frame[ref.frame_id] = frame
+                writer.add(record)
+            stats = {"acc": _acc_dict(acc), "acc_noc": _acc_dict(acc_noc), "labelled_px": labelled_px,
+                     "total_px": total_px, "failures": failures}
+            writer.set_attr("stats", json.dumps(stats))
+            ids = writer.sample_ids
+            if ids:
+                writer.close()
+            else:
+                writer.abort()
+        except BaseException:
+            writer.abort()
+            raise
+    return ShardOutcome(index=task.index, file=path.name, sample_ids=ids, planned=planned, failures=failures,
+                        stats=stats, seconds=time.perf_counter() - t0, peak_rss_mb=peak_rss_mb(), pid=os.getpid())
+
+
+# ------------------------------------------------------------------------------------------------- pre-flight
+def _size_checker() -> Callable[[int, int, LabelerConfig, str], None] | None:
+    """The PVM core's "image too small for K and max_disp" check, if the core is importable."""
+    try:
+        from pvm_labeler import multiscale
+    except ImportError:
+        return None
+    check = getattr(multiscale, "check_sizes", None) or getattr(multiscale, "_check_sizes", None)
+    if check is None:
+        return None
+
+    def run(height: int, width: int, cfg: LabelerConfig, frame_id: str) -> None:
+        if cfg.max_disp >= width:
+            raise InputError(f"--max-disp {cfg.max_disp} must be smaller than the image width {width}")
+        eps = multiscale.draw_eps(cfg.seed, frame_id, cfg.k)
+        check(height, width, multiscale.scale_geometry(height, width, eps, cfg.max_disp), cfg)
+
+    return run
+
+
+def preflight(refs: list[PairRef], cfg: LabelerConfig) -> None:
+    """Check every pair from file headers before anything is written; raise one InputError listing all problems."""
+    problems = []
+    size_check = _size_checker()
+    for ref in refs:
+        try:
+            height, width = check_pair_sizes(ref)
+            if size_check is not None:
+                size_check(height, width, cfg, ref.frame_id)
+        except InputError as exc:
+            problems.append(f"{ref.frame_id}: {exc}")
+    if problems:
+        more = f"\n  ... and {len(problems) - 20} more" if len(problems) > 20 else ""
+        raise InputError(f"{len(problems)} of {len(refs)} pairs are unusable (nothing was written):\n  "
+                         + "\n  ".join(problems[:20]) + more)
+
+
+# ----------------------------------------------------------------------------------------------- output dir
+def _check_writable(out: Path) -> None:
+    probe_dir = out
+    while not probe_dir.exists():
+        probe_dir = probe_dir.parent
+    if not probe_dir.is_dir():
+        raise InputError(f"output dir not writable: --out {out} ({probe_dir} is a file, not a directory)")
+    try:
+        with tempfile.TemporaryFile(dir=probe_dir):
+            pass
+    except OSError as exc:
+        raise InputError(f"output dir not writable: --out {out} ({probe_dir}: {exc.strerror})") from exc
+
+
+def _plan(refs: list[PairRef], shard_size: int) -> list[list[PairRef]]:
+    return [refs[i : i + shard_size] for i in range(0, len(refs), shard_size)]
+
+
+def _job_doc(spec: JobSpec, plan: list[list[PairRef]]) -> dict[str, Any]:
+    return {
+        "config": json.loads(spec.config.to_json()),
+        "dataset": spec.dataset_info(),
+        "shard_size": spec.shard_size,
+        "compression": spec.compression,
+        "plan": [[ref.frame_id for ref in shard] for shard in plan],
+    }
+
+
+def _diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _diff(a, b, f"{prefix}{key}.")
+        elif a != b:
+            text_a, text_b = json.dumps(a)[:60], json.dumps(b)[:60]
+            out.append(f"{prefix}{key}: {text_a} -> {text_b}")
+    return out
+
+
+def _owned_files(out: Path) -> list[Path]:
+    return sorted({p for pattern in OWNED_GLOBS for p in out.glob(pattern)})
+
+
+def _prepare_out(spec: JobSpec, job_doc: dict[str, Any]) -> None:
+    out = spec.out
+    _check_writable(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file, expected a directory")
+    owned = _owned_files(out) if out.is_dir() else []
+    if owned and spec.overwrite:
+        logger.info("--overwrite: deleting %d files of a previous run in %s", len(owned), out)
+        for path in owned:
+            path.unlink()
+    elif owned:
+        job_path = out / JOB_FILE
+        if not job_path.is_file():
+            raise InputError(f"--out {out} already holds shards from an unknown run (no {JOB_FILE}); "
+                             f"pass --overwrite to replace them or choose another --out")
+        try:
+            old = json.loads(job_path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot read {job_path}: {exc}; pass --overwrite to start afresh") from exc
+        changes = _diff(old, job_doc)
+        if changes:
+            raise InputError(f"existing shards in {out} were made with a different config/dataset ("
+                             + "; ".join(changes[:6]) + "); pass --overwrite to replace them or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    _write_text_atomic(out / JOB_FILE, json.dumps(job_doc, indent=2))
+    _write_text_atomic(out / CONFIG_FILE, yaml.safe_dump(spec.resolved(), sort_keys=False))
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + TMP_SUFFIX)
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _complete_shard(path: Path, planned: list[str], config: dict[str, Any]) -> ShardOutcome | None:
+    """The outcome of an already complete shard (same plan and config, every array readable), else None."""
+    if not path.is_file():
+        return None
+    try:
+        with open_shard(path) as h5:
+            ids = shard_sample_ids(h5)
+            old_planned = json.loads(h5.attrs["planned"])
+            stats = json.loads(h5.attrs["stats"])
+    except (ShardError, KeyError, ValueError, OSError) as exc:
+        logger.warning("shard %s is not reusable (%s); relabelling it", path, exc)
+        return None
+    if old_planned != planned:
+        logger.warning("shard %s holds another plan; relabelling it", path)
+        return None
+    problems = verify_shard(path, ids, config)
+    if problems:
+        logger.warning("shard %s is broken (%s); relabelling it", path, problems[0])
+        return None
+    return ShardOutcome(index=-1, file=path.name, sample_ids=ids, planned=planned, failures=stats["failures"],
+                        stats=stats, seconds=0.0, peak_rss_mb=0.0, pid=0, resumed=True)
+
+
+# ------------------------------------------------------------------------------------------------------- run
+def run(spec: JobSpec) -> JobSummary:
+    """Run the labeling job described by ``spec`` (see the module docstring).
+
+    Returns:
+        JobSummary; ``summary.failures`` lists pairs that failed (the caller decides the exit code).
+
+    Raises:
+        ConfigError / InputError: bad options or data, before anything is written.
+        ShardError: a shard could not be written.
+    """
+    t0 = time.perf_counter()
+    spec.validate()
+    refs = discover(spec.dataset, spec.root, spec.split, **spec.dataset_options)
+    if spec.limit is not None:
+        refs = refs[: spec.limit]
+    preflight(refs, spec.config)
+    plan = _plan(refs, spec.shard_size)
+    job_doc = _job_doc(spec, plan)
+    _prepare_out(spec, job_doc)
+    config = job_doc["config"]
+    out = spec.out
+
+    outcomes: dict[int, ShardOutcome] = {}
+    pending: list[ShardTask] = []
+    threads = spec.numba_threads or numba_threads_per_worker(spec.jobs)
+    for index, shard_refs in enumerate(plan):
+        path = out / shard_name(index)
+        planned = [ref.frame_id for ref in shard_refs]
+        done = _complete_shard(path, planned, config) if spec.resume else None
+        if done is not None:
+            done.index = index
+            outcomes[index] = done
+        else:
+            path.with_name(path.name + TMP_SUFFIX).unlink(missing_ok=True)  # stale from a killed run
+            pending.append(ShardTask(index, str(path), shard_refs, config, spec.compression, threads, spec.label_fn))
+    if pending:
+        # An index next to a partial set of shards would look complete to a reader; it is rewritten at the end.
+        (out / INDEX_NAME).unlink(missing_ok=True)
+    logger.info("%d pairs in %d shards: %d complete, %d to label (%s, %d jobs, %d numba threads each)",
+                len(refs), len(plan), len(outcomes), len(pending), spec.backend, spec.jobs, threads)
+
+    bar = _progress(len(refs), sum(len(o.planned) for o in outcomes.values()), spec.quiet)
+    try:
+        for outcome in run_tasks(label_shard, pending, spec.backend, spec.jobs, spec.scheduler):
+            outcomes[outcome.index] = outcome
+            bar.update(len(outcome.planned))
+            bar.set_postfix(shards=f"{len(outcomes)}/{len(plan)}")
+    finally:
+        bar.close()
+    return _finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0)
+
+
+def _progress(total: int, initial: int, quiet: bool) -> Any:
+    from tqdm import tqdm
+
+    disable = quiet or not sys.stderr.isatty()
+    return tqdm(total=total, initial=initial, unit="pair", desc="pvm-label", file=sys.stderr, disable=disable,
+                dynamic_ncols=True)
+
+
+def _finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcomes: dict[int, ShardOutcome],
+            threads: int, seconds: float) -> JobSummary:
+    out = spec.out
+    acc, acc_noc = MetricAccumulator(), MetricAccumulator()
+    labelled_px = total_px = 0
+    failures: list[dict[str, Any]] = []
+    shards = []
+    for index in range(len(plan)):
+        outcome = outcomes[index]
+        failures += outcome.failures
+        if outcome.sample_ids:
+            shards.append((outcome.file, outcome.sample_ids))
+        acc.merge(MetricAccumulator(**outcome.stats["acc"]))
+        acc_noc.merge(MetricAccumulator(**outcome.stats["acc_noc"]))
+        labelled_px += outcome.stats["labelled_px"]
+        total_px += outcome.stats["total_px"]
+    written = [o for o in outcomes.values() if not o.resumed]
+    labeled = sum(len(ids) for _, ids in shards)
+    work_pairs = sum(len(o.planned) for o in written)
+    summary = JobSummary(
+        out=str(out),
+        pairs_total=len(refs),
+        pairs_labeled=labeled,
+        pairs_failed=len(failures),
+        shards_total=len(plan),
+        shards_written=sum(1 for o in written if o.sample_ids),
+        shards_resumed=sum(1 for o in outcomes.values() if o.resumed),
+        seconds=seconds,
+        pairs_per_s=work_pairs / seconds if seconds > 0 else math.nan,
+        label_fraction=100.0 * labelled_px / total_px if total_px else math.nan,
+        metrics=acc.compute() if acc.n_frames else None,
+        metrics_noc=acc_noc.compute() if acc_noc.n_frames else None,
+        peak_rss_mb_per_worker=max((o.peak_rss_mb for o in written), default=0.0),
+        parallel={"backend": spec.backend, "jobs": spec.jobs, "numba_threads_per_worker": threads,
+                  "scheduler": spec.scheduler},
+        failures=failures,
+    )
+    if failures:
+        _write_text_atomic(out / FAILURES_FILE, json.dumps(failures, indent=2))
+    else:
+        (out / FAILURES_FILE).unlink(missing_ok=True)
+    write_index(out, shards, json.loads(spec.config.to_json()), spec.dataset_info(),
+                extra={"summary": summary.to_dict(), "compression": spec.compression})
+    return summary

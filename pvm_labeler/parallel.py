@@ -1,0 +1,143 @@
+"""Fan-out of shard tasks over joblib (loky / threading) or a Dask distributed cluster, with a thread budget.
+
+One task = one shard: the worker that runs it is the only process writing that shard file (h5py: one writer
+per file), and results stream back as tasks finish so the caller can update its progress bar and, if killed,
+leave only complete shards behind.
+
+Thread budget: ``workers x numba threads <= cores``. Every task calls :func:`thread_budget` around its work, which
+sets numba's (and OpenCV's) thread count for the duration and restores the old values afterwards. joblib's loky
+backend additionally caps NUMBA_NUM_THREADS / OMP_NUM_THREADS in its workers to cores // n_jobs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import resource
+import uuid
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any, TypeVar
+
+from pvm_labeler.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+BACKENDS: tuple[str, ...] = ("loky", "threading", "dask")
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def available_cores() -> int:
+    """CPU cores this process may use (affinity-aware)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def numba_threads_per_worker(jobs: int, cores: int | None = None) -> int:
+    """Numba threads each of ``jobs`` workers may use so that jobs x threads <= cores (at least 1)."""
+    cores = available_cores() if cores is None else cores
+    return max(1, cores // max(1, jobs))
+
+
+@contextlib.contextmanager
+def thread_budget(threads: int) -> Iterator[None]:
+    """Run the body with numba and OpenCV limited to ``threads`` threads, then restore the previous settings."""
+    import cv2
+    import numba
+
+    threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    old_numba, old_cv = numba.get_num_threads(), cv2.getNumThreads()
+    numba.set_num_threads(threads)
+    cv2.setNumThreads(threads)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(old_numba)
+        cv2.setNumThreads(old_cv)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of the calling process so far, in MiB (Linux reports ru_maxrss in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_tasks(
+    fn: Callable[[T], R],
+    tasks: Iterable[T],
+    backend: str = "loky",
+    jobs: int = 1,
+    scheduler: str | None = None,
+) -> Iterator[R]:
+    """Apply ``fn`` to every task and yield results in completion order.
+
+    Args:
+        fn: a picklable module-level function.
+        tasks: picklable task objects.
+        backend: "loky" (processes), "threading" or "dask" (dask.distributed; ``scheduler`` address, or a
+            LocalCluster with ``jobs`` single-threaded worker processes when None).
+        jobs: number of workers (joblib n_jobs; ignored by dask with an explicit scheduler).
+        scheduler: Dask scheduler address such as ``tcp://10.0.0.5:8786``.
+
+    Yields:
+        ``fn(task)`` results as soon as each finishes.
+    """
+    tasks = list(tasks)
+    if not tasks:
+        return
+    if backend not in BACKENDS:
+        raise ConfigError(f"--backend must be one of {', '.join(BACKENDS)}, got '{backend}'")
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    if backend == "dask":
+        yield from _run_dask(fn, tasks, jobs, scheduler)
+        return
+    if scheduler is not None:
+        raise ConfigError(f"--scheduler is only used with --backend dask, got --backend {backend}")
+    if jobs == 1:
+        # In-process: no pickling, clean tracebacks, and the numba JIT cache of the parent is reused.
+        for task in tasks:
+            yield fn(task)
+        return
+    from joblib import Parallel, delayed
+
+    parallel = Parallel(n_jobs=jobs, backend=backend, return_as="generator_unordered", batch_size=1)
+    yield from parallel(delayed(fn)(task) for task in tasks)
+
+
+def _run_dask(fn: Callable[[T], R], tasks: list[T], jobs: int, scheduler: str | None) -> Iterator[R]:
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as exc:
+        raise ConfigError("--backend dask needs dask[distributed]: pip install 'pvstereo[dask]'") from exc
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None)
+        address = cluster.scheduler_address
+    else:
+        address = scheduler
+    try:
+        client = Client(address, timeout="30s")
+    except OSError as exc:
+        if cluster is not None:
+            cluster.close()
+        raise ConfigError(f"cannot connect to the Dask scheduler at --scheduler {address}: {exc}") from exc
+    try:
+        logger.info("dask: %d workers at %s", len(client.scheduler_info().get("workers", {})), address)
+        # pure=False: every task runs even if two look alike; retries=0: a failure is reported, not hidden.
+        run_id = uuid.uuid4().hex[:8]  # unique keys: a shared scheduler may still remember an earlier run's keys
+        futures = [client.submit(fn, task, pure=False, key=f"pvm-shard-{run_id}-{i}") for i, task in enumerate(tasks)]
+        for future in as_completed(futures):
+            yield future.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def describe_budget(backend: str, jobs: int, numba_threads: int) -> dict[str, Any]:
+    """Record of the parallel setup for index.json / the summary."""
+    return {"backend": backend, "jobs": jobs, "numba_threads_per_worker": numba_threads, "cores": available_cores()}
