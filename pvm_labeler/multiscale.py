@@ -204,21 +204,22 @@ def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, fram
         if idx == 0:  # eps_1 = 0: the finest scale is the full-resolution SGM
             full_res = {"disp_l": res_l.disp, "disp_r": res_r.disp, "uniqueness_l": res_l.uniqueness}
         for name, res in (("l", res_l), ("r", res_r)):
-            stacks[f"disp_{name}"][idx] = _upsample(res.disp, height, width, interp, factor)
-            stacks[f"conf_{name}"][idx] = _upsample(res.conf, height, width, interp, 1.0)
+            _upsample_into(res.disp, stacks[f"disp_{name}"][idx], interp, factor)
+            _upsample_into(res.conf, stacks[f"conf_{name}"][idx], interp, 1.0)
         timings["upsample"] += time.perf_counter() - t2
     return ScaleStack(eps=eps, factors=np.array([g[2] for g in geometry]), timings=timings, full_res=full_res,
                       **stacks)
 
 
-def _upsample(values: np.ndarray, height: int, width: int, interp: int, scale: float) -> np.ndarray:
-    """(h, w) float32 -> (H, W) float32 times ``scale``; identity (copy-free) at full resolution."""
-    if values.shape == (height, width):
-        return values
-    out = cv2.resize(np.ascontiguousarray(values, dtype=np.float32), (width, height), interpolation=interp)
+def _upsample_into(values: np.ndarray, out: np.ndarray, interp: int, scale: float) -> None:
+    """Resize (h, w) float32 ``values`` into the preallocated (H, W) float32 ``out`` and multiply by ``scale``."""
+    if values.shape == out.shape:
+        np.copyto(out, values)
+    else:
+        cv2.resize(np.ascontiguousarray(values, dtype=np.float32), (out.shape[1], out.shape[0]), dst=out,
+                   interpolation=interp)
     if scale != 1.0:
-        out *= np.float32(scale)
-    return out
+        np.multiply(out, np.float32(scale), out=out)
 
 
 def vote(
