@@ -89,16 +89,28 @@ def summarise(acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[st
     }
 
 
+def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
+    """KITTI-style error map (labeler's viz.error_map), or a plain |error| rendering when viz is unavailable."""
+    try:
+        from pvm_labeler.viz import error_map
+    except ImportError:
+        from optstereo.predict import colorize
+
+        err = np.where(np.isfinite(gt), np.abs(pred - gt), np.nan).astype(np.float32)
+        return colorize(err, max_disp=5.0)  # saturates at 5 px, past KITTI's 3 px outlier threshold
+    return error_map(pred, gt)
+
+
 def _save_maps(out_dir: Path, frame: Frame) -> None:
+    from optstereo.predict import colorize
     from pvm_labeler.io import write_image
-    from pvm_labeler.viz import colorize_disparity, error_map
 
     maps = out_dir / "maps"
     maps.mkdir(parents=True, exist_ok=True)
     vmax = float(np.nanmax(frame.gt)) if frame.gt is not None and np.isfinite(frame.gt).any() else None
-    write_image(maps / f"{frame.frame_id}_disp.png", colorize_disparity(frame.pred, max_disp=vmax))
+    write_image(maps / f"{frame.frame_id}_disp.png", colorize(frame.pred, max_disp=vmax))
     if frame.gt is not None:
-        write_image(maps / f"{frame.frame_id}_error.png", error_map(frame.pred, frame.gt))
+        write_image(maps / f"{frame.frame_id}_error.png", error_picture(frame.pred, frame.gt))
 
 
 def evaluate_frames(

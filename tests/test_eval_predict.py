@@ -1,0 +1,153 @@
+"""Evaluation (hand-computed metrics, labels vs network through one ruler) and prediction formats."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from test_stream import make_shards
+
+from optstereo.checkpoint import save_checkpoint
+from optstereo.cli import eval_main, predict_main
+from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
+from optstereo.models import build_model
+from optstereo.predict import infer, write_disparity
+from pvm_labeler.io import read_image, read_kitti_disp, read_pfm, write_image
+from pvm_labeler.metrics import disparity_metrics
+
+TINY = dict(feature_dim=16, hidden_dim=16, head_dim=16, upsample_dim=8, iters=2)
+
+
+class Echo(torch.nn.Module):
+    """Fake network: the disparity is the left image's red channel (checks padding/unpadding exactly)."""
+
+    def forward(self, left, right, iters=None, test_mode=False):
+        assert left.shape[-2] % 8 == 0 and left.shape[-1] % 8 == 0
+        return left[:, :1, ::8, ::8] / 8, left[:, :1]
+
+
+class TestMetrics:
+    def test_feature_hand_computed(self, tmp_path: Path) -> None:
+        gt = np.full((2, 4), 10.0, np.float32)
+        gt[0, 0] = np.nan  # unknown: not counted
+        pred = gt + np.array([[0, 1, 4, 0.5], [2, 0, 0, 0]], np.float32)
+        noc = np.full_like(gt, np.nan)
+        noc[1] = 10.0  # second row is non-occluded
+        result = evaluate_frames([Frame("a", pred, gt, noc)], tmp_path, title="t")
+        s = result.summary
+        assert s["epe"] == pytest.approx(7.5 / 7)
+        assert s["bad1"] == pytest.approx(100 * 2 / 7) and s["bad3"] == pytest.approx(100 / 7) == s["f1"]
+        assert s["d1_all"] == pytest.approx(100 / 7)  # 4 px > 3 px and > 5 % of 10
+        assert s["epe_noc"] == pytest.approx(0.5) and s["d1_noc"] == 0.0 and s["density"] == 100.0
+        rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+        assert rows[0]["frame_id"] == "a" and float(rows[0]["epe"]) == pytest.approx(7.5 / 7)
+        summary = json.loads((tmp_path / "summary.json").read_text())
+        assert {"epe", "d1_all", "d1_noc", "bad3", "f1", "density"} <= set(summary)
+        assert "| epe |" in (tmp_path / "summary.md").read_text()
+
+    def test_pooled_over_pixels_and_nan_as_null(self, tmp_path: Path) -> None:
+        gt_a, gt_b = np.full((1, 1), 10.0, np.float32), np.full((1, 3), 10.0, np.float32)
+        frames = [Frame("a", gt_a + 4, gt_a), Frame("b", gt_b, gt_b), Frame("nogt", gt_b, None)]
+        s = evaluate_frames(frames, tmp_path).summary
+        assert s["epe"] == pytest.approx(1.0) and s["n_frames"] == 2  # 4 px over 4 pixels, not mean(4, 0)
+        assert math.isnan(s["d1_noc"]) and json.loads((tmp_path / "summary.json").read_text())["d1_noc"] is None
+
+    def test_exception_without_gt(self) -> None:
+        with pytest.raises(ValueError, match="no frame with ground truth"):
+            evaluate_frames([Frame("x", np.zeros((2, 2), np.float32), None)])
+
+    def test_labels_of_shards(self, tmp_path: Path) -> None:
+        shards = make_shards(tmp_path / "s", n=3, shard_size=2, height=8, width=16)
+        result = evaluate_labels(shards, out_dir=tmp_path / "out", save_maps=True)
+        # Sample i: label 4 + i / 100 on columns >= 4, gt 4 everywhere -> density 75 %, epe mean(i) / 100.
+        assert result.summary["density"] == pytest.approx(75.0)
+        assert result.summary["epe"] == pytest.approx(0.01, abs=1e-6)  # float32 labels
+        assert [r["frame_id"] for r in result.rows] == ["frame-000", "frame-001", "frame-002"]
+        assert (tmp_path / "out" / "maps" / "frame-001_error.png").is_file()
+
+
+class TestPredict:
+    @pytest.mark.parametrize("shape", [(37, 75), (40, 80)])
+    def test_infer_pads_and_unpads(self, rng: np.random.Generator, shape: tuple[int, int]) -> None:
+        left = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)
+        disp = infer(Echo(), left, left)
+        assert disp.shape == shape and disp.dtype == np.float32
+        np.testing.assert_array_equal(disp, left[..., 0].astype(np.float32))
+
+    def test_formats_round_trip(self, tmp_path: Path, rng: np.random.Generator) -> None:
+        disp = rng.uniform(0.5, 120.0, (9, 13)).astype(np.float32)
+        paths = write_disparity(tmp_path, "000007_10", disp, ("png", "pfm", "npy", "color"), kitti_layout=True)
+        assert paths["png"] == tmp_path / "disp_0" / "000007_10.png"
+        np.testing.assert_allclose(read_kitti_disp(paths["png"]), disp, atol=0.5 / 256 + 1e-6)
+        np.testing.assert_array_equal(read_pfm(paths["pfm"]), disp)
+        np.testing.assert_array_equal(np.load(paths["npy"]), disp)
+        assert read_image(paths["color"]).shape == (9, 13, 3)
+        with pytest.raises(ValueError, match="unknown output formats"):
+            write_disparity(tmp_path, "x", disp, ("jpg",))
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    torch.manual_seed(0)
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+
+
+class TestCli:
+    def test_eval_on_kitti_matches_predicted_png(self, shared_data: Path, tiny_ckpt: Path, tmp_path: Path) -> None:
+        """Network eval and predict --dataset agree through the KITTI PNG (quantised to 1/256 px)."""
+        root = shared_data / "kitti15"
+        runner = CliRunner()
+        res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti15", "--root", str(root),
+                                        "--limit", "1", "--out", str(tmp_path / "eval"), "--device", "cpu"])
+        assert res.exit_code == 0, res.output
+        assert "EPE" in res.output and (tmp_path / "eval" / "maps" / "000000_10_error.png").is_file()
+        row = next(csv.DictReader(open(tmp_path / "eval" / "metrics.csv")))
+        res = runner.invoke(predict_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti15", "--root",
+                                           str(root), "--limit", "1", "--out", str(tmp_path / "pred"),
+                                           "--format", "png", "--format", "npy"])
+        assert res.exit_code == 0, res.output
+        raw = np.load(tmp_path / "pred" / "npy" / "000000_10.npy")
+        assert raw.shape == (375, 1242)
+        gt = read_kitti_disp(root / "training" / "disp_occ_0" / "000000_10.png")
+        ref = disparity_metrics(raw, gt)
+        assert float(row["epe"]) == pytest.approx(ref["epe"], rel=1e-5)
+        assert int(row["n_valid"]) == ref["n_valid"]
+        # The KITTI PNG holds the same map quantised to 1/256 px; <= 0 px is its "invalid" code.
+        png = read_kitti_disp(tmp_path / "pred" / "disp_0" / "000000_10.png")
+        positive = raw >= 1 / 256
+        np.testing.assert_allclose(png[positive], raw[positive], atol=0.5 / 256 + 1e-4)
+        assert np.isnan(png[raw <= 0]).all()
+
+    def test_predict_pair_form(self, tiny_ckpt: Path, tmp_path: Path, rng: np.random.Generator) -> None:
+        left = rng.integers(0, 256, (30, 70, 3), dtype=np.uint8)
+        write_image(tmp_path / "l.png", left)
+        write_image(tmp_path / "r.png", left)
+        res = CliRunner().invoke(predict_main, ["--checkpoint", str(tiny_ckpt), str(tmp_path / "l.png"),
+                                                str(tmp_path / "r.png"), "--out", str(tmp_path / "o"),
+                                                "--format", "pfm", "--format", "npy", "--iters", "1"])
+        assert res.exit_code == 0, res.output
+        assert read_pfm(tmp_path / "o" / "l.pfm").shape == (30, 70) and (tmp_path / "o" / "l.npy").is_file()
+
+    def test_eval_labels_cli(self, tmp_path: Path) -> None:
+        shards = make_shards(tmp_path / "s", n=2, height=8, width=16)
+        res = CliRunner().invoke(eval_main, ["--labels", str(shards), "--out", str(tmp_path / "o")])
+        assert res.exit_code == 0, res.output
+        assert json.loads((tmp_path / "o" / "summary.json").read_text())["density"] == pytest.approx(75.0)
+
+    def test_usage_errors(self, tiny_ckpt: Path, tmp_path: Path) -> None:
+        runner = CliRunner()
+        res = runner.invoke(eval_main, ["--out", str(tmp_path)])
+        assert res.exit_code == 2 and "exactly one of" in res.output
+        res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--out", str(tmp_path)])
+        assert res.exit_code == 2 and "--dataset" in res.output
+        res = runner.invoke(predict_main, ["--checkpoint", str(tiny_ckpt), "--out", str(tmp_path)])
+        assert res.exit_code == 2 and "LEFT RIGHT" in res.output
+        res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti99", "--out",
+                                        str(tmp_path)])
+        assert res.exit_code == 1 and "kitti99" in res.output
