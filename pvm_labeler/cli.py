@@ -1,0 +1,237 @@
+"""`pvm-label`: the labeling job's command line (thin: parse, build a JobSpec, call job.run).
+
+Forms::
+
+    pvm-label --dataset kitti15 --root data/kitti15 --out out/labels/kitti15   # same as `pvm-label run ...`
+    pvm-label run --config labels.yaml --kappa1 0.8                            # YAML sets defaults, flags win
+    pvm-label verify DIR                                                       # schema, counts, readability
+    pvm-label report DIR [DIR ...] --out REPORT_DIR                            # label quality vs GT + pictures
+
+Exit codes: 0 ok; 1 runtime failure (bad data, some pairs failed, broken shards); 2 bad usage (unknown option
+values, missing --root directory, out-of-range numbers such as --k 1 or a negative kappa).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+import yaml
+
+from pvm_labeler.config import LabelerConfig
+from pvm_labeler.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
+from pvm_labeler.errors import ConfigError, PVMError
+from pvm_labeler.parallel import BACKENDS
+from pvm_labeler.shards import COMPRESSIONS
+
+_DEFAULTS = LabelerConfig()
+
+#: CLI option name -> LabelerConfig field for the labeler knobs that have flags.
+_LABELER_FLAGS = {"k": "k", "kappa1": "kappa1", "kappa2": "kappa2", "max_disp": "max_disp",
+                  "lr_threshold": "lr_threshold", "seed": "seed"}
+#: Job options that may come from --config YAML (same names as the flags, with underscores).
+_JOB_KEYS = ("dataset", "root", "out", "split", "limit", "jobs", "backend", "scheduler", "shard_size", "resume",
+             "overwrite", "quiet", "compression", "numba_threads", "left", "right", "gt", "sceneflow_pass")
+
+
+class _DefaultRunGroup(click.Group):
+    """A group whose default command is ``run``, so ``pvm-label --dataset X`` works as the issue spells it."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        if not args or (args[0] not in self.commands and args[0] not in ("--help", "-h", "--version")):
+            args = ["run", *args]
+        return super().parse_args(ctx, args)
+
+
+@click.group(cls=_DefaultRunGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="pvstereo")
+def main() -> None:
+    """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`."""
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+
+
+def _load_yaml(path: Path | None) -> dict[str, Any]:
+    if path is None:
+        return {}
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise click.BadParameter(f"cannot read YAML {path}: {exc}", param_hint="--config") from exc
+    if not isinstance(doc, dict):
+        raise click.BadParameter(f"{path}: expected a mapping at the top level", param_hint="--config")
+    known = set(_JOB_KEYS) | set(_LABELER_FLAGS) | {"labeler", "dataset_options"}
+    unknown = sorted(set(doc) - known)
+    if unknown:
+        raise click.BadParameter(f"{path}: unknown keys {unknown}; known: {sorted(known)}", param_hint="--config")
+    return doc
+
+
+def _merged(ctx: click.Context, yaml_doc: dict[str, Any]) -> dict[str, Any]:
+    """Option values with precedence: explicit flag > --config YAML > built-in default."""
+    values = {}
+    for name, value in ctx.params.items():
+        source = ctx.get_parameter_source(name)
+        from_cli = source in (click.core.ParameterSource.COMMANDLINE, click.core.ParameterSource.ENVIRONMENT)
+        values[name] = value if from_cli or name not in yaml_doc else yaml_doc[name]
+        values[f"_{name}_given"] = from_cli or name in yaml_doc
+    return values
+
+
+def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
+    """JobSpec from merged option values (exposed for tests and pipelines)."""
+    from pvm_labeler.job import JobSpec
+
+    labeler = dict(yaml_doc.get("labeler") or {})
+    for flag, field_name in _LABELER_FLAGS.items():
+        if values.get(f"_{flag}_given"):
+            labeler[field_name] = values[flag]
+    dataset = values["dataset"]
+    if "max_disp" not in labeler and dataset in DEFAULT_MAX_DISP:
+        labeler["max_disp"] = DEFAULT_MAX_DISP[dataset]  # e.g. sample: GT max 59.9 px, 192 would waste time
+    try:
+        config = LabelerConfig.from_dict({**_DEFAULTS.to_dict(), **labeler})
+    except TypeError as exc:
+        raise ConfigError(f"bad labeler config: {exc}") from exc
+    options = dict(yaml_doc.get("dataset_options") or {})
+    for key in ("left", "right", "gt"):
+        if values.get(key) is not None:
+            options[key] = str(values[key])
+    if values.get("sceneflow_pass") is not None:
+        options["pass_"] = values["sceneflow_pass"]
+    root = values.get("root")
+    out = values.get("out") or Path("out/labels") / dataset
+    return JobSpec(
+        dataset=dataset,
+        root=None if root is None else Path(root),
+        out=Path(out),
+        config=config,
+        split=values["split"],
+        dataset_options=options,
+        limit=values.get("limit"),
+        jobs=values["jobs"],
+        backend=values["backend"],
+        scheduler=values.get("scheduler"),
+        shard_size=values["shard_size"],
+        resume=values["resume"],
+        overwrite=values["overwrite"],
+        quiet=values["quiet"],
+        compression=values["compression"],
+        numba_threads=values.get("numba_threads"),
+    )
+
+
+@main.command("run")
+@click.option("--dataset", type=click.Choice(DATASETS), default="sample", show_default=True,
+              help="Dataset reader (official layouts; `sample` needs no files).")
+@click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+              help="Dataset folder (KITTI: the folder holding training/ and testing/). Not needed for `sample`.")
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="Shard output directory.  [default: out/labels/DATASET]")
+@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="YAML file of option defaults (flag names with underscores; `labeler:` mapping for all "
+                   "LabelerConfig fields). Flags override it. The resolved config is written to OUT/config.yaml.")
+@click.option("--k", type=int, default=_DEFAULTS.k, show_default=True, help="Pyramid scales K (>= 2).")
+@click.option("--kappa1", type=float, default=_DEFAULTS.kappa1, show_default=True,
+              help="Threshold on the std of disparity across scales, px (full resolution).")
+@click.option("--kappa2", type=float, default=_DEFAULTS.kappa2, show_default=True,
+              help="Threshold on the std of the normalized inverse cost across scales (unitless).")
+@click.option("--max-disp", type=int, default=_DEFAULTS.max_disp, show_default=True,
+              help="Search range [0, max-disp) at full resolution, px (sample: 64 unless given).")
+@click.option("--lr-threshold", type=float, default=_DEFAULTS.lr_threshold, show_default=True,
+              help="Left-right consistency threshold, px.")
+@click.option("--seed", type=int, default=_DEFAULTS.seed, show_default=True, help="Seed of the pyramid jitter.")
+@click.option("--split", type=click.Choice(SPLITS), default="training", show_default=True, help="Dataset split.")
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="Label only the first N pairs (sorted ids).")
+@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Parallel workers (numba threads per worker = cores // jobs).")
+@click.option("--backend", type=click.Choice(BACKENDS), default="loky", show_default=True,
+              help="loky processes, threads, or a Dask distributed cluster.")
+@click.option("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) for --backend dask; "
+              "without it a local cluster of --jobs workers is started. OUT must be on a shared file system.")
+@click.option("--shard-size", type=click.IntRange(min=1), default=4, show_default=True,
+              help="Pairs per shard (the unit of parallel work and of resume).")
+@click.option("--resume/--no-resume", default=True, show_default=True,
+              help="Skip shards that are already complete and match this config.")
+@click.option("--overwrite", is_flag=True, default=False, help="Delete this job's previous files in OUT first.")
+@click.option("--quiet", is_flag=True, default=False, help="No progress bar (it is also off when stderr is not a TTY).")
+@click.option("--compression", type=click.Choice(COMPRESSIONS), default="lzf", show_default=True,
+              help="HDF5 compression of the shards.")
+@click.option("--numba-threads", type=click.IntRange(min=1), default=None,
+              help="Numba threads per worker.  [default: cores // jobs]")
+@click.option("--left", default=None, help="folder dataset: left images (folder or glob, relative to --root).")
+@click.option("--right", default=None, help="folder dataset: right images (folder or glob, relative to --root).")
+@click.option("--gt", default=None, help="folder dataset: optional GT folder (KITTI-style PNG x256, .pfm or .npy).")
+@click.option("--sceneflow-pass", type=click.Choice(["clean", "final"]), default=None,
+              help="sceneflow dataset: render pass.  [default: clean]")
+@click.option("-v", "--verbose", count=True, help="-v info, -vv debug logging on stderr.")
+@click.pass_context
+def run_cmd(ctx: click.Context, config_file: Path | None, verbose: int, **_: Any) -> None:
+    """Label a dataset into versioned HDF5 shards (resumable; see docs/labeling.md)."""
+    _setup_logging(verbose)
+    from pvm_labeler.job import run
+
+    yaml_doc = _load_yaml(config_file)
+    values = _merged(ctx, yaml_doc)
+    try:
+        spec = build_spec(values, yaml_doc)
+        summary = run(spec)
+    except ConfigError as exc:
+        raise click.UsageError(str(exc), ctx=ctx) from exc
+    except PVMError as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(summary.format())
+    if summary.failures:
+        ctx.exit(1)
+
+
+@main.command("verify")
+@click.argument("shard_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("-v", "--verbose", count=True, help="-v info logging.")
+def verify_cmd(shard_dir: Path, verbose: int) -> None:
+    """Check a shard directory: schema, counts, readability; names every broken shard (exit 1 if any)."""
+    _setup_logging(verbose)
+    from pvm_labeler.shards import read_index, verify
+
+    problems = verify(shard_dir)
+    if problems:
+        for problem in problems:
+            click.echo(f"BROKEN: {problem}", err=True)
+        raise click.ClickException(f"{len(problems)} problems in {shard_dir}")
+    index = read_index(shard_dir)
+    click.echo(f"ok: {index.num_samples} samples in {len(index.shards)} shards, schema version "
+               f"{index.raw['schema']['version']} ({shard_dir})")
+
+
+@main.command("report")
+@click.argument("shard_dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="Report folder.  [default: FIRST_DIR/report]")
+@click.option("--pictures", type=click.IntRange(min=0), default=4, show_default=True,
+              help="Frames per run drawn as colour label map + error map.")
+@click.option("-v", "--verbose", count=True, help="-v info logging.")
+def report_cmd(shard_dirs: tuple[Path, ...], out: Path | None, pictures: int, verbose: int) -> None:
+    """Label quality vs GT (density, bad-1/2/3, AEPE, noc/occ) as Markdown/JSON + PNG pictures.
+
+    Several SHARD_DIRS (e.g. a kappa sweep) also give a density-vs-error plot.
+    """
+    _setup_logging(verbose)
+    from pvm_labeler.report import build_report
+
+    out = out or shard_dirs[0] / "report"
+    try:
+        result = build_report(list(shard_dirs), out, pictures=pictures)
+    except PVMError as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(result["markdown"])
+    click.echo(f"wrote {out / 'report.md'}, {out / 'report.json'} and {len(result['pictures'])} pictures")
+
+
+if __name__ == "__main__":
+    main()
