@@ -30,12 +30,12 @@ import numpy.typing as npt
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.errors import InputError
 from pvm_labeler.metrics import MetricAccumulator
-from pvm_labeler.multiscale import ScaleStack, compute_scales, label_from_scales, lr_check
+from pvm_labeler.multiscale import RawScales, ScaleStack, label_from_scales, lr_check, run_scales, upsample_scales
 
 logger = logging.getLogger(__name__)
 
 #: Config fields that do not change the per-scale SGM outputs (so cached scale stacks stay valid across them).
-_POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "extra")
+_POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample", "extra")
 #: Frame ids of ../shared/data/kitti15 (GT noc where present, 000046 has only occ).
 KITTI15_IDS = ("000000", "000001", "000002", "000004", "000005", "000006", "000007", "000009", "000010",
                "000011", "000012", "000014", "000015", "000016", "000046")
@@ -88,27 +88,32 @@ def sgm_key(cfg: LabelerConfig) -> str:
     return hashlib.sha1(json.dumps(values, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def scale_stack(frame: Frame, cfg: LabelerConfig, cache_dir: Path | None = None) -> ScaleStack:
-    """``compute_scales`` for one frame, read from / written to ``cache_dir/<sgm_key>/<frame_id>.npz`` if given.
-
-    The full-resolution SGM uniqueness map of the left view is stored with the stack (``stack.uniqueness``).
-    """
+def raw_scales(frame: Frame, cfg: LabelerConfig, cache_dir: Path | None = None) -> RawScales:
+    """``run_scales`` for one frame, read from / written to ``cache_dir/<sgm_key>/<frame_id>.npz`` if given."""
     path = None
     if cache_dir is not None:
         path = Path(cache_dir) / sgm_key(cfg) / f"{frame.frame_id}.npz"
         if path.is_file():
             with np.load(path) as data:
-                stack = ScaleStack(**{k: data[k] for k in ("disp_l", "conf_l", "disp_r", "conf_r", "eps", "factors")})
-                stack.full_res = {k[3:]: data[k] for k in data.files if k.startswith("fr_")}
-                return stack
-    stack = compute_scales(frame.left, frame.right, cfg, frame.frame_id)
+                n = int(data["n"])
+                maps = [{key[: -len(f"_{k}")]: data[key] for key in data.files if key.endswith(f"_{k}")}
+                        for k in range(n)]
+                return RawScales(int(data["height"]), int(data["width"]), data["eps"], data["factors"], maps,
+                                 {"pyramid": 0.0, "sgm": 0.0})
+    raw = run_scales(frame.left, frame.right, cfg, frame.frame_id)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {f"{name}_{k}": arr for k, maps in enumerate(raw.maps) for name, arr in maps.items()}
         tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, disp_l=stack.disp_l, conf_l=stack.conf_l, disp_r=stack.disp_r, conf_r=stack.conf_r,
-                 eps=stack.eps, factors=stack.factors, **{f"fr_{k}": v for k, v in stack.full_res.items()})
+        np.savez(tmp, n=len(raw.maps), height=raw.height, width=raw.width, eps=raw.eps, factors=raw.factors,
+                 **arrays)
         tmp.replace(path)
-    return stack
+    return raw
+
+
+def scale_stack(frame: Frame, cfg: LabelerConfig, cache_dir: Path | None = None) -> ScaleStack:
+    """Full-resolution scale maps of one frame (SGM outputs cached under ``cache_dir`` if given)."""
+    return upsample_scales(raw_scales(frame, cfg, cache_dir), cfg)
 
 
 def sgm_lr_maps(stack: ScaleStack, lr_threshold: float) -> tuple[np.ndarray, np.ndarray]:

@@ -155,22 +155,39 @@ def _check_sizes(height: int, width: int, geometry: list[tuple[int, int, float, 
             )
 
 
-def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str) -> ScaleStack:
-    """Run the pyramid, per-scale SGM (both views) and the upsampling to full resolution.
+@dataclass
+class RawScales:
+    """Per-scale SGM outputs at their own (coarse) resolution, before upsampling.
+
+    Attributes:
+        height, width: full-resolution size.
+        eps: (K,) float64; factors: (K,) float64 true horizontal factors.
+        maps: per scale k a dict "disp_l", "conf_l", "disp_r", "conf_r" of (h_k, w_k) float32 maps (disparities in
+            scale-k pixels); scale 1 also has "uniqueness_l".
+        timings: seconds for "pyramid" and "sgm".
+    """
+
+    height: int
+    width: int
+    eps: npt.NDArray[np.float64]
+    factors: npt.NDArray[np.float64]
+    maps: list[dict[str, np.ndarray]]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str) -> RawScales:
+    """Validate the inputs, build the pyramid and run SGM for both views at every scale.
 
     Args:
         left, right: (H, W, 3) uint8 RGB or (H, W) uint8 grey, same shape.
-        cfg: labeler config (k, max_disp, seed, SGM settings, upsample).
+        cfg: labeler config (k, max_disp, seed, SGM settings).
         frame_id: stable frame name; seeds eps together with cfg.seed.
-
-    Returns:
-        ScaleStack with (K, H, W) float32 maps of both views.
 
     Raises:
         InputError: wrong dtype/shape, different sizes, or an image too small for K and max_disp.
         ConfigError: invalid config values.
     """
-    from pvm_labeler.sgm import sgm_pair  # noqa: PLC0415  (keeps this module importable for kernel-only use)
+    from pvm_labeler.sgm import sgm_pair  # noqa: PLC0415  (keeps the vote/LR wrappers importable without the SGM)
 
     cfg = _validated(cfg)
     t0 = time.perf_counter()
@@ -191,24 +208,40 @@ def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, fram
         else:
             pyramid.append((cv2.resize(grey_l, (w_k, h_k), interpolation=cv2.INTER_AREA),
                             cv2.resize(grey_r, (w_k, h_k), interpolation=cv2.INTER_AREA)))
-    timings = {"pyramid": time.perf_counter() - t0, "sgm": 0.0, "upsample": 0.0}
-
-    n = cfg.k
-    stacks = {name: np.empty((n, height, width), dtype=np.float32) for name in ("disp_l", "conf_l", "disp_r", "conf_r")}
-    interp = _UPSAMPLE_FLAGS[cfg.upsample]
-    for idx, ((img_l, img_r), (_, _, factor, d_k)) in enumerate(zip(pyramid, geometry, strict=True)):
-        t1 = time.perf_counter()
+    t1 = time.perf_counter()
+    maps = []
+    for (img_l, img_r), (_, _, _, d_k) in zip(pyramid, geometry, strict=True):
         res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True)
-        t2 = time.perf_counter()
-        timings["sgm"] += t2 - t1
-        if idx == 0:  # eps_1 = 0: the finest scale is the full-resolution SGM
-            full_res = {"disp_l": res_l.disp, "disp_r": res_r.disp, "uniqueness_l": res_l.uniqueness}
-        for name, res in (("l", res_l), ("r", res_r)):
-            _upsample_into(res.disp, stacks[f"disp_{name}"][idx], interp, factor)
-            _upsample_into(res.conf, stacks[f"conf_{name}"][idx], interp, 1.0)
-        timings["upsample"] += time.perf_counter() - t2
-    return ScaleStack(eps=eps, factors=np.array([g[2] for g in geometry]), timings=timings, full_res=full_res,
-                      **stacks)
+        maps.append({"disp_l": res_l.disp, "conf_l": res_l.conf, "disp_r": res_r.disp, "conf_r": res_r.conf})
+        if len(maps) == 1:  # eps_1 = 0: scale 1 is the full-resolution SGM, whose uniqueness the baselines use
+            maps[0]["uniqueness_l"] = res_l.uniqueness
+    timings = {"pyramid": t1 - t0, "sgm": time.perf_counter() - t1}
+    return RawScales(height, width, eps, np.array([g[2] for g in geometry]), maps, timings)
+
+
+def upsample_scales(raw: RawScales, cfg: LabelerConfig) -> ScaleStack:
+    """Bring every scale to full resolution (disparity times the true factor) with ``cfg.upsample`` interpolation.
+
+    Returns:
+        ScaleStack with (K, H, W) float32 maps of both views (memory: 4 x K x H x W x 4 bytes, 45 MB for KITTI, K=6).
+    """
+    t0 = time.perf_counter()
+    n = len(raw.maps)
+    names = ("disp_l", "conf_l", "disp_r", "conf_r")
+    stacks = {name: np.empty((n, raw.height, raw.width), dtype=np.float32) for name in names}
+    interp = _UPSAMPLE_FLAGS[cfg.upsample]
+    for idx, (maps, factor) in enumerate(zip(raw.maps, raw.factors, strict=True)):
+        for name in names:
+            _upsample_into(maps[name], stacks[name][idx], interp, factor if name.startswith("disp") else 1.0)
+    timings = dict(raw.timings, upsample=time.perf_counter() - t0)
+    full_res = {"disp_l": raw.maps[0]["disp_l"], "disp_r": raw.maps[0]["disp_r"],
+                "uniqueness_l": raw.maps[0]["uniqueness_l"]}
+    return ScaleStack(eps=raw.eps, factors=raw.factors, timings=timings, full_res=full_res, **stacks)
+
+
+def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str) -> ScaleStack:
+    """:func:`run_scales` then :func:`upsample_scales` (the expensive, kappa-independent part of label_pair)."""
+    return upsample_scales(run_scales(left, right, cfg, frame_id), cfg)
 
 
 def _upsample_into(values: np.ndarray, out: np.ndarray, interp: int, scale: float) -> None:
