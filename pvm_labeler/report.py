@@ -1,0 +1,153 @@
+"""`pvm-label report`: label quality of one or several shard directories against the GT stored in them.
+
+Per frame and pooled over pixels (the ruler is :mod:`pvm_labeler.metrics`): label density (% of GT-valid pixels
+labelled), bad-1/2/3, AEPE, D1, on ``all`` (the most complete GT), ``noc`` (non-occluded GT where the dataset has
+it) and ``occ`` (pixels in ``all`` but not in ``noc``). Writes ``report.json``, ``report.md``, colour label maps and
+KITTI-style error maps for the first few frames of each run, and, for several runs, a density-vs-error plot.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pvm_labeler.errors import ShardError
+from pvm_labeler.io import write_image
+from pvm_labeler.metrics import MetricAccumulator
+from pvm_labeler.shards import open_shard, read_index, read_sample
+from pvm_labeler.viz import colorize_disparity, density_error_plot, error_map
+
+logger = logging.getLogger(__name__)
+
+REGIONS: tuple[str, ...] = ("all", "noc", "occ")
+
+
+def run_name(shard_dir: Path, config: dict[str, Any]) -> str:
+    """Short name of a run: directory name plus its kappas."""
+    return f"{shard_dir.name} (k1={config.get('kappa1')}, k2={config.get('kappa2')})"
+
+
+def evaluate_dir(shard_dir: Path, pictures: int = 0, picture_dir: Path | None = None) -> dict[str, Any]:
+    """Metrics of the labels of one shard directory against its stored GT.
+
+    Returns:
+        dict with ``name``, ``dir``, ``config``, ``frames`` (frame id -> {region -> metrics}), ``pooled``
+        (region -> metrics), ``label_fraction`` (% of all pixels labelled) and ``pictures`` (written paths).
+    """
+    index = read_index(shard_dir)
+    accs = {region: MetricAccumulator() for region in REGIONS}
+    frames: dict[str, dict[str, Any]] = {}
+    written: list[str] = []
+    labelled = total = 0
+    for path, ids in index.shards:
+        with open_shard(path) as h5:
+            for frame_id in ids:
+                sample = read_sample(h5, frame_id)
+                labelled += int(np.isfinite(sample.label).sum())
+                total += sample.label.size
+                frames[frame_id] = _frame_metrics(sample, accs)
+                if picture_dir is not None and len(written) < 2 * pictures:
+                    written += _pictures(sample, picture_dir)
+    pooled = {region: acc.compute() for region, acc in accs.items() if acc.n_frames}
+    return {
+        "name": run_name(shard_dir, index.config),
+        "dir": str(shard_dir),
+        "config": index.config,
+        "num_samples": index.num_samples,
+        "label_fraction": 100.0 * labelled / total if total else math.nan,
+        "frames": frames,
+        "pooled": pooled,
+        "pictures": written,
+    }
+
+
+def _frame_metrics(sample: Any, accs: dict[str, MetricAccumulator]) -> dict[str, Any]:
+    out: dict[str, Any] = {"label_fraction": float(100.0 * np.isfinite(sample.label).mean())}
+    if sample.gt is not None:
+        out["all"] = accs["all"].update(sample.label, sample.gt)
+    if sample.gt_noc is not None:
+        out["noc"] = accs["noc"].update(sample.label, sample.gt_noc)
+        if sample.gt is not None:
+            occluded = np.isfinite(sample.gt) & ~np.isfinite(sample.gt_noc)
+            out["occ"] = accs["occ"].update(sample.label, sample.gt, valid=occluded)
+    return out
+
+
+def _pictures(sample: Any, picture_dir: Path) -> list[str]:
+    picture_dir.mkdir(parents=True, exist_ok=True)
+    gt = sample.gt
+    vmax = float(np.nanmax(gt)) if gt is not None and np.isfinite(gt).any() else None
+    paths = [picture_dir / f"{sample.frame_id}_label.png"]
+    write_image(paths[0], colorize_disparity(sample.label, max_disp=vmax))
+    if gt is not None:
+        paths.append(picture_dir / f"{sample.frame_id}_error.png")
+        write_image(paths[1], error_map(sample.label, gt, dilate=1))
+    return [str(p) for p in paths]
+
+
+def _fmt(value: float, digits: int = 2) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+
+
+def _row(name: str, m: dict[str, float]) -> str:
+    return (f"| {name} | {int(m['n_valid'])} | {_fmt(m['density'], 1)} | {_fmt(m['bad1'])} | {_fmt(m['bad2'])} | "
+            f"{_fmt(m['bad3'])} | {_fmt(m['epe'], 3)} | {_fmt(m['d1'])} |")
+
+
+_HEADER = ("| frame | GT px | density % | bad-1 % | bad-2 % | bad-3 % | AEPE px | D1 % |\n"
+           "|---|---:|---:|---:|---:|---:|---:|---:|")
+
+
+def markdown(runs: list[dict[str, Any]], per_frame: bool = True) -> str:
+    """Markdown tables: one overview row per run and region, then per-frame tables."""
+    lines = ["### Overall (pooled over pixels)", "",
+             "| run | region | GT px | density % | bad-1 % | bad-2 % | bad-3 % | AEPE px | D1 % |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for run in runs:
+        for region, m in run["pooled"].items():
+            lines.append(_row(f"{run['name']} | {region}", m))
+        if not run["pooled"]:
+            lines.append(f"| {run['name']} | (no GT) | - | - | - | - | - | - | - |")
+    lines.append("")
+    lines.append("Density = % of GT-valid pixels that got a label; errors are measured on the labelled pixels. "
+                 "`noc` = non-occluded GT, `occ` = GT pixels outside `noc`.")
+    if per_frame:
+        for run in runs:
+            lines += ["", f"### {run['name']}: per frame (region `all`)", "", _HEADER]
+            for frame_id, m in run["frames"].items():
+                if "all" in m:
+                    lines.append(_row(frame_id, m["all"]))
+    return "\n".join(lines)
+
+
+def build_report(shard_dirs: list[Path], out: Path, pictures: int = 4) -> dict[str, Any]:
+    """Evaluate every shard directory, write report.json/report.md/pictures into ``out``; returns the content.
+
+    Raises:
+        ShardError: a directory is not a readable shard directory.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = []
+    for i, shard_dir in enumerate(shard_dirs):
+        pic_dir = out / f"run{i:02d}-{Path(shard_dir).name}" if pictures else None
+        runs.append(evaluate_dir(Path(shard_dir), pictures=pictures, picture_dir=pic_dir))
+    pics = [p for run in runs for p in run["pictures"]]
+    plot_runs = [{"name": f"k1={r['config'].get('kappa1')},k2={r['config'].get('kappa2')}", **r["pooled"]["all"]}
+                 for r in runs if "all" in r["pooled"]]
+    if len(plot_runs) >= 2:
+        plot_runs.sort(key=lambda r: r["density"])
+        pics.append(str(density_error_plot(plot_runs, out / "density_vs_error.png")))
+    if not any(run["pooled"] for run in runs):
+        logger.warning("no GT in %s: the report has densities only", [str(d) for d in shard_dirs])
+    text = markdown(runs)
+    (out / "report.md").write_text("# PVM label quality\n\n" + text + "\n")
+    (out / "report.json").write_text(json.dumps({"runs": runs}, indent=2, default=float))
+    if not runs:
+        raise ShardError("no shard directories given")
+    return {"runs": runs, "markdown": text, "pictures": pics}

@@ -1,0 +1,136 @@
+"""Pictures: colour disparity maps, KITTI-style error maps, density-vs-error plots (matplotlib Agg, no display)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+#: KITTI devkit error colours (disp_error_image): bins of the normalised error min(e / 3 px, (e / |gt|) / 5 %),
+#: from dark blue (tiny error) to dark red (> 16x the outlier threshold). Values are RGB.
+KITTI_ERROR_BINS: tuple[tuple[float, float, tuple[int, int, int]], ...] = (
+    (0 / 3.0, 0.1875 / 3.0, (49, 54, 149)),
+    (0.1875 / 3.0, 0.375 / 3.0, (69, 117, 180)),
+    (0.375 / 3.0, 0.75 / 3.0, (116, 173, 209)),
+    (0.75 / 3.0, 1.5 / 3.0, (171, 217, 233)),
+    (1.5 / 3.0, 3 / 3.0, (224, 243, 248)),
+    (3 / 3.0, 6 / 3.0, (254, 224, 144)),
+    (6 / 3.0, 12 / 3.0, (253, 174, 97)),
+    (12 / 3.0, 24 / 3.0, (244, 109, 67)),
+    (24 / 3.0, 48 / 3.0, (215, 48, 39)),
+    (48 / 3.0, np.inf, (165, 0, 38)),
+)
+NO_LABEL_RGB = (70, 70, 70)  # GT known but nothing predicted: dark grey, so coverage holes stay visible
+
+
+def colorize_disparity(
+    disp: npt.ArrayLike, max_disp: float | None = None, colormap: int = cv2.COLORMAP_TURBO
+) -> npt.NDArray[np.uint8]:
+    """Colour rendering of a disparity map; NaN/inf (no disparity) are black.
+
+    Args:
+        disp: (H, W) float disparity.
+        max_disp: value mapped to the top colour (default: the map's finite maximum).
+        colormap: OpenCV colormap id (turbo: perceptually ordered, near = red).
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+    """
+    disp = np.asarray(disp, dtype=np.float32)
+    finite = np.isfinite(disp)
+    vmax = float(max_disp) if max_disp else (float(disp[finite].max()) if finite.any() else 1.0)
+    grey = np.clip(np.where(finite, disp, 0) / max(vmax, 1e-6) * 255.0, 0, 255).astype(np.uint8)
+    out = cv2.applyColorMap(grey, colormap)[..., ::-1].copy()
+    out[~finite] = 0
+    return out
+
+
+def error_map(
+    pred: npt.ArrayLike, gt: npt.ArrayLike, tau: tuple[float, float] = (3.0, 0.05), dilate: int = 0
+) -> npt.NDArray[np.uint8]:
+    """KITTI-style disparity error picture.
+
+    Colour = bin of min(|pred - gt| / tau[0], (|pred - gt| / |gt|) / tau[1]) (blue good ... red outlier, the
+    devkit's palette); black where there is no GT; dark grey where GT exists but pred has no value.
+
+    Args:
+        pred: (H, W) float, NaN = not predicted.
+        gt: (H, W) float, NaN = unknown.
+        tau: KITTI outlier thresholds (3 px, 5 %).
+        dilate: grow each coloured pixel by this many pixels (sparse LiDAR GT is hard to see otherwise).
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+    """
+    pred = np.asarray(pred, dtype=np.float32)
+    gt = np.asarray(gt, dtype=np.float32)
+    has_gt = np.isfinite(gt)
+    covered = has_gt & np.isfinite(pred)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = np.abs(pred - gt)
+        norm = np.minimum(err / tau[0], err / np.maximum(np.abs(gt), 1e-6) / tau[1])
+    out = np.zeros((*gt.shape, 3), np.uint8)
+    out[has_gt & ~covered] = NO_LABEL_RGB
+    for low, high, rgb in KITTI_ERROR_BINS:
+        out[covered & (norm >= low) & (norm < high)] = rgb
+    if dilate > 0:
+        kernel = np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8)
+        grown = cv2.dilate(out, kernel)
+        out = np.where(has_gt[..., None], out, grown)
+    return out
+
+
+def density_error_plot(
+    runs: Sequence[dict[str, Any]],
+    path: Path | str,
+    x: str = "density",
+    ys: Sequence[str] = ("bad3", "epe"),
+    title: str = "PVM labels: density vs error",
+    baselines: Sequence[dict[str, Any]] = (),
+) -> Path:
+    """Plot error vs label density for several runs (e.g. a kappa sweep), one panel per error metric.
+
+    Args:
+        runs: dicts with ``name`` and the metric keys (``density`` %, ``bad3`` %, ``epe`` px ...); drawn as one
+            connected curve in the given order, each point labelled with its name.
+        path: PNG file to write.
+        x: metric on the x axis.
+        ys: metrics on the y axes (one subplot each).
+        title: figure title.
+        baselines: optional further curves: dicts with ``name`` and ``points`` (a list of metric dicts).
+
+    Returns:
+        The written path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = {"density": "label density (% of GT-valid px)", "bad3": "bad-3 (%)", "bad1": "bad-1 (%)",
+              "bad2": "bad-2 (%)", "epe": "AEPE (px)", "d1": "D1 (%)"}
+    fig, axes = plt.subplots(1, len(ys), figsize=(5.5 * len(ys), 4.2), squeeze=False)
+    for ax, y in zip(axes[0], ys, strict=True):
+        xs = [r[x] for r in runs]
+        vals = [r[y] for r in runs]
+        ax.plot(xs, vals, "o-", color="tab:blue", label="PVM")
+        for r in runs:
+            ax.annotate(str(r["name"]), (r[x], r[y]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        for base in baselines:
+            pts = base["points"]
+            ax.plot([p[x] for p in pts], [p[y] for p in pts], "s--", label=base["name"])
+        ax.set_xlabel(labels.get(x, x))
+        ax.set_ylabel(labels.get(y, y))
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
