@@ -37,7 +37,7 @@ bench: $(STAMP)
 	$(PY) -m pipelines.bench --shared $(SHARED) --out bench
 
 labels: $(STAMP)
-	$(VENV)/bin/pvm-label run --dataset $(DATASET) --root $(ROOT) --out $(OUT) --jobs $(JOBS)
+	$(VENV)/bin/pvm-label run --dataset $(DATASET) $(if $(filter sample,$(DATASET)),,--root $(ROOT)) --out $(OUT) --jobs $(JOBS)
 
 demo: $(STAMP)
 	$(PY) -m pipelines.demo --out out/demo
