@@ -1,0 +1,100 @@
+"""Numba kernels of the SGM matching cost: census transform, Hamming cost volume, right-view re-indexing.
+
+Layouts: images (H, W) uint8; census codes (H, W) uint64 (window <= 7x7, i.e. <= 48 bits); cost volumes
+(H, W, D) uint8 so that the disparity axis is contiguous for the aggregation kernels.
+"""
+
+import numpy as np
+from numba import njit, prange
+
+from pvm_labeler.kernels._flags import FASTMATH
+
+_M1 = np.uint64(0x5555555555555555)
+_M2 = np.uint64(0x3333333333333333)
+_M4 = np.uint64(0x0F0F0F0F0F0F0F0F)
+_H01 = np.uint64(0x0101010101010101)
+_ONE = np.uint64(1)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def popcount64(x):
+    """Number of set bits of a uint64 (the SWAR idiom, which LLVM turns into a single ``popcnt``)."""
+    x = x - ((x >> _ONE) & _M1)
+    x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
+    x = (x + (x >> np.uint64(4))) & _M4
+    return (x * _H01) >> np.uint64(56)
+
+
+@njit(cache=True, fastmath=FASTMATH, parallel=True)
+def census_transform(img, window, out):
+    """Census transform: one bit per window neighbour, set when the neighbour is darker than the centre.
+
+    Neighbours outside the image are read at the clamped (replicated-border) position, so flipping the image
+    horizontally permutes the bits identically for both views and Hamming distances are flip-invariant.
+
+    Args:
+        img: (H, W) uint8 grey image.
+        window: odd window side w (3, 5 or 7); the code has w * w - 1 bits (centre excluded).
+        out: (H, W) uint64, written in place.
+    """
+    height, width = img.shape
+    r = window // 2
+    for y in prange(height):
+        for x in range(width):
+            centre = img[y, x]
+            code = np.uint64(0)
+            for dy in range(-r, r + 1):
+                yy = min(max(y + dy, 0), height - 1)
+                for dx in range(-r, r + 1):
+                    if dy == 0 and dx == 0:
+                        continue
+                    xx = min(max(x + dx, 0), width - 1)
+                    code = (code << _ONE) | np.uint64(img[yy, xx] < centre)
+            out[y, x] = code
+
+
+@njit(cache=True, fastmath=FASTMATH, parallel=True)
+def cost_volume(census_left, census_right, invalid_cost, out):
+    """Left-view Hamming cost C(y, x, d) = popcount(census_left[y, x] ^ census_right[y, x - d]).
+
+    Columns x < d have no partner in the right image; they get the constant ``invalid_cost`` (the maximal census
+    cost) so that path aggregation stays well defined and never prefers an impossible disparity.
+
+    Args:
+        census_left, census_right: (H, W) uint64 census codes.
+        invalid_cost: cost for x - d < 0 (uint8 range).
+        out: (H, W, D) uint8, written in place; D is the number of disparities [0, D).
+    """
+    height, width, n_disp = out.shape
+    fill = np.uint8(invalid_cost)
+    for y in prange(height):
+        for x in range(width):
+            code = census_left[y, x]
+            n_valid = min(x + 1, n_disp)
+            for d in range(n_valid):
+                out[y, x, d] = np.uint8(popcount64(code ^ census_right[y, x - d]))
+            for d in range(n_valid, n_disp):
+                out[y, x, d] = fill
+
+
+@njit(cache=True, fastmath=FASTMATH, parallel=True)
+def reindex_right(cost_left, invalid_cost, out):
+    """Right-view cost from the left-view volume: C_r(y, x, d) = C_l(y, x + d, d), invalid_cost where x + d >= W.
+
+    Right(x) matches left(x + d), and C_l(y, x + d, d) is exactly the Hamming distance of that pair, so no second
+    census or cost computation is needed.
+
+    Args:
+        cost_left: (H, W, D) uint8 left-view cost volume.
+        invalid_cost: cost for x + d >= W.
+        out: (H, W, D) uint8, written in place.
+    """
+    height, width, n_disp = cost_left.shape
+    fill = np.uint8(invalid_cost)
+    for y in prange(height):
+        for x in range(width):
+            n_valid = min(width - x, n_disp)
+            for d in range(n_valid):
+                out[y, x, d] = cost_left[y, x + d, d]
+            for d in range(n_valid, n_disp):
+                out[y, x, d] = fill

@@ -1,0 +1,77 @@
+"""Numba winner-takes-all on the aggregated SGM cost: sub-pixel disparity, confidence c and uniqueness.
+
+Definitions (per pixel, S = aggregated cost vector over d in [0, D), uint16):
+    d* = argmin_d S(d) (smallest d on ties), S_min = S(d*).
+    disparity = d* + (S(d*-1) - S(d*+1)) / (2 (S(d*-1) - 2 S(d*) + S(d*+1))), the vertex of the parabola through
+        the three costs; no offset at d* = 0, d* = D - 1 or a flat triple. NaN when d* has no partner pixel.
+    c = clip(1 - S_min / s_max, 0, 1) with s_max = n_paths * max_cost (the cost of a pixel that matches nothing
+        along any path); 0 at NaN pixels.
+    uniqueness = 1 - S_min / S_second, S_second = min over |d - d*| > 1 (0 if S_second == 0, no such d or NaN).
+"""
+
+import numpy as np
+from numba import njit, prange
+
+from pvm_labeler.kernels._flags import FASTMATH
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def select_disparity(s, n_valid, s_max, key_shift):
+    """WTA + parabola + c + uniqueness of one pixel (see the module docstring).
+
+    Args:
+        s: (D,) uint16 aggregated costs.
+        n_valid: disparities d < n_valid have a partner pixel; d* >= n_valid gives NaN.
+        s_max: normaliser of c (float).
+        key_shift: number of bits that hold d (2 ** key_shift >= D); the argmin is the min of (S << shift) | d,
+            a plain uint32 min reduction that vectorises, instead of a branchy argmin loop.
+
+    Returns:
+        (disparity, c, uniqueness) as float32 scalars.
+    """
+    n_disp = s.shape[0]
+    best_key = np.uint32(0xFFFFFFFF)
+    for d in range(n_disp):
+        best_key = min(best_key, (np.uint32(s[d]) << np.uint32(key_shift)) | np.uint32(d))
+    d_best = int(best_key & np.uint32((1 << key_shift) - 1))
+    s_min = np.float32(best_key >> np.uint32(key_shift))
+    if d_best >= n_valid:
+        return np.float32(np.nan), np.float32(0.0), np.float32(0.0)
+    lo = d_best - 1
+    hi = d_best + 1
+    second = np.uint16(0xFFFF)
+    found = False
+    for d in range(n_disp):
+        if d < lo or d > hi:
+            second = min(second, s[d])
+            found = True
+    uniq = np.float32(0.0)
+    if found and second > 0:
+        uniq = np.float32(1.0) - s_min / np.float32(second)
+    offset = np.float32(0.0)
+    if 0 < d_best < n_disp - 1:
+        a = np.float32(s[d_best - 1])
+        c = np.float32(s[d_best + 1])
+        denom = a - np.float32(2.0) * s_min + c
+        if denom > 0:
+            offset = (a - c) / (np.float32(2.0) * denom)
+    conf = np.float32(1.0) - s_min / np.float32(s_max)
+    conf = min(max(conf, np.float32(0.0)), np.float32(1.0))
+    return np.float32(d_best) + offset, conf, uniq
+
+
+@njit(cache=True, fastmath=FASTMATH, parallel=True)
+def wta_volume(cost_sum, right_view, s_max, key_shift, disp, conf, uniq):
+    """Apply :func:`select_disparity` to every pixel of an aggregated volume.
+
+    Args:
+        cost_sum: (H, W, D) uint16 aggregated cost S.
+        right_view: False: d is valid iff x - d >= 0; True: valid iff x + d < W.
+        s_max, key_shift: see :func:`select_disparity`.
+        disp, conf, uniq: (H, W) float32 outputs, written in place.
+    """
+    height, width, _ = cost_sum.shape
+    for y in prange(height):
+        for x in range(width):
+            n_valid = width - x if right_view else x + 1
+            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum[y, x], n_valid, s_max, key_shift)
