@@ -343,20 +343,24 @@ SYNTHETIC_SCENES: tuple[tuple[int, int, int], ...] = ((240, 320, 0), (224, 336, 
 _SYNTHETIC_MARK = "<synthetic>"
 
 
-def _discover_sample(root: Path | None, split: str, synthetic: bool = True, **_: Any) -> list[PairRef]:
+def _discover_sample(
+    root: Path | None, split: str, synthetic: bool | str = True, motorcycle: bool | str = True, **_: Any
+) -> list[PairRef]:
     import skimage
 
     data_dir = Path(skimage.__file__).parent / "data"
-    refs = [
-        PairRef(
-            frame_id="motorcycle",
-            left=data_dir / "motorcycle_left.png",
-            right=data_dir / "motorcycle_right.png",
-            gt=data_dir / "motorcycle_disp.npz",
-            meta={"dataset": "sample", "gt_format": "skimage_npz"},
+    refs = []
+    if _flag(motorcycle):
+        refs.append(
+            PairRef(
+                frame_id="motorcycle",
+                left=data_dir / "motorcycle_left.png",
+                right=data_dir / "motorcycle_right.png",
+                gt=data_dir / "motorcycle_disp.npz",
+                meta={"dataset": "sample", "gt_format": "skimage_npz"},
+            )
         )
-    ]
-    if synthetic:
+    if _flag(synthetic):
         for i, (height, width, seed) in enumerate(SYNTHETIC_SCENES):
             fake = Path(_SYNTHETIC_MARK) / f"synthetic-{i:03d}"
             refs.append(
@@ -371,6 +375,11 @@ def _discover_sample(root: Path | None, split: str, synthetic: bool = True, **_:
                 )
             )
     return refs
+
+
+def _flag(value: bool | str) -> bool:
+    """Reader options may come from YAML/CLI as strings."""
+    return value if isinstance(value, bool) else str(value).lower() not in ("0", "false", "no", "off")
 
 
 def _smooth_texture(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
@@ -466,7 +475,7 @@ def discover(name: str, root: Path | str | None, split: str = "training", **kwar
             when ``left``/``right`` are absolute.
         split: ``training`` or ``testing`` (KITTI split folder; Scene Flow TRAIN/TEST; ignored by middlebury).
         **kwargs: per-dataset options: ``folder``: ``left``, ``right``, ``gt``, ``gt_scale``; ``sceneflow``:
-            ``pass_`` ("clean"/"final"); ``sample``: ``synthetic`` (bool).
+            ``pass_`` ("clean"/"final"); ``sample``: ``synthetic``, ``motorcycle`` (bools: which pairs to include).
 
     Returns:
         PairRefs sorted by frame id (ids unique).
