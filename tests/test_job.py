@@ -262,6 +262,7 @@ class TestRealLabeler:
         _assert_same_shards(out, ref_out)
 
 
+@pytest.mark.slow  # the default run has the same through the CLI (test_cli.py::test_real_kitti_cli)
 def test_real_kitti_two_frames(tmp_path: Path, shared_data: Path, real_labeler: None) -> None:
     """Real data in the default run: 2 KITTI 2015 frames with K=3, full search range 128."""
     out = tmp_path / "kitti"
