@@ -66,7 +66,7 @@ def _device_option(fn):
 @click.option("--model", help=f"Registry model name. [default: {_D.model}]")
 @click.option("--model-opt", multiple=True, help="Model override KEY=VALUE, e.g. feature_dim=128 (repeatable).")
 @click.option("--supervision", type=click.Choice(SUPERVISIONS),
-              help=f"pvm = PVM pseudo-labels (PVStereo), gt = ground truth (supervised row). [default: {_D.supervision}]")
+              help=f"pvm = PVM pseudo-labels (PVStereo), gt = ground truth. [default: {_D.supervision}]")
 @click.option("--iters", type=int, help=f"GRU iterations N_s during training. [default: {_D.iters}]")
 @click.option("--steps", type=int, help=f"Total optimiser steps. [default: {_D.steps}]")
 @click.option("--batch-size", type=int, help=f"Samples per step per rank. [default: {_D.batch_size}]")
@@ -76,7 +76,7 @@ def _device_option(fn):
 @click.option("--gamma", type=float, help=f"Sequence weight base of L_P. [default: {_D.gamma}]")
 @click.option("--lambda-r", type=float, help="Weight of L_R. [default: 0.1 for pvm, 0 for gt]")
 @click.option("--lambda-s", type=float, help="Weight of L_S. [default: 0.1 for pvm, 0 for gt]")
-@click.option("--crop", help=f"Random crop HxW in pixels (whole frame when smaller). [default: {_D.crop[0]}x{_D.crop[1]}]")
+@click.option("--crop", help=f"Random crop HxW, px (whole frame when smaller). [default: {_D.crop[0]}x{_D.crop[1]}]")
 @click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.flip_swap_p}]")
 @click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")
 @click.option("--device", type=click.Choice(DEVICES), help=f"auto = cuda when available. [default: {_D.device}]")
