@@ -184,6 +184,7 @@ class ShardOutcome:
     peak_rss_mb: float
     pid: int
     resumed: bool = False
+    cpu_seconds: float = 0.0
 
 
 @dataclass
@@ -203,6 +204,7 @@ class JobSummary:
     metrics: dict[str, float] | None  # labels vs the most complete GT, pooled over pixels
     metrics_noc: dict[str, float] | None  # labels vs non-occluded GT where known
     peak_rss_mb_per_worker: float
+    cpu_seconds_per_pair: float  # worker CPU time (all threads) per labelled pair: load-independent cost
     parallel: dict[str, Any]
     failures: list[dict[str, Any]]
 
@@ -283,7 +285,7 @@ def label_shard(task: ShardTask) -> ShardOutcome:
     Single-pair failures (bad files, sizes, labeler input errors) are recorded and the rest of the shard goes on.
     A shard in which every pair failed is not published (a resume will retry it).
     """
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     cfg = LabelerConfig.from_dict(task.config)
     labeler = _resolve_labeler(task.label_fn)
     failures: list[dict[str, Any]] = []
@@ -324,7 +326,8 @@ def label_shard(task: ShardTask) -> ShardOutcome:
             writer.abort()
             raise
     return ShardOutcome(index=task.index, file=path.name, sample_ids=ids, planned=planned, failures=failures,
-                        stats=stats, seconds=time.perf_counter() - t0, peak_rss_mb=peak_rss_mb(), pid=os.getpid())
+                        stats=stats, seconds=time.perf_counter() - t0, peak_rss_mb=peak_rss_mb(), pid=os.getpid(),
+                        cpu_seconds=time.process_time() - c0)
 
 
 # ------------------------------------------------------------------------------------------------- pre-flight
@@ -559,6 +562,7 @@ def _finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outco
         metrics=acc.compute() if acc.n_frames else None,
         metrics_noc=acc_noc.compute() if acc_noc.n_frames else None,
         peak_rss_mb_per_worker=max((o.peak_rss_mb for o in written), default=0.0),
+        cpu_seconds_per_pair=sum(o.cpu_seconds for o in written) / work_pairs if work_pairs else math.nan,
         parallel={"backend": spec.backend, "jobs": spec.jobs, "numba_threads_per_worker": threads,
                   "scheduler": spec.scheduler},
         failures=failures,
