@@ -5,7 +5,7 @@ In one run (so ratios are meaningful on a shared, noisy machine):
 - warm-up: one frame labelled in-process (numba JIT compile / cache load excluded from the timings);
 - ``--jobs 1`` with 1 numba thread, ``--jobs 1`` with all cores as numba threads, ``--jobs 2`` (loky, numba
   threads = cores // 2): pairs/s of the whole job (read, label, write shards), scaling ratios, peak RSS per worker;
-- shard size per frame and read speed for lzf, gzip (level 4, shuffle) and no compression, by rewriting the same
+- shard size per frame and read speed for lzf, gzip (level 1, shuffle) and no compression, by rewriting the same
   samples, so the compression choice is measured, not assumed.
 
 Run alone: ``.venv/bin/python -m pipelines.bench_job --shared ../shared/data [--limit 4]``.

@@ -165,10 +165,13 @@ def _chunks(shape: tuple[int, ...]) -> tuple[int, ...]:
 
 
 def _compression_kwargs(compression: str) -> dict[str, Any]:
+    # Measured on KITTI frames (docs/labeling.md): the byte-shuffle filter gains nothing with lzf (5.28 vs 5.29
+    # MB/frame) but slows reads by ~25 %; for gzip it helps, and level 1 is within 2 % of level 4's size at ~30 %
+    # less write time.
     if compression == "lzf":
-        return {"compression": "lzf", "shuffle": True}
+        return {"compression": "lzf"}
     if compression == "gzip":
-        return {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+        return {"compression": "gzip", "compression_opts": 1, "shuffle": True}
     if compression == "none":
         return {}
     raise ShardError(f"unknown compression '{compression}', expected one of {COMPRESSIONS}")
