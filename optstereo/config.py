@@ -51,7 +51,7 @@ class ModelConfig:
     corr_radius: int = 4
     iters: int = 8
     upsampler: str = "conv"
-    upsample_dim: int = 32
+    upsample_dim: int = 16
     head_dim: int = 128
     norm: str = "instance"
     corr_scale: bool = True

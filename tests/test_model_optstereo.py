@@ -54,7 +54,7 @@ class TestRegistry:
         assert model.config.name == name
         assert (model.corr_block.num_levels, model.corr_block.radius) == (levels, radius)
         assert model.config.corr_channels == levels * (2 * radius + 1)
-        assert model.update_block.convz.in_channels == 16 + 1 + levels * (2 * radius + 1)
+        assert model.update_block.convzr.in_channels == 16 + 1 + levels * (2 * radius + 1)
 
     def test_feature_paper_defaults(self) -> None:
         model = build_model("optstereo")

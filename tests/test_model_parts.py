@@ -121,13 +121,15 @@ class TestConvGRU:
         got = gru(h, x_dyn, gru.precompute(feat))
 
         ws_z, ws_r, ws_q = gru.static.weight.chunk(3, dim=0)
-        w_z = torch.cat([gru.convz.weight, ws_z], dim=1)
-        w_r = torch.cat([gru.convr.weight, ws_r], dim=1)
+        wd_z, wd_r = gru.convzr.weight.chunk(2, dim=0)
+        b_z, b_r = gru.convzr.bias.chunk(2)
+        w_z = torch.cat([wd_z, ws_z], dim=1)
+        w_r = torch.cat([wd_r, ws_r], dim=1)
         w_q = torch.cat([gru.convq.weight, ws_q], dim=1)
         x = torch.cat([x_dyn, feat], dim=1)  # x^k = [D, M_l, F_l]
         hx = torch.cat([h, x], dim=1)
-        z = torch.sigmoid(F.conv2d(hx, w_z, gru.convz.bias, padding=1))
-        r = torch.sigmoid(F.conv2d(hx, w_r, gru.convr.bias, padding=1))
+        z = torch.sigmoid(F.conv2d(hx, w_z, b_z, padding=1))
+        r = torch.sigmoid(F.conv2d(hx, w_r, b_r, padding=1))
         q = torch.tanh(F.conv2d(torch.cat([r * h, x], dim=1), w_q, gru.convq.bias, padding=1))
         want = (1 - z) * h + z * q
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
@@ -139,8 +141,10 @@ class TestConvGRU:
         h = torch.randn(1, 3, 4, 4, dtype=torch.float64)
         x = torch.randn(1, 2, 4, 4, dtype=torch.float64)
         hx = torch.cat([h, x], 1)
-        z = torch.sigmoid(gru.convz(hx))
-        r = torch.sigmoid(gru.convr(hx))
+        w_z, w_r = gru.convzr.weight.chunk(2, dim=0)
+        b_z, b_r = gru.convzr.bias.chunk(2)
+        z = torch.sigmoid(F.conv2d(hx, w_z, b_z, padding=1))
+        r = torch.sigmoid(F.conv2d(hx, w_r, b_r, padding=1))
         q = torch.tanh(gru.convq(torch.cat([r * h, x], 1)))
         torch.testing.assert_close(gru(h, x), (1 - z) * h + z * q)
 

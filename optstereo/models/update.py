@@ -27,8 +27,8 @@ class ConvGRU(nn.Module):
     def __init__(self, hidden_dim: int, input_dim: int, static_dim: int = 0) -> None:
         super().__init__()
         self.hidden_dim = hidden_dim
-        self.convz = conv3x3(hidden_dim + input_dim, hidden_dim)
-        self.convr = conv3x3(hidden_dim + input_dim, hidden_dim)
+        # W_z and W_r stacked in one conv (output channels [z | r]): one larger GEMM instead of two.
+        self.convzr = conv3x3(hidden_dim + input_dim, 2 * hidden_dim)
         self.convq = conv3x3(hidden_dim + input_dim, hidden_dim)
         # One conv for the three static parts: (B, static_dim) -> (B, 3 * hidden) = [z | r | q].
         self.static = conv3x3(static_dim, 3 * hidden_dim, bias=False) if static_dim > 0 else None
@@ -46,14 +46,10 @@ class ConvGRU(nn.Module):
         x: torch.Tensor,
         static: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
-        hx = torch.cat([h, x], dim=1)
-        zc = self.convz(hx)
-        rc = self.convr(hx)
+        zr = self.convzr(torch.cat([h, x], dim=1))
         if static is not None:
-            zc = zc + static[0]
-            rc = rc + static[1]
-        z = torch.sigmoid(zc)
-        r = torch.sigmoid(rc)
+            zr = zr + torch.cat([static[0], static[1]], dim=1)
+        z, r = torch.sigmoid(zr).chunk(2, dim=1)
         qc = self.convq(torch.cat([r * h, x], dim=1))
         if static is not None:
             qc = qc + static[2]
