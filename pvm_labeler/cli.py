@@ -155,7 +155,7 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
               help="loky processes, threads, or a Dask distributed cluster.")
 @click.option("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) for --backend dask; "
               "without it a local cluster of --jobs workers is started. OUT must be on a shared file system.")
-@click.option("--shard-size", type=click.IntRange(min=1), default=4, show_default=True,
+@click.option("--shard-size", type=click.IntRange(min=1), default=2, show_default=True,
               help="Pairs per shard (the unit of parallel work and of resume).")
 @click.option("--resume/--no-resume", default=True, show_default=True,
               help="Skip shards that are already complete and match this config.")

@@ -97,7 +97,7 @@ class JobSpec:
     jobs: int = 1
     backend: str = "loky"
     scheduler: str | None = None
-    shard_size: int = 4
+    shard_size: int = 2
     resume: bool = True
     overwrite: bool = False
     quiet: bool = False
