@@ -68,13 +68,16 @@ def cost_volume(census_left, census_right, invalid_cost, out):
     height, width, n_disp = out.shape
     fill = np.uint8(invalid_cost)
     for y in prange(height):
+        row_right = census_right[y]
         for x in range(width):
             code = census_left[y, x]
             n_valid = min(x + 1, n_disp)
+            out_px = out[y, x]
             for d in range(n_valid):
-                out[y, x, d] = np.uint8(popcount64(code ^ census_right[y, x - d]))
+                # unsigned index: x - d >= 0 here, and it spares numba's negative-index wraparound select
+                out_px[d] = np.uint8(popcount64(code ^ row_right[np.uintp(x - d)]))
             for d in range(n_valid, n_disp):
-                out[y, x, d] = fill
+                out_px[d] = fill
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)

@@ -3,7 +3,8 @@
 Definitions (per pixel, S = aggregated cost vector over d in [0, D), uint16):
     d* = argmin_d S(d) (smallest d on ties), S_min = S(d*).
     disparity = d* + (S(d*-1) - S(d*+1)) / (2 (S(d*-1) - 2 S(d*) + S(d*+1))), the vertex of the parabola through
-        the three costs; no offset at d* = 0, d* = D - 1 or a flat triple. NaN when d* has no partner pixel.
+        the three costs; no offset at d* = 0, d* = D - 1 or a flat triple. NaN when d* has no partner pixel, or
+        when the minimum is not unique (S(d) == S_min for some |d - d*| > 1: e.g. no texture along the row).
     c = clip(1 - S_min / s_max, 0, 1) with s_max = n_paths * max_cost (the cost of a pixel that matches nothing
         along any path); 0 at NaN pixels.
     uniqueness = 1 - S_min / S_second, S_second = min over |d - d*| > 1 (0 if S_second == 0, no such d or NaN).
@@ -30,21 +31,26 @@ def select_disparity(s, n_valid, s_max, key_shift):
         (disparity, c, uniqueness) as float32 scalars.
     """
     n_disp = s.shape[0]
+    shift = np.uint32(key_shift)
     best_key = np.uint32(0xFFFFFFFF)
+    # Every intermediate is cast back to uint32: numba would otherwise widen to 64 bits and the reduction (no
+    # unsigned 64-bit min in AVX2) would stay scalar.
     for d in range(n_disp):
-        best_key = min(best_key, (np.uint32(s[d]) << np.uint32(key_shift)) | np.uint32(d))
-    d_best = int(best_key & np.uint32((1 << key_shift) - 1))
-    s_min = np.float32(best_key >> np.uint32(key_shift))
+        best_key = min(best_key, np.uint32(np.uint32(np.uint32(s[d]) << shift) | np.uint32(d)))
+    d_best = np.intp(best_key & np.uint32((1 << key_shift) - 1))
+    s_min = np.float32(best_key >> shift)
     if d_best >= n_valid:
         return np.float32(np.nan), np.float32(0.0), np.float32(0.0)
-    lo = d_best - 1
-    hi = d_best + 1
+    # Second best outside d* +- 1, as two clean min reductions (a masked single loop does not vectorise).
     second = np.uint16(0xFFFF)
-    found = False
-    for d in range(n_disp):
-        if d < lo or d > hi:
-            second = min(second, s[d])
-            found = True
+    for d in range(max(d_best - 1, 0)):
+        second = min(second, s[d])
+    for d in range(d_best + 2, n_disp):
+        second = min(second, s[d])
+    found = d_best >= 2 or d_best + 2 < n_disp
+    if found and np.float32(second) == s_min:
+        # an exact tie with a distant disparity: no unique match (e.g. a region without texture along x)
+        return np.float32(np.nan), np.float32(0.0), np.float32(0.0)
     uniq = np.float32(0.0)
     if found and second > 0:
         uniq = np.float32(1.0) - s_min / np.float32(second)

@@ -1,0 +1,111 @@
+"""Numba SGM kernels vs the pure-NumPy references in tests/naive.py (exact for integers, float32 rounding for WTA)."""
+
+from __future__ import annotations
+
+import naive
+import numpy as np
+import pytest
+
+from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
+from pvm_labeler.kernels.cost import census_transform, cost_volume, popcount64, reindex_right
+from pvm_labeler.kernels.wta import wta_volume
+
+
+def _census(img: np.ndarray, window: int) -> np.ndarray:
+    out = np.empty(img.shape, dtype=np.uint64)
+    census_transform(img, window, out)
+    return out
+
+
+def _cost(rng: np.random.Generator, height: int = 9, width: int = 23, n_disp: int = 7, window: int = 5):
+    left = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    right = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    cl, cr = _census(left, window), _census(right, window)
+    cost = np.empty((height, width, n_disp), dtype=np.uint8)
+    cost_volume(cl, cr, window * window - 1, cost)
+    return left, right, cl, cr, cost
+
+
+class TestCensus:
+    @pytest.mark.parametrize("window", [3, 5, 7])
+    def test_feature(self, rng, window):
+        img = rng.integers(0, 256, (11, 17), dtype=np.uint8)
+        np.testing.assert_array_equal(_census(img, window), naive.naive_census(img, window))
+
+    def test_hand_computed(self):
+        # 3x3 around the centre 5, neighbours in raster order 1 9 2 8 3 7 4 6 -> darker ones give bits 10101010
+        img = np.array([[1, 9, 2], [8, 5, 3], [7, 4, 6]], dtype=np.uint8)
+        assert int(_census(img, 3)[1, 1]) == 0b10101010
+
+    def test_popcount(self):
+        for v in [0, 1, 0xFF, 0x8000000000000001, 0xFFFFFFFFFFFFFFFF, 0x123456789ABCDEF]:
+            assert int(popcount64(np.uint64(v))) == bin(v).count("1")
+
+
+class TestCostVolume:
+    @pytest.mark.parametrize("window", [3, 5, 7])
+    def test_feature(self, rng, window):
+        _, _, cl, cr, cost = _cost(rng, window=window)
+        c_max = window * window - 1
+        np.testing.assert_array_equal(cost, naive.naive_cost_volume(cl, cr, cost.shape[2], c_max))
+        # edge columns x < d carry the invalid cost
+        assert cost[:, 0, 1:].min() == c_max and cost[:, 3, 4:].min() == c_max
+
+    def test_reindex(self, rng):
+        *_, cost = _cost(rng)
+        out = np.empty_like(cost)
+        reindex_right(cost, 24, out)
+        np.testing.assert_array_equal(out, naive.naive_reindex_right(cost, 24))
+        assert out[:, -1, 1:].min() == 24  # last column: only d = 0 has a partner
+
+
+class TestAggregate:
+    @pytest.mark.parametrize("diag", [True, False])
+    @pytest.mark.parametrize("adaptive", [False, True])
+    def test_feature(self, rng, diag, adaptive):
+        left, _, _, _, cost = _cost(rng, height=8, width=19, n_disp=6)
+        p1, p2 = 7, 60
+        grey = left if adaptive else None
+        fwd_dirs = naive.FORWARD_PATHS_8 if diag else naive.FORWARD_PATHS_4
+        bwd_dirs = naive.BACKWARD_PATHS_8 if diag else naive.BACKWARD_PATHS_4
+        s = np.empty(cost.shape, dtype=np.uint16)
+        aggregate_forward(cost, left, p1, p2, adaptive, diag, s)
+        np.testing.assert_array_equal(s, naive.naive_aggregate(cost, fwd_dirs, p1, p2, grey))
+        maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
+        n_paths = 2 * len(fwd_dirs)
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), 3, *maps)
+        expected = naive.naive_aggregate(cost, fwd_dirs + bwd_dirs, p1, p2, grey)
+        np.testing.assert_array_equal(s, expected)
+        # the fused WTA equals the reference WTA on the reference S
+        for got, ref in zip(maps, naive.naive_wta(expected, False, float(n_paths * 24)), strict=True):
+            np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
+
+    def test_hand_computed_path(self):
+        # one row, left->right path only, D = 3, P1 = 1, P2 = 4: L(x=1) = C + min(L0[d], L0[d+-1] + 1, 0 + 4) - 0
+        cost = np.array([[[0, 5, 9], [6, 6, 0]]], dtype=np.uint8)
+        lr = naive.naive_path(cost, (0, 1), 1, 4)
+        np.testing.assert_array_equal(lr[0, 1], [6 + 0, 6 + 1, 0 + 4])
+
+
+class TestWTA:
+    @pytest.mark.parametrize("right_view", [False, True])
+    def test_feature(self, rng, right_view):
+        s = rng.integers(0, 300, (5, 13, 9), dtype=np.uint16)
+        s[0, 4] = 7  # flat: not unique -> NaN
+        s[1, 5] = [9, 3, 3, 8, 8, 8, 8, 8, 8]  # tie with the neighbour only: smallest d, valid
+        maps = [np.empty((5, 13), dtype=np.float32) for _ in range(3)]
+        wta_volume(s, right_view, 800.0, 4, *maps)
+        for got, ref in zip(maps, naive.naive_wta(s, right_view, 800.0), strict=True):
+            np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
+        assert np.isnan(maps[0][0, 4]) and maps[1][0, 4] == 0.0 and maps[2][0, 4] == 0.0
+        assert maps[0][1, 5] == pytest.approx(1 + (9 - 3) / (2 * (9 - 6 + 3)))
+
+    def test_hand_computed(self):
+        # S = [10, 4, 6, 20, 30]: d* = 1, offset = (10 - 6) / (2 (10 - 8 + 6)) = 0.25, second best (d >= 3) = 20
+        s = np.array([[[10, 4, 6, 20, 30]] * 2], dtype=np.uint16)
+        maps = [np.empty((1, 2), dtype=np.float32) for _ in range(3)]
+        wta_volume(s, False, 16.0, 3, *maps)
+        assert np.isnan(maps[0][0, 0])  # x = 0 cannot have d = 1
+        assert maps[0][0, 1] == pytest.approx(1.25)
+        assert maps[1][0, 1] == pytest.approx(1 - 4 / 16)
+        assert maps[2][0, 1] == pytest.approx(1 - 4 / 20)
