@@ -227,7 +227,8 @@ def train_steps(
             logs = train_step(state, batch, loss_fn, cfg, device)
             window.append(logs)
             bar.update(1)
-            if state.step % cfg.log_every == 0 or state.step == cfg.steps:
+            time_up = cfg.max_minutes > 0 and _time_is_up(start_time, cfg.max_minutes, device)
+            if state.step % cfg.log_every == 0 or state.step == cfg.steps or time_up:
                 now = time.perf_counter()
                 mean = {k: float(np.nanmean([w[k] for w in window])) for k in window[0]}
                 mean = ddp.all_reduce_mean(mean, device)
@@ -245,7 +246,7 @@ def train_steps(
                     run_logger.images(state.step, disparity_images(left, pred, label, valid))
             if on_checkpoint is not None and (state.step % cfg.ckpt_every == 0):
                 on_checkpoint(state)
-            if cfg.max_minutes > 0 and _time_is_up(start_time, cfg.max_minutes, device):
+            if time_up:
                 logger.warning("stopping at step %d: --max-minutes %.1f reached", state.step, cfg.max_minutes)
                 break
     finally:
