@@ -36,6 +36,8 @@ logger = logging.getLogger(__name__)
 
 #: Config fields that do not change the per-scale SGM outputs (so cached scale stacks stay valid across them).
 _POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample", "extra")
+#: Sources whose content determines the cached per-scale SGM outputs.
+_SGM_SOURCES = ("sgm.py", "multiscale.py", "kernels/cost.py", "kernels/aggregate.py", "kernels/wta.py")
 #: Frame ids of ../shared/data/kitti15 (GT noc where present, 000046 has only occ).
 KITTI15_IDS = ("000000", "000001", "000002", "000004", "000005", "000006", "000007", "000009", "000010",
                "000011", "000012", "000014", "000015", "000016", "000046")
@@ -83,9 +85,15 @@ def _read_rgb(path: Path) -> np.ndarray:
 
 
 def sgm_key(cfg: LabelerConfig) -> str:
-    """Short hash of the config fields that determine the per-scale SGM outputs."""
+    """Short hash of the config fields that determine the per-scale SGM outputs and of the matcher's source code
+    (so a changed SGM or pyramid never reads a stale cache)."""
     values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in _POST_SGM_FIELDS}
-    return hashlib.sha1(json.dumps(values, sort_keys=True).encode()).hexdigest()[:12]
+    digest = hashlib.sha1(json.dumps(values, sort_keys=True).encode())
+    package = Path(__file__).resolve().parent
+    for name in _SGM_SOURCES:
+        source = package / name
+        digest.update(source.read_bytes() if source.is_file() else name.encode())
+    return digest.hexdigest()[:12]
 
 
 def raw_scales(frame: Frame, cfg: LabelerConfig, cache_dir: Path | None = None) -> RawScales:
