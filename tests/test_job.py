@@ -25,6 +25,7 @@ from pvm_labeler.errors import ConfigError, InputError
 from pvm_labeler.io import write_image
 from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, run
 from pvm_labeler.metrics import MetricAccumulator
+from pvm_labeler.parallel import numba_threads_per_worker, thread_budget
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, read_sample, verify
 
 REPO = Path(__file__).resolve().parents[1]
@@ -150,6 +151,23 @@ class TestJobMechanics:
         single = tmp_path / "b"
         run(_spec(single, limit=3, shard_size=1, jobs=1))
         _assert_same_shards(out, single)
+
+
+class TestThreadBudget:
+    def test_workers_times_threads_within_cores(self) -> None:
+        assert numba_threads_per_worker(1, cores=2) == 2
+        assert numba_threads_per_worker(2, cores=2) == 1
+        assert numba_threads_per_worker(3, cores=2) == 1  # never 0
+        assert numba_threads_per_worker(2, cores=8) == 4
+
+    def test_set_and_restore(self) -> None:
+        import cv2
+        import numba
+
+        before = (numba.get_num_threads(), cv2.getNumThreads())
+        with thread_budget(1):
+            assert numba.get_num_threads() == 1 and cv2.getNumThreads() == 1
+        assert (numba.get_num_threads(), cv2.getNumThreads()) == before
 
 
 class TestBadInput:
