@@ -35,7 +35,7 @@ from pvm_labeler.multiscale import RawScales, ScaleStack, label_from_scales, lr_
 logger = logging.getLogger(__name__)
 
 #: Config fields that do not change the per-scale SGM outputs (so cached scale stacks stay valid across them).
-_POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample", "extra")
+_POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample", "min_texture", "extra")
 #: Sources whose content determines the cached per-scale SGM outputs.
 _SGM_SOURCES = ("sgm.py", "multiscale.py", "kernels/cost.py", "kernels/aggregate.py", "kernels/wta.py")
 #: Frame ids of ../shared/data/kitti15 (GT noc where present, 000046 has only occ).

@@ -36,13 +36,16 @@ class LabelerConfig:
         p2_adaptive: divide P2 by the image gradient along the path (Hirschmueller 2008, eq. 13-like).
         label_mode: label of a kept pixel from its K scale disparities: "finest" (D^1, the paper), "median",
             "mean" or "weighted" (1 / factor_k**2 weights).
+        min_texture: a pixel gets a label only if the grey-level range (max - min) over its census window at full
+            resolution is >= this (1 rejects exactly constant windows, which SGM fills by propagation only;
+            0 disables the test).
         upsample: interpolation of each scale's disparity/c back to full resolution: "linear" or "nearest".
         extra: free-form extra settings recorded with the run (JSON-serialisable).
     """
 
     k: int = 6
     kappa1: float = 1.0
-    kappa2: float = 0.08
+    kappa2: float = 0.25
     max_disp: int = 192
     lr_threshold: float = 1.0
     seed: int = 0
@@ -51,8 +54,9 @@ class LabelerConfig:
     p1: int = 8
     p2: int = 64
     p2_adaptive: bool = False
-    label_mode: str = "finest"
+    label_mode: str = "weighted"
     upsample: str = "linear"
+    min_texture: int = 1
     extra: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> LabelerConfig:
@@ -73,6 +77,8 @@ class LabelerConfig:
             raise ConfigError(f"SGM penalties need 0 <= p1 <= p2, got p1={self.p1}, p2={self.p2}")
         if self.label_mode not in LABEL_MODES:
             raise ConfigError(f"label_mode must be one of {LABEL_MODES}, got {self.label_mode!r}")
+        if not 0 <= self.min_texture <= 255:
+            raise ConfigError(f"min_texture must be in [0, 255] grey levels, got {self.min_texture}")
         if self.upsample not in UPSAMPLE_MODES:
             raise ConfigError(f"upsample must be one of {UPSAMPLE_MODES}, got {self.upsample!r}")
         return self

@@ -78,7 +78,8 @@ class ScaleStack:
         factors: (K,) float64 true horizontal factors.
         timings: seconds for "pyramid", "sgm", "upsample".
         full_res: the finest scale's raw SGM maps "disp_l", "disp_r", "uniqueness_l" (H, W) float32, used by
-            the SGM + LR (+ uniqueness) baselines in pvm_labeler.baselines.
+            the SGM + LR (+ uniqueness) baselines in pvm_labeler.baselines; and "range_l", "range_r" (H, W) uint8
+            grey-level range (max - min) over the census window of each view (the texture test).
     """
 
     disp_l: npt.NDArray[np.float32]
@@ -163,7 +164,7 @@ class RawScales:
         height, width: full-resolution size.
         eps: (K,) float64; factors: (K,) float64 true horizontal factors.
         maps: per scale k a dict "disp_l", "conf_l", "disp_r", "conf_r" of (h_k, w_k) float32 maps (disparities in
-            scale-k pixels); scale 1 also has "uniqueness_l".
+            scale-k pixels); scale 1 also has "uniqueness_l" and the texture maps "range_l", "range_r".
         timings: seconds for "pyramid" and "sgm".
     """
 
@@ -215,6 +216,8 @@ def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id
         maps.append({"disp_l": res_l.disp, "conf_l": res_l.conf, "disp_r": res_r.disp, "conf_r": res_r.conf})
         if len(maps) == 1:  # eps_1 = 0: scale 1 is the full-resolution SGM, whose uniqueness the baselines use
             maps[0]["uniqueness_l"] = res_l.uniqueness
+            maps[0]["range_l"] = _window_range(img_l, cfg.census_window)
+            maps[0]["range_r"] = _window_range(img_r, cfg.census_window)
     timings = {"pyramid": t1 - t0, "sgm": time.perf_counter() - t1}
     return RawScales(height, width, eps, np.array([g[2] for g in geometry]), maps, timings)
 
@@ -234,14 +237,21 @@ def upsample_scales(raw: RawScales, cfg: LabelerConfig) -> ScaleStack:
         for name in names:
             _upsample_into(maps[name], stacks[name][idx], interp, factor if name.startswith("disp") else 1.0)
     timings = dict(raw.timings, upsample=time.perf_counter() - t0)
-    full_res = {"disp_l": raw.maps[0]["disp_l"], "disp_r": raw.maps[0]["disp_r"],
-                "uniqueness_l": raw.maps[0]["uniqueness_l"]}
+    full_res = {name: raw.maps[0][name] for name in ("disp_l", "disp_r", "uniqueness_l", "range_l", "range_r")}
     return ScaleStack(eps=raw.eps, factors=raw.factors, timings=timings, full_res=full_res, **stacks)
 
 
 def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str) -> ScaleStack:
     """:func:`run_scales` then :func:`upsample_scales` (the expensive, kappa-independent part of label_pair)."""
     return upsample_scales(run_scales(left, right, cfg, frame_id), cfg)
+
+
+def _window_range(grey: np.ndarray, window: int) -> np.ndarray:
+    """(H, W) uint8 max - min of ``grey`` over the window x window neighbourhood (replicated border)."""
+    kernel = np.ones((window, window), np.uint8)
+    hi = cv2.dilate(grey, kernel, borderType=cv2.BORDER_REPLICATE)
+    lo = cv2.erode(grey, kernel, borderType=cv2.BORDER_REPLICATE)
+    return cv2.subtract(hi, lo)
 
 
 def _upsample_into(values: np.ndarray, out: np.ndarray, interp: int, scale: float) -> None:
@@ -327,6 +337,12 @@ def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediate
     t0 = time.perf_counter()
     voted_l, conf_l, c1_l, c2_l = vote(stack.disp_l, stack.conf_l, cfg, stack.factors)
     voted_r, _, c1_r, c2_r = vote(stack.disp_r, stack.conf_r, cfg, stack.factors)
+    if cfg.min_texture > 0:
+        # A constant census window has census code 0 in both views, so every disparity costs 0 there: SGM only
+        # propagates values into such pixels from their surroundings, consistently at every scale, and the vote
+        # cannot see it. These pixels carry no matching evidence of their own.
+        voted_l[stack.full_res["range_l"] < cfg.min_texture] = np.nan
+        voted_r[stack.full_res["range_r"] < cfg.min_texture] = np.nan
     t1 = time.perf_counter()
     label, label_right = lr_check(voted_l, voted_r, cfg.lr_threshold)
     confidence = np.where(np.isfinite(label), conf_l, np.float32(0.0)).astype(np.float32)
