@@ -44,14 +44,14 @@ class TestVote:
         # c = 0.75, 0.75, 0.5, 0.5 -> mean 0.625, std 0.125.
         disp = np.array([10, 11, 10, 11], np.float32).reshape(4, 1, 1)
         conf = np.array([0.75, 0.75, 0.5, 0.5], np.float32).reshape(4, 1, 1)
-        label, confidence, c1, c2 = vote(disp, conf, LabelerConfig(k=4, kappa1=1.0, kappa2=0.25))
+        label, confidence, c1, c2 = vote(disp, conf, LabelerConfig(k=4, kappa1=1.0, kappa2=0.25, label_mode="finest"))
         assert c1[0, 0] == 0.5 and c2[0, 0] == 0.125
         assert label[0, 0] == 10.0
         assert confidence[0, 0] == 0.625 * 0.5 * 0.5
         # C1 exactly at kappa1 votes against (V counts C1 >= kappa1).
-        label, confidence, _, _ = vote(disp, conf, LabelerConfig(k=4, kappa1=0.5, kappa2=0.25))
+        label, confidence, _, _ = vote(disp, conf, LabelerConfig(k=4, kappa1=0.5, kappa2=0.25, label_mode="finest"))
         assert np.isnan(label[0, 0]) and confidence[0, 0] == 0.0
-        label, _, _, _ = vote(disp, conf, LabelerConfig(k=4, kappa1=1.0, kappa2=0.125))
+        label, _, _, _ = vote(disp, conf, LabelerConfig(k=4, kappa1=1.0, kappa2=0.125, label_mode="finest"))
         assert np.isnan(label[0, 0])
         label, _, _, _ = vote(disp, conf, LabelerConfig(k=4, kappa1=1.0, kappa2=0.25, label_mode="median"))
         assert label[0, 0] == 10.5
@@ -61,7 +61,7 @@ class TestVote:
         conf = np.full((3, 2, 2), 0.9, np.float32)
         disp[2, 0, 0] = np.nan
         conf[1, 1, 1] = np.nan
-        label, confidence, c1, _ = vote(disp, conf, LabelerConfig(k=3))
+        label, confidence, c1, _ = vote(disp, conf, LabelerConfig(k=3, label_mode="finest"))
         assert np.isnan(label[0, 0]) and np.isnan(label[1, 1]) and np.isnan(c1[0, 0])
         assert label[0, 1] == 7.0 and confidence[0, 1] == pytest.approx(0.9, abs=1e-6)
 
