@@ -521,6 +521,17 @@ def run(spec: JobSpec) -> JobSummary:
     return _finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0)
 
 
+def _json_safe(value: Any) -> Any:
+    """Replace NaN/inf by None so index.json stays strict JSON (readable outside Python)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    return value
+
+
 def _progress(total: int, initial: int, quiet: bool) -> Any:
     from tqdm import tqdm
 
@@ -572,5 +583,5 @@ def _finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outco
     else:
         (out / FAILURES_FILE).unlink(missing_ok=True)
     write_index(out, shards, json.loads(spec.config.to_json()), spec.dataset_info(),
-                extra={"summary": summary.to_dict(), "compression": spec.compression})
+                extra={"summary": _json_safe(summary.to_dict()), "compression": spec.compression})
     return summary
