@@ -20,7 +20,7 @@ import numpy.typing as npt
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.errors import InputError
 from pvm_labeler.kernels.aggregate import SENTINEL, aggregate_backward_wta, aggregate_forward
-from pvm_labeler.kernels.cost import census_transform, cost_volume, reindex_right
+from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, reindex_right
 
 logger = logging.getLogger(__name__)
 
@@ -123,8 +123,8 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     height, width = left.shape
     window = cfg.census_window
     c_max = window * window - 1
-    census_l = np.empty((height, width), dtype=np.uint64)
-    census_r = np.empty((height, width), dtype=np.uint64)
+    census_l = np.empty((height, width), dtype=census_dtype(window))
+    census_r = np.empty((height, width), dtype=census_dtype(window))
     census_transform(left, window, census_l)
     census_transform(right, window, census_r)
     cost_l = np.empty((height, width, n_disp), dtype=np.uint8)

@@ -96,7 +96,11 @@ def naive_aggregate(cost: np.ndarray, directions: tuple[tuple[int, int], ...], p
 def naive_wta(cost_sum: np.ndarray, right_view: bool, s_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """WTA on S (H, W, D): disparity with parabola fit, c = clip(1 - S_min / s_max, 0, 1), uniqueness
     1 - S_min / min_{|d - d*| > 1} S; NaN / 0 / 0 where d* has no partner (x - d* < 0, or x + d* >= W for the
-    right view) or ties with some |d - d*| > 1. Ties within d* + 1 go to the smallest d. Returns three (H, W) float32 maps."""
+    right view) or ties with some |d - d*| > 1. Ties within d* + 1 go to the smallest d.
+
+    Returns:
+        disp, conf, uniq: (H, W) float32.
+    """
     height, width, n_disp = cost_sum.shape
     disp = np.full((height, width), np.nan, dtype=np.float32)
     conf = np.zeros((height, width), dtype=np.float32)

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
-from pvm_labeler.kernels.cost import census_transform, cost_volume, popcount64, reindex_right
+from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, popcount32, popcount64, reindex_right
 from pvm_labeler.kernels.wta import wta_volume
 
 
 def _census(img: np.ndarray, window: int) -> np.ndarray:
-    out = np.empty(img.shape, dtype=np.uint64)
+    out = np.empty(img.shape, dtype=census_dtype(window))
     census_transform(img, window, out)
     return out
 
@@ -30,7 +30,7 @@ class TestCensus:
     @pytest.mark.parametrize("window", [3, 5, 7])
     def test_feature(self, rng, window):
         img = rng.integers(0, 256, (11, 17), dtype=np.uint8)
-        np.testing.assert_array_equal(_census(img, window), naive.naive_census(img, window))
+        np.testing.assert_array_equal(_census(img, window).astype(np.uint64), naive.naive_census(img, window))
 
     def test_hand_computed(self):
         # 3x3 around the centre 5, neighbours in raster order 1 9 2 8 3 7 4 6 -> darker ones give bits 10101010
@@ -40,6 +40,7 @@ class TestCensus:
     def test_popcount(self):
         for v in [0, 1, 0xFF, 0x8000000000000001, 0xFFFFFFFFFFFFFFFF, 0x123456789ABCDEF]:
             assert int(popcount64(np.uint64(v))) == bin(v).count("1")
+            assert int(popcount32(np.uint32(v & 0xFFFFFFFF))) == bin(v & 0xFFFFFFFF).count("1")
 
 
 class TestCostVolume:

@@ -1,11 +1,12 @@
 """Numba kernels of the SGM matching cost: census transform, Hamming cost volume, right-view re-indexing.
 
-Layouts: images (H, W) uint8; census codes (H, W) uint64 (window <= 7x7, i.e. <= 48 bits); cost volumes
+Layouts: images (H, W) uint8; census codes (H, W) uint32 (<= 5x5) or uint64 (7x7, 48 bits); cost volumes
 (H, W, D) uint8 so that the disparity axis is contiguous for the aggregation kernels.
 """
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 from pvm_labeler.kernels._flags import FASTMATH
 
@@ -14,15 +15,48 @@ _M2 = np.uint64(0x3333333333333333)
 _M4 = np.uint64(0x0F0F0F0F0F0F0F0F)
 _H01 = np.uint64(0x0101010101010101)
 _ONE = np.uint64(1)
+_N1 = np.uint32(0x55555555)
+_N2 = np.uint32(0x33333333)
+_N4 = np.uint32(0x0F0F0F0F)
+_G01 = np.uint32(0x01010101)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def popcount64(x):
-    """Number of set bits of a uint64 (the SWAR idiom, which LLVM turns into a single ``popcnt``)."""
+    """Number of set bits of a uint64 (the SWAR idiom, which LLVM turns into a single scalar ``popcnt``)."""
     x = x - ((x >> _ONE) & _M1)
     x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
     x = (x + (x >> np.uint64(4))) & _M4
     return (x * _H01) >> np.uint64(56)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def popcount32(x):
+    """Number of set bits of a uint32; every step is cast back to uint32 so that a loop of these vectorises
+    (AVX2 has no vector popcnt, LLVM uses a vpshufb nibble table: measured ~2x faster than scalar 64-bit)."""
+    x = np.uint32(x - ((x >> np.uint32(1)) & _N1))
+    x = np.uint32((x & _N2) + ((x >> np.uint32(2)) & _N2))
+    x = np.uint32((x + (x >> np.uint32(4))) & _N4)
+    return np.uint32(np.uint32(x * _G01) >> np.uint32(24))
+
+
+def popcount(x):
+    """Set bits of a uint32 or uint64 census code (dispatches on the type inside numba kernels)."""
+    return int(x).bit_count()
+
+
+@overload(popcount, inline="always")
+def _popcount_overload(x):
+    if x == types.uint32:
+        return lambda x: popcount32(x)
+    if x == types.uint64:
+        return lambda x: popcount64(x)
+    return None
+
+
+def census_dtype(window: int) -> type:
+    """uint32 codes up to 5x5 (24 bits; faster vectorised popcount), uint64 up to 7x7 (48 bits)."""
+    return np.uint32 if window * window - 1 <= 32 else np.uint64
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
@@ -35,7 +69,7 @@ def census_transform(img, window, out):
     Args:
         img: (H, W) uint8 grey image.
         window: odd window side w (3, 5 or 7); the code has w * w - 1 bits (centre excluded).
-        out: (H, W) uint64, written in place.
+        out: (H, W) uint32 (window <= 5) or uint64 (window 7), see :func:`census_dtype`; written in place.
     """
     height, width = img.shape
     r = window // 2
@@ -50,7 +84,7 @@ def census_transform(img, window, out):
                         continue
                     xx = min(max(x + dx, 0), width - 1)
                     code = (code << _ONE) | np.uint64(img[yy, xx] < centre)
-            out[y, x] = code
+            out[y, x] = code  # truncates to uint32 for windows <= 5x5 (only the low 24 bits are used)
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
@@ -61,7 +95,7 @@ def cost_volume(census_left, census_right, invalid_cost, out):
     cost) so that path aggregation stays well defined and never prefers an impossible disparity.
 
     Args:
-        census_left, census_right: (H, W) uint64 census codes.
+        census_left, census_right: (H, W) uint32 or uint64 census codes (same dtype).
         invalid_cost: cost for x - d < 0 (uint8 range).
         out: (H, W, D) uint8, written in place; D is the number of disparities [0, D).
     """
@@ -75,7 +109,7 @@ def cost_volume(census_left, census_right, invalid_cost, out):
             out_px = out[y, x]
             for d in range(n_valid):
                 # unsigned index: x - d >= 0 here, and it spares numba's negative-index wraparound select
-                out_px[d] = np.uint8(popcount64(code ^ row_right[np.uintp(x - d)]))
+                out_px[d] = np.uint8(popcount(code ^ row_right[np.uintp(x - d)]))
             for d in range(n_valid, n_disp):
                 out_px[d] = fill
 

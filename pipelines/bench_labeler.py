@@ -1,0 +1,259 @@
+"""`make bench` section "labeler": our numba SGM vs OpenCV StereoSGBM, and one full PVM label split into stages.
+
+Setup (issue 2, "Speed"): KITTI 2015 frame 000000 (1242x375) from ../shared/data, max_disp = 192, ONE thread for
+numba and OpenCV. All variants are timed round-robin in the same process (so a noisy, shared CPU affects them
+alike) and reported as medians of >= 5 runs after a warm-up; the JIT compile time is measured separately in a
+fresh process with an empty numba cache. Ratios are ours / OpenCV; cells/s = pixels x disparities x paths / s.
+
+Run alone: ``.venv/bin/python -m pipelines.bench --only labeler --out /tmp/bench_a1``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import tracemalloc
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numba
+import numpy as np
+
+from pvm_labeler.config import LabelerConfig
+from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
+from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, reindex_right
+from pvm_labeler.sgm import sgm_pair
+
+logger = logging.getLogger(__name__)
+
+FRAME = "000000"
+MAX_DISP = 192
+REPEATS = 7
+TARGET_VS_HH = 0.25
+TARGET_VS_SGBM = 1.0
+
+_COMPILE_SNIPPET = """
+import time, numpy as np
+from pvm_labeler.config import LabelerConfig
+from pvm_labeler.sgm import sgm_pair
+rng = np.random.default_rng(0)
+img = rng.integers(0, 256, (32, 64), dtype=np.uint8)
+t0 = time.perf_counter()
+sgm_pair(img, img, LabelerConfig(max_disp=16))
+print(time.perf_counter() - t0)
+"""
+
+
+def _load(shared: Path) -> tuple[np.ndarray, np.ndarray]:
+    root = shared / "kitti15" / "training"
+    left = cv2.imread(str(root / "image_2" / f"{FRAME}_10.png"), cv2.IMREAD_COLOR_RGB)
+    right = cv2.imread(str(root / "image_3" / f"{FRAME}_10.png"), cv2.IMREAD_COLOR_RGB)
+    if left is None or right is None:
+        raise FileNotFoundError(f"KITTI 2015 frame {FRAME} not found under {root}")
+    return left, right
+
+
+def _opencv(mode: int) -> Any:
+    # blockSize 5 matches our 5x5 census window; P1/P2 are OpenCV's usual 8 / 32 x blockSize^2 (uint8 BT costs).
+    block = 5
+    return cv2.StereoSGBM_create(minDisparity=0, numDisparities=MAX_DISP, blockSize=block, P1=8 * block * block,
+                                 P2=32 * block * block, mode=mode)
+
+
+def _opencv_pair(matcher: Any, left: np.ndarray, right: np.ndarray) -> None:
+    """Left view, then the right view by the flip trick (flipped, swapped pair)."""
+    matcher.compute(left, right)
+    flipped = matcher.compute(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]))
+    assert flipped.shape == left.shape
+
+
+def _round_robin(cases: dict[str, Callable[[], Any]], repeats: int) -> dict[str, list[float]]:
+    for fn in cases.values():  # warm-up (JIT compile / cache load, OpenCV buffers)
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    for _ in range(repeats):
+        for name, fn in cases.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return times
+
+
+def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repeats: int) -> dict[str, float]:
+    """Median seconds of each kernel of sgm_pair (both views), called exactly as sgm.py calls them."""
+    height, width = grey_l.shape
+    c_max = cfg.census_window**2 - 1
+    cen_l = np.empty((height, width), census_dtype(cfg.census_window))
+    cen_r = np.empty_like(cen_l)
+    cost = np.empty((height, width, MAX_DISP), np.uint8)
+    cost_r = np.empty_like(cost)
+    s_buf = np.empty((height, width, MAX_DISP), np.uint16)
+    maps = [np.empty((height, width), np.float32) for _ in range(3)]
+    key_shift = (MAX_DISP - 1).bit_length()
+
+    def census() -> None:
+        census_transform(grey_l, cfg.census_window, cen_l)
+        census_transform(grey_r, cfg.census_window, cen_r)
+
+    stages = {
+        "census (both)": census,
+        "cost volume": lambda: cost_volume(cen_l, cen_r, c_max, cost),
+        "forward sweep (4 paths)": lambda: aggregate_forward(cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True,
+                                                             s_buf),
+        "backward sweep (4 paths) + WTA": lambda: aggregate_backward_wta(
+            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max), key_shift,
+            *maps),
+        "right cost re-index": lambda: reindex_right(cost, c_max, cost_r),
+    }
+    times = _round_robin(stages, repeats)
+    return {name: statistics.median(ts) for name, ts in times.items()}
+
+
+def _peak_mb(fn: Callable[[], Any]) -> float:
+    """Peak of NumPy allocations during fn (tracemalloc sees every ndarray buffer; numba scratch is < 5 MB)."""
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    fn()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2**20
+
+
+def _compile_seconds() -> float | None:
+    """First sgm_pair call in a fresh interpreter with an empty numba cache (= pure JIT compile time)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, NUMBA_NUM_THREADS="1")
+        try:
+            out = subprocess.run([sys.executable, "-c", _COMPILE_SNIPPET], env=env, capture_output=True, text=True,
+                                 check=True, timeout=900)
+        except (subprocess.SubprocessError, OSError) as exc:
+            logger.warning("compile-time measurement failed: %s", exc)
+            return None
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def _full_label(left: np.ndarray, right: np.ndarray, repeats: int) -> dict[str, Any]:
+    try:
+        from pvm_labeler.multiscale import label_pair
+    except ImportError as exc:
+        return {"note": f"pvm_labeler.multiscale.label_pair not available yet: {exc}"}
+    cfg = LabelerConfig()
+    label_pair(left, right, cfg, FRAME)  # warm-up
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = label_pair(left, right, cfg, FRAME)
+        wall = time.perf_counter() - t0
+        runs.append(dict(res.timings, wall=wall))
+    stages = {key: statistics.median(r[key] for r in runs) for key in runs[0]}
+    peak = _peak_mb(lambda: label_pair(left, right, cfg, FRAME))
+    return {"k": cfg.k, "repeats": repeats, "stages_s": stages, "peak_mb": peak}
+
+
+def _markdown(res: dict[str, Any]) -> str:
+    med = res["median_s"]
+    cells = res["cells_per_s"]
+    lines = [
+        f"KITTI 2015 frame {FRAME} ({res['width']}x{res['height']}), max_disp={MAX_DISP}, 1 thread (numba and "
+        f"OpenCV), median of {res['repeats']} runs after warm-up, round-robin in one process; "
+        f"load average at start {res['loadavg_start']:.1f} (the CPU is shared, so absolute times are noisy; "
+        "compare the ratios).",
+        "",
+        "| method | paths | median ms | cells/s (G) | ours / this |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    paths = {"ours left": 8, "ours left+right": 8, "OpenCV HH left": 8, "OpenCV SGBM left": 5,
+             "OpenCV HH left+right (flip)": 8, "OpenCV SGBM left+right (flip)": 5}
+    for name, n_paths in paths.items():
+        ours = med["ours left+right"] if "right" in name else med["ours left"]
+        ratio = "" if name.startswith("ours") else f"{ours / med[name]:.2f}"
+        lines.append(f"| {name} | {n_paths} | {med[name] * 1e3:.0f} | {cells[name] / 1e9:.2f} | {ratio} |")
+    r = res["ratios"]
+    lines += [
+        "",
+        f"Targets: ours left <= {TARGET_VS_HH} x HH (measured {r['left_vs_hh']:.2f}, "
+        f"{'met' if r['left_vs_hh'] <= TARGET_VS_HH else 'NOT met'}); <= {TARGET_VS_SGBM} x SGBM (measured "
+        f"{r['left_vs_sgbm']:.2f}, {'met' if r['left_vs_sgbm'] <= TARGET_VS_SGBM else 'NOT met'}).",
+        f"JIT compile of sgm_pair (fresh process, empty cache): {res['compile_s']:.1f} s"
+        if res["compile_s"] is not None else "JIT compile: not measured",
+        f"Peak NumPy memory: SGM left {res['peak_mb']['ours left']:.0f} MB, SGM left+right "
+        f"{res['peak_mb']['ours left+right']:.0f} MB.",
+        "",
+        "Our SGM stages (both views; median ms):",
+        "",
+        "| stage | ms |",
+        "| --- | --- |",
+    ]
+    lines += [f"| {name} | {sec * 1e3:.0f} |" for name, sec in res["sgm_stages_s"].items()]
+    full = res["full_label"]
+    lines.append("")
+    if "stages_s" in full:
+        lines += [f"Full PVM label (K={full['k']}, both views, voting, LRDCC), median of {full['repeats']} runs, "
+                  f"peak NumPy memory {full['peak_mb']:.0f} MB:", "", "| stage | ms |", "| --- | --- |"]
+        lines += [f"| {name} | {sec * 1e3:.0f} |" for name, sec in full["stages_s"].items()]
+    else:
+        lines.append(f"Full PVM label: {full['note']}")
+    return "\n".join(lines)
+
+
+def run(shared: Path, repeats: int = REPEATS) -> dict[str, Any]:
+    """Run the section; returns {"title", "results", "markdown"} for pipelines/bench.py."""
+    old_threads = numba.get_num_threads()
+    old_cv_threads = cv2.getNumThreads()
+    numba.set_num_threads(1)
+    cv2.setNumThreads(1)
+    try:
+        left, right = _load(shared)
+        grey_l = np.ascontiguousarray(cv2.cvtColor(left, cv2.COLOR_RGB2GRAY))
+        grey_r = np.ascontiguousarray(cv2.cvtColor(right, cv2.COLOR_RGB2GRAY))
+        height, width = grey_l.shape
+        cfg = LabelerConfig(max_disp=MAX_DISP)
+        loadavg = os.getloadavg()[0]
+        hh = _opencv(cv2.STEREO_SGBM_MODE_HH)
+        sgbm = _opencv(cv2.STEREO_SGBM_MODE_SGBM)
+        cases = {
+            "ours left": lambda: sgm_pair(grey_l, grey_r, cfg, right_view=False),
+            "ours left+right": lambda: sgm_pair(grey_l, grey_r, cfg),
+            "OpenCV HH left": lambda: hh.compute(grey_l, grey_r),
+            "OpenCV SGBM left": lambda: sgbm.compute(grey_l, grey_r),
+            "OpenCV HH left+right (flip)": lambda: _opencv_pair(hh, grey_l, grey_r),
+            "OpenCV SGBM left+right (flip)": lambda: _opencv_pair(sgbm, grey_l, grey_r),
+        }
+        logger.info("timing SGM variants (%d rounds)", repeats)
+        times = _round_robin(cases, repeats)
+        median = {name: statistics.median(ts) for name, ts in times.items()}
+        n_paths = {"ours left": 8, "ours left+right": 16, "OpenCV HH left": 8, "OpenCV SGBM left": 5,
+                   "OpenCV HH left+right (flip)": 16, "OpenCV SGBM left+right (flip)": 10}
+        cells = {name: height * width * MAX_DISP * n_paths[name] / median[name] for name in median}
+        results: dict[str, Any] = {
+            "frame": FRAME, "height": height, "width": width, "max_disp": MAX_DISP, "repeats": repeats,
+            "threads": 1, "loadavg_start": loadavg, "runs_s": times, "median_s": median, "cells_per_s": cells,
+            "ratios": {
+                "left_vs_hh": median["ours left"] / median["OpenCV HH left"],
+                "left_vs_sgbm": median["ours left"] / median["OpenCV SGBM left"],
+                "pair_vs_hh_flip": median["ours left+right"] / median["OpenCV HH left+right (flip)"],
+                "pair_vs_sgbm_flip": median["ours left+right"] / median["OpenCV SGBM left+right (flip)"],
+            },
+            "targets": {"left_vs_hh": TARGET_VS_HH, "left_vs_sgbm": TARGET_VS_SGBM},
+        }
+        results["peak_mb"] = {"ours left": _peak_mb(cases["ours left"]),
+                              "ours left+right": _peak_mb(cases["ours left+right"])}
+        logger.info("timing SGM stages")
+        results["sgm_stages_s"] = _sgm_stages(grey_l, grey_r, cfg, repeats)
+        logger.info("timing the full PVM label")
+        results["full_label"] = _full_label(left, right, max(5, repeats // 2))
+        results["loadavg_end"] = os.getloadavg()[0]
+        logger.info("measuring the JIT compile time in a fresh process")
+        results["compile_s"] = _compile_seconds()
+    finally:
+        numba.set_num_threads(old_threads)
+        cv2.setNumThreads(old_cv_threads)
+    return {"title": "Labeler: numba SGM vs OpenCV StereoSGBM, full PVM frame", "results": results,
+            "markdown": _markdown(results)}
