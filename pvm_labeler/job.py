@@ -395,6 +395,17 @@ def _job_doc(spec: JobSpec, plan: list[list[PairRef]]) -> dict[str, Any]:
     }
 
 
+def _identity(job_doc: dict[str, Any]) -> dict[str, Any]:
+    """What must match for existing shards to be reusable: config, dataset, shard size, compression.
+
+    The plan and --limit may change (e.g. a quick --limit 4 run, then the whole dataset): every shard is
+    re-checked against its own planned frame ids, so shards whose frames did not change are kept.
+    """
+    doc = {k: v for k, v in job_doc.items() if k != "plan"}
+    doc["dataset"] = {k: v for k, v in job_doc.get("dataset", {}).items() if k != "limit"}
+    return doc
+
+
 def _diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
     out = []
     for key in sorted(set(old) | set(new)):
@@ -430,11 +441,16 @@ def _prepare_out(spec: JobSpec, job_doc: dict[str, Any]) -> None:
             old = json.loads(job_path.read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise InputError(f"cannot read {job_path}: {exc}; pass --overwrite to start afresh") from exc
-        changes = _diff(old, job_doc)
+        changes = _diff(_identity(old), _identity(job_doc))
         if changes:
             raise InputError(f"existing shards in {out} were made with a different config/dataset ("
                              + "; ".join(changes[:6]) + "); pass --overwrite to replace them or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
+    # Shards past the end of the plan (an earlier run with a larger --limit) would linger unindexed: remove them.
+    for path in out.glob("shard-*.h5"):
+        stem = path.name[len("shard-") : -len(".h5")]
+        if stem.isdigit() and int(stem) >= len(job_doc["plan"]):
+            path.unlink()
     _write_text_atomic(out / JOB_FILE, json.dumps(job_doc, indent=2))
     _write_text_atomic(out / CONFIG_FILE, yaml.safe_dump(spec.resolved(), sort_keys=False))
 

@@ -107,6 +107,21 @@ class TestJobMechanics:
         assert not (out / "shard-00001.h5.tmp").exists() and verify(out) == []
         _assert_same_shards(out, ref_out)
 
+    def test_limit_grows_and_shrinks(self, tmp_path: Path) -> None:
+        out = tmp_path / "a"
+        first = run(_spec(out, limit=2))
+        assert first.shards_written == 1
+        grown = run(_spec(out))  # the full dataset continues after the quick --limit 2 run
+        assert grown.shards_resumed == 1 and grown.shards_written == 1 and read_index(out).num_samples == 4
+        _assert_same_shards(out, self._reference(tmp_path))
+        shrunk = run(_spec(out, limit=2))
+        assert shrunk.shards_resumed == 1 and read_index(out).num_samples == 2
+        assert sorted(p.name for p in out.glob("shard-*")) == ["shard-00000.h5"] and verify(out) == []
+
+    def _reference(self, tmp_path: Path) -> Path:
+        run(_spec(tmp_path / "ref"))
+        return tmp_path / "ref"
+
     def test_resume_replaces_corrupt_shard(self, tmp_path: Path) -> None:
         out = tmp_path / "a"
         run(_spec(out))
