@@ -83,3 +83,45 @@ class TestAccumulator:
         b.update(np.array([[5.0]]), np.array([[5.0]]))
         merged = MetricAccumulator().merge(a).merge(b).compute()
         assert merged["epe"] == 2.0 and merged["bad3"] == 50.0 and merged["n_covered"] == 2
+
+
+class TestViz:
+    def test_error_map_colours(self) -> None:
+        from pvm_labeler.viz import KITTI_ERROR_BINS, NO_LABEL_RGB, error_map
+
+        gt = np.array([[10.0, 10.0, 10.0, NAN, 100.0]], np.float32)
+        pred = np.array([[10.25, NAN, 40.0, 5.0, 104.0]], np.float32)
+        img = error_map(pred, gt)
+        assert img.shape == (1, 5, 3) and img.dtype == np.uint8
+        assert tuple(img[0, 0]) == KITTI_ERROR_BINS[1][2]  # 0.25 px -> min(0.083, 0.5) in [0.0625, 0.125)
+        assert tuple(img[0, 1]) == NO_LABEL_RGB  # GT but no prediction
+        assert tuple(img[0, 2]) == KITTI_ERROR_BINS[-1][2]  # 30 px: far past the outlier threshold
+        assert tuple(img[0, 3]) == (0, 0, 0)  # no GT
+        # 4 px on gt 100: min(4 / 3, 0.04 / 0.05) = 0.8 -> not an outlier (bin [0.5, 1))
+        assert tuple(img[0, 4]) == KITTI_ERROR_BINS[4][2]
+
+    def test_colorize_nan_black(self) -> None:
+        from pvm_labeler.viz import colorize_disparity
+
+        img = colorize_disparity(np.array([[NAN, 0.0, 50.0]], np.float32), max_disp=50)
+        assert tuple(img[0, 0]) == (0, 0, 0) and img[0, 2].any() and not (img[0, 1] == img[0, 2]).all()
+
+
+class TestReportRegions:
+    def test_all_noc_occ(self, tmp_path) -> None:  # noqa: ANN001
+        from pvm_labeler.report import build_report
+        from pvm_labeler.shards import ShardRecord, write_shard_dir
+
+        img = np.zeros((1, 4, 3), np.uint8)
+        gt = np.array([[10.0, 20.0, 30.0, 40.0]], np.float32)
+        gt_noc = np.array([[10.0, 20.0, NAN, NAN]], np.float32)  # last two pixels are occluded
+        label = np.array([[11.0, NAN, 35.0, 40.5]], np.float32)
+        rec = ShardRecord("f", img, img, label, label, np.ones((1, 4), np.float32), gt=gt, gt_noc=gt_noc)
+        write_shard_dir(tmp_path / "s", [rec], config={"kappa1": 1.0, "kappa2": 0.1})
+        result = build_report([tmp_path / "s"], tmp_path / "rep", pictures=1)
+        pooled = result["runs"][0]["pooled"]
+        assert pooled["all"]["density"] == 75.0 and pooled["all"]["epe"] == pytest.approx(6.5 / 3)
+        assert pooled["noc"]["density"] == 50.0 and pooled["noc"]["epe"] == 1.0 and pooled["noc"]["bad3"] == 0.0
+        assert pooled["occ"]["n_valid"] == 2 and pooled["occ"]["bad3"] == 50.0
+        assert (tmp_path / "rep/report.md").read_text().count("| f |") == 1
+        assert len(result["pictures"]) == 2  # label map + error map (a single run: no trade-off plot)
