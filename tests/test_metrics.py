@@ -90,12 +90,12 @@ class TestViz:
         from pvm_labeler.viz import KITTI_ERROR_BINS, NO_LABEL_RGB, error_map
 
         gt = np.array([[10.0, 10.0, 10.0, NAN, 100.0]], np.float32)
-        pred = np.array([[10.25, NAN, 40.0, 5.0, 104.0]], np.float32)
+        pred = np.array([[10.25, NAN, 70.0, 5.0, 104.0]], np.float32)
         img = error_map(pred, gt)
         assert img.shape == (1, 5, 3) and img.dtype == np.uint8
         assert tuple(img[0, 0]) == KITTI_ERROR_BINS[1][2]  # 0.25 px -> min(0.083, 0.5) in [0.0625, 0.125)
         assert tuple(img[0, 1]) == NO_LABEL_RGB  # GT but no prediction
-        assert tuple(img[0, 2]) == KITTI_ERROR_BINS[-1][2]  # 30 px: far past the outlier threshold
+        assert tuple(img[0, 2]) == KITTI_ERROR_BINS[-1][2]  # 60 px -> min(20, 120) >= 16: the last bin
         assert tuple(img[0, 3]) == (0, 0, 0)  # no GT
         # 4 px on gt 100: min(4 / 3, 0.04 / 0.05) = 0.8 -> not an outlier (bin [0.5, 1))
         assert tuple(img[0, 4]) == KITTI_ERROR_BINS[4][2]
