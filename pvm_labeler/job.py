@@ -290,7 +290,6 @@ def label_shard(task: ShardTask) -> ShardOutcome:
     labeler = _resolve_labeler(task.label_fn)
     failures: list[dict[str, Any]] = []
     acc, acc_noc = MetricAccumulator(), MetricAccumulator()
-    per_frame: dict[str, Any] = {}
     labelled_px = total_px = 0
     path = Path(task.path)
     planned = [ref.frame_id for ref in task.refs]
@@ -312,7 +311,6 @@ def label_shard(task: ShardTask) -> ShardOutcome:
                 labelled_px += int(np.isfinite(record.label).sum())
                 total_px += record.label.size
                 record.attrs["metrics"] = frame
-                per_frame[ref.frame_id] = frame
                 writer.add(record)
             stats = {"acc": _acc_dict(acc), "acc_noc": _acc_dict(acc_noc), "labelled_px": labelled_px,
                      "total_px": total_px, "failures": failures}
