@@ -131,9 +131,10 @@ class TestReconstruction:
         assert err[..., 1:-1, 6:-1].max() < 1e-5  # interior, away from the unmatched band's SSIM window
         at_gt = reconstruction_loss(lt, rt, good).item()
         assert at_gt < 0.01
-        losses = [reconstruction_loss(lt, rt, torch.full_like(good, d)).item() for d in (3.0, 4.5, 6.0, 8.0)]
-        assert min(losses) > 10 * at_gt, (at_gt, losses)
-        assert losses[0] > losses[1] or losses[3] > losses[2]  # grows as the disparity moves further away
+        # Grows with the disparity error: 0.25 px < 0.5 px < whole pixels (random texture: >= 1 px is uncorrelated).
+        l_q, l_h, l_far = (reconstruction_loss(lt, rt, torch.full_like(good, d)).item() for d in (5.25, 5.5, 3.0))
+        assert 10 * at_gt < l_q < l_h < l_far, (at_gt, l_q, l_h, l_far)
+        assert all(reconstruction_loss(lt, rt, torch.full_like(good, d)).item() > l_h for d in (4.0, 6.0, 8.0))
 
     def test_gradcheck(self, rng: np.random.Generator) -> None:
         left, right = make_synthetic_pair(rng, 8, 16, 2)
