@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
 
 from optstereo.checkpoint import (
     CheckpointError,

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
 
 from optstereo import train
 from optstereo.cli import eval_main, train_main
@@ -32,9 +33,12 @@ def kitti_shards(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) ->
     from pvm_labeler.cli import main as pvm_label
 
     out = tmp_path_factory.mktemp("e2e") / "labels"
+    threads = torch.get_num_threads()
     res = CliRunner().invoke(pvm_label, ["run", "--dataset", "kitti15", "--root", str(shared_data / "kitti15"),
                                          "--out", str(out), "--k", "2", "--max-disp", "96", "--limit", "2",
                                          "--shard-size", "1", "--quiet"])
+    # The labeler's numba thread budget also resets the OpenMP pool that torch uses; put torch's count back.
+    torch.set_num_threads(threads)
     assert res.exit_code == 0, res.output
     assert verify(out) == []
     assert read_index(out).num_samples == 2

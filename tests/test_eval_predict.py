@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_stream import make_shards
+from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
 
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main

@@ -18,6 +18,16 @@ from pvm_labeler.errors import ShardError
 from pvm_labeler.shards import ShardRecord, write_shard_dir
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Tiny models and crops: a second intra-op thread costs more than it gains, and on a shared, busy CPU the
+    spinning threads oversubscribe it (measured 10x slower). Other test modules import this fixture."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
 def make_shards(
     out: Path, n: int = 4, shard_size: int = 2, height: int = 32, width: int = 64, disp: int = 4,
     with_gt: bool = True, seed: int = 0,

@@ -9,7 +9,7 @@ import pytest
 import torch
 import yaml
 from click.testing import CliRunner
-from test_stream import make_shards
+from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
 
 from optstereo import train
 from optstereo.checkpoint import load_checkpoint
