@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+# One torch thread for training plus one loader worker fills the 2 cores; on a busy shared machine a second spinning
+# OpenMP thread made small training steps 3-6x slower (measured at a load average of ~8).
 # Smaller than the paper (feature_dim 256, hidden 128) so a CPU run learns something in minutes; say so in reports.
 DEMO_MODEL = {"feature_dim": 64, "hidden_dim": 64, "head_dim": 64, "upsample_dim": 32}
 BIN = Path(sys.executable).parent
@@ -101,7 +103,7 @@ def main(argv: list[str] | None = None) -> None:
     model_opts = [x for k, v in DEMO_MODEL.items() for x in ("--model-opt", f"{k}={v}")]
     _run([str(BIN / "optstereo-train"), "--labels", str(out / "labels"), "--out", str(out / "run"),
           "--steps", str(args.steps), "--max-minutes", str(args.minutes), "--crop", "128x256", "--batch-size", "2",
-          "--iters", "4", "--lr", "4e-4", "--schedule", "constant", "--workers", "1", "--threads", "2",
+          "--iters", "4", "--lr", "4e-4", "--schedule", "constant", "--workers", "1", "--threads", "1",
           "--ckpt-every", "100", "--log-every", "10", "--device", "cpu", *model_opts], log)
 
     print("== 3/4 evaluation on the sample's ground truth (network, then the labels, one ruler)", flush=True)
