@@ -84,6 +84,16 @@ class TestRun:
         assert yaml.safe_load((run / "config.yaml").read_text())["lambda_r"] == 0.1
         assert load_checkpoint(run).step == 4
 
+    def test_tensorboard_scalars_and_images(self, shards: Path, tmp_path: Path) -> None:
+        pytest.importorskip("tensorboard")
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+        train.main(tiny_config(shards, tmp_path / "tb", steps=2, tensorboard=True, image_every=2))
+        events = EventAccumulator(str(tmp_path / "tb" / "tb"))
+        events.Reload()
+        assert {"train/L_P", "train/L_R", "train/L_S", "train/lr", "train/label_epe"} <= set(events.Tags()["scalars"])
+        assert {"images/prediction", "images/label"} <= set(events.Tags()["images"])
+
     def test_resume_equals_uninterrupted(self, shards: Path, tmp_path: Path) -> None:
         full = train.main(tiny_config(shards, tmp_path / "full", schedule="onecycle", photometric=True))
         # Interrupted run: stop at step 2 by asking for 2 steps, then resume with the original total.
