@@ -6,7 +6,7 @@ Methods (all on the same matcher, ``pvm_labeler.sgm.sgm_pair``, at full resoluti
 - ``sgm_lr_uniq``: ``sgm_lr`` plus a uniqueness-ratio filter: keep pixels whose left-view
   ``SGMResult.uniqueness`` is >= a threshold (the definition is A1's, documented in ``pvm_labeler/sgm.py``; higher
   means a more distinctive minimum). Sweeping the threshold gives its density-vs-bad-3 curve.
-- ``pvm``: :func:`pvm_labeler.multiscale.label_pair`; its curve sweeps (kappa1, kappa2) jointly by a scale factor.
+- ``pvm``: :func:`pvm_labeler.multiscale.label_pair`; its curve sweeps ``min_confidence`` at the configured kappas.
 
 Metrics come from :mod:`pvm_labeler.metrics` (density in % of GT-valid pixels, bad-3 in %, AEPE in px, pooled over
 pixels). The expensive SGM outputs can be cached under a directory (``cache_dir``) keyed by frame and by the
@@ -35,7 +35,8 @@ from pvm_labeler.multiscale import RawScales, ScaleStack, label_from_scales, lr_
 logger = logging.getLogger(__name__)
 
 #: Config fields that do not change the per-scale SGM outputs (so cached scale stacks stay valid across them).
-_POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample", "min_texture", "extra")
+_POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample", "min_texture",
+                    "min_confidence", "extra")
 #: Sources whose content determines the cached per-scale SGM outputs.
 _SGM_SOURCES = ("sgm.py", "multiscale.py", "kernels/cost.py", "kernels/aggregate.py", "kernels/wta.py")
 #: Frame ids of ../shared/data/kitti15 (GT noc where present, 000046 has only occ).
@@ -174,13 +175,13 @@ def score_curve(preds: Sequence[np.ndarray], scores: Sequence[np.ndarray], gts: 
 
 
 def pvm_curve(stacks: Sequence[ScaleStack], gts: Sequence[np.ndarray], cfg: LabelerConfig,
-              scales: Sequence[float]) -> list[CurvePoint]:
-    """PVM sweep: (kappa1, kappa2) = s * (cfg.kappa1, cfg.kappa2) for every s in ``scales``."""
+              thresholds: Sequence[float]) -> list[CurvePoint]:
+    """PVM sweep: ``cfg.min_confidence`` = t for every t in ``thresholds``, at the kappas of ``cfg``."""
     out = []
-    for s in scales:
-        c = dataclasses.replace(cfg, kappa1=cfg.kappa1 * s, kappa2=cfg.kappa2 * s)
+    for t in thresholds:
+        c = dataclasses.replace(cfg, min_confidence=float(t))
         m = evaluate([label_from_scales(st, c).label for st in stacks], gts)
-        out.append(CurvePoint(float(s), m["density"], m["bad3"], m["epe"]))
+        out.append(CurvePoint(float(t), m["density"], m["bad3"], m["epe"]))
     return out
 
 
@@ -221,7 +222,7 @@ def quality_report(frames: Sequence[Frame], cfg: LabelerConfig, cache_dir: Path 
     pooled_u = np.concatenate([u[np.isfinite(d)] for d, u in base])
     uniq_thr = np.unique(np.quantile(pooled_u[np.isfinite(pooled_u)], np.linspace(0.0, 0.98, 50)))
     uniq_curve = score_curve([b[0] for b in base], [b[1] for b in base], gts, uniq_thr)
-    pvm_sweep = pvm_curve(stacks, gts, cfg, np.geomspace(0.1, 30.0, 40))
+    pvm_sweep = pvm_curve(stacks, gts, cfg, np.linspace(0.0, 0.5, 51))
     matched = {d: {"pvm": bad3_at_density(pvm_sweep, d), "uniq": bad3_at_density(uniq_curve, d)}
                for d in MATCHED_DENSITIES}
     return {

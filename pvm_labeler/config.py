@@ -39,13 +39,15 @@ class LabelerConfig:
         min_texture: a pixel gets a label only if the grey-level range (max - min) over its census window at full
             resolution is >= this (1 rejects exactly constant windows, which SGM fills by propagation only;
             0 disables the test).
+        min_confidence: drop voted pixels whose confidence mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / kappa2) is
+            below this, before the LR check (0 = the paper's binary vote only).
         upsample: interpolation of each scale's disparity/c back to full resolution: "linear" or "nearest".
         extra: free-form extra settings recorded with the run (JSON-serialisable).
     """
 
     k: int = 6
-    kappa1: float = 1.0
-    kappa2: float = 0.25
+    kappa1: float = 2.0
+    kappa2: float = 0.6
     max_disp: int = 192
     lr_threshold: float = 1.0
     seed: int = 0
@@ -57,6 +59,7 @@ class LabelerConfig:
     label_mode: str = "weighted"
     upsample: str = "linear"
     min_texture: int = 1
+    min_confidence: float = 0.15
     extra: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> LabelerConfig:
@@ -77,6 +80,8 @@ class LabelerConfig:
             raise ConfigError(f"SGM penalties need 0 <= p1 <= p2, got p1={self.p1}, p2={self.p2}")
         if self.label_mode not in LABEL_MODES:
             raise ConfigError(f"label_mode must be one of {LABEL_MODES}, got {self.label_mode!r}")
+        if not 0 <= self.min_confidence <= 1:
+            raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if not 0 <= self.min_texture <= 255:
             raise ConfigError(f"min_texture must be in [0, 255] grey levels, got {self.min_texture}")
         if self.upsample not in UPSAMPLE_MODES:

@@ -336,7 +336,11 @@ def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediate
         raise ConfigError(f"scale stack has {stack.disp_l.shape[0]} scales but cfg.k={cfg.k}")
     t0 = time.perf_counter()
     voted_l, conf_l, c1_l, c2_l = vote(stack.disp_l, stack.conf_l, cfg, stack.factors)
-    voted_r, _, c1_r, c2_r = vote(stack.disp_r, stack.conf_r, cfg, stack.factors)
+    voted_r, conf_r, c1_r, c2_r = vote(stack.disp_r, stack.conf_r, cfg, stack.factors)
+    if cfg.min_confidence > 0:
+        # Beyond the paper: the continuous confidence ranks pixels better than the two hard votes alone (docs/pvm.md).
+        voted_l[conf_l < cfg.min_confidence] = np.nan
+        voted_r[conf_r < cfg.min_confidence] = np.nan
     if cfg.min_texture > 0:
         # A constant census window has census code 0 in both views, so every disparity costs 0 there: SGM only
         # propagates values into such pixels from their surroundings, consistently at every scale, and the vote
