@@ -23,8 +23,10 @@ import json
 import logging
 import math
 import os
+import queue
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -168,6 +170,7 @@ class ShardTask:
     compression: str
     numba_threads: int
     label_fn: str = DEFAULT_LABELER
+    progress: Any = None  # queue-like: the worker puts 1 per finished pair (progress bar); None = no reporting
 
 
 @dataclass
@@ -279,6 +282,15 @@ def _record_for(ref: PairRef, cfg: LabelerConfig, labeler: Callable[..., Any]) -
     return record, frame_metrics
 
 
+def _report_pair(task: ShardTask) -> None:
+    if task.progress is not None:
+        try:
+            task.progress.put(1)
+        except (OSError, EOFError) as exc:  # the parent's manager is gone: progress is cosmetic, labels are not
+            logger.debug("progress queue unavailable: %s", exc)
+            task.progress = None
+
+
 def label_shard(task: ShardTask) -> ShardOutcome:
     """Worker entry: label every pair of one shard and publish the shard file atomically.
 
@@ -303,6 +315,7 @@ def label_shard(task: ShardTask) -> ShardOutcome:
                     logger.error("pair %s failed: %s", ref.frame_id, exc)
                     failures.append({"frame_id": ref.frame_id, "error": str(exc), "type": type(exc).__name__,
                                      "files": ref.to_dict()})
+                    _report_pair(task)
                     continue
                 if record.gt is not None:
                     frame["gt"] = acc.update(record.label, record.gt)
@@ -312,6 +325,7 @@ def label_shard(task: ShardTask) -> ShardOutcome:
                 total_px += record.label.size
                 record.attrs["metrics"] = frame
                 writer.add(record)
+                _report_pair(task)
             stats = {"acc": _acc_dict(acc), "acc_noc": _acc_dict(acc_noc), "labelled_px": labelled_px,
                      "total_px": total_px, "failures": failures}
             writer.set_attr("stats", json.dumps(stats))
@@ -525,14 +539,57 @@ def run(spec: JobSpec) -> JobSummary:
                 len(refs), len(plan), len(outcomes), len(pending), spec.backend, spec.jobs, threads)
 
     bar = _progress(len(refs), sum(len(o.planned) for o in outcomes.values()), spec.quiet)
-    try:
+    with _PairProgress(bar, spec, pending) as per_pair:
         for outcome in run_tasks(label_shard, pending, spec.backend, spec.jobs, spec.scheduler):
             outcomes[outcome.index] = outcome
-            bar.update(len(outcome.planned))
+            if not per_pair.active:
+                bar.update(len(outcome.planned))
             bar.set_postfix(shards=f"{len(outcomes)}/{len(plan)}")
-    finally:
-        bar.close()
     return _finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0)
+
+
+class _PairProgress:
+    """Advance the bar per finished pair: workers put 1 per pair into a queue that a parent thread drains.
+
+    Only when the bar is shown, and not for Dask (remote workers cannot reach a local queue; the bar then
+    advances per shard). loky workers get a multiprocessing Manager queue proxy, threads a plain queue.
+    """
+
+    def __init__(self, bar: Any, spec: JobSpec, tasks: list[ShardTask]) -> None:
+        self.bar, self.spec, self.tasks = bar, spec, tasks
+        self.active = not bar.disable and bool(tasks) and spec.backend != "dask"
+        self._manager: Any = None
+        self._queue: Any = None
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> _PairProgress:
+        if self.active:
+            if self.spec.jobs > 1 and self.spec.backend == "loky":
+                import multiprocessing
+
+                self._manager = multiprocessing.Manager()
+                self._queue = self._manager.Queue()
+            else:
+                self._queue = queue.SimpleQueue()
+            for task in self.tasks:
+                task.progress = self._queue
+            self._thread = threading.Thread(target=self._drain, name="pvm-label-progress", daemon=True)
+            self._thread.start()
+        return self
+
+    def _drain(self) -> None:
+        while (item := self._queue.get()) is not None:
+            self.bar.update(item)
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if self._thread is not None:
+                self._queue.put(None)  # FIFO: every worker's put happened before its task returned
+                self._thread.join(timeout=30)
+        finally:
+            if self._manager is not None:
+                self._manager.shutdown()
+            self.bar.close()
 
 
 def _json_safe(value: Any) -> Any:

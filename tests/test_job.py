@@ -168,6 +168,40 @@ class TestJobMechanics:
         _assert_same_shards(out, single)
 
 
+class _Bar:
+    """Stands in for the tqdm bar (which is off when stderr is not a TTY, as under pytest)."""
+
+    def __init__(self, total: int, initial: int) -> None:
+        self.total, self.n, self.updates, self.disable, self.closed = total, initial, [], False, False
+
+    def update(self, k: int) -> None:
+        self.n += k
+        self.updates.append(k)
+
+    def set_postfix(self, **_: object) -> None:
+        pass
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class TestProgress:
+    @pytest.mark.parametrize("jobs", [1, pytest.param(2, marks=pytest.mark.slow)])
+    def test_bar_advances_per_pair(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, jobs: int) -> None:
+        import pvm_labeler.job as job
+
+        bars: list[_Bar] = []
+        monkeypatch.setattr(job, "_progress", lambda total, initial, quiet: bars.append(_Bar(total, initial))
+                            or bars[-1])
+        run(_spec(tmp_path / "a", shard_size=3, jobs=jobs, quiet=False))
+        (bar,) = bars
+        assert bar.updates == [1, 1, 1, 1] and bar.n == bar.total == 4 and bar.closed
+        # Resumed shards count as done from the start.
+        (tmp_path / "a/shard-00001.h5").unlink()
+        run(_spec(tmp_path / "a", shard_size=3, jobs=jobs, quiet=False))
+        assert bars[1].updates == [1] and bars[1].n == 4
+
+
 class TestThreadBudget:
     def test_workers_times_threads_within_cores(self) -> None:
         assert numba_threads_per_worker(1, cores=2) == 2
