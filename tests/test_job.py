@@ -134,11 +134,14 @@ class TestJobMechanics:
         out = tmp_path / "a"
         run(_spec(out))
         before = sorted(p.name for p in out.iterdir())
-        with pytest.raises(InputError, match=r"different config/dataset \(config.kappa1: 1.0 -> 0.5.*--overwrite"):
-            run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=0.5)))
+        old_kappa1 = LabelerConfig().kappa1  # the PVM core's measured default
+        new_kappa1 = old_kappa1 + 0.5
+        match = rf"different config/dataset \(config.kappa1: {old_kappa1} -> {new_kappa1}\).*--overwrite"
+        with pytest.raises(InputError, match=match):
+            run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=new_kappa1)))
         assert sorted(p.name for p in out.iterdir()) == before
-        summary = run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=0.5), overwrite=True))
-        assert summary.shards_written == 2 and read_index(out).config["kappa1"] == 0.5
+        summary = run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=new_kappa1), overwrite=True))
+        assert summary.shards_written == 2 and read_index(out).config["kappa1"] == new_kappa1
 
     def test_unknown_shards_need_overwrite(self, tmp_path: Path) -> None:
         out = tmp_path / "a"
