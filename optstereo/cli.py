@@ -113,7 +113,7 @@ def train_main(config_file: Path | None, resume: Path | None, model_opt: tuple[s
             raise click.UsageError("--labels SHARDS_DIR and --out RUN_DIR are required (or --resume RUN_DIR)")
     except ConfigError as exc:
         raise click.UsageError(str(exc)) from exc
-    summary = _run_guarded(main, cfg, resume=resume is not None)
+    summary = _run_guarded(main, cfg, resume=resume is not None, progress=not quiet)
     last = summary.get("last", {})
     click.echo(f"trained {summary['start_step']} -> {summary['step']} steps in {summary['seconds']:.0f} s; "
                f"last L_P {last.get('L_P', math.nan):.3f}; checkpoint {summary['checkpoint']}")

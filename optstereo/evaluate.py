@@ -179,6 +179,7 @@ def model_frames(
         t0 = time.perf_counter()
         pred = infer(model, sample.left, sample.right, iters=iters, device=device)
         seconds = time.perf_counter() - t0
+        logger.info("%s: %dx%d in %.2f s", ref.frame_id, sample.left.shape[0], sample.left.shape[1], seconds)
         yield Frame(ref.frame_id, pred, sample.gt, sample.gt_noc, sample.left, seconds)
 
 

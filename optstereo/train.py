@@ -317,11 +317,13 @@ def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) ->
 
 
 # -- entry point ---------------------------------------------------------------------------------------------------
-def main(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
+def main(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) a run; returns a summary dict (steps, final logs, checkpoint path, validation metrics).
 
     With ``resume=True`` the run directory's last.pt is loaded and training continues at its step; pass the
-    config from ``config_for_resume`` so the schedule and data order are the original ones.
+    config from ``config_for_resume`` so the schedule and data order are the original ones. A new run refuses a
+    RUN_DIR that already holds a last.pt (it would silently mix two runs). ``progress`` shows the tqdm bar
+    (only on a TTY).
     """
     cfg = cfg.resolved()
     if cfg.out is None:
@@ -333,13 +335,16 @@ def main(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
         torch.set_num_threads(cfg.threads)
     if cfg.amp != "none" and device.type != "cuda":
         logger.warning("--amp %s is ignored on %s (mixed precision is used on CUDA only)", cfg.amp, device)
+    if not resume and (run_dir / LAST).exists():
+        raise ValueError(f"{run_dir} already holds a training run ({LAST}); use --resume {run_dir} or another --out")
     try:
-        return _run(cfg, run_dir, device, info, resume)
+        return _run(cfg, run_dir, device, info, resume, progress)
     finally:
         ddp.cleanup()
 
 
-def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistInfo, resume: bool) -> dict:
+def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistInfo, resume: bool,
+         progress: bool) -> dict:
     ckpt = load_checkpoint(run_dir) if resume else None
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -360,7 +365,8 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     try:
         if state.step < cfg.steps:
             loader = build_loader(cfg, info, start_step=state.step)
-            train_steps(state, iter(loader), loss_fn, cfg, device, run_logger=run_logger, on_checkpoint=save)
+            train_steps(state, iter(loader), loss_fn, cfg, device, run_logger=run_logger, on_checkpoint=save,
+                        show_progress=progress and info.is_main)
             if state.step % cfg.ckpt_every != 0:
                 save(state)
         elapsed = time.perf_counter() - t0

@@ -17,6 +17,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> None:
     _run([str(BIN / "pvm-label"), "run", "--dataset", "sample", "--out", str(out / "labels"), "--k", str(args.k),
           "--max-disp", "64", "--jobs", "2", "--quiet", "--overwrite"], log)
 
+    shutil.rmtree(out / "run", ignore_errors=True)  # a new run: the trainer refuses to mix two runs in one dir
     print(f"== 2/4 self-supervised OptStereo training on CPU ({args.minutes:g} min budget, small demo model)",
           flush=True)
     model_opts = [x for k, v in DEMO_MODEL.items() for x in ("--model-opt", f"{k}={v}")]

@@ -83,6 +83,8 @@ class TestRun:
             assert r["L_R"] > 0 and r["L_S"] > 0  # pvm supervision uses the self-supervised terms
         assert yaml.safe_load((run / "config.yaml").read_text())["lambda_r"] == 0.1
         assert load_checkpoint(run).step == 4
+        with pytest.raises(ValueError, match="already holds a training run"):
+            train.main(cfg)  # a second run into the same dir must not overwrite the first silently
 
     def test_tensorboard_scalars_and_images(self, shards: Path, tmp_path: Path) -> None:
         pytest.importorskip("tensorboard")
