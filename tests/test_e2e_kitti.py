@@ -96,9 +96,9 @@ def test_overfit_one_crop(kitti_shards: Path, tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_full_model_short_run(kitti_shards: Path, shared_data: Path, tmp_path: Path) -> None:
-    """The paper-size model (C = 256) for 30 steps at 320x736 on the labelled frames, then eval on them."""
+    """The paper-size model (C = 256) for 10 steps at 320x736 on the labelled frames, then eval on them."""
     run = tmp_path / "run"
-    res = CliRunner().invoke(train_main, ["--labels", str(kitti_shards), "--out", str(run), "--steps", "30",
+    res = CliRunner().invoke(train_main, ["--labels", str(kitti_shards), "--out", str(run), "--steps", "10",
                                           "--batch-size", "1", "--workers", "1", "--quiet"])
     assert res.exit_code == 0, res.output
     res = CliRunner().invoke(eval_main, ["--checkpoint", str(run / "model.safetensors"), "--dataset", "kitti15",

@@ -86,6 +86,11 @@ class TestRun:
         with pytest.raises(ValueError, match="already holds a training run"):
             train.main(cfg)  # a second run into the same dir must not overwrite the first silently
 
+    def test_gt_supervision_is_plain_l_p(self, shards: Path, tmp_path: Path) -> None:
+        train.main(tiny_config(shards, tmp_path / "gt", steps=2, supervision="gt"))
+        records = [json.loads(line) for line in (tmp_path / "gt" / "metrics.jsonl").read_text().splitlines()]
+        assert all(r["L_R"] == 0 and r["L_S"] == 0 and r["total"] == pytest.approx(r["L_P"]) for r in records)
+
     def test_tensorboard_scalars_and_images(self, shards: Path, tmp_path: Path) -> None:
         pytest.importorskip("tensorboard")
         from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
