@@ -122,6 +122,17 @@ class TestLabelPair:
         assert np.all(inter["V"][labelled] == 0)
         assert label_pair(left, right, CFG, "card").intermediates is None
 
+    def test_feature_min_confidence(self, rng):
+        base = _texture(rng, 80, 160)
+        left, right = _u8(base), _u8(_shift(base, 7.5))
+        loose = label_pair(left, right, dataclasses.replace(CFG, min_confidence=0.0), "conf")
+        strict = label_pair(left, right, dataclasses.replace(CFG, min_confidence=0.6), "conf")
+        kept = np.isfinite(strict.label)
+        assert 0 < kept.sum() < np.isfinite(loose.label).sum()
+        assert np.all(strict.confidence[kept] >= 0.6)
+        assert np.all(np.isfinite(loose.label[kept]))  # a stricter filter only removes labels
+        np.testing.assert_array_equal(strict.label[kept], loose.label[kept])
+
     def test_feature_reproducible(self, rng):
         base = _texture(rng, 80, 160)
         left, right = _u8(base), _u8(_shift(base, 7.5))

@@ -6,10 +6,7 @@ Kernel module: @njit functions over NumPy arrays only. The Python wrapper is ``p
 import numpy as np
 from numba import njit, prange
 
-try:
-    from pvm_labeler.kernels._flags import FASTMATH
-except ImportError:  # A1's shared flag module not committed yet; same contract: no nnan/ninf (NaN is a sentinel)
-    FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+from pvm_labeler.kernels._flags import FASTMATH
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)

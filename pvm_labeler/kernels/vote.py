@@ -7,10 +7,7 @@ The Python wrapper is ``pvm_labeler.multiscale.vote``.
 import numpy as np
 from numba import njit, prange
 
-try:
-    from pvm_labeler.kernels._flags import FASTMATH
-except ImportError:  # A1's shared flag module not committed yet; same contract: no nnan/ninf (NaN is a sentinel)
-    FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+from pvm_labeler.kernels._flags import FASTMATH
 
 # label_mode values (the wrapper maps LabelerConfig.label_mode strings to these).
 LABEL_WEIGHTED = 0  # sum_k w_k D^k / sum_k w_k with caller-given weights (finest scale only: w = [1, 0, ...])
