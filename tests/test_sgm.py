@@ -12,7 +12,7 @@ from conftest import make_synthetic_pair
 
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.errors import InputError
-from pvm_labeler.sgm import SGMResult, sgm_pair
+from pvm_labeler.sgm import SGMResult, release_workspace, sgm_pair
 
 CFG = LabelerConfig(max_disp=16)
 
@@ -97,6 +97,20 @@ class TestSgmPair:
             # the same cost volume (mirrored) and a mirror-symmetric set of paths: identical up to float rounding
             np.testing.assert_allclose(res_r.disp, flipped.disp[:, ::-1], atol=1e-5)
             np.testing.assert_allclose(res_r.conf, flipped.conf[:, ::-1], atol=1e-6)
+
+    def test_workspace_reuse(self, rng):
+        # the scratch arena is reused across calls of different sizes: results must not depend on what it held
+        big_l, big_r = smooth_shifted_pair(rng, 40, 112, 4.5)
+        small_l, small_r = smooth_shifted_pair(rng, 24, 64, 2.5)
+        release_workspace()
+        fresh_l, fresh_r = sgm_pair(small_l, small_r, CFG)
+        sgm_pair(big_l, big_r, CFG)
+        reused_l, reused_r = sgm_pair(small_l, small_r, CFG)
+        left_only, _ = sgm_pair(small_l, small_r, CFG, right_view=False)
+        for a, b in ((fresh_l, reused_l), (fresh_r, reused_r), (fresh_l, left_only)):
+            np.testing.assert_array_equal(a.disp, b.disp)
+            np.testing.assert_array_equal(a.conf, b.conf)
+        release_workspace()
 
     def test_max_disp_override(self, rng):
         left, right = make_synthetic_pair(rng, 32, 64, 6)
