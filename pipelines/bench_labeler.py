@@ -29,7 +29,7 @@ import numpy as np
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, reindex_right
-from pvm_labeler.sgm import sgm_pair
+from pvm_labeler.sgm import release_workspace, sgm_pair
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ TARGET_VS_SGBM = 1.0
 _COMPILE_SNIPPET = """
 import time, numpy as np
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.sgm import sgm_pair
+from pvm_labeler.sgm import release_workspace, sgm_pair
 rng = np.random.default_rng(0)
 img = rng.integers(0, 256, (32, 64), dtype=np.uint8)
 t0 = time.perf_counter()
@@ -126,7 +126,11 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
 
 
 def _peak_mb(fn: Callable[[], Any]) -> float:
-    """Peak of NumPy allocations during fn (tracemalloc sees every ndarray buffer; numba scratch is < 5 MB)."""
+    """Peak of NumPy allocations during fn (tracemalloc sees every ndarray buffer; numba scratch is < 5 MB).
+
+    The SGM scratch arena is released first so that its allocation is counted (it is reused across calls).
+    """
+    release_workspace()
     tracemalloc.start()
     tracemalloc.reset_peak()
     fn()
