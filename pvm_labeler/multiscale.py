@@ -16,7 +16,8 @@ Pipeline of :func:`label_pair` (Wang et al., "PVStereo", Section III-A):
    pixels whose std over scales exceeds kappa1, which loses about a quarter of the labels (see docs/pvm.md). A NaN
    poisons every output pixel whose 2x2 footprint touches it, which is the conservative choice for voting.
 4. **Voting** (``kernels/vote.py``): C1 = std_k D^k, C2 = std_k c^k, keep iff C1 < kappa1, C2 < kappa2 and every
-   scale is valid. Done for the left and the right view.
+   scale is valid. Done for the left and the right view. Beyond the paper, kept pixels whose continuous confidence
+   is below ``cfg.min_confidence`` and pixels with a constant census window (``cfg.min_texture``) are dropped.
 5. **LRDCC** (``kernels/lrcheck.py``) between the voted left and right maps (rounded look-up, ``cfg.lr_threshold``).
 """
 
@@ -56,7 +57,8 @@ class LabelResult:
         timings: seconds per stage: "pyramid", "sgm", "upsample", "vote", "lrcheck", "total".
         intermediates: on request: "disp_l", "conf_l", "disp_r", "conf_r" (K, H, W) float32 full-resolution scale
             maps; "C1", "C2", "C1_right", "C2_right" (H, W) float32; "V" (H, W) uint8 vote count (2 where some scale
-            is invalid); "voted", "voted_right" (H, W) float32 maps before the LR check.
+            is invalid); "voted", "voted_right" (H, W) float32 maps after the vote and the confidence/texture filters,
+            before the LR check.
     """
 
     label: npt.NDArray[np.float32]
