@@ -21,7 +21,7 @@ def select_disparity(s, n_valid, s_max, key_shift):
     """WTA + parabola + c + uniqueness of one pixel (see the module docstring).
 
     Args:
-        s: (D,) uint16 aggregated costs.
+        s: (D,) uint16 aggregated costs (three entries are overwritten temporarily and restored).
         n_valid: disparities d < n_valid have a partner pixel; d* >= n_valid gives NaN.
         s_max: normaliser of c (float).
         key_shift: number of bits that hold d (2 ** key_shift >= D); the argmin is the min of (S << shift) | d,
@@ -41,12 +41,23 @@ def select_disparity(s, n_valid, s_max, key_shift):
     s_min = np.float32(best_key >> shift)
     if d_best >= n_valid:
         return np.float32(np.nan), np.float32(0.0), np.float32(0.0)
-    # Second best outside d* +- 1, as two clean min reductions (a masked single loop does not vectorise).
+    # Second best outside d* +- 1: overwrite the three slots with the max, take one full-length min (a fixed trip
+    # count vectorises without scalar remainders; a masked loop did not vectorise), then restore them.
+    lo = max(d_best - 1, 0)
+    hi = min(d_best + 2, n_disp)
+    saved0 = s[lo]
+    saved1 = s[lo + 1] if lo + 1 < hi else np.uint16(0)
+    saved2 = s[lo + 2] if lo + 2 < hi else np.uint16(0)
+    for d in range(lo, hi):
+        s[d] = np.uint16(0xFFFF)
     second = np.uint16(0xFFFF)
-    for d in range(max(d_best - 1, 0)):
+    for d in range(n_disp):
         second = min(second, s[d])
-    for d in range(d_best + 2, n_disp):
-        second = min(second, s[d])
+    s[lo] = saved0
+    if lo + 1 < hi:
+        s[lo + 1] = saved1
+    if lo + 2 < hi:
+        s[lo + 2] = saved2
     found = d_best >= 2 or d_best + 2 < n_disp
     if found and np.float32(second) == s_min:
         # an exact tie with a distant disparity: no unique match (e.g. a region without texture along x)
