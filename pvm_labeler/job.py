@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from pvm_labeler import multiscale
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.datasets import DATASETS, PairRef, check_pair_sizes, discover, load_pair
 from pvm_labeler.errors import ConfigError, InputError, PVMError, ShardError
@@ -343,34 +344,21 @@ def label_shard(task: ShardTask) -> ShardOutcome:
 
 
 # ------------------------------------------------------------------------------------------------- pre-flight
-def _size_checker() -> Callable[[int, int, LabelerConfig, str], None] | None:
-    """The PVM core's "image too small for K and max_disp" check, if the core is importable."""
-    try:
-        from pvm_labeler import multiscale
-    except ImportError:
-        return None
-    check = getattr(multiscale, "check_sizes", None) or getattr(multiscale, "_check_sizes", None)
-    if check is None:
-        return None
-
-    def run(height: int, width: int, cfg: LabelerConfig, frame_id: str) -> None:
-        if cfg.max_disp >= width:
-            raise InputError(f"--max-disp {cfg.max_disp} must be smaller than the image width {width}")
-        eps = multiscale.draw_eps(cfg.seed, frame_id, cfg.k)
-        check(height, width, multiscale.scale_geometry(height, width, eps, cfg.max_disp), cfg)
-
-    return run
+def _check_frame_size(height: int, width: int, cfg: LabelerConfig, frame_id: str) -> None:
+    """The PVM core's "image too small for K and max_disp" check, from the image size alone."""
+    if cfg.max_disp >= width:
+        raise InputError(f"--max-disp {cfg.max_disp} must be smaller than the image width {width}")
+    eps = multiscale.draw_eps(cfg.seed, frame_id, cfg.k)
+    multiscale.check_sizes(height, width, multiscale.scale_geometry(height, width, eps, cfg.max_disp), cfg)
 
 
 def preflight(refs: list[PairRef], cfg: LabelerConfig) -> None:
     """Check every pair from file headers before anything is written; raise one InputError listing all problems."""
     problems = []
-    size_check = _size_checker()
     for ref in refs:
         try:
             height, width = check_pair_sizes(ref)
-            if size_check is not None:
-                size_check(height, width, cfg, ref.frame_id)
+            _check_frame_size(height, width, cfg, ref.frame_id)
         except InputError as exc:
             problems.append(f"{ref.frame_id}: {exc}")
     if problems:

@@ -143,7 +143,7 @@ def _to_grey(image: np.ndarray, name: str) -> np.ndarray:
     raise InputError(f"{name} must be (H, W, 3) RGB or (H, W) grey uint8, got shape {image.shape}")
 
 
-def _check_sizes(height: int, width: int, geometry: list[tuple[int, int, float, int]], cfg: LabelerConfig) -> None:
+def check_sizes(height: int, width: int, geometry: list[tuple[int, int, float, int]], cfg: LabelerConfig) -> None:
     """Every scale must be wider than its search range plus the census window, and taller than the window."""
     margin = cfg.census_window
     for idx, (h_k, w_k, factor, d_k) in enumerate(geometry):
@@ -203,7 +203,7 @@ def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id
         raise InputError(f"max_disp={cfg.max_disp} must be smaller than the image width {width} (frame {frame_id})")
     eps = draw_eps(cfg.seed, frame_id, cfg.k)
     geometry = scale_geometry(height, width, eps, cfg.max_disp)
-    _check_sizes(height, width, geometry, cfg)
+    check_sizes(height, width, geometry, cfg)
     pyramid = []
     for h_k, w_k, _, _ in geometry:
         if (h_k, w_k) == (height, width):
