@@ -109,10 +109,11 @@ def write_image(path: Path | str, image: np.ndarray) -> None:
     ok, buf = cv2.imencode(path.suffix or ".png", image)
     if not ok:
         raise InputError(f"cannot encode image for {path} (shape {image.shape}, dtype {image.dtype})")
-    _atomic_write_bytes(path, buf.tobytes())
+    atomic_write_bytes(path, buf.tobytes())
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temp file beside ``path`` and rename it over ``path``: readers never see half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
@@ -166,7 +167,7 @@ def write_pfm(path: Path | str, array: np.ndarray) -> None:
     height, width = array.shape[:2]
     header = kind + b"\n" + f"{width} {height}\n-1.0\n".encode()
     body = np.ascontiguousarray(np.flipud(array)).astype("<f4").tobytes()
-    _atomic_write_bytes(Path(path), header + body)
+    atomic_write_bytes(Path(path), header + body)
 
 
 # ------------------------------------------------------------------------------------------------- KITTI disparity

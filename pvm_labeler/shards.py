@@ -33,7 +33,6 @@ import json
 import logging
 import os
 import subprocess
-import tempfile
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -45,6 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pvm_labeler.errors import ShardError
+from pvm_labeler.io import atomic_write_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -295,17 +295,6 @@ def _record_arrays(record: ShardRecord) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=TMP_SUFFIX, dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_index(
     out_dir: Path | str,
     shards: Sequence[tuple[str, Sequence[str]]],
@@ -338,7 +327,7 @@ def write_index(
     }
     doc.update(extra or {})
     path = out_dir / INDEX_NAME
-    _atomic_write_text(path, json.dumps(doc, indent=2, default=_jsonable))
+    atomic_write_bytes(path, json.dumps(doc, indent=2, default=_jsonable).encode())
     return path
 
 
