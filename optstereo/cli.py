@@ -80,7 +80,8 @@ def _device_option(fn):
 @click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.flip_swap_p}]")
 @click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")
 @click.option("--device", type=click.Choice(DEVICES), help=f"auto = cuda when available. [default: {_D.device}]")
-@click.option("--amp", type=click.Choice(AMP_MODES), help=f"Mixed precision on CUDA. [default: {_D.amp}]")
+@click.option("--amp", type=click.Choice(AMP_MODES),
+              help=f"Mixed precision: bf16 (CUDA; CPUs with AVX512-BF16/AMX), fp16 (CUDA). [default: {_D.amp}]")
 @click.option("--workers", type=int, help=f"DataLoader workers per rank. [default: {_D.workers}]")
 @click.option("--seed", type=int, help=f"Global seed. [default: {_D.seed}]")
 @click.option("--threads", type=int, help="torch CPU threads (0 = torch default). [default: 0]")

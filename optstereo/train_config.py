@@ -64,7 +64,7 @@ class TrainConfig:
         photometric: enable photometric jitter (brightness/contrast/gamma/saturation).
         max_disp: labels >= max_disp (or < 0) are ignored in the loss.
         device: "auto" (cuda if available), "cpu" or "cuda".
-        amp: "none", "bf16" or "fp16" (CUDA only; fp16 uses a GradScaler).
+        amp: "none", "bf16" (CUDA or CPU) or "fp16" (CUDA only, with a GradScaler).
         workers: DataLoader worker processes per rank (0 = load in the main process).
         shuffle_buffer: size of the seeded shuffle buffer (in samples) of every worker.
         seed: global seed (model init, shuffling, augmentation).

@@ -191,3 +191,22 @@ class TestCli:
         result = CliRunner().invoke(train_main, ["--labels", str(bad), "--out", str(tmp_path / "r"), "--workers",
                                                  "0", "--model-opt", "feature_dim=16"])
         assert result.exit_code == 1 and "version" in result.output
+
+
+class TestAmp:
+    def test_bf16_autocast_on_cpu_fp16_ignored(self) -> None:
+        cpu = torch.device("cpu")
+        with train.autocast_context(TrainConfig(amp="bf16"), cpu):
+            out = torch.nn.functional.linear(torch.ones(2, 4), torch.ones(3, 4))
+        assert out.dtype == torch.bfloat16
+        for amp in ("none", "fp16"):
+            with train.autocast_context(TrainConfig(amp=amp), cpu):
+                out = torch.nn.functional.linear(torch.ones(2, 4), torch.ones(3, 4))
+            assert out.dtype == torch.float32
+
+    def test_bf16_run_trains_float32_weights(self, shards: Path, tmp_path: Path) -> None:
+        summary = train.main(tiny_config(shards, tmp_path / "run", amp="bf16"))
+        records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+        assert summary["step"] == 4 and all(torch.isfinite(torch.tensor(r["total"])) for r in records)
+        state = load_checkpoint(tmp_path / "run" / "last.pt")
+        assert all(t.dtype == torch.float32 for t in state.model_state.values() if t.is_floating_point())
