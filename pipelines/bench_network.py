@@ -5,9 +5,10 @@ Measured in this process with ``torch.set_num_threads(2)``:
 - GFLOP of one training forward+backward (320x736, batch 2, N_s = 8) and of one inference (384x1248, 8 iters),
   counted by ``torch.utils.flop_counter`` (convs/matmuls only): load-independent, unlike the timings;
 - training step seconds (forward + backward + Adam, PVStereoLoss with lambda_r = lambda_s = 0.1) at 320x736,
-  batch 2, 8 iterations: default memory format, channels_last, and the convex upsampler for comparison;
+  batch 2, 8 iterations: default memory format, channels_last, the convex upsampler and bf16 autocast;
 - inference seconds at 384x1248 (1 pair), 8 iterations, test_mode: no_grad, inference_mode,
-  inference_mode + channels_last, torch.compile (compile time reported separately; skipped if it fails);
+  inference_mode + channels_last, inference_mode + bf16 autocast, torch.compile (compile time reported
+  separately; skipped if it fails). bf16 pays off on CPUs with native bf16 (AVX512-BF16 or AMX);
 - an sgemm throughput probe (GFLOP/s of a 1024^3 float32 matmul) before and after, and the load average,
   so a reader can tell how busy the shared machine was.
 
@@ -18,6 +19,7 @@ inference 3.1 s); they are only indicative when other jobs share the CPU.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import statistics
@@ -88,7 +90,12 @@ def _param_counts(model: torch.nn.Module) -> dict[str, int]:
     return counts
 
 
-def _train_step_fn(upsampler: str = "conv", channels_last: bool = False) -> Callable[[], None]:
+def _autocast(bf16: bool) -> contextlib.AbstractContextManager:
+    """bf16 autocast on CPU (pays off with AVX512-BF16/AMX; the trainer's --amp bf16), else a null context."""
+    return torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
+
+
+def _train_step_fn(upsampler: str = "conv", channels_last: bool = False, bf16: bool = False) -> Callable[[], None]:
     torch.manual_seed(0)
     model = build_model("optstereo", iters=ITERS, upsampler=upsampler).train()
     if channels_last:
@@ -101,7 +108,9 @@ def _train_step_fn(upsampler: str = "conv", channels_last: bool = False) -> Call
     valid = torch.rand(b, 1, h, w, generator=torch.Generator().manual_seed(1)) < 0.4  # semi-dense, like PVM
 
     def step() -> None:
-        total, _ = loss_fn(model(left, right), left, right, label, valid)
+        with _autocast(bf16):
+            preds = model(left, right)
+        total, _ = loss_fn([p.float() for p in preds], left, right, label, valid)
         opt.zero_grad(set_to_none=True)
         total.backward()
         opt.step()
@@ -110,7 +119,9 @@ def _train_step_fn(upsampler: str = "conv", channels_last: bool = False) -> Call
 
 
 def _infer_fn(mode: str) -> tuple[Callable[[], None], float]:
-    """mode: no_grad | inference_mode | inference_mode+channels_last | compile. Returns (fn, setup seconds)."""
+    """mode: no_grad | inference_mode | inference_mode+channels_last | inference_mode+bf16 | compile.
+
+    Returns (fn, setup seconds)."""
     torch.manual_seed(0)
     model = build_model("optstereo", iters=ITERS).eval()
     channels_last = mode.endswith("channels_last")
@@ -128,7 +139,7 @@ def _infer_fn(mode: str) -> tuple[Callable[[], None], float]:
 
     def run() -> None:
         ctx = torch.no_grad() if mode in ("no_grad", "compile") else torch.inference_mode()
-        with ctx:
+        with ctx, _autocast(mode.endswith("bf16")):
             net(left, right, iters=ITERS, test_mode=True)
 
     return run, setup
@@ -179,10 +190,11 @@ def run(shared: Path) -> dict[str, Any]:
         ("default", {}),
         ("channels_last", {"channels_last": True}),
         ("convex_upsampler", {"upsampler": "convex"}),
+        ("bf16_autocast", {"bf16": True}),
     ):
         log.info("network bench: train step %s", label)
         results["train"][label] = _median_time(_train_step_fn(**kwargs), REPEATS)
-    for mode in ("no_grad", "inference_mode", "inference_mode+channels_last", "compile"):
+    for mode in ("no_grad", "inference_mode", "inference_mode+channels_last", "inference_mode+bf16", "compile"):
         log.info("network bench: inference %s", mode)
         try:
             fn, setup = _infer_fn(mode)
