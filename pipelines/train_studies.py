@@ -1,0 +1,438 @@
+"""Issue 6, studies 2 and 3: OptStereo Table I variants, the self-supervised claim and the loss ablation, on CPU.
+
+Every run is a real ``optstereo-train`` command on ONE shared PVM label set of the 15 KITTI 2015 frames in
+../shared/data/kitti15, all with the same seed, crop, steps and reduced width (see ``COMMON``), then a real
+``optstereo-eval`` on the same frames' GT. Steps:
+
+    label   pvm-label on kitti15 (once; later steps reuse out/labels/kitti15)
+    train   all runs of RUNS, two at a time with one torch thread each (measured: 1.43x the throughput of one run
+            with two threads on this 2-core machine); finished runs are skipped, interrupted ones resumed
+    eval    optstereo-eval of every run (dense, all GT-valid pixels), of the PVM labels (--labels), and dense
+            full-resolution SGM (pvm_labeler.sgm.sgm_pair, left view, no filtering)
+    report  results/training/*.json, the loss-curve and overview PNGs, results/training.md
+
+``python -m pipelines.train_studies all`` runs the four steps. Run dirs (config.yaml, metrics.jsonl, checkpoints,
+command.json) live under out/studies/ (git-ignored); ``optstereo-eval --checkpoint out/studies/runs/NAME ...``
+re-evaluates any of them.
+
+Model size (on purpose, stated in the report): the paper-size OptStereo (C = 256) needs ~9 s per 320x736 batch-2
+step here, so the studies train the demo width (feature/hidden/head 64, upsampler 32) on 192x384 crops with N_s = 4,
+bf16 autocast (measured 1.4x faster than fp32 for this width on this CPU), Adam lr 4e-4 constant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+logger = logging.getLogger("train_studies")
+
+BIN = Path(sys.executable).parent
+DATA_ROOT = Path("../shared/data/kitti15")
+LABELS = Path("out/labels/kitti15")
+OUT = Path("out/studies")
+RESULTS = Path("results/training")
+SEED = 0
+STEPS = 600
+WIDTH = {"feature_dim": 64, "hidden_dim": 64, "head_dim": 64, "upsample_dim": 32}
+# Shared by every run so they are comparable; only the fields of Run.extra differ.
+COMMON = ["--steps", str(STEPS), "--batch-size", "2", "--crop", "192x384", "--iters", "4", "--lr", "4e-4",
+          "--schedule", "constant", "--amp", "bf16", "--workers", "1", "--threads", "1", "--seed", str(SEED),
+          "--log-every", "10", "--ckpt-every", "100", "--device", "cpu", "--quiet",
+          *[x for k, v in WIDTH.items() for x in ("--model-opt", f"{k}={v}")]]
+
+
+@dataclass(frozen=True)
+class Run:
+    """One training run: a name (its RUN_DIR under out/studies/runs), the model and the flags that differ."""
+
+    name: str
+    model: str
+    extra: tuple[str, ...] = ()
+    studies: tuple[str, ...] = field(default=())
+    what: str = ""
+
+
+# The main self-supervised run (L_P + 0.1 L_R + 0.1 L_S, flip-swap 0.5) is also Table I's multi-scale d = 4 row:
+# "optstereo" and "optstereo_ms_d4" build the same network.
+RUNS = [
+    Run("ms_d4_main", "optstereo_ms_d4", (), ("table1", "claim", "ablation"),
+        "PVM labels, L_P + 0.1 L_R + 0.1 L_S, flip-swap 0.5"),
+    Run("gt_supervised", "optstereo_ms_d4", ("--supervision", "gt"), ("claim",),
+        "KITTI GT (sparse LiDAR), L_P only; flip-swap never fires (the shards hold no right-view GT)"),
+    Run("ss_d4", "optstereo_ss_d4", (), ("table1",), "single-scale d = 4, PVM labels, full loss"),
+    Run("ms_d1", "optstereo_ms_d1", (), ("table1",), "multi-scale d = 1, PVM labels, full loss"),
+    Run("ms_d2", "optstereo_ms_d2", (), ("table1",), "multi-scale d = 2, PVM labels, full loss"),
+    Run("lp_only", "optstereo_ms_d4", ("--lambda-r", "0", "--lambda-s", "0"), ("ablation",), "L_P only"),
+    Run("lp_lr", "optstereo_ms_d4", ("--lambda-s", "0"), ("ablation",), "L_P + 0.1 L_R"),
+    Run("no_flip", "optstereo_ms_d4", ("--flip-swap-p", "0"), ("ablation",),
+        "L_P + 0.1 L_R + 0.1 L_S, no flip-swap"),
+]
+
+
+def run_dir(run: Run) -> Path:
+    return OUT / "runs" / run.name
+
+
+def train_command(run: Run) -> list[str]:
+    """The exact optstereo-train command line of a run (also stored in RUN_DIR/command.json)."""
+    return [str(BIN / "optstereo-train"), "--labels", str(LABELS), "--out", str(run_dir(run)), "--model", run.model,
+            *COMMON, *run.extra]
+
+
+def _nice(cmd: list[str]) -> list[str]:
+    return ["nice", "-n", "10", *cmd]
+
+
+def _show(cmd: list[str]) -> str:
+    return " ".join(shlex.quote(c) for c in cmd)
+
+
+def step_label() -> None:
+    """PVM labels of the 15 KITTI 2015 frames (the labeler skips shards that already exist and verify)."""
+    cmd = [str(BIN / "pvm-label"), "--dataset", "kitti15", "--root", str(DATA_ROOT), "--out", str(LABELS),
+           "--jobs", "2"]
+    print("$ " + _show(cmd), flush=True)
+    subprocess.run(_nice(cmd), check=True)
+
+
+def _finished(run: Run) -> bool:
+    summary = run_dir(run) / "summary.json"
+    return summary.exists() and json.loads(summary.read_text()).get("step", 0) >= STEPS
+
+
+def _start(run: Run) -> subprocess.Popen:
+    rd = run_dir(run)
+    if (rd / "last.pt").exists():  # interrupted earlier: continue at the saved step with the saved config
+        cmd = [str(BIN / "optstereo-train"), "--resume", str(rd), "--quiet"]
+    else:
+        cmd = train_command(run)
+    rd.mkdir(parents=True, exist_ok=True)
+    record = {"name": run.name, "what": run.what, "studies": list(run.studies), "seed": SEED,
+              "command": _show(train_command(run)), "invoked": _show(cmd),
+              "started_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
+    history = rd / "command.json"
+    previous = json.loads(history.read_text()) if history.exists() else {"invocations": []}
+    record["invocations"] = [*previous.get("invocations", []), {"cmd": record["invoked"],
+                                                                "utc": record["started_utc"]}]
+    history.write_text(json.dumps(record, indent=2))
+    print(f"[{time.strftime('%H:%M:%S')}] start {run.name}: $ {_show(cmd)}", flush=True)
+    log = open(rd / "train.log", "a")  # noqa: SIM115 (closed when the process ends)
+    return subprocess.Popen(_nice(cmd), stdout=log, stderr=subprocess.STDOUT)
+
+
+def step_train(names: list[str] | None, parallel: int) -> None:
+    """Run the (selected) runs, `parallel` at a time; a failed run is reported and the others go on."""
+    todo = [r for r in RUNS if (not names or r.name in names) and not _finished(r)]
+    running: list[tuple[Run, subprocess.Popen, float]] = []
+    failed = []
+    while todo or running:
+        while todo and len(running) < parallel:
+            run = todo.pop(0)
+            running.append((run, _start(run), time.perf_counter()))
+        time.sleep(5)
+        for item in list(running):
+            run, proc, t0 = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            status = "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode})"
+            print(f"[{time.strftime('%H:%M:%S')}] {run.name} {status} in {time.perf_counter() - t0:.0f} s",
+                  flush=True)
+            if proc.returncode != 0:
+                failed.append(run.name)
+    if failed:
+        sys.exit(f"failed runs: {failed} (see out/studies/runs/<name>/train.log)")
+
+
+# -- eval ----------------------------------------------------------------------------------------------------------
+def eval_dir(name: str) -> Path:
+    return OUT / "eval" / name
+
+
+def eval_command(run: Run) -> list[str]:
+    """The optstereo-eval command of a run: dense prediction on ALL GT-valid pixels of the 15 frames."""
+    maps = ["--save-maps"] if run.name in ("ms_d4_main", "gt_supervised") else ["--no-save-maps"]
+    return [str(BIN / "optstereo-eval"), "--checkpoint", str(run_dir(run)), "--dataset", "kitti15", "--root",
+            str(DATA_ROOT), "--out", str(eval_dir(run.name)), "--device", "cpu", *maps, "--quiet"]
+
+
+def labels_eval_command() -> list[str]:
+    return [str(BIN / "optstereo-eval"), "--labels", str(LABELS), "--out", str(eval_dir("pvm_labels")),
+            "--no-save-maps", "--quiet"]
+
+
+def fill_rows_nearest(disp: np.ndarray) -> np.ndarray:
+    """Fill NaN pixels with the nearest finite value on the same row (the closer side; the left one on ties).
+
+    disp: (H, W) float32, NaN = no value. Rows without any finite value stay NaN.
+    """
+    height, width = disp.shape
+    finite = np.isfinite(disp)
+    cols = np.broadcast_to(np.arange(width), (height, width))
+    left_idx = np.maximum.accumulate(np.where(finite, cols, -1), axis=1)  # last finite column at or before x
+    right_idx = np.minimum.accumulate(np.where(finite, cols, width)[:, ::-1], axis=1)[:, ::-1]  # first at/after x
+    use_left = (left_idx >= 0) & ((right_idx >= width) | (cols - left_idx <= right_idx - cols))
+    src = np.where(use_left, left_idx, right_idx)
+    has = (src >= 0) & (src < width)
+    rows = np.broadcast_to(np.arange(height)[:, None], (height, width))
+    out = np.full_like(disp, np.nan)
+    out[has] = disp[rows[has], src[has]]
+    return out
+
+
+def step_sgm_dense() -> dict[str, dict]:
+    """Full-resolution SGM (left view, no LR check, no filtering) on the 15 frames, scored three ways."""
+    from optstereo.evaluate import Frame, evaluate_frames
+    from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.datasets import discover, load_pair
+    from pvm_labeler.multiscale import _to_grey
+    from pvm_labeler.sgm import sgm_pair
+    from pvm_labeler.shards import read_index
+
+    index_cfg = json.loads((LABELS / "index.json").read_text())["config"]
+    cfg = LabelerConfig.from_dict(index_cfg)  # the labeler's own SGM settings (census 5, 8 paths, P1/P2, max_disp)
+    variants: dict[str, list] = {"sgm_dense_nan_filled": [], "sgm_dense_nan_as_error": [], "sgm_dense_valid_only": []}
+    seconds = []
+    for ref in discover("kitti15", DATA_ROOT):
+        sample = load_pair(ref)
+        t0 = time.perf_counter()
+        res, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg, right_view=False)
+        seconds.append(time.perf_counter() - t0)
+        disp = res.disp
+        # NaN -> -1e4 px: wrong by > 3 px and > 5 % for any GT, so a missing pixel counts as an outlier (EPE is then
+        # meaningless and not reported for this variant).
+        preds = {"sgm_dense_nan_filled": fill_rows_nearest(disp),
+                 "sgm_dense_nan_as_error": np.where(np.isfinite(disp), disp, -1e4).astype(np.float32),
+                 "sgm_dense_valid_only": disp}
+        for key, pred in preds.items():
+            variants[key].append(Frame(ref.frame_id, pred, sample.gt, sample.gt_noc))
+    read_index(LABELS)  # fail loudly here if the label set vanished (its GT is the same files)
+    out = {}
+    for key, frames in variants.items():
+        meta = {"source": key, "sgm_config": cfg.to_dict(), "sgm_seconds_per_frame": float(np.mean(seconds))}
+        out[key] = evaluate_frames(frames, eval_dir(key), meta=meta, title=key).summary
+        print(f"{key}: bad3 {out[key]['bad3']:.2f} %, D1 {out[key]['d1_all']:.2f} %, EPE {out[key]['epe']:.3f} px, "
+              f"density {out[key]['density']:.1f} %", flush=True)
+    return out
+
+
+def step_eval(names: list[str] | None) -> None:
+    """optstereo-eval of every finished run, of the PVM labels, and dense SGM."""
+    cmds = [eval_command(r) for r in RUNS if (not names or r.name in names) and (run_dir(r) / "last.pt").exists()]
+    for cmd in [*cmds, labels_eval_command()]:
+        print("$ " + _show(cmd), flush=True)
+        subprocess.run(_nice(cmd), check=True)
+    step_sgm_dense()
+
+
+# -- report --------------------------------------------------------------------------------------------------------
+METRIC_KEYS = ("epe", "bad1", "bad3", "d1_all", "d1_noc", "epe_noc", "bad3_noc", "density")
+
+
+def _rel(cmd: str) -> str:
+    """A command as a user types it from the repo root (.venv/bin/... instead of the absolute interpreter path)."""
+    return cmd.replace(str(BIN) + "/", ".venv/bin/")
+
+
+def _records(run: Run) -> list[dict]:
+    path = run_dir(run) / "metrics.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+
+
+def collect_run(run: Run) -> dict:
+    """Everything about one run that goes into results/training/<name>.json."""
+    import yaml
+
+    rd = run_dir(run)
+    records = _records(run)
+    speeds = [r["samples_per_s"] for r in records[1:] if "samples_per_s" in r]  # first record includes start-up
+    train_summary = json.loads((rd / "summary.json").read_text()) if (rd / "summary.json").exists() else {}
+    command = json.loads((rd / "command.json").read_text())
+    ev = eval_dir(run.name) / "summary.json"
+    last = records[-1] if records else {}
+    return {
+        "name": run.name, "what": run.what, "studies": list(run.studies), "model": run.model, "seed": SEED,
+        "command": _rel(command["command"]), "invocations": [_rel(i["cmd"]) for i in command["invocations"]],
+        "eval_command": _rel(_show(eval_command(run))),
+        "config": yaml.safe_load((rd / "config.yaml").read_text()),
+        "train": {"steps": train_summary.get("step"), "seconds": train_summary.get("seconds"),
+                  "samples_per_s_median": float(np.median(speeds)) if speeds else None,
+                  "last_record": last},
+        "eval": json.loads(ev.read_text()) if ev.exists() else None,
+        "run_dir": str(rd),
+    }
+
+
+def plot_curves(runs: dict[str, dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for run in RUNS:
+        recs = _records(run)
+        if not recs:
+            continue
+        steps = [r["step"] for r in recs]
+        for ax, key in zip(axes, ("L_P", "label_epe"), strict=True):
+            ax.plot(steps, [r[key] for r in recs], label=run.name, lw=1.2,
+                    ls="--" if run.name == "gt_supervised" else "-")
+    axes[0].set_title("L_P (sequence Huber; vs PVM labels, vs GT for gt_supervised)")
+    axes[1].set_title("EPE of the final prediction vs its training target (px)")
+    for ax in axes:
+        ax.set_xlabel("step (batch 2, 192x384 crops)")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=70)
+    plt.close(fig)
+
+
+def plot_overview(path: Path, frame_index: int = 0) -> None:
+    """left | GT | PVM labels | dense SGM | self-supervised net | GT-supervised net, on one frame."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from optstereo.checkpoint import build_model_from_checkpoint
+    from optstereo.predict import infer
+    from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.datasets import discover, load_pair
+    from pvm_labeler.multiscale import _to_grey
+    from pvm_labeler.sgm import sgm_pair
+    from pvm_labeler.shards import open_shard, read_index, read_sample
+
+    ref = discover("kitti15", DATA_ROOT)[frame_index]
+    sample = load_pair(ref)
+    label = None
+    for shard, ids in read_index(LABELS).shards:
+        if ref.frame_id in ids:
+            with open_shard(Path(shard)) as h5:
+                label = read_sample(h5, ref.frame_id).label
+    cfg = LabelerConfig.from_dict(json.loads((LABELS / "index.json").read_text())["config"])
+    sgm, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg, right_view=False)
+    panels = [("left image", sample.left), ("GT (sparse LiDAR)", sample.gt),
+              ("PVM labels (white = none)", label), ("dense SGM, NaN filled along rows", fill_rows_nearest(sgm.disp))]
+    for name, title in (("ms_d4_main", "OptStereo, PVM labels only (self-supervised)"),
+                        ("gt_supervised", "OptStereo, GT-supervised (sees its eval GT)")):
+        if (run_dir(Run(name, "")) / "last.pt").exists():
+            model = build_model_from_checkpoint(run_dir(Run(name, "")), "cpu")
+            panels.append((title, infer(model, sample.left, sample.right)))
+    vmax = float(np.nanmax(sample.gt))
+    fig, axes = plt.subplots(3, 2, figsize=(12, 5.6))
+    for ax, (title, img) in zip(axes.ravel(), panels, strict=False):
+        if img.ndim == 3:
+            ax.imshow(img)
+        else:
+            ax.imshow(np.ma.masked_invalid(img), cmap="turbo", vmin=0, vmax=vmax, interpolation="nearest")
+        ax.set_title(f"{title} [{ref.frame_id}]", fontsize=9)
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=60)
+    plt.close(fig)
+
+
+def _row(name: str, s: dict | None, extra: str = "") -> str:
+    if s is None:
+        return f"| {name} | not evaluated | | | | |"
+
+    def f(key: str, fmt: str = "{:.2f}") -> str:
+        v = s.get(key)
+        return "n/a" if v is None else fmt.format(v)
+
+    return f"| {name}{extra} | {f('epe', '{:.3f}')} | {f('bad3')} | {f('d1_all')} | {f('d1_noc')} | {f('density', '{:.1f}')} |"
+
+
+def step_report() -> None:
+    """JSON per run + baselines, loss curves and overview PNGs, results/training.md."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    runs = {r.name: collect_run(r) for r in RUNS if (run_dir(r) / "command.json").exists()}
+    for name, data in runs.items():
+        (RESULTS / f"{name}.json").write_text(json.dumps(data, indent=2, default=str))
+    baselines = {}
+    for key in ("pvm_labels", "sgm_dense_nan_filled", "sgm_dense_nan_as_error", "sgm_dense_valid_only"):
+        path = eval_dir(key) / "summary.json"
+        baselines[key] = json.loads(path.read_text()) if path.exists() else None
+    if baselines["sgm_dense_nan_as_error"] is not None:
+        baselines["sgm_dense_nan_as_error"]["epe"] = None  # NaN pixels were set to -1e4 px: EPE is meaningless
+    baselines["commands"] = {"pvm_labels": _rel(_show(labels_eval_command())),
+                             "sgm_dense": ".venv/bin/python -m pipelines.train_studies eval (step_sgm_dense)"}
+    (RESULTS / "baselines.json").write_text(json.dumps(baselines, indent=2, default=str))
+    plot_curves(runs, RESULTS / "loss_curves.png")
+    plot_overview(RESULTS / "overview.png")
+    (Path("results") / "training.md").write_text(render_markdown(runs, baselines))
+    print(f"wrote {RESULTS}/*.json, loss_curves.png, overview.png, results/training.md", flush=True)
+
+
+def render_markdown(runs: dict[str, dict], base: dict) -> str:
+    ev = {k: v["eval"] for k, v in runs.items()}
+    speed = {k: v["train"]["samples_per_s_median"] for k, v in runs.items()}
+    head = "| row | AEPE (px) | bad-3 (%) | D1-all (%) | D1-noc (%) | density (%) |\n|---|---|---|---|---|---|"
+    t1 = [head]
+    for name, label in (("ss_d4", "single-scale, d = 4"), ("ms_d1", "multi-scale, d = 1"),
+                        ("ms_d2", "multi-scale, d = 2"), ("ms_d4_main", "multi-scale, d = 4 (OptStereo)")):
+        t1.append(_row(f"{label} (`{name}`)", ev.get(name)))
+    claim = [head,
+             _row("OptStereo, PVM labels only (`ms_d4_main`)", ev.get("ms_d4_main")),
+             _row("dense SGM, NaN filled by nearest valid value on the row", base["sgm_dense_nan_filled"]),
+             _row("dense SGM, NaN counted as errors", base["sgm_dense_nan_as_error"]),
+             _row("dense SGM, NaN pixels left out", base["sgm_dense_valid_only"]),
+             _row("PVM labels, on the pixels they cover", base["pvm_labels"]),
+             _row("OptStereo, GT-supervised (`gt_supervised`) **trained on its evaluation GT**",
+                  ev.get("gt_supervised"))]
+    abl = [head]
+    for name, label in (("lp_only", "L_P only"), ("lp_lr", "L_P + 0.1 L_R"),
+                        ("ms_d4_main", "L_P + 0.1 L_R + 0.1 L_S (main run)"),
+                        ("no_flip", "L_P + 0.1 L_R + 0.1 L_S, no flip-swap")):
+        abl.append(_row(f"{label} (`{name}`)", ev.get(name)))
+    speeds = ["| run | steps | wall s | training samples/s (median) |", "|---|---|---|---|"]
+    for name, data in runs.items():
+        t = data["train"]
+        sec = "n/a" if t["seconds"] is None else f"{t['seconds']:.0f}"
+        sp = "n/a" if speed[name] is None else f"{speed[name]:.2f}"
+        speeds.append(f"| `{name}` | {t['steps']} | {sec} | {sp} |")
+    cmds = "\n".join(f"{v['command']}" for v in runs.values())
+    evals = "\n".join(v["eval_command"] for v in runs.values())
+    return TEMPLATE.format(table1="\n".join(t1), claim="\n".join(claim), ablation="\n".join(abl),
+                           speeds="\n".join(speeds), commands=cmds, evals=evals,
+                           labels_eval=_rel(_show(labels_eval_command())), steps=STEPS, seed=SEED)
+
+
+TEMPLATE = """PLACEHOLDER"""
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("step", choices=("label", "train", "eval", "report", "all"))
+    parser.add_argument("--runs", nargs="*", help="only these run names (default: all)")
+    parser.add_argument("--parallel", type=int, default=2, help="concurrent trainings (1 torch thread each)")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if args.step in ("label", "all"):
+        step_label()
+    if args.step in ("train", "all"):
+        step_train(args.runs, args.parallel)
+    if args.step in ("eval", "all"):
+        step_eval(args.runs)
+    if args.step in ("report", "all"):
+        step_report()
+
+
+if __name__ == "__main__":
+    main()
