@@ -20,9 +20,11 @@ import numpy as np
 from numba import njit
 
 from pvm_labeler.kernels._flags import FASTMATH
+from pvm_labeler.kernels._prefetch import prefetch
 from pvm_labeler.kernels.wta import select_disparity
 
 SENTINEL = 0x3FFF  # > any L_r, and SENTINEL + P1 still fits in uint16
+PREFETCH_AHEAD = 4  # pixels; 2-16 measured alike on a KITTI frame (99-100 ms), 0 = no prefetch (142 ms)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -188,9 +190,20 @@ def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum,
     height, width, n_disp = cost.shape
     rows, mins, horiz, _ = _buffers(width, n_disp)
     acc = np.empty(n_disp, dtype=np.uint16)
+    # This sweep reads s_fwd and cost in descending addresses, which the hardware prefetcher follows poorly:
+    # request the cache lines of the pixel PREFETCH_AHEAD columns ahead (see _prefetch.py).
+    s_addr = s_fwd.ctypes.data
+    c_addr = cost.ctypes.data
+    s_bytes = n_disp * 2
     for y in range(height - 1, -1, -1):
         hmin = np.uint16(0)
         for x in range(width - 1, -1, -1):
+            ahead = y * width + x - PREFETCH_AHEAD
+            if ahead >= 0:
+                for offset in range(0, s_bytes, 64):
+                    prefetch(s_addr + ahead * s_bytes + offset)
+                for offset in range(0, n_disp, 64):
+                    prefetch(c_addr + ahead * n_disp + offset)
             total = s_fwd[y, x] if store_sum else acc
             hmin = _pixel(cost[y, x], grey, y, x, -1, p1, p2, adaptive, diag, rows, mins, horiz, hmin, s_fwd[y, x],
                           total)
