@@ -28,7 +28,7 @@ import numpy as np
 
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
-from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, reindex_right
+from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right, reindex_right
 from pvm_labeler.sgm import release_workspace, sgm_pair
 
 logger = logging.getLogger(__name__)
@@ -119,7 +119,8 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
         "backward sweep (4 paths) + WTA": lambda: aggregate_backward_wta(
             cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max), key_shift,
             *maps),
-        "right cost re-index": lambda: reindex_right(cost, c_max, cost_r),
+        "right cost from the shared census (used)": lambda: cost_volume_right(cen_l, cen_r, c_max, cost_r),
+        "right cost as a re-index of C_l (same bytes, not used)": lambda: reindex_right(cost, c_max, cost_r),
     }
     _, cpu = _round_robin(stages, repeats)
     return {name: statistics.median(ts) for name, ts in cpu.items()}

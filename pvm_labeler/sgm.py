@@ -21,7 +21,7 @@ import numpy.typing as npt
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.errors import InputError
 from pvm_labeler.kernels.aggregate import SENTINEL, aggregate_backward_wta, aggregate_forward
-from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, reindex_right
+from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
         res_left = _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max)
         if not right_view:
             return res_left, None
-        reindex_right(cost_l, c_max, cost_r)
+        cost_volume_right(census_l, census_r, c_max, cost_r)  # = C_l(x + d, d), re-indexed
         res_right = _aggregate_view(cost_r, right, cfg, s_buffer, True, c_max)
         return res_left, res_right
     finally:

@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
-from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, popcount32, popcount64, reindex_right
+from pvm_labeler.kernels.cost import (
+    census_dtype,
+    census_transform,
+    cost_volume,
+    cost_volume_right,
+    popcount32,
+    popcount64,
+    reindex_right,
+)
 from pvm_labeler.kernels.wta import wta_volume
 
 
@@ -58,6 +66,14 @@ class TestCostVolume:
         reindex_right(cost, 24, out)
         np.testing.assert_array_equal(out, naive.naive_reindex_right(cost, 24))
         assert out[:, -1, 1:].min() == 24  # last column: only d = 0 has a partner
+
+    @pytest.mark.parametrize("window", [3, 5, 7])
+    def test_direct_right_equals_reindex(self, rng, window):
+        # the matcher computes C_r from the shared census codes; it must be the re-indexed left volume, byte for byte
+        *_, cl, cr, cost = _cost(rng, width=29, n_disp=11, window=window)
+        direct = np.empty_like(cost)
+        cost_volume_right(cl, cr, window * window - 1, direct)
+        np.testing.assert_array_equal(direct, naive.naive_reindex_right(cost, window * window - 1))
 
 
 class TestAggregate:

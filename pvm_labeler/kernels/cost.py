@@ -1,5 +1,11 @@
 """Numba kernels of the SGM matching cost: census transform, Hamming cost volume, right-view re-indexing.
 
+The right view's cost is by definition the left volume re-indexed, C_r(y, x, d) = C_l(y, x + d, d)
+(:func:`reindex_right`). :func:`cost_volume_right` produces exactly those bytes from the SAME census codes (no
+second census, no flipped images): popcount(census_r[x] ^ census_l[x + d]) IS C_l(x + d, d). It is the one the
+matcher uses because the re-index is a byte gather with stride D + 1 that does not vectorise (55-89 ms per KITTI
+frame at D = 192) while the direct form is a contiguous popcount loop (8 ms); tests assert the two are equal.
+
 Layouts: images (H, W) uint8; census codes (H, W) uint32 (<= 5x5) or uint64 (7x7, 48 bits); cost volumes
 (H, W, D) uint8 so that the disparity axis is contiguous for the aggregation kernels.
 """
@@ -135,3 +141,28 @@ def reindex_right(cost_left, invalid_cost, out):
                 out[y, x, d] = cost_left[y, x + d, d]
             for d in range(n_valid, n_disp):
                 out[y, x, d] = fill
+
+
+@njit(cache=True, fastmath=FASTMATH, parallel=True)
+def cost_volume_right(census_left, census_right, invalid_cost, out):
+    """Right-view cost C_r(y, x, d) = popcount(census_right[y, x] ^ census_left[y, x + d]) = C_l(y, x + d, d).
+
+    Byte-identical to ``reindex_right(cost_volume(census_left, census_right, ...))`` (see the module docstring).
+
+    Args:
+        census_left, census_right: (H, W) uint32 or uint64 census codes (same dtype), the ones of the left view.
+        invalid_cost: cost for x + d >= W (no partner in the left image).
+        out: (H, W, D) uint8, written in place.
+    """
+    height, width, n_disp = out.shape
+    fill = np.uint8(invalid_cost)
+    for y in prange(height):
+        row_left = census_left[y]
+        for x in range(width):
+            code = census_right[y, x]
+            n_valid = min(width - x, n_disp)
+            out_px = out[y, x]
+            for d in range(n_valid):
+                out_px[d] = np.uint8(popcount(code ^ row_left[np.uintp(x + d)]))
+            for d in range(n_valid, n_disp):
+                out_px[d] = fill
