@@ -1,0 +1,34 @@
+"""pipelines.results (study 1 of RESULTS.md): the K < 8 stacks it slices are the labeler's own, the Pareto front."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from conftest import make_synthetic_pair
+
+from pipelines.results import pareto, sub_stack
+from pvm_labeler.config import LabelerConfig
+from pvm_labeler.multiscale import compute_scales, label_from_scales, label_pair
+
+
+def test_feature_sub_stack_is_the_k_scale_labeler(rng):
+    # The study matches each frame once at K = 8 and slices: the first K scales must give the labels of a K run.
+    left, right = make_synthetic_pair(rng, height=96, width=160, disp=5)
+    cfg8 = LabelerConfig(k=8, max_disp=24)
+    stack8 = compute_scales(left, right, cfg8, "frame-a")
+    for k in (2, 4, 6):
+        cfg = dataclasses.replace(cfg8, k=k)
+        direct = label_pair(left, right, cfg, "frame-a")
+        sliced = label_from_scales(sub_stack(stack8, k), cfg)
+        np.testing.assert_array_equal(sliced.eps, direct.eps)
+        np.testing.assert_array_equal(sliced.label, direct.label)
+        np.testing.assert_array_equal(sliced.label_right, direct.label_right)
+
+
+def test_feature_pareto_hand_computed():
+    pts = [{"density": 10.0, "bad3": 1.0}, {"density": 20.0, "bad3": 0.5},  # (10, 1.0) is dominated by (20, 0.5)
+           {"density": 30.0, "bad3": 2.0}, {"density": 25.0, "bad3": 3.0},  # (25, 3.0) is dominated by (30, 2.0)
+           {"density": 40.0, "bad3": float("nan")}, {"density": 5.0, "bad3": 0.1}]
+    front = pareto(pts)
+    assert [(p["density"], p["bad3"]) for p in front] == [(5.0, 0.1), (20.0, 0.5), (30.0, 2.0)]
