@@ -52,6 +52,11 @@ def _parse_model_opts(values: tuple[str, ...]) -> dict[str, Any]:
     return out
 
 
+def _infer_amp_option(fn):
+    return click.option("--amp", type=click.Choice(("none", "bf16", "fp16")), default="none", show_default=True,
+                        help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
+
+
 def _device_option(fn):
     return click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
                         help="auto = cuda when available, else cpu.")(fn)
@@ -134,9 +139,11 @@ def train_main(config_file: Path | None, resume: Path | None, model_opt: tuple[s
 @click.option("--limit", type=int, default=None, help="Only the first N frames.")
 @click.option("--save-maps/--no-save-maps", default=True, help="Write colour disparity and error maps.")
 @_device_option
+@_infer_amp_option
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
-              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, quiet: bool) -> None:
+              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
+              quiet: bool) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
     _setup_logging(quiet)
     from optstereo import evaluate
@@ -150,7 +157,8 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
             raise click.UsageError("--checkpoint needs --dataset NAME (and --root PATH)")
         model, dev = _load_model(checkpoint, device)
         result = _run_guarded(evaluate.evaluate_model, model, dataset, root, split=split, iters=iters, device=dev,
-                              out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)})
+                              out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
+                              amp=amp)
     s = result.summary
     click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
                f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
@@ -180,10 +188,11 @@ def _load_model(checkpoint: Path, device: str):
               type=click.Choice(("png", "pfm", "npy", "color")),
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color (repeatable).")
 @_device_option
+@_infer_amp_option
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
-                 device: str, quiet: bool) -> None:
+                 device: str, amp: str, quiet: bool) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import predict
@@ -194,11 +203,12 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
     model, dev = _load_model(checkpoint, device)
     if dataset is None:
-        paths = _run_guarded(predict.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev)
+        paths = _run_guarded(predict.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
+                             amp=amp)
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
         written = _run_guarded(predict.predict_dataset, model, dataset, root, out, split=split, iters=iters,
-                               formats=formats, device=dev, limit=limit)
+                               formats=formats, device=dev, limit=limit, amp=amp)
         click.echo(f"wrote {len(written)} frames into {out}")
 
 

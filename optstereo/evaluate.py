@@ -168,7 +168,7 @@ def write_reports(result: EvalResult, out_dir: Path, title: str) -> dict[str, Pa
 # -- sources of frames ---------------------------------------------------------------------------------------------
 def model_frames(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
-    device: torch.device | str = "cpu", limit: int | None = None,
+    device: torch.device | str = "cpu", limit: int | None = None, amp: str = "none",
 ) -> Iterator[Frame]:
     """Run the network over a dataset (pvm_labeler.datasets readers), yielding Frames with timings."""
     from optstereo.predict import infer
@@ -177,7 +177,7 @@ def model_frames(
     for ref in discover(dataset, root, split=split)[:limit]:
         sample = load_pair(ref)
         t0 = time.perf_counter()
-        pred = infer(model, sample.left, sample.right, iters=iters, device=device)
+        pred = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp)
         seconds = time.perf_counter() - t0
         logger.info("%s: %dx%d in %.2f s", ref.frame_id, sample.left.shape[0], sample.left.shape[1], seconds)
         yield Frame(ref.frame_id, pred, sample.gt, sample.gt_noc, sample.left, seconds)
@@ -202,12 +202,13 @@ def label_frames(labels_dir: Path, limit: int | None = None) -> Iterator[Frame]:
 def evaluate_model(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", out_dir: Path | None = None, limit: int | None = None,
-    save_maps: bool = False, meta: dict | None = None,
+    save_maps: bool = False, meta: dict | None = None, amp: str = "none",
 ) -> EvalResult:
     """Evaluate a network on a dataset's GT; summary also holds the mean seconds per frame."""
-    frames = list(model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit))
+    frames = list(model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit, amp=amp))
     seconds = float(np.mean([f.seconds for f in frames])) if frames else math.nan
-    meta = {"source": "network", "dataset": dataset, "iters": iters, "seconds_per_frame": seconds, **(meta or {})}
+    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp, "seconds_per_frame": seconds,
+            **(meta or {})}
     return evaluate_frames(frames, out_dir, save_maps=save_maps, meta=meta,
                            title=f"OptStereo on {dataset} ({len(frames)} frames)")
 

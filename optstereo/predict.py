@@ -7,6 +7,7 @@ Outputs per frame (``formats`` picks them): ``png`` KITTI 16-bit PNG (disparity 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Iterable
@@ -31,6 +32,23 @@ def _to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tenso
     return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float()[None].to(device)
 
 
+INFER_AMP = ("none", "bf16", "fp16")
+
+
+def inference_autocast(amp: str, device: torch.device) -> contextlib.AbstractContextManager:
+    """Autocast for inference: bf16 on CPU or CUDA, fp16 on CUDA only; ``none`` = float32.
+
+    The model keeps the correlation volume, the lookup and the disparity accumulator in float32 either way.
+    """
+    if amp not in INFER_AMP:
+        raise ValueError(f"amp must be one of {INFER_AMP}, got {amp!r}")
+    if amp == "none":
+        return contextlib.nullcontext()
+    if amp == "fp16" and device.type != "cuda":
+        raise ValueError("amp fp16 needs a CUDA device; use bf16 on CPU")
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16 if amp == "bf16" else torch.float16)
+
+
 @torch.inference_mode()
 def infer(
     model: nn.Module,
@@ -38,6 +56,7 @@ def infer(
     right: npt.NDArray[np.uint8],
     iters: int | None = None,
     device: torch.device | str = "cpu",
+    amp: str = "none",
 ) -> npt.NDArray[np.float32]:
     """Full-resolution disparity of one pair.
 
@@ -45,6 +64,7 @@ def infer(
         model: OptStereo-like model (test_mode=True returns (low, full)).
         left, right: (H, W, 3) uint8 RGB of equal shape (any H, W: padded to a multiple of 8 and un-padded).
         iters: GRU iterations (None = the model's default).
+        amp: ``none`` (float32), ``bf16`` (CPU with AVX512-BF16/AMX, or CUDA) or ``fp16`` (CUDA).
 
     Returns:
         (H, W) float32 disparity in pixels (positive, left(x) matches right(x - d)).
@@ -58,7 +78,8 @@ def infer(
         left_t, right_t = _to_batch(left, device), _to_batch(right, device)
         padder = InputPadder(left_t.shape, divis_by=8)
         left_t, right_t = padder.pad(left_t, right_t)
-        _, full = model(left_t, right_t, iters=iters, test_mode=True)
+        with inference_autocast(amp, device):
+            _, full = model(left_t, right_t, iters=iters, test_mode=True)
         disp = padder.unpad(full)[0, 0]
     finally:
         model.train(was_training)
@@ -119,7 +140,7 @@ def write_disparity(
 
 def predict_pair(
     model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
-    formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
+    formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir."""
     from pvm_labeler.io import read_image
@@ -128,7 +149,7 @@ def predict_pair(
     if left.shape != right.shape:
         raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
     t0 = time.perf_counter()
-    disp = infer(model, left, right, iters=iters, device=device)
+    disp = infer(model, left, right, iters=iters, device=device, amp=amp)
     logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
     return write_disparity(out_dir, Path(left_path).stem, disp, formats)
 
@@ -136,7 +157,7 @@ def predict_pair(
 def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
-    limit: int | None = None,
+    limit: int | None = None, amp: str = "none",
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``."""
     from pvm_labeler.datasets import discover, load_pair
@@ -145,6 +166,6 @@ def predict_dataset(
     written = []
     for ref in refs:
         sample = load_pair(ref)
-        disp = infer(model, sample.left, sample.right, iters=iters, device=device)
+        disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp)
         written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
     return written

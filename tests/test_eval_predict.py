@@ -80,6 +80,26 @@ class TestPredict:
         assert disp.shape == shape and disp.dtype == np.float32
         np.testing.assert_array_equal(disp, left[..., 0].astype(np.float32))
 
+    def test_feature_bf16_inference_close_to_fp32(self, rng: np.random.Generator) -> None:
+        # bf16 autocast (--amp bf16) runs the convs in bf16 (8-bit mantissa) but keeps correlation, lookup and the
+        # disparity accumulator in float32: the prediction stays within a few % of the float32 one, and is float32.
+        torch.manual_seed(0)
+        model = build_model("optstereo", **TINY).eval()
+        left = rng.integers(0, 256, (40, 64, 3), dtype=np.uint8)
+        right = np.roll(left, -3, axis=1)
+        ref = infer(model, left, right)
+        low = infer(model, left, right, amp="bf16")
+        assert low.dtype == np.float32 and low.shape == ref.shape
+        assert not np.array_equal(low, ref)  # autocast did change the arithmetic
+        assert np.abs(low - ref).max() <= 0.05 * np.abs(ref).max() + 0.05
+
+    def test_exception_amp(self, rng: np.random.Generator) -> None:
+        left = rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)
+        with pytest.raises(ValueError, match="fp16 needs a CUDA"):
+            infer(Echo(), left, left, amp="fp16")
+        with pytest.raises(ValueError, match="amp must be one of"):
+            infer(Echo(), left, left, amp="int8")
+
     def test_formats_round_trip(self, tmp_path: Path, rng: np.random.Generator) -> None:
         disp = rng.uniform(0.5, 120.0, (9, 13)).astype(np.float32)
         paths = write_disparity(tmp_path, "000007_10", disp, ("png", "pfm", "npy", "color"), kitti_layout=True)
