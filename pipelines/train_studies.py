@@ -182,7 +182,8 @@ def eval_dir(name: str) -> Path:
 
 def eval_command(run: Run) -> list[str]:
     """The optstereo-eval command of a run: dense prediction on ALL GT-valid pixels of the 15 frames."""
-    maps = ["--save-maps"] if run.name in ("ms_d4_main", "gt_supervised") else ["--no-save-maps"]
+    claim_runs = ("ms_d4_main", "gt_supervised", "ms_d4_long", "gt_long")
+    maps = ["--save-maps"] if run.name in claim_runs else ["--no-save-maps"]
     return [str(BIN / "optstereo-eval"), "--checkpoint", str(run_dir(run)), "--dataset", "kitti15", "--root",
             str(DATA_ROOT), "--out", str(eval_dir(run.name)), "--device", "cpu", *maps, "--quiet"]
 
@@ -301,15 +302,16 @@ def plot_curves(runs: dict[str, dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    continued = {r.base for r in RUNS if r.base and _records(r)}
     for run in RUNS:
         recs = _records(run)
-        if not recs:
+        if not recs or run.name in continued:  # a continuation's log starts with its base's records
             continue
         steps = [r["step"] for r in recs]
         for ax, key in zip(axes, ("L_P", "label_epe"), strict=True):
             ax.plot(steps, [r[key] for r in recs], label=run.name, lw=1.2,
-                    ls="--" if run.name == "gt_supervised" else "-")
-    axes[0].set_title("L_P (sequence Huber; vs PVM labels, vs GT for gt_supervised)")
+                    ls="--" if run.name in ("gt_supervised", "gt_long") else "-")
+    axes[0].set_title("L_P (sequence Huber; vs PVM labels, vs GT for the gt runs)")
     axes[1].set_title("EPE of the final prediction vs its training target (px)")
     for ax in axes:
         ax.set_xlabel("step (batch 2, 192x384 crops)")
@@ -347,11 +349,14 @@ def plot_overview(path: Path, frame_index: int = 0) -> None:
     sgm, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg, right_view=False)
     panels = [("left image", sample.left), ("GT (sparse LiDAR)", sample.gt),
               ("PVM labels (white = none)", label), ("dense SGM, NaN filled along rows", fill_rows_nearest(sgm.disp))]
-    for name, title in (("ms_d4_main", "OptStereo, PVM labels only (self-supervised)"),
-                        ("gt_supervised", "OptStereo, GT-supervised (sees its eval GT)")):
-        if (run_dir(Run(name, "")) / "last.pt").exists():
-            model = build_model_from_checkpoint(run_dir(Run(name, "")), "cpu")
-            panels.append((title, infer(model, sample.left, sample.right)))
+    for names, title in ((("ms_d4_long", "ms_d4_main"), "OptStereo, PVM labels only (self-supervised)"),
+                         (("gt_long", "gt_supervised"), "OptStereo, GT-supervised (sees its eval GT)")):
+        for name in names:  # the longest finished run of the pair
+            run = BY_NAME[name]
+            if _finished(run):
+                model = build_model_from_checkpoint(run_dir(run), "cpu")
+                panels.append((f"{title}, {run.steps} steps", infer(model, sample.left, sample.right)))
+                break
     vmax = float(np.nanmax(sample.gt))
     fig, axes = plt.subplots(3, 2, figsize=(12, 5.6))
     for ax, (title, img) in zip(axes.ravel(), panels, strict=False):
@@ -409,13 +414,16 @@ def render_markdown(runs: dict[str, dict], base: dict) -> str:
                         ("ms_d2", "multi-scale, d = 2"), ("ms_d4_main", "multi-scale, d = 4 (OptStereo)")):
         t1.append(_row(f"{label} (`{name}`)", ev.get(name)))
     claim = [head,
-             _row("OptStereo, PVM labels only (`ms_d4_main`)", ev.get("ms_d4_main")),
+             _row(f"OptStereo, PVM labels only, {STEPS} steps (`ms_d4_main`)", ev.get("ms_d4_main")),
+             _row(f"OptStereo, PVM labels only, {LONG_STEPS} steps (`ms_d4_long`)", ev.get("ms_d4_long")),
              _row("dense SGM, NaN filled by nearest valid value on the row", base["sgm_dense_nan_filled"]),
              _row("dense SGM, NaN counted as errors", base["sgm_dense_nan_as_error"]),
              _row("dense SGM, NaN pixels left out", base["sgm_dense_valid_only"]),
              _row("PVM labels, on the pixels they cover", base["pvm_labels"]),
-             _row("OptStereo, GT-supervised (`gt_supervised`) **trained on its evaluation GT**",
-                  ev.get("gt_supervised"))]
+             _row(f"OptStereo, GT-supervised, {STEPS} steps (`gt_supervised`) **trained on its evaluation GT**",
+                  ev.get("gt_supervised")),
+             _row(f"OptStereo, GT-supervised, {LONG_STEPS} steps (`gt_long`) **trained on its evaluation GT**",
+                  ev.get("gt_long"))]
     abl = [head]
     for name, label in (("lp_only", "L_P only"), ("lp_lr", "L_P + 0.1 L_R"),
                         ("ms_d4_main", "L_P + 0.1 L_R + 0.1 L_S (main run)"),
@@ -434,7 +442,8 @@ def render_markdown(runs: dict[str, dict], base: dict) -> str:
     sgm_valid = base.get("sgm_dense_valid_only") or {}
     return TEMPLATE.format(
         table1="\n".join(t1), claim="\n".join(claim), ablation="\n".join(abl), speeds="\n".join(speeds),
-        commands=cmds, evals=evals, labels_eval=_rel(_show(labels_eval_command())), steps=STEPS, seed=SEED,
+        commands=cmds, evals=evals, long_steps=LONG_STEPS, labels_eval=_rel(_show(labels_eval_command())),
+        steps=STEPS, seed=SEED,
         label_cmd=label_cmd, epochs=STEPS * 2 / 15, params=size["params"] / 1e6, gflop=size["train_gflop"],
         sgm_missing=100.0 - sgm_valid.get("density", math.nan),
         table1_text=table1_text(ev), claim_text=claim_text(ev, base), ablation_text=ablation_text(ev),
@@ -474,18 +483,28 @@ def table1_text(ev: dict) -> str:
             "compare at this budget, not the paper's converged ranking.")
 
 
+def claim_pair(ev: dict) -> tuple[str, str, int]:
+    """(self-supervised run, GT-supervised run, steps) of the largest budget at which the self-supervised run has
+    been evaluated (the GT run of that budget may be missing)."""
+    if ev.get("ms_d4_long") is not None:
+        return "ms_d4_long", "gt_long", LONG_STEPS
+    return "ms_d4_main", "gt_supervised", STEPS
+
+
 def claim_text(ev: dict, base: dict) -> str:
-    net = _get(ev.get("ms_d4_main"), "bad3")
+    net_name, gt_name, steps = claim_pair(ev)
+    net = _get(ev.get(net_name), "bad3")
     sgm_fill = _get(base.get("sgm_dense_nan_filled"), "bad3")
     sgm_err = _get(base.get("sgm_dense_nan_as_error"), "bad3")
-    gt = _get(ev.get("gt_supervised"), "bad3")
+    gt = _get(ev.get(gt_name), "bad3")
     if math.isnan(net) or math.isnan(sgm_fill):
         return "(the main run or dense SGM is missing.)"
     met = net < min(sgm_fill, sgm_err)
     verdict = "**met**" if met else "**not met**"
-    return (f"Target (self-supervised dense bad-3 below dense SGM's on the same frames): {verdict}. "
-            f"Self-supervised OptStereo: bad-3 {net:.2f} %; dense SGM: {sgm_fill:.2f} % (NaN filled) / "
-            f"{sgm_err:.2f} % (NaN counted as errors); GT-supervised OptStereo at the same budget: {gt:.2f} %.")
+    return (f"Target (self-supervised dense bad-3 below dense SGM's on the same frames): {verdict} at {steps} steps. "
+            f"Self-supervised OptStereo (`{net_name}`): bad-3 {net:.2f} %; dense SGM: {sgm_fill:.2f} % (NaN filled) / "
+            f"{sgm_err:.2f} % (NaN counted as errors); GT-supervised OptStereo at the same budget (`{gt_name}`): "
+            f"{gt:.2f} %.")
 
 
 def ablation_text(ev: dict) -> str:
@@ -496,29 +515,31 @@ def ablation_text(ev: dict) -> str:
             "differences of a few points at this budget are within what a second seed could change (not measured).")
 
 
-def _trend() -> str:
-    """How the main run's training-label EPE moved over its last 100 steps (is it still falling?)."""
-    recs = _records(RUNS[0])
+def _trend(name: str) -> str:
+    """How a run's training-label EPE moved over its last 100 steps (is it still falling?)."""
+    recs = _records(BY_NAME[name])
     if len(recs) < 20:
         return ""
     end = float(np.mean([r["label_epe"] for r in recs[-5:]]))
     before = float(np.mean([r["label_epe"] for r in recs[-15:-10]]))
-    return (f"The main run's EPE against its training labels went from {before:.2f} px (mean of the records "
+    return (f"The `{name}` run's EPE against its training labels went from {before:.2f} px (mean of the records "
             f"100 steps before the end) to {end:.2f} px (last 50 steps): "
             + ("still falling, i.e. the runs stop far from convergence." if end < 0.95 * before
                else "flattening at this learning rate."))
 
 
 def budget_text(ev: dict, base: dict) -> str:
-    net = _get(ev.get("ms_d4_main"), "bad3")
+    net_name, gt_name, steps = claim_pair(ev)
+    net = _get(ev.get(net_name), "bad3")
     sgm = _get(base.get("sgm_dense_nan_filled"), "bad3")
-    gt = _get(ev.get("gt_supervised"), "bad3")
+    gt = _get(ev.get(gt_name), "bad3")
     lab = _get(base.get("pvm_labels"), "bad3")
     lab_d = _get(base.get("pvm_labels"), "density")
     parts = [
-        f"Each run saw {STEPS * 2} random 192x384 crops ({STEPS} steps of batch 2) with a network of reduced width.",
+        f"Each Table I / ablation run saw {STEPS * 2} random 192x384 crops ({STEPS} steps of batch 2), the two "
+        f"continued claim runs {LONG_STEPS * 2} ({LONG_STEPS} steps), with a network of reduced width.",
         f"The PVM labels themselves are clean (bad-3 {lab:.2f} % on the {lab_d:.1f} % of GT-valid pixels they "
-        f"cover), so the teacher signal is not the limit. {_trend()}",
+        f"cover), so the teacher signal is not the limit. {_trend(net_name)}",
     ]
     if not math.isnan(net) and not math.isnan(sgm) and net >= sgm:
         parts.append(
@@ -529,8 +550,8 @@ def budget_text(ev: dict, base: dict) -> str:
             "learns from PVM labels alone (its error falls steadily, see the curves); the ablation and Table I rows "
             "are measured by one ruler. What it CANNOT show: the paper's converged numbers, the paper's ranking of "
             "the variants, or whether the self-supervised network eventually beats its teacher; that needs the "
-            "paper-size model and ~10^5 steps (GPU). `optstereo-train --resume out/studies/runs/ms_d4_main --steps N` "
-            "continues the main run with the same settings.")
+            f"paper-size model and ~10^5 steps (GPU). `optstereo-train --resume out/studies/runs/{net_name} --steps N` "
+            "continues the run with the same settings.")
     elif not math.isnan(net):
         parts.append(
             f"The self-supervised network beats dense SGM ({net:.2f} % vs {sgm:.2f} % bad-3) although it never saw GT; "
@@ -548,7 +569,9 @@ in `../shared/data/kitti15`, labelled ONCE with `{label_cmd}`; every run trains 
 and is evaluated on the same 15 frames' GT.
 
 **Setup, identical for every run** (only the flags in the run's own command differ): seed {seed}, {steps} Adam
-steps of batch 2 on random 192x384 crops (about {epochs:.0f} passes over the 15 frames), N_s = 4 GRU iterations
+steps (the claim study's `ms_d4_long` and `gt_long`: the 600-step runs continued with `--resume ... --steps
+{long_steps}`, same settings) of batch 2 on random 192x384 crops (about {epochs:.0f} passes over the 15 frames),
+N_s = 4 GRU iterations
 (training and evaluation), lr 4e-4 constant, gradient clip 1.0, bf16 autocast on CPU, flip-swap p = 0.5, no
 photometric jitter. **Reduced width**: feature/hidden/head 64 channels and a 32-channel upsampler (the `make demo`
 width; {params:.2f} M parameters instead of the paper's 2.97 M; {gflop:.0f} GFLOP per training step vs 703),
