@@ -576,9 +576,9 @@ N_s = 4 GRU iterations
 photometric jitter. **Reduced width**: feature/hidden/head 64 channels and a 32-channel upsampler (the `make demo`
 width; {params:.2f} M parameters instead of the paper's 2.97 M; {gflop:.0f} GFLOP per training step vs 703),
 because the paper-size model needs ~9 s per 320x736 batch-2
-step here (docs/training.md). Two runs trained at a time, each with `--threads 1` and one loader worker, under
-`nice -n 10`. Evaluation: `optstereo-eval` of the final checkpoint on the full frames (dense prediction, ALL
-GT-valid pixels; GT = `disp_occ_0`, D1-noc on `disp_noc_0`), pixels pooled over frames.
+step here (docs/training.md). Two to four runs trained at a time (2 cores), each with `--threads 1` and one
+loader worker, under `nice -n 10`. Evaluation: `optstereo-eval` of the final checkpoint on the full frames
+(dense prediction, ALL GT-valid pixels; GT = `disp_occ_0`, D1-noc on `disp_noc_0`), pixels pooled over frames.
 
 ### Table I: cost-volume variants (PVM labels, L_P + 0.1 L_R + 0.1 L_S)
 
@@ -613,8 +613,9 @@ this width and budget, not a generalisation result. The self-supervised rows nev
 
 {speeds}
 
-Each figure is the median of the runs' `samples_per_s` records (every 10 steps) while TWO runs shared the 2 cores
-(one torch thread each), bf16 autocast, width 64, 192x384 crops, batch 2, N_s = 4. Before choosing, a 16-step
+Each figure is the median of the runs' `samples_per_s` records (every 10 steps) while two to four runs shared the
+2 cores (one torch thread each; so these are lower bounds of a lone run's speed),
+bf16 autocast, width 64, 192x384 crops, batch 2, N_s = 4. Before choosing, a 16-step
 probe on the otherwise idle machine measured for this configuration: one run with 2 threads 1.73 samples/s
 (bf16) and 1.26 samples/s (fp32); two concurrent runs with 1 thread each 1.24 samples/s each, i.e. 2.5 samples/s
 in aggregate, 1.4x one 2-thread run, which is why two ran at a time. For a GPU user: the paper's setting is
