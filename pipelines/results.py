@@ -32,11 +32,10 @@ from typing import Any
 
 import numpy as np
 
-from pvm_labeler.baselines import MATCHED_DENSITIES, CurvePoint, bad3_at_density, score_curve
+from pvm_labeler.baselines import MATCHED_DENSITIES, CurvePoint, bad3_at_density, evaluate, score_curve
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.datasets import discover, load_pair
 from pvm_labeler.errors import InputError
-from pvm_labeler.metrics import MetricAccumulator
 from pvm_labeler.multiscale import ScaleStack, compute_scales, draw_eps, label_from_scales, lr_check
 
 logger = logging.getLogger("pipelines.results")
@@ -102,13 +101,6 @@ def load_frames(shared: Path) -> list[Frame]:
     return frames
 
 
-def _pooled(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> dict[str, float]:
-    acc = MetricAccumulator()
-    for pred, gt in zip(preds, gts, strict=True):
-        acc.update(pred, gt)
-    return acc.compute()
-
-
 def _point(metrics: dict[str, float], **params: float) -> dict[str, float]:
     return {**params, **{k: metrics[k] for k in ("density", "bad1", "bad3", "epe", "d1")}}
 
@@ -137,12 +129,12 @@ def study_group(frames: Sequence[Frame]) -> dict[str, Any]:
         for k1, k2 in grid:
             labels = [label_from_scales(st, dataclasses.replace(f.cfg, k=k, kappa1=k1, kappa2=k2, min_confidence=0.0))
                       .label for st, f in zip(stacks, frames, strict=True)]
-            pts.append(_point(_pooled(labels, gts), kappa1=k1, kappa2=k2))
+            pts.append(_point(evaluate(labels, gts), kappa1=k1, kappa2=k2))
         sweep = []
         for t in MIN_CONFIDENCE:
             labels = [label_from_scales(st, dataclasses.replace(f.cfg, k=k, min_confidence=t)).label
                       for st, f in zip(stacks, frames, strict=True)]
-            sweep.append(_point(_pooled(labels, gts), min_confidence=t))
+            sweep.append(_point(evaluate(labels, gts), min_confidence=t))
         front = pareto(pts)
         out["vote"][str(k)] = {"grid": pts, "front": front, "matched": _matched(front)}
         out["default"][str(k)] = {"sweep": sweep, "matched": _matched(sweep),
@@ -154,8 +146,8 @@ def study_group(frames: Sequence[Frame]) -> dict[str, Any]:
     thresholds = np.unique(np.quantile(pooled_u[np.isfinite(pooled_u)], np.linspace(0.0, 0.98, 50)))
     ucurve = [dict(threshold=p.threshold, density=p.density, bad3=p.bad3, epe=p.epe)
               for p in score_curve(sgm_lr, uniq, gts, thresholds)]
-    out["sgm_lr"] = _point(_pooled(sgm_lr, gts))
-    out["sgm_raw"] = _point(_pooled([f.stack.full_res["disp_l"] for f in frames], gts))
+    out["sgm_lr"] = _point(evaluate(sgm_lr, gts))
+    out["sgm_raw"] = _point(evaluate([f.stack.full_res["disp_l"] for f in frames], gts))
     out["uniq"] = {"curve": ucurve, "matched": _matched(ucurve)}
     return out
 
