@@ -27,13 +27,27 @@ SENTINEL = 0x3FFF  # > any L_r, and SENTINEL + P1 still fits in uint16
 PREFETCH_AHEAD = 4  # pixels; 2-16 measured alike on a KITTI frame (99-100 ms), 0 = no prefetch (142 ms)
 
 
+@njit(cache=True, fastmath=FASTMATH)
+def p2_table(p1, p2, adaptive):
+    """(256,) uint16 P2 by grey-level step g = |I(p) - I(p - r)|: P2 // max(1, g) clamped to >= P1 when
+    ``adaptive``, else the constant P2. A table because an integer division per path and pixel, even on the
+    non-adaptive branch that LLVM evaluated speculatively, cost ~17 ms per sweep on a KITTI frame."""
+    table = np.empty(256, dtype=np.uint16)
+    for g in range(256):
+        table[g] = np.uint16(max(p1, p2 // max(1, g))) if adaptive else np.uint16(p2)
+    return table
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def penalty2(p1, p2, adaptive, grey, y, x, py, px):
-    """P2 for the step (py, px) -> (y, x); adaptive: P2 // max(1, |I(p) - I(p - r)|), never below P1."""
-    if not adaptive or py < 0 or px < 0 or py >= grey.shape[0] or px >= grey.shape[1]:
-        return np.uint16(p2)
-    grad = abs(np.int32(grey[y, x]) - np.int32(grey[py, px]))
-    return np.uint16(max(p1, p2 // max(np.int32(1), grad)))
+def penalty2(table, grey, y, x, py, px):
+    """P2 for the step (py, px) -> (y, x): table[|I(y, x) - I(py, px)|].
+
+    A neighbour outside the image is clamped into it: there the path starts (its previous L is 0 everywhere), and
+    the start value min(0, ..., 0 + P2) = 0 does not depend on P2.
+    """
+    py = min(max(py, 0), grey.shape[0] - 1)
+    px = min(max(px, 0), grey.shape[1] - 1)
+    return table[abs(np.int32(grey[y, x]) - np.int32(grey[py, px]))]
 
 
 # The recurrence is written out per path below on purpose: moving it into an inlined helper function makes
@@ -41,38 +55,47 @@ def penalty2(p1, p2, adaptive, grey, y, x, py, px):
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def step4(cost, base, s_out, a0, a1, a2, a3, o0, o1, o2, o3, pm0, pm1, pm2, pm3, q0, q1, q2, q3, p1):
-    """Four paths of one pixel in one pass: o_k[1:D+1] = L_k, s_out = base + sum_k L_k; returns the 4 minima.
+def step4(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
+    """Four paths of pixel (y, x) in one pass over d; returns the minima of the four new L vectors.
 
     Args:
-        cost: (D,) uint8; base, s_out: (D,) uint16 (may alias); a_k, o_k: (D + 2,) uint16 previous / new L_k
-        with sentinels at 0 and D + 1; pm_k: min of a_k; q_k: P2 of path k (uint16); p1: P1.
+        cost: (H, W, D) uint8, this pixel's costs are cost[y, x].
+        base, by, bx / out, oy, ox: out[oy, ox, d] = base[by, bx, d] + sum_k L_k(d) ((., ., D) uint16; may alias).
+        bufs: (a0, a1, a2, a3, o0, o1, o2, o3) 2-D (rows, D + 2) uint16 buffers: a_k[rows[k]] holds the previous
+            L_k (sentinels in slots 0 and D + 1), o_k[rows[k + 4]] receives the new L_k in slots 1..D.
+        pms: the minima of the four previous vectors; qs: P2 of each path (uint16); p1: P1.
+
+    Every array is indexed here, never sliced: taking per-pixel views (cost[y, x], buf[col], ...) made numba
+    reference-count each view, ~24 ms of fixed per-pixel overhead per sweep on a KITTI frame.
     """
-    n_disp = cost.shape[0]
+    n_disp = cost.shape[2]
+    a0, a1, a2, a3, o0, o1, o2, o3 = bufs
+    r0, r1, r2, r3, w0, w1, w2, w3 = rows
+    pm0, pm1, pm2, pm3 = pms
     pen = np.uint16(p1)
-    j0 = np.uint16(pm0 + q0)
-    j1 = np.uint16(pm1 + q1)
-    j2 = np.uint16(pm2 + q2)
-    j3 = np.uint16(pm3 + q3)
+    j0 = np.uint16(pm0 + qs[0])
+    j1 = np.uint16(pm1 + qs[1])
+    j2 = np.uint16(pm2 + qs[2])
+    j3 = np.uint16(pm3 + qs[3])
     n0 = np.uint16(0xFFFF)
     n1 = n0
     n2 = n0
     n3 = n0
     for d in range(n_disp):
-        cd = np.uint16(cost[d])
-        v0 = min(min(a0[d + 1], j0), min(np.uint16(a0[d] + pen), np.uint16(a0[d + 2] + pen)))
+        cd = np.uint16(cost[y, x, d])
+        v0 = min(min(a0[r0, d + 1], j0), min(np.uint16(a0[r0, d] + pen), np.uint16(a0[r0, d + 2] + pen)))
         l0 = np.uint16(cd + np.uint16(v0 - pm0))
-        v1 = min(min(a1[d + 1], j1), min(np.uint16(a1[d] + pen), np.uint16(a1[d + 2] + pen)))
+        v1 = min(min(a1[r1, d + 1], j1), min(np.uint16(a1[r1, d] + pen), np.uint16(a1[r1, d + 2] + pen)))
         l1 = np.uint16(cd + np.uint16(v1 - pm1))
-        v2 = min(min(a2[d + 1], j2), min(np.uint16(a2[d] + pen), np.uint16(a2[d + 2] + pen)))
+        v2 = min(min(a2[r2, d + 1], j2), min(np.uint16(a2[r2, d] + pen), np.uint16(a2[r2, d + 2] + pen)))
         l2 = np.uint16(cd + np.uint16(v2 - pm2))
-        v3 = min(min(a3[d + 1], j3), min(np.uint16(a3[d] + pen), np.uint16(a3[d + 2] + pen)))
+        v3 = min(min(a3[r3, d + 1], j3), min(np.uint16(a3[r3, d] + pen), np.uint16(a3[r3, d + 2] + pen)))
         l3 = np.uint16(cd + np.uint16(v3 - pm3))
-        o0[d + 1] = l0
-        o1[d + 1] = l1
-        o2[d + 1] = l2
-        o3[d + 1] = l3
-        s_out[d] = np.uint16(base[d] + np.uint16(np.uint16(l0 + l1) + np.uint16(l2 + l3)))
+        o0[w0, d + 1] = l0
+        o1[w1, d + 1] = l1
+        o2[w2, d + 1] = l2
+        o3[w3, d + 1] = l3
+        out[oy, ox, d] = np.uint16(base[by, bx, d] + np.uint16(np.uint16(l0 + l1) + np.uint16(l2 + l3)))
         n0 = min(n0, l0)
         n1 = min(n1, l1)
         n2 = min(n2, l2)
@@ -81,79 +104,99 @@ def step4(cost, base, s_out, a0, a1, a2, a3, o0, o1, o2, o3, pm0, pm1, pm2, pm3,
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def step2(cost, base, s_out, a0, a1, o0, o1, pm0, pm1, q0, q1, p1):
-    """Two-path version of :func:`step4` (the 4-path mode: horizontal + vertical)."""
-    n_disp = cost.shape[0]
+def step2(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
+    """Two-path version of :func:`step4` (the 4-path mode: horizontal + vertical); bufs = (a0, a1, o0, o1)."""
+    n_disp = cost.shape[2]
+    a0, a1, o0, o1 = bufs
+    r0, r1, w0, w1 = rows
+    pm0, pm1 = pms
     pen = np.uint16(p1)
-    j0 = np.uint16(pm0 + q0)
-    j1 = np.uint16(pm1 + q1)
+    j0 = np.uint16(pm0 + qs[0])
+    j1 = np.uint16(pm1 + qs[1])
     n0 = np.uint16(0xFFFF)
     n1 = n0
     for d in range(n_disp):
-        cd = np.uint16(cost[d])
-        v0 = min(min(a0[d + 1], j0), min(np.uint16(a0[d] + pen), np.uint16(a0[d + 2] + pen)))
+        cd = np.uint16(cost[y, x, d])
+        v0 = min(min(a0[r0, d + 1], j0), min(np.uint16(a0[r0, d] + pen), np.uint16(a0[r0, d + 2] + pen)))
         l0 = np.uint16(cd + np.uint16(v0 - pm0))
-        v1 = min(min(a1[d + 1], j1), min(np.uint16(a1[d] + pen), np.uint16(a1[d + 2] + pen)))
+        v1 = min(min(a1[r1, d + 1], j1), min(np.uint16(a1[r1, d] + pen), np.uint16(a1[r1, d + 2] + pen)))
         l1 = np.uint16(cd + np.uint16(v1 - pm1))
-        o0[d + 1] = l0
-        o1[d + 1] = l1
-        s_out[d] = np.uint16(base[d] + np.uint16(l0 + l1))
+        o0[w0, d + 1] = l0
+        o1[w1, d + 1] = l1
+        out[oy, ox, d] = np.uint16(base[by, bx, d] + np.uint16(l0 + l1))
         n0 = min(n0, l0)
         n1 = min(n1, l1)
     return n0, n1
 
 
 @njit(cache=True, fastmath=FASTMATH)
+def _row_buffer(width, n_disp):
+    """(W + 2, D + 2) zeroed uint16 buffer with sentinels in slots 0 and D + 1 (the d +- 1 reads need no branch)."""
+    buf = np.zeros((width + 2, n_disp + 2), dtype=np.uint16)
+    buf[:, 0] = SENTINEL
+    buf[:, n_disp + 1] = SENTINEL
+    return buf
+
+
+@njit(cache=True, fastmath=FASTMATH)
 def _buffers(width, n_disp):
-    """Zeroed scratch: row buffers (2 parities, 3 row paths, W + 2 columns, D + 2 slots) with sentinels, their
-    mins, the horizontal ping-pong buffers [0], [1] plus an all-zero 'outside the image' vector [2], and a zero
-    (D,) base vector."""
-    rows = np.zeros((2, 3, width + 2, n_disp + 2), dtype=np.uint16)
-    rows[:, :, :, 0] = SENTINEL
-    rows[:, :, :, n_disp + 1] = SENTINEL
+    """Scratch of one sweep: previous- and current-row buffers of the 3 row paths (6 SEPARATE arrays, so LLVM's
+    alias checks see distinct allocations), the horizontal ping-pong buffer (rows 0, 1; row 2 = the all-zero
+    'outside the image' vector), the path minima (2 parities, 3 row paths, W + 2 columns) and a zero base."""
+    even = (_row_buffer(width, n_disp), _row_buffer(width, n_disp), _row_buffer(width, n_disp))
+    odd = (_row_buffer(width, n_disp), _row_buffer(width, n_disp), _row_buffer(width, n_disp))
+    horiz = _row_buffer(1, n_disp)  # (3, D + 2)
     mins = np.zeros((2, 3, width + 2), dtype=np.uint16)
-    horiz = np.zeros((3, n_disp + 2), dtype=np.uint16)
-    horiz[:, 0] = SENTINEL
-    horiz[:, n_disp + 1] = SENTINEL
-    zero = np.zeros(n_disp, dtype=np.uint16)
-    return rows, mins, horiz, zero
+    zero = np.zeros((1, 1, n_disp), dtype=np.uint16)
+    return even, odd, horiz, mins, zero
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _pixel(cost_px, grey, y, x, sy, p1, p2, adaptive, diag, rows, mins, horiz, hmin, base, s_out):
+def _pixel(cost, grey, y, x, sy, p1, table, diag, prev, cur, horiz, mins, hmin, base, by, bx, out, oy, ox):
     """All paths of one sweep at pixel (y, x); sy = +1 forward (paths come from y - 1, x - 1), -1 backward.
 
-    Buffer columns run in sweep order (col = x + 1 forward, W - x backward; 0 and W + 1 are the zero borders):
-    a backward sweep then walks its row buffers in ascending addresses too (descending walks over these MB-sized
-    buffers measured 2-3x slower). In both sweeps the diagonal arriving from the horizontal path's side is at
-    col - 1 and the anti-diagonal at col + 1. Returns the new horizontal-path minimum.
+    prev / cur: the 3 row-path buffers of the previous / current row (0: diagonal from the horizontal path's side,
+    1: vertical, 2: anti-diagonal). Buffer columns run in sweep order (col = x + 1 forward, W - x backward; 0 and
+    W + 1 are the zero borders): a backward sweep then walks its row buffers in ascending addresses too (descending
+    walks over these MB-sized buffers measured 2-3x slower). In both sweeps the diagonal arriving from the
+    horizontal path's side is at col - 1 and the anti-diagonal at col + 1. Returns the new horizontal-path minimum.
     """
     width = grey.shape[1]
-    cur = y & 1
-    prv = 1 - cur
+    cur_p = y & 1
+    prv_p = 1 - cur_p
     py = y - sy
     hx = x - sy  # previous pixel of the horizontal path
     col = x + 1 if sy > 0 else width - x
     hcur = x & 1
     first = hx < 0 or hx >= width
-    hprev = horiz[2] if first else horiz[1 - hcur]
+    hprev = 2 if first else 1 - hcur
     hpm = np.uint16(0) if first else hmin
-    qh = penalty2(p1, p2, adaptive, grey, y, x, y, hx)
-    qv = penalty2(p1, p2, adaptive, grey, y, x, py, x)
+    qh = penalty2(table, grey, y, x, y, hx)
+    qv = penalty2(table, grey, y, x, py, x)
     if diag:
-        qa = penalty2(p1, p2, adaptive, grey, y, x, py, x - sy)
-        qb = penalty2(p1, p2, adaptive, grey, y, x, py, x + sy)
-        nh, nv, na, nb = step4(cost_px, base, s_out, hprev, rows[prv, 1, col], rows[prv, 0, col - 1],
-                               rows[prv, 2, col + 1], horiz[hcur], rows[cur, 1, col], rows[cur, 0, col],
-                               rows[cur, 2, col], hpm, mins[prv, 1, col], mins[prv, 0, col - 1], mins[prv, 2, col + 1],
-                               qh, qv, qa, qb, p1)
-        mins[cur, 0, col] = na
-        mins[cur, 2, col] = nb
+        qa = penalty2(table, grey, y, x, py, x - sy)
+        qb = penalty2(table, grey, y, x, py, x + sy)
+        nh, nv, na, nb = step4(cost, y, x, base, by, bx, out, oy, ox,
+                               (horiz, prev[1], prev[0], prev[2], horiz, cur[1], cur[0], cur[2]),
+                               (hprev, col, col - 1, col + 1, hcur, col, col, col),
+                               (hpm, mins[prv_p, 1, col], mins[prv_p, 0, col - 1], mins[prv_p, 2, col + 1]),
+                               (qh, qv, qa, qb), p1)
+        mins[cur_p, 0, col] = na
+        mins[cur_p, 2, col] = nb
     else:
-        nh, nv = step2(cost_px, base, s_out, hprev, rows[prv, 1, col], horiz[hcur], rows[cur, 1, col], hpm,
-                       mins[prv, 1, col], qh, qv, p1)
-    mins[cur, 1, col] = nv
+        nh, nv = step2(cost, y, x, base, by, bx, out, oy, ox, (horiz, prev[1], horiz, cur[1]),
+                       (hprev, col, hcur, col), (hpm, mins[prv_p, 1, col]), (qh, qv), p1)
+    mins[cur_p, 1, col] = nv
     return nh
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _forward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, zero, s_out):
+    """One row of the forward sweep. Called with a literal ``diag`` so that, once inlined, LLVM folds the 4- vs
+    8-path branch out of the pixel loop (a runtime branch there cost ~25 ms per sweep on a KITTI frame)."""
+    hmin = np.uint16(0)
+    for x in range(grey.shape[1]):
+        hmin = _pixel(cost, grey, y, x, 1, p1, table, diag, prev, cur, horiz, mins, hmin, zero, 0, 0, s_out, y, x)
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -167,13 +210,43 @@ def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out):
         diag: True for 8 paths in total (4 in this sweep), False for 4 (2 here).
         s_out: (H, W, D) uint16, receives the sum over this sweep's paths.
     """
-    height, width, _ = cost.shape
-    rows, mins, horiz, zero = _buffers(width, cost.shape[2])
+    height, width, n_disp = cost.shape
+    even, odd, horiz, mins, zero = _buffers(width, n_disp)
+    table = p2_table(p1, p2, adaptive)
     for y in range(height):
-        hmin = np.uint16(0)
-        for x in range(width):
-            hmin = _pixel(cost[y, x], grey, y, x, 1, p1, p2, adaptive, diag, rows, mins, horiz, hmin, zero,
-                          s_out[y, x])
+        prev, cur = (odd, even) if y & 1 == 0 else (even, odd)
+        if diag:
+            _forward_row(cost, grey, y, p1, table, True, prev, cur, horiz, mins, zero, s_out)
+        else:
+            _forward_row(cost, grey, y, p1, table, False, prev, cur, horiz, mins, zero, s_out)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view, s_max,
+                  key_shift, disp, conf, uniq):
+    """One row of the backward sweep with the fused WTA (literal ``diag``, see :func:`_forward_row`).
+
+    s_fwd and cost are read in DESCENDING addresses here, which the hardware prefetcher follows poorly: the cache
+    lines of the pixel PREFETCH_AHEAD columns ahead are requested explicitly (see _prefetch.py).
+    """
+    width = grey.shape[1]
+    n_disp = cost.shape[2]
+    s_addr = s_fwd.ctypes.data
+    c_addr = cost.ctypes.data
+    s_bytes = n_disp * 2
+    hmin = np.uint16(0)
+    for x in range(width - 1, -1, -1):
+        ahead = y * width + x - PREFETCH_AHEAD
+        if ahead >= 0:
+            for offset in range(0, s_bytes, 64):
+                prefetch(s_addr + ahead * s_bytes + offset)
+            for offset in range(0, n_disp, 64):
+                prefetch(c_addr + ahead * n_disp + offset)
+        total, ty, tx = (s_fwd, y, x) if store_sum else (acc, 0, 0)
+        hmin = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, total, ty,
+                      tx)
+        n_valid = width - x if right_view else x + 1
+        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_valid, s_max, key_shift)
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -188,24 +261,14 @@ def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum,
         disp, conf, uniq: (H, W) float32 outputs.
     """
     height, width, n_disp = cost.shape
-    rows, mins, horiz, _ = _buffers(width, n_disp)
-    acc = np.empty(n_disp, dtype=np.uint16)
-    # This sweep reads s_fwd and cost in descending addresses, which the hardware prefetcher follows poorly:
-    # request the cache lines of the pixel PREFETCH_AHEAD columns ahead (see _prefetch.py).
-    s_addr = s_fwd.ctypes.data
-    c_addr = cost.ctypes.data
-    s_bytes = n_disp * 2
+    even, odd, horiz, mins, _ = _buffers(width, n_disp)
+    acc = np.empty((1, 1, n_disp), dtype=np.uint16)
+    table = p2_table(p1, p2, adaptive)
     for y in range(height - 1, -1, -1):
-        hmin = np.uint16(0)
-        for x in range(width - 1, -1, -1):
-            ahead = y * width + x - PREFETCH_AHEAD
-            if ahead >= 0:
-                for offset in range(0, s_bytes, 64):
-                    prefetch(s_addr + ahead * s_bytes + offset)
-                for offset in range(0, n_disp, 64):
-                    prefetch(c_addr + ahead * n_disp + offset)
-            total = s_fwd[y, x] if store_sum else acc
-            hmin = _pixel(cost[y, x], grey, y, x, -1, p1, p2, adaptive, diag, rows, mins, horiz, hmin, s_fwd[y, x],
-                          total)
-            n_valid = width - x if right_view else x + 1
-            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, n_valid, s_max, key_shift)
+        prev, cur = (odd, even) if y & 1 == 0 else (even, odd)
+        if diag:
+            _backward_row(cost, grey, y, p1, table, True, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
+                          s_max, key_shift, disp, conf, uniq)
+        else:
+            _backward_row(cost, grey, y, p1, table, False, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
+                          s_max, key_shift, disp, conf, uniq)

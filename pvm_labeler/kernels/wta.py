@@ -17,11 +17,13 @@ from pvm_labeler.kernels._flags import FASTMATH
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def select_disparity(s, n_valid, s_max, key_shift):
+def select_disparity(s, y, x, n_valid, s_max, key_shift):
     """WTA + parabola + c + uniqueness of one pixel (see the module docstring).
 
     Args:
-        s: (D,) uint16 aggregated costs (three entries are overwritten temporarily and restored).
+        s, y, x: the pixel's aggregated costs are s[y, x, :], (D,) uint16 (three entries are overwritten
+            temporarily and restored). Indexing the (H, W, D) volume directly instead of taking an s[y, x] view
+            per pixel matters: a view per pixel costs reference counting in numba (see aggregate.py).
         n_valid: disparities d < n_valid have a partner pixel; d* >= n_valid gives NaN.
         s_max: normaliser of c (float).
         key_shift: number of bits that hold d (2 ** key_shift >= D); the argmin is the min of (S << shift) | d,
@@ -30,13 +32,13 @@ def select_disparity(s, n_valid, s_max, key_shift):
     Returns:
         (disparity, c, uniqueness) as float32 scalars.
     """
-    n_disp = s.shape[0]
+    n_disp = s.shape[2]
     shift = np.uint32(key_shift)
     best_key = np.uint32(0xFFFFFFFF)
     # Every intermediate is cast back to uint32: numba would otherwise widen to 64 bits and the reduction (no
     # unsigned 64-bit min in AVX2) would stay scalar.
     for d in range(n_disp):
-        best_key = min(best_key, np.uint32(np.uint32(np.uint32(s[d]) << shift) | np.uint32(d)))
+        best_key = min(best_key, np.uint32(np.uint32(np.uint32(s[y, x, d]) << shift) | np.uint32(d)))
     d_best = np.intp(best_key & np.uint32((1 << key_shift) - 1))
     s_min = np.float32(best_key >> shift)
     if d_best >= n_valid:
@@ -45,19 +47,19 @@ def select_disparity(s, n_valid, s_max, key_shift):
     # count vectorises without scalar remainders; a masked loop did not vectorise), then restore them.
     lo = max(d_best - 1, 0)
     hi = min(d_best + 2, n_disp)
-    saved0 = s[lo]
-    saved1 = s[lo + 1] if lo + 1 < hi else np.uint16(0)
-    saved2 = s[lo + 2] if lo + 2 < hi else np.uint16(0)
+    saved0 = s[y, x, lo]
+    saved1 = s[y, x, lo + 1] if lo + 1 < hi else np.uint16(0)
+    saved2 = s[y, x, lo + 2] if lo + 2 < hi else np.uint16(0)
     for d in range(lo, hi):
-        s[d] = np.uint16(0xFFFF)
+        s[y, x, d] = np.uint16(0xFFFF)
     second = np.uint16(0xFFFF)
     for d in range(n_disp):
-        second = min(second, s[d])
-    s[lo] = saved0
+        second = min(second, s[y, x, d])
+    s[y, x, lo] = saved0
     if lo + 1 < hi:
-        s[lo + 1] = saved1
+        s[y, x, lo + 1] = saved1
     if lo + 2 < hi:
-        s[lo + 2] = saved2
+        s[y, x, lo + 2] = saved2
     found = d_best >= 2 or d_best + 2 < n_disp
     if found and np.float32(second) == s_min:
         # an exact tie with a distant disparity: no unique match (e.g. a region without texture along x)
@@ -67,8 +69,8 @@ def select_disparity(s, n_valid, s_max, key_shift):
         uniq = np.float32(1.0) - s_min / np.float32(second)
     offset = np.float32(0.0)
     if 0 < d_best < n_disp - 1:
-        a = np.float32(s[d_best - 1])
-        c = np.float32(s[d_best + 1])
+        a = np.float32(s[y, x, d_best - 1])
+        c = np.float32(s[y, x, d_best + 1])
         denom = a - np.float32(2.0) * s_min + c
         if denom > 0:
             offset = (a - c) / (np.float32(2.0) * denom)
@@ -91,4 +93,4 @@ def wta_volume(cost_sum, right_view, s_max, key_shift, disp, conf, uniq):
     for y in prange(height):
         for x in range(width):
             n_valid = width - x if right_view else x + 1
-            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum[y, x], n_valid, s_max, key_shift)
+            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum, y, x, n_valid, s_max, key_shift)
