@@ -40,6 +40,16 @@ class TestCensus:
         img = rng.integers(0, 256, (11, 17), dtype=np.uint8)
         np.testing.assert_array_equal(_census(img, window).astype(np.uint64), naive.naive_census(img, window))
 
+    @pytest.mark.parametrize("shape", [(7, 7), (5, 9), (9, 5), (3, 40)])
+    def test_feature_small_images_all_border(self, rng, shape):
+        # every column is a border column when the image is as narrow as the window (the row-wise kernel has
+        # separate loops for the interior and the two borders)
+        for window in (3, 5, 7):
+            if min(shape) < window:
+                continue
+            img = rng.integers(0, 256, shape, dtype=np.uint8)
+            np.testing.assert_array_equal(_census(img, window).astype(np.uint64), naive.naive_census(img, window))
+
     def test_hand_computed(self):
         # 3x3 around the centre 5, neighbours in raster order 1 9 2 8 3 7 4 6 -> darker ones give bits 10101010
         img = np.array([[1, 9, 2], [8, 5, 3], [7, 4, 6]], dtype=np.uint8)
