@@ -105,7 +105,6 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
     cost_r = np.empty_like(cost)
     s_buf = np.empty((height, width, MAX_DISP), np.uint16)
     maps = [np.empty((height, width), np.float32) for _ in range(3)]
-    key_shift = (MAX_DISP - 1).bit_length()
 
     def census() -> None:
         census_transform(grey_l, cfg.census_window, cen_l)
@@ -117,7 +116,7 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
         "forward sweep (4 paths)": lambda: aggregate_forward(cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True,
                                                              s_buf),
         "backward sweep (4 paths) + WTA": lambda: aggregate_backward_wta(
-            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max), key_shift,
+            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max),
             *maps),
         "right cost from the shared census (used)": lambda: cost_volume_right(cen_l, cen_r, c_max, cost_r),
         "right cost as a re-index of C_l (same bytes, not used)": lambda: reindex_right(cost, c_max, cost_r),

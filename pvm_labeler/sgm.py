@@ -123,9 +123,8 @@ def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_bu
     disp = np.empty((height, width), dtype=np.float32)
     conf = np.empty((height, width), dtype=np.float32)
     uniq = np.empty((height, width), dtype=np.float32)
-    key_shift = max(1, int(n_disp - 1).bit_length())
     aggregate_backward_wta(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, False, right_view,
-                           float(cfg.paths * c_max), key_shift, disp, conf, uniq)
+                           float(cfg.paths * c_max), disp, conf, uniq)
     return SGMResult(disp=disp, conf=conf, uniqueness=uniq)
 
 

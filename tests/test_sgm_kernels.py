@@ -100,11 +100,18 @@ class TestAggregate:
         np.testing.assert_array_equal(s, naive.naive_aggregate(cost, fwd_dirs, p1, p2, grey))
         maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
         n_paths = 2 * len(fwd_dirs)
-        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), 3, *maps)
+        s_fwd = s.copy()
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), *maps)
         expected = naive.naive_aggregate(cost, fwd_dirs + bwd_dirs, p1, p2, grey)
         np.testing.assert_array_equal(s, expected)
-        # the fused WTA equals the reference WTA on the reference S
-        for got, ref in zip(maps, naive.naive_wta(expected, False, float(n_paths * 24)), strict=True):
+        # the fused WTA equals the reference WTA on the reference S, both when S is stored (tests) and in the
+        # production mode that keeps only one pixel's S
+        refs = naive.naive_wta(expected, False, float(n_paths * 24))
+        for got, ref in zip(maps, refs, strict=True):
+            np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
+        maps2 = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s_fwd, False, False, float(n_paths * 24), *maps2)
+        for got, ref in zip(maps2, refs, strict=True):
             np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
 
     def test_hand_computed_path(self):
@@ -121,7 +128,7 @@ class TestWTA:
         s[0, 4] = 7  # flat: not unique -> NaN
         s[1, 5] = [9, 3, 3, 8, 8, 8, 8, 8, 8]  # tie with the neighbour only: smallest d, valid
         maps = [np.empty((5, 13), dtype=np.float32) for _ in range(3)]
-        wta_volume(s, right_view, 800.0, 4, *maps)
+        wta_volume(s, right_view, 800.0, *maps)
         for got, ref in zip(maps, naive.naive_wta(s, right_view, 800.0), strict=True):
             np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
         assert np.isnan(maps[0][0, 4]) and maps[1][0, 4] == 0.0 and maps[2][0, 4] == 0.0
@@ -131,7 +138,7 @@ class TestWTA:
         # S = [10, 4, 6, 20, 30]: d* = 1, offset = (10 - 6) / (2 (10 - 8 + 6)) = 0.25, second best (d >= 3) = 20
         s = np.array([[[10, 4, 6, 20, 30]] * 2], dtype=np.uint16)
         maps = [np.empty((1, 2), dtype=np.float32) for _ in range(3)]
-        wta_volume(s, False, 16.0, 3, *maps)
+        wta_volume(s, False, 16.0, *maps)
         assert np.isnan(maps[0][0, 0])  # x = 0 cannot have d = 1
         assert maps[0][0, 1] == pytest.approx(1.25)
         assert maps[1][0, 1] == pytest.approx(1 - 4 / 16)

@@ -81,6 +81,7 @@ def step4(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
     n1 = n0
     n2 = n0
     n3 = n0
+    t_min = n0
     for d in range(n_disp):
         cd = np.uint16(cost[y, x, d])
         v0 = min(min(a0[r0, d + 1], j0), min(np.uint16(a0[r0, d] + pen), np.uint16(a0[r0, d + 2] + pen)))
@@ -95,12 +96,14 @@ def step4(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
         o1[w1, d + 1] = l1
         o2[w2, d + 1] = l2
         o3[w3, d + 1] = l3
-        out[oy, ox, d] = np.uint16(base[by, bx, d] + np.uint16(np.uint16(l0 + l1) + np.uint16(l2 + l3)))
+        total = np.uint16(base[by, bx, d] + np.uint16(np.uint16(l0 + l1) + np.uint16(l2 + l3)))
+        out[oy, ox, d] = total
+        t_min = min(t_min, total)
         n0 = min(n0, l0)
         n1 = min(n1, l1)
         n2 = min(n2, l2)
         n3 = min(n3, l3)
-    return n0, n1, n2, n3
+    return n0, n1, n2, n3, t_min
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -115,6 +118,7 @@ def step2(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
     j1 = np.uint16(pm1 + qs[1])
     n0 = np.uint16(0xFFFF)
     n1 = n0
+    t_min = n0
     for d in range(n_disp):
         cd = np.uint16(cost[y, x, d])
         v0 = min(min(a0[r0, d + 1], j0), min(np.uint16(a0[r0, d] + pen), np.uint16(a0[r0, d + 2] + pen)))
@@ -123,10 +127,12 @@ def step2(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
         l1 = np.uint16(cd + np.uint16(v1 - pm1))
         o0[w0, d + 1] = l0
         o1[w1, d + 1] = l1
-        out[oy, ox, d] = np.uint16(base[by, bx, d] + np.uint16(l0 + l1))
+        total = np.uint16(base[by, bx, d] + np.uint16(l0 + l1))
+        out[oy, ox, d] = total
+        t_min = min(t_min, total)
         n0 = min(n0, l0)
         n1 = min(n1, l1)
-    return n0, n1
+    return n0, n1, t_min
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -159,7 +165,8 @@ def _pixel(cost, grey, y, x, sy, p1, table, diag, prev, cur, horiz, mins, hmin, 
     1: vertical, 2: anti-diagonal). Buffer columns run in sweep order (col = x + 1 forward, W - x backward; 0 and
     W + 1 are the zero borders): a backward sweep then walks its row buffers in ascending addresses too (descending
     walks over these MB-sized buffers measured 2-3x slower). In both sweeps the diagonal arriving from the
-    horizontal path's side is at col - 1 and the anti-diagonal at col + 1. Returns the new horizontal-path minimum.
+    horizontal path's side is at col - 1 and the anti-diagonal at col + 1. Returns the new horizontal-path minimum and
+    the minimum over d of the written totals (the WTA's S_min in the backward sweep).
     """
     width = grey.shape[1]
     cur_p = y & 1
@@ -176,7 +183,7 @@ def _pixel(cost, grey, y, x, sy, p1, table, diag, prev, cur, horiz, mins, hmin, 
     if diag:
         qa = penalty2(table, grey, y, x, py, x - sy)
         qb = penalty2(table, grey, y, x, py, x + sy)
-        nh, nv, na, nb = step4(cost, y, x, base, by, bx, out, oy, ox,
+        nh, nv, na, nb, t_min = step4(cost, y, x, base, by, bx, out, oy, ox,
                                (horiz, prev[1], prev[0], prev[2], horiz, cur[1], cur[0], cur[2]),
                                (hprev, col, col - 1, col + 1, hcur, col, col, col),
                                (hpm, mins[prv_p, 1, col], mins[prv_p, 0, col - 1], mins[prv_p, 2, col + 1]),
@@ -184,10 +191,10 @@ def _pixel(cost, grey, y, x, sy, p1, table, diag, prev, cur, horiz, mins, hmin, 
         mins[cur_p, 0, col] = na
         mins[cur_p, 2, col] = nb
     else:
-        nh, nv = step2(cost, y, x, base, by, bx, out, oy, ox, (horiz, prev[1], horiz, cur[1]),
+        nh, nv, t_min = step2(cost, y, x, base, by, bx, out, oy, ox, (horiz, prev[1], horiz, cur[1]),
                        (hprev, col, hcur, col), (hpm, mins[prv_p, 1, col]), (qh, qv), p1)
     mins[cur_p, 1, col] = nv
-    return nh
+    return nh, t_min
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -196,7 +203,8 @@ def _forward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, zero, s
     8-path branch out of the pixel loop (a runtime branch there cost ~25 ms per sweep on a KITTI frame)."""
     hmin = np.uint16(0)
     for x in range(grey.shape[1]):
-        hmin = _pixel(cost, grey, y, x, 1, p1, table, diag, prev, cur, horiz, mins, hmin, zero, 0, 0, s_out, y, x)
+        hmin, _ = _pixel(cost, grey, y, x, 1, p1, table, diag, prev, cur, horiz, mins, hmin, zero, 0, 0, s_out, y,
+                         x)
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -223,7 +231,7 @@ def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out):
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view, s_max,
-                  key_shift, disp, conf, uniq):
+                  disp, conf, uniq):
     """One row of the backward sweep with the fused WTA (literal ``diag``, see :func:`_forward_row`).
 
     s_fwd and cost are read in DESCENDING addresses here, which the hardware prefetcher follows poorly: the cache
@@ -243,21 +251,21 @@ def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd,
             for offset in range(0, n_disp, 64):
                 prefetch(c_addr + ahead * n_disp + offset)
         total, ty, tx = (s_fwd, y, x) if store_sum else (acc, 0, 0)
-        hmin = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, total, ty,
-                      tx)
+        hmin, s_min = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, total,
+                             ty, tx)
         n_valid = width - x if right_view else x + 1
-        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_valid, s_max, key_shift)
+        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_valid, s_max, s_min)
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, key_shift,
-                           disp, conf, uniq):
+def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, disp, conf,
+                           uniq):
     """Bottom-to-top sweep of the mirrored paths, S = forward + backward, then WTA per pixel.
 
     Args:
         cost, grey, p1, p2, adaptive, diag: as in :func:`aggregate_forward`.
         s_fwd: (H, W, D) uint16 forward sums; with ``store_sum`` it is overwritten by the full S (for tests).
-        right_view, s_max, key_shift: passed to :func:`wta.select_disparity`.
+        right_view, s_max: passed to :func:`wta.select_disparity` (with S_min, tracked while S is written).
         disp, conf, uniq: (H, W) float32 outputs.
     """
     height, width, n_disp = cost.shape
@@ -268,7 +276,7 @@ def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum,
         prev, cur = (odd, even) if y & 1 == 0 else (even, odd)
         if diag:
             _backward_row(cost, grey, y, p1, table, True, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, key_shift, disp, conf, uniq)
+                          s_max, disp, conf, uniq)
         else:
             _backward_row(cost, grey, y, p1, table, False, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, key_shift, disp, conf, uniq)
+                          s_max, disp, conf, uniq)

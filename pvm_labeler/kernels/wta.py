@@ -17,7 +17,7 @@ from pvm_labeler.kernels._flags import FASTMATH
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def select_disparity(s, y, x, n_valid, s_max, key_shift):
+def select_disparity(s, y, x, n_valid, s_max, s_min_known):
     """WTA + parabola + c + uniqueness of one pixel (see the module docstring).
 
     Args:
@@ -26,21 +26,26 @@ def select_disparity(s, y, x, n_valid, s_max, key_shift):
             per pixel matters: a view per pixel costs reference counting in numba (see aggregate.py).
         n_valid: disparities d < n_valid have a partner pixel; d* >= n_valid gives NaN.
         s_max: normaliser of c (float).
-        key_shift: number of bits that hold d (2 ** key_shift >= D); the argmin is the min of (S << shift) | d,
-            a plain uint32 min reduction that vectorises, instead of a branchy argmin loop.
+        s_min_known: min_d S if the caller has it already (the backward sweep tracks it while it writes S, for free),
+            else any negative number: it is then computed here (one uint16 min reduction).
 
     Returns:
         (disparity, c, uniqueness) as float32 scalars.
     """
     n_disp = s.shape[2]
-    shift = np.uint32(key_shift)
-    best_key = np.uint32(0xFFFFFFFF)
-    # Every intermediate is cast back to uint32: numba would otherwise widen to 64 bits and the reduction (no
-    # unsigned 64-bit min in AVX2) would stay scalar.
+    if s_min_known >= 0:
+        smin = np.uint16(s_min_known)
+    else:
+        smin = np.uint16(0xFFFF)
+        for d in range(n_disp):
+            smin = min(smin, s[y, x, d])
+    # d* = the first d at the minimum: a short scan (d* is small for most pixels) replaces a full-length argmin.
+    d_best = 0
     for d in range(n_disp):
-        best_key = min(best_key, np.uint32(np.uint32(np.uint32(s[y, x, d]) << shift) | np.uint32(d)))
-    d_best = np.intp(best_key & np.uint32((1 << key_shift) - 1))
-    s_min = np.float32(best_key >> shift)
+        if s[y, x, d] == smin:
+            d_best = d
+            break
+    s_min = np.float32(smin)
     if d_best >= n_valid:
         return np.float32(np.nan), np.float32(0.0), np.float32(0.0)
     # Second best outside d* +- 1: overwrite the three slots with the max, take one full-length min (a fixed trip
@@ -80,17 +85,17 @@ def select_disparity(s, y, x, n_valid, s_max, key_shift):
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def wta_volume(cost_sum, right_view, s_max, key_shift, disp, conf, uniq):
+def wta_volume(cost_sum, right_view, s_max, disp, conf, uniq):
     """Apply :func:`select_disparity` to every pixel of an aggregated volume.
 
     Args:
         cost_sum: (H, W, D) uint16 aggregated cost S.
         right_view: False: d is valid iff x - d >= 0; True: valid iff x + d < W.
-        s_max, key_shift: see :func:`select_disparity`.
+        s_max: see :func:`select_disparity`.
         disp, conf, uniq: (H, W) float32 outputs, written in place.
     """
     height, width, _ = cost_sum.shape
     for y in prange(height):
         for x in range(width):
             n_valid = width - x if right_view else x + 1
-            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum, y, x, n_valid, s_max, key_shift)
+            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum, y, x, n_valid, s_max, -1)
