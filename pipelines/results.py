@@ -213,6 +213,7 @@ def markdown(results: dict[str, Any], png: dict[str, str], seconds: float) -> st
         f"{MIN_CONFIDENCE[-1]} (default {d.min_confidence}).",
         "",
     ]
+    lines += [defaults_text(results), ""]
     for name, res in results.items():
         lines += [f"### {name} ({len(res['frames'])} frames: {', '.join(res['frames'])})", "",
                   f"![PVM ablation on {name}]({png[name]})", "",
@@ -232,6 +233,48 @@ def markdown(results: dict[str, Any], png: dict[str, str], seconds: float) -> st
             lines.append(f"| {label} | {_f(p['density'], 1)} | {_f(p['bad3'])} | {_f(p['epe'], 3)} | {_f(p['d1'])} |")
         lines += ["", verdict(res), ""]
     return "\n".join(lines)
+
+
+def defaults_text(results: dict[str, Any]) -> str:
+    """The defaults and why, with the KITTI 2015 numbers that support (or qualify) them."""
+    d = LabelerConfig()
+    res = results.get("kitti15")
+    if res is None:
+        return ""
+    cells = []
+    for k in KS:
+        m = res["default"][str(k)]["matched"]
+        cells.append(f"K = {k}: " + " / ".join(_f(m[f"{x:g}"]) for x in MATCHED_DENSITIES))
+    u = res["uniq"]["matched"]
+    base = " / ".join(_f(u[f"{x:g}"]) for x in MATCHED_DENSITIES)
+    at = res["default"][str(d.k)]["at_default"]
+    keys = [f"{x:g}" for x in MATCHED_DENSITIES]
+
+    def beats(k: int) -> bool:
+        m = res["default"][str(k)]["matched"]
+        return all(np.isfinite(m[x]) and np.isfinite(u[x]) and m[x] < u[x] for x in keys)
+
+    multi = [k for k in KS if k > 1]
+    claim_multi = ("Every K >= 2 beats the baseline at all three densities" if all(beats(k) for k in multi)
+                   else "Not every K >= 2 beats the baseline at all three densities (see the table below)")
+    claim_k1 = "K = 1 (the same confidence filter on a single scale) does not" if not beats(1) else "so does K = 1"
+    k4, k6 = res["default"]["4"]["matched"], res["default"]["6"]["matched"]
+    k4_better = sum(k4[x] <= k6[x] for x in keys if np.isfinite(k4[x]) and np.isfinite(k6[x]))
+    return (
+        "**Defaults and why.** The labeler ships K = {k}, kappa1 = {k1} px, kappa2 = {k2}, label = scale-weighted "
+        "mean, min_confidence = {mc}. K = 6 is the paper's and the issue's choice; on the 15 KITTI 2015 frames "
+        "the default recipe gives bad-3 at 30 / 50 / 70 % density of {cells} (SGM + LRDCC + uniqueness: {base}). "
+        "{claim_multi}, and {claim_k1}: the multi-scale vote is what buys the quality. K = 4 has the lower or equal "
+        "bad-3 at {k4_better} of the 3 densities against K = 6 (and is cheaper); with 15 frames such differences "
+        "are within what another frame set could reverse, so the default stays at the paper's K = 6 and `--k 4` is "
+        "a measured alternative. The paper's pure vote "
+        "(min_confidence = 0, top row of the figures) needs a kappa grid search per K and is less clean at "
+        "matched density than the confidence-filtered recipe, which is why the confidence filter (beyond the "
+        "paper, docs/pvm.md) is on by default. At the defaults: density {dens} % of GT-valid pixels, bad-3 {b3} %, "
+        "AEPE {epe} px."
+    ).format(k=d.k, k1=d.kappa1, k2=d.kappa2, mc=d.min_confidence, cells="; ".join(cells), base=base,
+             claim_multi=claim_multi, claim_k1=claim_k1, k4_better=k4_better,
+             dens=_f(at["density"], 1), b3=_f(at["bad3"]), epe=_f(at["epe"], 3))
 
 
 def verdict(res: dict[str, Any]) -> str:
