@@ -9,8 +9,9 @@ For a path direction r: L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d+-1) + 
   winner-takes-all of ``wta.py`` on each finished S vector, so the full S volume is read only once more.
 
 Speed notes: all path arithmetic is uint16 with explicit casts (numba would widen to int64; uint16 lets LLVM use
-16-lane AVX2 vpminuw/vpaddw), and the paths of a sweep are updated in ONE loop over d so C and S are touched once
-per pixel. Only previous-row buffers (W + 2, D + 2) per path are kept, walked in ascending addresses by both
+32-lane AVX-512 / 16-lane AVX2 vpminuw/vpaddw), and the paths of a sweep are updated in ONE loop over d so C and S
+are touched once per pixel. The volumes and row buffers are indexed, never sliced per pixel (see :func:`step4`).
+Only previous-row buffers (W + 2, D + 2) per path are kept, walked in ascending addresses by both
 sweeps. The two extra disparity slots hold a
 sentinel so the d +- 1 reads need no branch; the two extra columns stay zero (a path entering the image has L = C).
 The wrapper guarantees L_r <= C_max + P2 < SENTINEL and n_paths * (C_max + P2) <= 65535, so nothing wraps.
