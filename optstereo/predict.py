@@ -35,6 +35,24 @@ def _to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tenso
 INFER_AMP = ("none", "bf16", "fp16")
 
 
+def cpu_has_native_bf16() -> bool:
+    """True when oneDNN has native bf16 kernels on this CPU (AVX512-BF16 or AMX).
+
+    Without them torch emulates bf16 convolutions, which runs many times slower than float32.
+    """
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def warn_if_emulated_bf16(amp: str, device: torch.device) -> None:
+    """Log a warning for ``--amp bf16`` on a CPU that would emulate bf16."""
+    if amp == "bf16" and device.type == "cpu" and not cpu_has_native_bf16():
+        logger.warning("--amp bf16: this CPU has no native bf16 (AVX512-BF16/AMX); bf16 is emulated and much "
+                       "slower than float32 here, use --amp none")
+
+
 def inference_autocast(amp: str, device: torch.device) -> contextlib.AbstractContextManager:
     """Autocast for inference: bf16 on CPU or CUDA, fp16 on CUDA only; ``none`` = float32.
 
@@ -46,6 +64,7 @@ def inference_autocast(amp: str, device: torch.device) -> contextlib.AbstractCon
         return contextlib.nullcontext()
     if amp == "fp16" and device.type != "cuda":
         raise ValueError("amp fp16 needs a CUDA device; use bf16 on CPU")
+    warn_if_emulated_bf16(amp, device)
     return torch.autocast(device_type=device.type, dtype=torch.bfloat16 if amp == "bf16" else torch.float16)
 
 

@@ -30,6 +30,7 @@ from optstereo import distributed as ddp
 from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, save_checkpoint, unwrap
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
+from optstereo.predict import warn_if_emulated_bf16
 from optstereo.train_config import TrainConfig
 
 logger = logging.getLogger(__name__)
@@ -98,8 +99,9 @@ def autocast_context(cfg: TrainConfig, device: torch.device) -> contextlib.Abstr
     """torch.autocast for --amp bf16 (CUDA or CPU) and fp16 (CUDA only); a null context otherwise.
 
     bf16 on CPU pays off on CPUs with native bf16 matmul/conv (AVX512-BF16 or AMX): a paper-size training step
-    at 320x736 went from ~8.5 s to ~3.5 s on this machine's AVX512-BF16 EPYC. The correlation volume, the lookup,
-    the disparity accumulator and the losses stay float32 inside the model (autocast disabled there).
+    at 320x736 went from ~8.5 s to ~3.5 s on an AVX512-BF16 EPYC. CPUs without native bf16 (AVX2 only) emulate it,
+    far slower than float32: a warning says so. The correlation volume, the lookup, the disparity accumulator and
+    the losses stay float32 inside the model (autocast disabled there).
     """
     if cfg.amp == "none" or (device.type != "cuda" and not (cfg.amp == "bf16" and device.type == "cpu")):
         return contextlib.nullcontext()
@@ -340,6 +342,7 @@ def main(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict[
         torch.set_num_threads(cfg.threads)
     if cfg.amp == "fp16" and device.type != "cuda":
         logger.warning("--amp fp16 is ignored on %s (fp16 needs CUDA; use --amp bf16 on CPU)", device)
+    warn_if_emulated_bf16(cfg.amp, device)
     if not resume and (run_dir / LAST).exists():
         raise ValueError(f"{run_dir} already holds a training run ({LAST}); use --resume {run_dir} or another --out")
     try:

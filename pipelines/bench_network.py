@@ -32,6 +32,7 @@ import torch
 
 from optstereo.losses import PVStereoLoss
 from optstereo.models import build_model
+from optstereo.predict import cpu_has_native_bf16
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +186,7 @@ def run(shared: Path) -> dict[str, Any]:
         "train": {},
         "infer": {},
         "quoted_raft_stereo": RAFT_STEREO_QUOTED,
+        "native_bf16": cpu_has_native_bf16(),
     }
     for label, kwargs in (
         ("default", {}),
@@ -192,9 +194,15 @@ def run(shared: Path) -> dict[str, Any]:
         ("convex_upsampler", {"upsampler": "convex"}),
         ("bf16_autocast", {"bf16": True}),
     ):
+        if kwargs.get("bf16") and not results["native_bf16"]:
+            results["train"][label] = {"skipped": "no native bf16 on this CPU (bf16 would be emulated)"}
+            continue
         log.info("network bench: train step %s", label)
         results["train"][label] = _median_time(_train_step_fn(**kwargs), REPEATS)
     for mode in ("no_grad", "inference_mode", "inference_mode+channels_last", "inference_mode+bf16", "compile"):
+        if mode.endswith("bf16") and not results["native_bf16"]:
+            results["infer"][mode] = {"skipped": "no native bf16 on this CPU (bf16 would be emulated)"}
+            continue
         log.info("network bench: inference %s", mode)
         try:
             fn, setup = _infer_fn(mode)
@@ -236,8 +244,14 @@ def _markdown(r: dict[str, Any]) -> str:
         return f"| {name} | {m['median_s']:.2f} | {m['idle_estimate_s']:.2f} | {wall:.2f} | {idle:.2f} | {ok} |"
 
     for label, m in r["train"].items():
+        if "skipped" in m:
+            lines.append(f"| train step 320x736 b2, {label} | skipped: {m['skipped']} | | | | |")
+            continue
         lines.append(row(f"train step 320x736 b2, {label}", m, q["train_step_s"]))
     for mode, m in r["infer"].items():
+        if "skipped" in m:
+            lines.append(f"| inference 384x1248, {mode} | skipped: {m['skipped']} | | | | |")
+            continue
         if "error" in m:
             lines.append(f"| inference 384x1248, {mode} | failed: {m['error'][:80]} | | | | |")
             continue

@@ -13,11 +13,12 @@ import torch
 from click.testing import CliRunner
 from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
 
+from optstereo import predict as predict_mod
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
 from optstereo.models import build_model
-from optstereo.predict import infer, write_disparity
+from optstereo.predict import infer, warn_if_emulated_bf16, write_disparity
 from pvm_labeler.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.metrics import disparity_metrics
 
@@ -92,6 +93,18 @@ class TestPredict:
         assert low.dtype == np.float32 and low.shape == ref.shape
         assert not np.array_equal(low, ref)  # autocast did change the arithmetic
         assert np.abs(low - ref).max() <= 0.05 * np.abs(ref).max() + 0.05
+
+    def test_bf16_emulation_warning(self, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+        monkeypatch.setattr(predict_mod, "cpu_has_native_bf16", lambda: False)
+        with caplog.at_level("WARNING", logger="optstereo.predict"):
+            warn_if_emulated_bf16("none", torch.device("cpu"))
+            assert not caplog.records
+            warn_if_emulated_bf16("bf16", torch.device("cpu"))
+        assert len(caplog.records) == 1 and "emulated" in caplog.records[0].getMessage()
+        monkeypatch.setattr(predict_mod, "cpu_has_native_bf16", lambda: True)
+        caplog.clear()
+        warn_if_emulated_bf16("bf16", torch.device("cpu"))
+        assert not caplog.records
 
     def test_exception_amp(self, rng: np.random.Generator) -> None:
         left = rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)
