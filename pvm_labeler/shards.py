@@ -29,6 +29,7 @@ Making a tiny shard directory in tests (no labeler needed)::
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -75,8 +76,13 @@ def shard_name(index: int) -> str:
     return SHARD_PATTERN.format(index=index)
 
 
+@functools.lru_cache(maxsize=1)
 def git_commit() -> str:
-    """Commit of the code that runs (short hash, "+dirty" when the tree has changes), or "unknown"."""
+    """Short hash of the checked-out commit of the code that runs, or "unknown" outside a git checkout.
+
+    Cached: every shard records it, and forking ``git`` from a labeling worker with ~1 GB resident costs more
+    than writing a small shard.
+    """
     here = Path(__file__).resolve().parent
     try:
         commit = subprocess.run(
