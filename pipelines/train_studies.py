@@ -49,6 +49,10 @@ STEPS = 600
 # The claim study (self-supervised vs dense SGM vs GT-supervised) also continues its two runs to a 3x budget: the
 # 600-step main run was still improving (label EPE -0.2 px per 100 steps) and 10.3 % dense-SGM bad-3 is a high bar.
 LONG_STEPS = 1800
+# The claim run of a later session: one self-supervised run alone on the 2 cores (2 torch threads), float32 (that
+# machine's CPU had no native bf16, which autocast would emulate far slower), a OneCycle schedule with the same peak
+# rate (annealing to ~0 at the end instead of stopping at a constant 4e-4), and the largest budget that fitted.
+ONECYCLE_STEPS = 2400
 WIDTH = {"feature_dim": 64, "hidden_dim": 64, "head_dim": 64, "upsample_dim": 32}
 # Shared by every run so they are comparable; only the fields of Run.extra differ.
 COMMON = ["--steps", str(STEPS), "--batch-size", "2", "--crop", "192x384", "--iters", "4", "--lr", "4e-4",
@@ -88,6 +92,9 @@ RUNS = [
         base="ms_d4_main", steps=LONG_STEPS),
     Run("gt_long", "optstereo_ms_d4", ("--supervision", "gt"), ("claim",),
         f"gt_supervised continued to {LONG_STEPS} steps", base="gt_supervised", steps=LONG_STEPS),
+    Run("ms_d4_onecycle", "optstereo_ms_d4",
+        ("--steps", str(ONECYCLE_STEPS), "--schedule", "onecycle", "--amp", "none", "--threads", "2"), ("claim",),
+        f"PVM labels, full loss, {ONECYCLE_STEPS} steps, OneCycle (peak 4e-4), float32", steps=ONECYCLE_STEPS),
 ]
 BY_NAME = {r.name: r for r in RUNS}
 
@@ -182,7 +189,7 @@ def eval_dir(name: str) -> Path:
 
 def eval_command(run: Run) -> list[str]:
     """The optstereo-eval command of a run: dense prediction on ALL GT-valid pixels of the 15 frames."""
-    claim_runs = ("ms_d4_main", "gt_supervised", "ms_d4_long", "gt_long")
+    claim_runs = ("ms_d4_main", "gt_supervised", "ms_d4_long", "gt_long", "ms_d4_onecycle")
     maps = ["--save-maps"] if run.name in claim_runs else ["--no-save-maps"]
     return [str(BIN / "optstereo-eval"), "--checkpoint", str(run_dir(run)), "--dataset", "kitti15", "--root",
             str(DATA_ROOT), "--out", str(eval_dir(run.name)), "--device", "cpu", *maps, "--quiet"]
@@ -292,7 +299,25 @@ def collect_run(run: Run) -> dict:
                   "last_record": last},
         "eval": json.loads(ev.read_text()) if ev.exists() else None,
         "run_dir": str(rd),
+        # kept in the committed JSON so a later report can redraw the curve when the run dir is gone
+        "curve": [[r["step"], r["L_P"], r["label_epe"]] for r in records if "label_epe" in r],
     }
+
+
+def load_runs() -> dict[str, dict]:
+    """Every run of RUNS that exists: collected from its run dir, or else from its committed results JSON.
+
+    Run dirs are git-ignored, so a later session that trains one new run still reports the earlier runs' final
+    metrics from results/training/<name>.json (marked ``"live": False``).
+    """
+    runs = {}
+    for run in RUNS:
+        committed = RESULTS / f"{run.name}.json"
+        if (run_dir(run) / "command.json").exists():
+            runs[run.name] = {**collect_run(run), "live": True}
+        elif committed.exists():
+            runs[run.name] = {**json.loads(committed.read_text()), "live": False}
+    return runs
 
 
 def plot_curves(runs: dict[str, dict], path: Path) -> None:
@@ -302,15 +327,14 @@ def plot_curves(runs: dict[str, dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    continued = {r.base for r in RUNS if r.base and _records(r)}
-    for run in RUNS:
-        recs = _records(run)
-        if not recs or run.name in continued:  # a continuation's log starts with its base's records
+    continued = {r.base for r in RUNS if r.base and runs.get(r.name, {}).get("curve")}
+    for name, data in runs.items():
+        curve = data.get("curve")
+        if not curve or name in continued:  # a continuation's log starts with its base's records
             continue
-        steps = [r["step"] for r in recs]
-        for ax, key in zip(axes, ("L_P", "label_epe"), strict=True):
-            ax.plot(steps, [r[key] for r in recs], label=run.name, lw=1.2,
-                    ls="--" if run.name in ("gt_supervised", "gt_long") else "-")
+        steps, lp, epe = zip(*curve, strict=True)
+        for ax, values in zip(axes, (lp, epe), strict=True):
+            ax.plot(steps, values, label=name, lw=1.2, ls="--" if name in ("gt_supervised", "gt_long") else "-")
     axes[0].set_title("L_P (sequence Huber; vs PVM labels, vs GT for the gt runs)")
     axes[1].set_title("EPE of the final prediction vs its training target (px)")
     for ax in axes:
@@ -349,7 +373,8 @@ def plot_overview(path: Path, frame_index: int = 0) -> None:
     sgm, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg, right_view=False)
     panels = [("left image", sample.left), ("GT (sparse LiDAR)", sample.gt),
               ("PVM labels (white = none)", label), ("dense SGM, NaN filled along rows", fill_rows_nearest(sgm.disp))]
-    for names, title in ((("ms_d4_long", "ms_d4_main"), "OptStereo, PVM labels only (self-supervised)"),
+    for names, title in ((("ms_d4_onecycle", "ms_d4_long", "ms_d4_main"),
+                          "OptStereo, PVM labels only (self-supervised)"),
                          (("gt_long", "gt_supervised"), "OptStereo, GT-supervised (sees its eval GT)")):
         for name in names:  # the longest finished run of the pair
             run = BY_NAME[name]
@@ -387,9 +412,10 @@ def _row(name: str, s: dict | None, extra: str = "") -> str:
 def step_report() -> None:
     """JSON per run + baselines, loss curves and overview PNGs, results/training.md."""
     RESULTS.mkdir(parents=True, exist_ok=True)
-    runs = {r.name: collect_run(r) for r in RUNS if (run_dir(r) / "command.json").exists()}
+    runs = load_runs()
     for name, data in runs.items():
-        (RESULTS / f"{name}.json").write_text(json.dumps(data, indent=2, default=str))
+        if data.pop("live"):
+            (RESULTS / f"{name}.json").write_text(json.dumps(data, indent=2, default=str))
     baselines = {}
     for key in ("pvm_labels", "sgm_dense_nan_filled", "sgm_dense_nan_as_error", "sgm_dense_valid_only"):
         path = eval_dir(key) / "summary.json"
@@ -399,7 +425,10 @@ def step_report() -> None:
     baselines["commands"] = {"pvm_labels": _rel(_show(labels_eval_command())),
                              "sgm_dense": ".venv/bin/python -m pipelines.train_studies eval (step_sgm_dense)"}
     (RESULTS / "baselines.json").write_text(json.dumps(baselines, indent=2, default=str))
-    plot_curves(runs, RESULTS / "loss_curves.png")
+    # Curves of runs reported from JSONs of sessions before curves were stored are not redrawable: keep the full
+    # plot drawn when they were live and draw the others beside it.
+    complete = all(d.get("curve") for d in runs.values())
+    plot_curves(runs, RESULTS / ("loss_curves.png" if complete else "loss_curves_new.png"))
     plot_overview(RESULTS / "overview.png")
     (Path("results") / "training.md").write_text(render_markdown(runs, baselines))
     print(f"wrote {RESULTS}/*.json, loss_curves.png, overview.png, results/training.md", flush=True)
@@ -416,6 +445,8 @@ def render_markdown(runs: dict[str, dict], base: dict) -> str:
     claim = [head,
              _row(f"OptStereo, PVM labels only, {STEPS} steps (`ms_d4_main`)", ev.get("ms_d4_main")),
              _row(f"OptStereo, PVM labels only, {LONG_STEPS} steps (`ms_d4_long`)", ev.get("ms_d4_long")),
+             _row(f"OptStereo, PVM labels only, {ONECYCLE_STEPS} steps, OneCycle, fp32 (`ms_d4_onecycle`)",
+                  ev.get("ms_d4_onecycle")),
              _row("dense SGM, NaN filled by nearest valid value on the row", base["sgm_dense_nan_filled"]),
              _row("dense SGM, NaN counted as errors", base["sgm_dense_nan_as_error"]),
              _row("dense SGM, NaN pixels left out", base["sgm_dense_valid_only"]),
@@ -447,7 +478,10 @@ def render_markdown(runs: dict[str, dict], base: dict) -> str:
         label_cmd=label_cmd, epochs=STEPS * 2 / 15, params=size["params"] / 1e6, gflop=size["train_gflop"],
         sgm_missing=100.0 - sgm_valid.get("density", math.nan),
         table1_text=table1_text(ev), claim_text=claim_text(ev, base), ablation_text=ablation_text(ev),
-        budget_text=budget_text(ev, base))
+        budget_text=budget_text(ev, base), onecycle_steps=ONECYCLE_STEPS,
+        new_curves=("\nRuns of this session (the runs above were drawn when their logs were at hand):\n\n"
+                    "![loss curves, new runs](results/training/loss_curves_new.png)\n"
+                    if (RESULTS / "loss_curves_new.png").exists() else ""))
 
 
 def model_size() -> dict[str, float]:
@@ -486,6 +520,8 @@ def table1_text(ev: dict) -> str:
 def claim_pair(ev: dict) -> tuple[str, str, int]:
     """(self-supervised run, GT-supervised run, steps) of the largest budget at which the self-supervised run has
     been evaluated (the GT run of that budget may be missing)."""
+    if ev.get("ms_d4_onecycle") is not None:  # no GT run of this budget: the longest GT run is the reference
+        return "ms_d4_onecycle", "gt_long", ONECYCLE_STEPS
     if ev.get("ms_d4_long") is not None:
         return "ms_d4_long", "gt_long", LONG_STEPS
     return "ms_d4_main", "gt_supervised", STEPS
@@ -503,8 +539,8 @@ def claim_text(ev: dict, base: dict) -> str:
     verdict = "**met**" if met else "**not met**"
     return (f"Target (self-supervised dense bad-3 below dense SGM's on the same frames): {verdict} at {steps} steps. "
             f"Self-supervised OptStereo (`{net_name}`): bad-3 {net:.2f} %; dense SGM: {sgm_fill:.2f} % (NaN filled) / "
-            f"{sgm_err:.2f} % (NaN counted as errors); GT-supervised OptStereo at the same budget (`{gt_name}`): "
-            f"{gt:.2f} %.")
+            f"{sgm_err:.2f} % (NaN counted as errors); GT-supervised OptStereo (`{gt_name}`, "
+            f"{BY_NAME[gt_name].steps} steps): {gt:.2f} %.")
 
 
 def ablation_text(ev: dict) -> str:
@@ -525,7 +561,8 @@ def _trend(name: str) -> str:
     return (f"The `{name}` run's EPE against its training labels went from {before:.2f} px (mean of the records "
             f"100 steps before the end) to {end:.2f} px (last 50 steps): "
             + ("still falling, i.e. the runs stop far from convergence." if end < 0.95 * before
-               else "flattening at this learning rate."))
+               else "flattening" + (" (the OneCycle rate has annealed to ~0 by then)."
+                                    if "onecycle" in BY_NAME[name].extra else " at this learning rate.")))
 
 
 def budget_text(ev: dict, base: dict) -> str:
@@ -537,14 +574,15 @@ def budget_text(ev: dict, base: dict) -> str:
     lab_d = _get(base.get("pvm_labels"), "density")
     parts = [
         f"Each Table I / ablation run saw {STEPS * 2} random 192x384 crops ({STEPS} steps of batch 2), the two "
-        f"continued claim runs {LONG_STEPS * 2} ({LONG_STEPS} steps), with a network of reduced width.",
+        f"continued claim runs {LONG_STEPS * 2} ({LONG_STEPS} steps), the OneCycle claim run {ONECYCLE_STEPS * 2} "
+        f"({ONECYCLE_STEPS} steps), with a network of reduced width.",
         f"The PVM labels themselves are clean (bad-3 {lab:.2f} % on the {lab_d:.1f} % of GT-valid pixels they "
         f"cover), so the teacher signal is not the limit. {_trend(net_name)}",
     ]
     if not math.isnan(net) and not math.isnan(sgm) and net >= sgm:
         parts.append(
             f"The self-supervised network does NOT beat dense SGM here ({net:.2f} % vs {sgm:.2f} % bad-3). "
-            f"The GT-supervised network with the same budget reaches {gt:.2f} %, so the gap to SGM is mostly the "
+            f"The GT-supervised network (`{gt_name}`) reaches {gt:.2f} %, so the gap to SGM is mostly the "
             "training budget and the width, not the choice of labels: at this budget not even GT supervision "
             "beats SGM. What this CPU budget CAN show: the whole loop runs on real KITTI frames and the network "
             "learns from PVM labels alone (its error falls steadily, see the curves); the ablation and Table I rows "
@@ -555,7 +593,8 @@ def budget_text(ev: dict, base: dict) -> str:
     elif not math.isnan(net):
         parts.append(
             f"The self-supervised network beats dense SGM ({net:.2f} % vs {sgm:.2f} % bad-3) although it never saw GT; "
-            "the GT-supervised row is the reference for the same budget. One seed, 15 frames, evaluated on the frames "
+            f"the GT-supervised row (`{gt_name}`, {BY_NAME[gt_name].steps} steps) is the upper reference. One seed, "
+            "15 frames, evaluated on the frames "
             "it trained on (legitimate for self-supervision: no GT is used), so this is a small-scale confirmation, "
             "not the paper's benchmark number.")
     return " ".join(parts)
@@ -573,8 +612,11 @@ steps (the claim study's `ms_d4_long` and `gt_long`: the 600-step runs continued
 {long_steps}`, same settings) of batch 2 on random 192x384 crops (about {epochs:.0f} passes over the 15 frames),
 N_s = 4 GRU iterations
 (training and evaluation), lr 4e-4 constant, gradient clip 1.0, bf16 autocast on CPU, flip-swap p = 0.5, no
-photometric jitter. **Reduced width**: feature/hidden/head 64 channels and a 32-channel upsampler (the `make demo`
-width; {params:.2f} M parameters instead of the paper's 2.97 M; {gflop:.0f} GFLOP per training step vs 703),
+photometric jitter. The claim run `ms_d4_onecycle` (a later session, on a CPU without native bf16) differs only in
+{onecycle_steps} steps from scratch, a OneCycle schedule (peak 4e-4, 5 % warm-up, linear decay to ~0), float32 and
+one run alone with 2 torch threads.
+**Reduced width**: feature/hidden/head 64 channels and a 32-channel upsampler (the `make demo` width;
+{params:.2f} M parameters instead of the paper's 2.97 M; {gflop:.0f} GFLOP per training step vs 703),
 because the paper-size model needs ~9 s per 320x736 batch-2
 step here (docs/training.md). Two to four runs trained at a time (2 cores), each with `--threads 1` and one
 loader worker, under `nice -n 10`. Evaluation: `optstereo-eval` of the final checkpoint on the full frames
@@ -606,7 +648,7 @@ this width and budget, not a generalisation result. The self-supervised rows nev
 {ablation_text}
 
 ![loss curves](results/training/loss_curves.png)
-
+{new_curves}
 ![one frame: left, GT, PVM labels, dense SGM, both networks](results/training/overview.png)
 
 ### Training speed (for extrapolation)
@@ -615,7 +657,8 @@ this width and budget, not a generalisation result. The self-supervised rows nev
 
 Each figure is the median of the runs' `samples_per_s` records (every 10 steps) while two to four runs shared the
 2 cores (one torch thread each; so these are lower bounds of a lone run's speed),
-bf16 autocast, width 64, 192x384 crops, batch 2, N_s = 4. Before choosing, a 16-step
+bf16 autocast, width 64, 192x384 crops, batch 2, N_s = 4; `ms_d4_onecycle` ran alone with 2 threads in float32 on
+an AVX2-only CPU (no native bf16). Before choosing, a 16-step
 probe on the otherwise idle machine measured for this configuration: one run with 2 threads 1.73 samples/s
 (bf16) and 1.26 samples/s (fp32); two concurrent runs with 1 thread each 1.24 samples/s each, i.e. 2.5 samples/s
 in aggregate, 1.4x one 2-thread run, which is why two ran at a time. For a GPU user: the paper's setting is

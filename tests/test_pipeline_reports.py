@@ -1,0 +1,63 @@
+"""Report plumbing of pipelines/: a partial `make bench` keeps the other sections; the training-studies report
+reads runs whose (git-ignored) run dirs are gone from their committed JSONs."""
+
+from __future__ import annotations
+
+import json
+import types
+from pathlib import Path
+
+import pytest
+
+from pipelines import bench
+from pipelines import train_studies as ts
+
+
+def _fake_section(title: str, value: int) -> types.ModuleType:
+    mod = types.ModuleType(f"fake_{title}")
+    mod.run = lambda shared: {"title": title, "results": {"value": value}, "markdown": f"body of {title}"}
+    return mod
+
+
+def test_feature_bench_only_keeps_other_sections(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    modules = {"pipelines.bench_labeler": _fake_section("Labeler", 1), "pipelines.bench_job": _fake_section("Job", 2)}
+    monkeypatch.setattr(bench.importlib, "import_module", lambda name: modules[name])
+    bench.main(["--out", str(tmp_path), "--only", "labeler,job"])
+    modules["pipelines.bench_job"] = _fake_section("Job", 3)
+    bench.main(["--out", str(tmp_path), "--only", "job"])
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["sections"] == {"labeler": {"value": 1}, "job": {"value": 3}}
+    md = (tmp_path / "report.md").read_text()
+    assert md.index("## Labeler") < md.index("## Job")  # SECTIONS order, not run order
+    assert "body of Labeler" in md and md.count("measured at commit") == 2
+
+
+def test_exception_bench_report_from_before_stamps_is_replaced(tmp_path: Path) -> None:
+    (tmp_path / "report.json").write_text(json.dumps({"meta": {}, "sections": {"labeler": {"value": 1}}}))
+    assert bench._load_report(tmp_path / "report.json") == {"sections": {}, "section_meta": {}}
+    (tmp_path / "report.json").write_text("{not json")
+    assert bench._load_report(tmp_path / "report.json") == {"sections": {}, "section_meta": {}}
+
+
+def test_feature_studies_report_falls_back_to_committed_json(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ts, "OUT", tmp_path / "out")
+    monkeypatch.setattr(ts, "RESULTS", tmp_path / "results")
+    ts.RESULTS.mkdir()
+    committed = {"name": "ms_d4_main", "eval": {"bad3": 15.0}, "curve": [[10, 5.0, 4.0], [20, 3.0, 2.5]]}
+    (ts.RESULTS / "ms_d4_main.json").write_text(json.dumps(committed))
+    runs = ts.load_runs()
+    assert list(runs) == ["ms_d4_main"] and runs["ms_d4_main"]["live"] is False
+    assert runs["ms_d4_main"]["eval"]["bad3"] == 15.0
+    ts.plot_curves(runs, tmp_path / "curves.png")  # drawn from the stored curve, no run dir needed
+    assert (tmp_path / "curves.png").stat().st_size > 1000
+
+
+def test_feature_claim_uses_longest_evaluated_self_supervised_run() -> None:
+    assert ts.claim_pair({"ms_d4_main": {}, "ms_d4_long": {}}) == ("ms_d4_long", "gt_long", ts.LONG_STEPS)
+    assert ts.claim_pair({"ms_d4_long": {}, "ms_d4_onecycle": {}})[0] == "ms_d4_onecycle"
+    text = ts.claim_text({"ms_d4_onecycle": {"bad3": 9.0}, "gt_long": {"bad3": 6.5}},
+                         {"sgm_dense_nan_filled": {"bad3": 10.3}, "sgm_dense_nan_as_error": {"bad3": 10.56}})
+    assert "**met**" in text and f"`gt_long`, {ts.LONG_STEPS} steps" in text
+    text = ts.claim_text({"ms_d4_onecycle": {"bad3": 10.4}},
+                         {"sgm_dense_nan_filled": {"bad3": 10.3}, "sgm_dense_nan_as_error": {"bad3": 10.56}})
+    assert "**not met**" in text
