@@ -11,6 +11,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from pvm_labeler.config import reject_unknown_keys
+
 UPSAMPLERS = ("conv", "convex")
 NORMS = ("instance", "batch", "group", "none")
 PHOTOMETRIC_ITERS = ("last", "all")
@@ -18,10 +20,7 @@ SMOOTHNESS_NORMS = ("none", "mean")
 
 
 def _from_dict(cls: type, values: dict[str, Any], what: str) -> Any:
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise ValueError(f"unknown {what} keys {unknown}; known: {sorted(names)}")
+    reject_unknown_keys(cls, values, what)  # ConfigError, a ValueError
     return cls(**values).validate()
 
 

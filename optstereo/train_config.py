@@ -14,6 +14,7 @@ from typing import Any
 
 import yaml
 
+from pvm_labeler.config import reject_unknown_keys
 from pvm_labeler.errors import ConfigError
 
 SUPERVISIONS = ("pvm", "gt")
@@ -119,10 +120,7 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
         """Build from a plain dict (YAML/JSON), rejecting unknown keys; paths and crop are normalised."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ConfigError(f"unknown training config keys {unknown}; known: {sorted(names)}")
+        reject_unknown_keys(cls, values, "training config")
         return cls(**_normalise(dict(values)))
 
     @classmethod

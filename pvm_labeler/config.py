@@ -12,6 +12,17 @@ from typing import Any
 
 from pvm_labeler.errors import ConfigError
 
+
+def reject_unknown_keys(cls: type, values: dict[str, Any], what: str) -> None:
+    """Raise ConfigError naming the keys of ``values`` that are not fields of the dataclass ``cls``, and the known ones.
+
+    Shared by every config class of both programs (YAML files, checkpoints, shard indexes all go through it).
+    """
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ConfigError(f"unknown {what} keys {unknown}; known: {sorted(names)}")
+
 #: How the label of a kept pixel is formed from its K scale disparities (see pvm_labeler.multiscale.vote).
 LABEL_MODES: tuple[str, ...] = ("finest", "median", "mean", "weighted")
 #: Interpolation that brings each scale's disparity and c back to full resolution.
@@ -99,8 +110,5 @@ class LabelerConfig:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> LabelerConfig:
         """Build from a dict, rejecting unknown keys with a clear message."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ConfigError(f"unknown labeler config keys {unknown}; known: {sorted(names)}")
+        reject_unknown_keys(cls, values, "labeler config")
         return cls(**values).validate()
