@@ -15,20 +15,19 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import multiprocessing as mp
-import resource
 import statistics
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
+from pvm_labeler.parallel import peak_rss_mb
+
 # The RAFT-Stereo figures on this machine (not measured here): train step 320x736 batch 2, inference 8 iters.
 RAFT_STEREO_QUOTED = {"train_step_s": 9.5, "infer_s": 3.1}
 THREADS = 2
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
 
 
 def _train_speed(batch_size: int, steps: int) -> dict[str, Any]:
@@ -57,7 +56,7 @@ def _train_speed(batch_size: int, steps: int) -> dict[str, Any]:
             times.append(time.perf_counter() - t0)
     step = statistics.median(times)
     return {"batch_size": batch_size, "step_s": step, "samples_per_s": batch_size / step, "repeats": len(times),
-            "peak_rss_mb": _peak_rss_mb(), "params": sum(p.numel() for p in model.parameters())}
+            "peak_rss_mb": peak_rss_mb(), "params": sum(p.numel() for p in model.parameters())}
 
 
 def _infer_speed(kitti_root: str | None, iters: int, repeats: int) -> dict[str, Any]:
@@ -86,7 +85,7 @@ def _infer_speed(kitti_root: str | None, iters: int, repeats: int) -> dict[str, 
         infer(model, left, right, iters=iters)
         times.append(time.perf_counter() - t0)
     return {"iters": iters, "seconds_per_frame": statistics.median(times), "repeats": repeats,
-            "frame": list(left.shape[:2]), "peak_rss_mb": _peak_rss_mb()}
+            "frame": list(left.shape[:2]), "peak_rss_mb": peak_rss_mb()}
 
 
 def _write_kitti_shards(kitti_root: Path, out: Path, limit: int) -> Path:
@@ -118,7 +117,7 @@ def _loader_speed(shards: str, samples: int) -> dict[str, Any]:
     for _ in range(samples):
         next(it)
     seconds = time.perf_counter() - t0
-    return {"crops_per_s_per_worker": samples / seconds, "samples": samples, "peak_rss_mb": _peak_rss_mb()}
+    return {"crops_per_s_per_worker": samples / seconds, "samples": samples, "peak_rss_mb": peak_rss_mb()}
 
 
 def _in_child(fn, *args) -> dict[str, Any]:

@@ -41,7 +41,14 @@ from pvm_labeler.config import LabelerConfig
 from pvm_labeler.datasets import DATASETS, PairRef, check_pair_sizes, discover, load_pair
 from pvm_labeler.errors import ConfigError, InputError, PVMError, ShardError
 from pvm_labeler.metrics import MetricAccumulator
-from pvm_labeler.parallel import BACKENDS, numba_threads_per_worker, peak_rss_mb, run_tasks, thread_budget
+from pvm_labeler.parallel import (
+    BACKENDS,
+    numba_threads_per_worker,
+    peak_rss_mb,
+    reset_peak_rss,
+    run_tasks,
+    thread_budget,
+)
 from pvm_labeler.shards import (
     COMPRESSIONS,
     INDEX_NAME,
@@ -299,6 +306,7 @@ def label_shard(task: ShardTask) -> ShardOutcome:
     A shard in which every pair failed is not published (a resume will retry it).
     """
     t0, c0 = time.perf_counter(), time.process_time()
+    reset_peak_rss()  # the reported peak is this shard's (an in-process --jobs 1 may have done other work before)
     cfg = LabelerConfig.from_dict(task.config)
     labeler = _resolve_labeler(task.label_fn)
     failures: list[dict[str, Any]] = []
