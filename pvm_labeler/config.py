@@ -23,6 +23,7 @@ def reject_unknown_keys(cls: type, values: dict[str, Any], what: str) -> None:
     if unknown:
         raise ConfigError(f"unknown {what} keys {unknown}; known: {sorted(names)}")
 
+
 #: How the label of a kept pixel is formed from its K scale disparities (see pvm_labeler.multiscale.vote).
 LABEL_MODES: tuple[str, ...] = ("finest", "median", "mean", "weighted")
 #: Interpolation that brings each scale's disparity and c back to full resolution.
