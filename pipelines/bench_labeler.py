@@ -27,6 +27,7 @@ import numba
 import numpy as np
 
 from pvm_labeler.config import LabelerConfig
+from pvm_labeler.kernels._lanes import SENTINEL16, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right, reindex_right
 from pvm_labeler.sgm import release_workspace, sgm_pair
@@ -104,6 +105,7 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
     cost = np.empty((height, width, MAX_DISP), np.uint8)
     cost_r = np.empty_like(cost)
     s_buf = np.empty((height, width, MAX_DISP), np.uint16)
+    lanes = path_lanes(c_max, cfg.p1, cfg.p2)
     maps = [np.empty((height, width), np.float32) for _ in range(3)]
 
     def census() -> None:
@@ -114,10 +116,16 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
         "census (both)": census,
         "cost volume": lambda: cost_volume(cen_l, cen_r, c_max, cost),
         "forward sweep (4 paths)": lambda: aggregate_forward(cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True,
-                                                             s_buf),
+                                                             s_buf, *lanes),
         "backward sweep (4 paths) + WTA": lambda: aggregate_backward_wta(
             cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max),
-            *maps),
+            *maps, *lanes),
+        # the same sweeps forced to uint16 path costs: what the uint8 lanes buy (same results, tested)
+        "forward sweep, uint16 lanes (not used)": lambda: aggregate_forward(
+            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, np.uint16, SENTINEL16),
+        "backward sweep + WTA, uint16 lanes (not used)": lambda: aggregate_backward_wta(
+            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max),
+            *maps, np.uint16, SENTINEL16),
         "right cost from the shared census (used)": lambda: cost_volume_right(cen_l, cen_r, c_max, cost_r),
         "right cost as a re-index of C_l (same bytes, not used)": lambda: reindex_right(cost, c_max, cost_r),
     }

@@ -20,7 +20,8 @@ import numpy.typing as npt
 
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.errors import InputError
-from pvm_labeler.kernels.aggregate import SENTINEL, aggregate_backward_wta, aggregate_forward
+from pvm_labeler.kernels._lanes import SENTINEL16, path_lanes
+from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right
 
 logger = logging.getLogger(__name__)
@@ -105,8 +106,8 @@ def check_inputs(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_di
     if height < window or width < window:
         raise InputError(f"image size {(height, width)} is smaller than the census window {window}x{window}")
     c_max = window * window - 1
-    if c_max + cfg.p2 >= SENTINEL or cfg.p1 > cfg.p2 or cfg.p1 < 0:
-        raise InputError(f"SGM penalties need 0 <= p1 <= p2 and C_max + p2 < {SENTINEL}, got p1={cfg.p1}, "
+    if c_max + cfg.p2 >= SENTINEL16 or cfg.p1 > cfg.p2 or cfg.p1 < 0:
+        raise InputError(f"SGM penalties need 0 <= p1 <= p2 and C_max + p2 < {SENTINEL16}, got p1={cfg.p1}, "
                          f"p2={cfg.p2}, C_max={c_max}")
     # 8 paths of at most C_max + P2 each must fit the uint16 S volume.
     if cfg.paths * (c_max + cfg.p2) > 0xFFFF:
@@ -119,12 +120,13 @@ def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_bu
     """Forward + backward sweeps with fused WTA on one view's cost volume (s_buffer is scratch, reused)."""
     height, width, n_disp = cost.shape
     diag = cfg.paths == 8
-    aggregate_forward(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer)
+    lanes = path_lanes(c_max, cfg.p1, cfg.p2)  # uint8 path costs when they fit (2x the SIMD lanes of uint16)
+    aggregate_forward(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, *lanes)
     disp = np.empty((height, width), dtype=np.float32)
     conf = np.empty((height, width), dtype=np.float32)
     uniq = np.empty((height, width), dtype=np.float32)
     aggregate_backward_wta(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, False, right_view,
-                           float(cfg.paths * c_max), disp, conf, uniq)
+                           float(cfg.paths * c_max), disp, conf, uniq, *lanes)
     return SGMResult(disp=disp, conf=conf, uniqueness=uniq)
 
 

@@ -6,6 +6,7 @@ import naive
 import numpy as np
 import pytest
 
+from pvm_labeler.kernels._lanes import path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import (
     census_dtype,
@@ -89,19 +90,22 @@ class TestCostVolume:
 class TestAggregate:
     @pytest.mark.parametrize("diag", [True, False])
     @pytest.mark.parametrize("adaptive", [False, True])
-    def test_feature(self, rng, diag, adaptive):
+    @pytest.mark.parametrize("p2", [60, 223, 224, 400])  # uint8 lanes up to C_max + P1 + P2 = 255, uint16 beyond
+    def test_feature(self, rng, diag, adaptive, p2):
         left, _, _, _, cost = _cost(rng, height=8, width=19, n_disp=6)
-        p1, p2 = 7, 60
+        p1 = 8
+        lanes = path_lanes(24, p1, p2)
+        assert lanes[0] == (np.uint8 if p2 <= 223 else np.uint16)
         grey = left if adaptive else None
         fwd_dirs = naive.FORWARD_PATHS_8 if diag else naive.FORWARD_PATHS_4
         bwd_dirs = naive.BACKWARD_PATHS_8 if diag else naive.BACKWARD_PATHS_4
         s = np.empty(cost.shape, dtype=np.uint16)
-        aggregate_forward(cost, left, p1, p2, adaptive, diag, s)
+        aggregate_forward(cost, left, p1, p2, adaptive, diag, s, *lanes)
         np.testing.assert_array_equal(s, naive.naive_aggregate(cost, fwd_dirs, p1, p2, grey))
         maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
         n_paths = 2 * len(fwd_dirs)
         s_fwd = s.copy()
-        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), *maps)
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), *maps, *lanes)
         expected = naive.naive_aggregate(cost, fwd_dirs + bwd_dirs, p1, p2, grey)
         np.testing.assert_array_equal(s, expected)
         # the fused WTA equals the reference WTA on the reference S, both when S is stored (tests) and in the
@@ -110,9 +114,26 @@ class TestAggregate:
         for got, ref in zip(maps, refs, strict=True):
             np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
         maps2 = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
-        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s_fwd, False, False, float(n_paths * 24), *maps2)
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s_fwd, False, False, float(n_paths * 24), *maps2,
+                               *lanes)
         for got, ref in zip(maps2, refs, strict=True):
             np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
+
+    @pytest.mark.parametrize(("p1", "p2"), [(0, 231), (8, 223), (115, 116)])
+    def test_lane_bounds(self, rng, p1, p2):
+        # extreme costs (0 or C_max only) with C_max + P1 + P2 = 255, the largest the uint8 lanes allow: path
+        # costs reach C_max + P2 and neighbour candidates 255; the sentinel is 255 - P1. Any wrap shows up as a
+        # mismatch against the int64 reference (checked: sentinel 255 - P1 + 12 fails here).
+        assert path_lanes(24, p1, p2)[0] == np.uint8
+        assert path_lanes(24, p1, p2 + 1)[0] == np.uint16
+        left = rng.integers(0, 256, (7, 21), dtype=np.uint8)
+        cost = (rng.random((7, 21, 9)) < 0.7).astype(np.uint8) * 24
+        s = np.empty(cost.shape, dtype=np.uint16)
+        aggregate_forward(cost, left, p1, p2, False, True, s, *path_lanes(24, p1, p2))
+        maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
+        aggregate_backward_wta(cost, left, p1, p2, False, True, s, True, False, 192.0, *maps, *path_lanes(24, p1, p2))
+        paths = naive.FORWARD_PATHS_8 + naive.BACKWARD_PATHS_8
+        np.testing.assert_array_equal(s, naive.naive_aggregate(cost, paths, p1, p2, None))
 
     def test_hand_computed_path(self):
         # one row, left->right path only, D = 3, P1 = 1, P2 = 4: L(x=1) = C + min(L0[d], L0[d+-1] + 1, 0 + 4) - 0

@@ -8,23 +8,25 @@ For a path direction r: L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d+-1) + 
 * :func:`aggregate_backward_wta` runs the mirrored paths bottom-to-top, adds the stored forward sum and calls the
   winner-takes-all of ``wta.py`` on each finished S vector, so the full S volume is read only once more.
 
-Speed notes: all path arithmetic is uint16 with explicit casts (numba would widen to int64; uint16 lets LLVM use
-32-lane AVX-512 / 16-lane AVX2 vpminuw/vpaddw), and the paths of a sweep are updated in ONE loop over d so C and S
-are touched once per pixel. The volumes and row buffers are indexed, never sliced per pixel (see :func:`step4`).
+Speed notes: the path arithmetic is uint8 when the penalties allow it, else uint16 (``_lanes.py``), always with
+explicit casts (numba would widen to int64; narrow lanes let LLVM pack 32 uint8 / 16 uint16 lanes into an AVX2
+vector). The paths of a sweep are updated in ONE loop over d, then their uint16 sum is written in a second short
+loop (one fused loop mixing the widths vectorised worse: 106 vs 72 ms for the backward sweep). The volumes and row buffers are indexed, never sliced per pixel (see :func:`step4`).
 Only previous-row buffers (W + 2, D + 2) per path are kept, walked in ascending addresses by both
 sweeps. The two extra disparity slots hold a
 sentinel so the d +- 1 reads need no branch; the two extra columns stay zero (a path entering the image has L = C).
-The wrapper guarantees L_r <= C_max + P2 < SENTINEL and n_paths * (C_max + P2) <= 65535, so nothing wraps.
+The wrapper guarantees L_r <= C_max + P2 < sentinel, the lane bounds of ``_lanes.path_lanes`` and
+n_paths * (C_max + P2) <= 65535, so nothing wraps.
 """
 
 import numpy as np
 from numba import njit
 
 from pvm_labeler.kernels._flags import FASTMATH
+from pvm_labeler.kernels._lanes import lane
 from pvm_labeler.kernels._prefetch import prefetch
 from pvm_labeler.kernels.wta import select_disparity
 
-SENTINEL = 0x3FFF  # > any L_r, and SENTINEL + P1 still fits in uint16
 PREFETCH_AHEAD = 4  # pixels; 2-16 measured alike on a KITTI frame (99-100 ms), 0 = no prefetch (142 ms)
 
 
@@ -57,13 +59,15 @@ def penalty2(table, grey, y, x, py, px):
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def step4(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
-    """Four paths of pixel (y, x) in one pass over d; returns the minima of the four new L vectors.
+    """Four paths of pixel (y, x) in one pass over d, then their sum; returns the minima of the four new L vectors
+    and of the written totals.
 
     Args:
         cost: (H, W, D) uint8, this pixel's costs are cost[y, x].
         base, by, bx / out, oy, ox: out[oy, ox, d] = base[by, bx, d] + sum_k L_k(d) ((., ., D) uint16; may alias).
-        bufs: (a0, a1, a2, a3, o0, o1, o2, o3) 2-D (rows, D + 2) uint16 buffers: a_k[rows[k]] holds the previous
-            L_k (sentinels in slots 0 and D + 1), o_k[rows[k + 4]] receives the new L_k in slots 1..D.
+        bufs: (a0, a1, a2, a3, o0, o1, o2, o3) 2-D (rows, D + 2) buffers, all uint8 or all uint16 (the lane type):
+            a_k[rows[k]] holds the previous L_k (sentinels in slots 0 and D + 1), o_k[rows[k + 4]] receives the new
+            L_k in slots 1..D.
         pms: the minima of the four previous vectors; qs: P2 of each path (uint16); p1: P1.
 
     Every array is indexed here, never sliced: taking per-pixel views (cost[y, x], buf[col], ...) made numba
@@ -73,38 +77,45 @@ def step4(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
     a0, a1, a2, a3, o0, o1, o2, o3 = bufs
     r0, r1, r2, r3, w0, w1, w2, w3 = rows
     pm0, pm1, pm2, pm3 = pms
-    pen = np.uint16(p1)
-    j0 = np.uint16(pm0 + qs[0])
-    j1 = np.uint16(pm1 + qs[1])
-    j2 = np.uint16(pm2 + qs[2])
-    j3 = np.uint16(pm3 + qs[3])
-    n0 = np.uint16(0xFFFF)
+    pen = lane(p1, a0)
+    j0 = lane(pm0 + qs[0], a0)
+    j1 = lane(pm1 + qs[1], a0)
+    j2 = lane(pm2 + qs[2], a0)
+    j3 = lane(pm3 + qs[3], a0)
+    m0 = lane(pm0, a0)
+    m1 = lane(pm1, a0)
+    m2 = lane(pm2, a0)
+    m3 = lane(pm3, a0)
+    n0 = lane(0xFFFF, a0)
     n1 = n0
     n2 = n0
     n3 = n0
-    t_min = n0
     for d in range(n_disp):
-        cd = np.uint16(cost[y, x, d])
-        v0 = min(min(a0[r0, d + 1], j0), min(np.uint16(a0[r0, d] + pen), np.uint16(a0[r0, d + 2] + pen)))
-        l0 = np.uint16(cd + np.uint16(v0 - pm0))
-        v1 = min(min(a1[r1, d + 1], j1), min(np.uint16(a1[r1, d] + pen), np.uint16(a1[r1, d + 2] + pen)))
-        l1 = np.uint16(cd + np.uint16(v1 - pm1))
-        v2 = min(min(a2[r2, d + 1], j2), min(np.uint16(a2[r2, d] + pen), np.uint16(a2[r2, d + 2] + pen)))
-        l2 = np.uint16(cd + np.uint16(v2 - pm2))
-        v3 = min(min(a3[r3, d + 1], j3), min(np.uint16(a3[r3, d] + pen), np.uint16(a3[r3, d + 2] + pen)))
-        l3 = np.uint16(cd + np.uint16(v3 - pm3))
+        cd = cost[y, x, d]
+        v0 = min(min(a0[r0, d + 1], j0), min(lane(a0[r0, d] + pen, a0), lane(a0[r0, d + 2] + pen, a0)))
+        l0 = lane(cd + lane(v0 - m0, a0), a0)
+        v1 = min(min(a1[r1, d + 1], j1), min(lane(a1[r1, d] + pen, a0), lane(a1[r1, d + 2] + pen, a0)))
+        l1 = lane(cd + lane(v1 - m1, a0), a0)
+        v2 = min(min(a2[r2, d + 1], j2), min(lane(a2[r2, d] + pen, a0), lane(a2[r2, d + 2] + pen, a0)))
+        l2 = lane(cd + lane(v2 - m2, a0), a0)
+        v3 = min(min(a3[r3, d + 1], j3), min(lane(a3[r3, d] + pen, a0), lane(a3[r3, d + 2] + pen, a0)))
+        l3 = lane(cd + lane(v3 - m3, a0), a0)
         o0[w0, d + 1] = l0
         o1[w1, d + 1] = l1
         o2[w2, d + 1] = l2
         o3[w3, d + 1] = l3
-        total = np.uint16(base[by, bx, d] + np.uint16(np.uint16(l0 + l1) + np.uint16(l2 + l3)))
-        out[oy, ox, d] = total
-        t_min = min(t_min, total)
         n0 = min(n0, l0)
         n1 = min(n1, l1)
         n2 = min(n2, l2)
         n3 = min(n3, l3)
-    return n0, n1, n2, n3, t_min
+    t_min = np.uint16(0xFFFF)
+    for d in range(n_disp):
+        pair01 = np.uint16(np.uint16(o0[w0, d + 1]) + np.uint16(o1[w1, d + 1]))
+        pair23 = np.uint16(np.uint16(o2[w2, d + 1]) + np.uint16(o3[w3, d + 1]))
+        total = np.uint16(base[by, bx, d] + np.uint16(pair01 + pair23))
+        out[oy, ox, d] = total
+        t_min = min(t_min, total)
+    return np.uint16(n0), np.uint16(n1), np.uint16(n2), np.uint16(n3), t_min
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -114,45 +125,51 @@ def step2(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
     a0, a1, o0, o1 = bufs
     r0, r1, w0, w1 = rows
     pm0, pm1 = pms
-    pen = np.uint16(p1)
-    j0 = np.uint16(pm0 + qs[0])
-    j1 = np.uint16(pm1 + qs[1])
-    n0 = np.uint16(0xFFFF)
+    pen = lane(p1, a0)
+    j0 = lane(pm0 + qs[0], a0)
+    j1 = lane(pm1 + qs[1], a0)
+    m0 = lane(pm0, a0)
+    m1 = lane(pm1, a0)
+    n0 = lane(0xFFFF, a0)
     n1 = n0
-    t_min = n0
     for d in range(n_disp):
-        cd = np.uint16(cost[y, x, d])
-        v0 = min(min(a0[r0, d + 1], j0), min(np.uint16(a0[r0, d] + pen), np.uint16(a0[r0, d + 2] + pen)))
-        l0 = np.uint16(cd + np.uint16(v0 - pm0))
-        v1 = min(min(a1[r1, d + 1], j1), min(np.uint16(a1[r1, d] + pen), np.uint16(a1[r1, d + 2] + pen)))
-        l1 = np.uint16(cd + np.uint16(v1 - pm1))
+        cd = cost[y, x, d]
+        v0 = min(min(a0[r0, d + 1], j0), min(lane(a0[r0, d] + pen, a0), lane(a0[r0, d + 2] + pen, a0)))
+        l0 = lane(cd + lane(v0 - m0, a0), a0)
+        v1 = min(min(a1[r1, d + 1], j1), min(lane(a1[r1, d] + pen, a0), lane(a1[r1, d + 2] + pen, a0)))
+        l1 = lane(cd + lane(v1 - m1, a0), a0)
         o0[w0, d + 1] = l0
         o1[w1, d + 1] = l1
-        total = np.uint16(base[by, bx, d] + np.uint16(l0 + l1))
-        out[oy, ox, d] = total
-        t_min = min(t_min, total)
         n0 = min(n0, l0)
         n1 = min(n1, l1)
-    return n0, n1, t_min
+    t_min = np.uint16(0xFFFF)
+    for d in range(n_disp):
+        total = np.uint16(base[by, bx, d] + np.uint16(np.uint16(o0[w0, d + 1]) + np.uint16(o1[w1, d + 1])))
+        out[oy, ox, d] = total
+        t_min = min(t_min, total)
+    return np.uint16(n0), np.uint16(n1), t_min
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def _row_buffer(width, n_disp):
-    """(W + 2, D + 2) zeroed uint16 buffer with sentinels in slots 0 and D + 1 (the d +- 1 reads need no branch)."""
-    buf = np.zeros((width + 2, n_disp + 2), dtype=np.uint16)
-    buf[:, 0] = SENTINEL
-    buf[:, n_disp + 1] = SENTINEL
+def _row_buffer(width, n_disp, lane_dtype, sentinel):
+    """(W + 2, D + 2) zeroed buffer of the lane type with sentinels in slots 0 and D + 1 (the d +- 1 reads need no
+    branch)."""
+    buf = np.zeros((width + 2, n_disp + 2), dtype=lane_dtype)
+    buf[:, 0] = sentinel
+    buf[:, n_disp + 1] = sentinel
     return buf
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def _buffers(width, n_disp):
+def _buffers(width, n_disp, lane_dtype, sentinel):
     """Scratch of one sweep: previous- and current-row buffers of the 3 row paths (6 SEPARATE arrays, so LLVM's
     alias checks see distinct allocations), the horizontal ping-pong buffer (rows 0, 1; row 2 = the all-zero
     'outside the image' vector), the path minima (2 parities, 3 row paths, W + 2 columns) and a zero base."""
-    even = (_row_buffer(width, n_disp), _row_buffer(width, n_disp), _row_buffer(width, n_disp))
-    odd = (_row_buffer(width, n_disp), _row_buffer(width, n_disp), _row_buffer(width, n_disp))
-    horiz = _row_buffer(1, n_disp)  # (3, D + 2)
+    even = (_row_buffer(width, n_disp, lane_dtype, sentinel), _row_buffer(width, n_disp, lane_dtype, sentinel),
+            _row_buffer(width, n_disp, lane_dtype, sentinel))
+    odd = (_row_buffer(width, n_disp, lane_dtype, sentinel), _row_buffer(width, n_disp, lane_dtype, sentinel),
+           _row_buffer(width, n_disp, lane_dtype, sentinel))
+    horiz = _row_buffer(1, n_disp, lane_dtype, sentinel)  # (3, D + 2)
     mins = np.zeros((2, 3, width + 2), dtype=np.uint16)
     zero = np.zeros((1, 1, n_disp), dtype=np.uint16)
     return even, odd, horiz, mins, zero
@@ -209,7 +226,7 @@ def _forward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, zero, s
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out):
+def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out, lane_dtype, sentinel):
     """Top-to-bottom sweep: left->right and top paths (plus top-left / top-right with ``diag``).
 
     Args:
@@ -218,9 +235,10 @@ def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out):
         p1, p2: SGM penalties; adaptive: P2 // max(1, |grad|) along each path, clamped to >= P1.
         diag: True for 8 paths in total (4 in this sweep), False for 4 (2 here).
         s_out: (H, W, D) uint16, receives the sum over this sweep's paths.
+        lane_dtype, sentinel: type of the path costs and border sentinel, from ``_lanes.path_lanes``.
     """
     height, width, n_disp = cost.shape
-    even, odd, horiz, mins, zero = _buffers(width, n_disp)
+    even, odd, horiz, mins, zero = _buffers(width, n_disp, lane_dtype, sentinel)
     table = p2_table(p1, p2, adaptive)
     for y in range(height):
         prev, cur = (odd, even) if y & 1 == 0 else (even, odd)
@@ -260,7 +278,7 @@ def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd,
 
 @njit(cache=True, fastmath=FASTMATH)
 def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, disp, conf,
-                           uniq):
+                           uniq, lane_dtype, sentinel):
     """Bottom-to-top sweep of the mirrored paths, S = forward + backward, then WTA per pixel.
 
     Args:
@@ -268,9 +286,10 @@ def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum,
         s_fwd: (H, W, D) uint16 forward sums; with ``store_sum`` it is overwritten by the full S (for tests).
         right_view, s_max: passed to :func:`wta.select_disparity` (with S_min, tracked while S is written).
         disp, conf, uniq: (H, W) float32 outputs.
+        lane_dtype, sentinel: as in :func:`aggregate_forward`.
     """
     height, width, n_disp = cost.shape
-    even, odd, horiz, mins, _ = _buffers(width, n_disp)
+    even, odd, horiz, mins, _ = _buffers(width, n_disp, lane_dtype, sentinel)
     acc = np.empty((1, 1, n_disp), dtype=np.uint16)
     table = p2_table(p1, p2, adaptive)
     for y in range(height - 1, -1, -1):
