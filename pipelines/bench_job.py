@@ -9,8 +9,8 @@ In one run (so ratios are meaningful on a shared, noisy machine):
   pays once), "warm" runs again on the same, reused loky workers (joblib keeps them alive between calls), which is
   the steady state of a long job. The in-process ``--jobs 1`` runs are warm too (after the warm-up frame), so the
   warm ratio compares like with like; both ratios are reported;
-- shard size per frame and read speed for lzf, gzip (level 1, shuffle) and no compression, by rewriting the same
-  samples, so the compression choice is measured, not assumed.
+- shard size per frame and read / write speed for every shard compression (Blosc-LZ4, Blosc-Zstd, lzf, gzip,
+  none), by rewriting the same samples, so the compression choice is measured, not assumed.
 
 Run alone: ``.venv/bin/python -m pipelines.bench_job --shared ../shared/data [--limit 4]``.
 """
@@ -33,7 +33,7 @@ from pvm_labeler.datasets import discover, load_pair
 from pvm_labeler.job import JobSpec
 from pvm_labeler.job import run as run_job
 from pvm_labeler.parallel import available_cores, peak_rss_mb
-from pvm_labeler.shards import ShardRecord, ShardWriter, open_shard, read_index, read_sample
+from pvm_labeler.shards import COMPRESSIONS, ShardRecord, ShardWriter, open_shard, read_index, read_sample
 
 logger = logging.getLogger(__name__)
 
@@ -94,7 +94,7 @@ def _compression(shard_dir: Path, work: Path) -> dict[str, dict[str, float]]:
         with open_shard(path) as h5:
             samples += [read_sample(h5, frame_id) for frame_id in ids]
     out: dict[str, dict[str, float]] = {}
-    for compression in ("lzf", "gzip", "none"):
+    for compression in COMPRESSIONS:
         path = work / f"bench-{compression}.h5"
         t0 = time.perf_counter()
         with ShardWriter(path, index.config, compression=compression) as writer:

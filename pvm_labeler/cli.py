@@ -25,7 +25,7 @@ from pvm_labeler.config import LabelerConfig
 from pvm_labeler.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
 from pvm_labeler.errors import ConfigError, PVMError
 from pvm_labeler.parallel import BACKENDS
-from pvm_labeler.shards import COMPRESSIONS
+from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
 
 _DEFAULTS = LabelerConfig()
 
@@ -161,8 +161,8 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
               help="Skip shards that are already complete and match this config.")
 @click.option("--overwrite", is_flag=True, default=False, help="Delete this job's previous files in OUT first.")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar (it is also off when stderr is not a TTY).")
-@click.option("--compression", type=click.Choice(COMPRESSIONS), default="lzf", show_default=True,
-              help="HDF5 compression of the shards.")
+@click.option("--compression", type=click.Choice(COMPRESSIONS), default=DEFAULT_COMPRESSION,
+              show_default=True, help="HDF5 compression of the shards (blosc-* need hdf5plugin, a dependency).")
 @click.option("--numba-threads", type=click.IntRange(min=1), default=None,
               help="Numba threads per worker.  [default: cores // jobs]")
 @click.option("--left", default=None, help="folder dataset: left images (folder or glob, relative to --root).")

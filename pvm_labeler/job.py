@@ -51,6 +51,7 @@ from pvm_labeler.parallel import (
 )
 from pvm_labeler.shards import (
     COMPRESSIONS,
+    DEFAULT_COMPRESSION,
     INDEX_NAME,
     TMP_SUFFIX,
     ShardRecord,
@@ -92,7 +93,7 @@ class JobSpec:
         resume: skip shards that are already complete (default); False relabels every shard.
         overwrite: delete this job's existing files in ``out`` first (needed when the config changed).
         quiet: no progress bar.
-        compression: shard compression, ``lzf`` (default), ``gzip`` or ``none``.
+        compression: shard compression, one of shards.COMPRESSIONS (``blosc-lz4`` by default).
         numba_threads: threads per worker (default: cores // jobs, at least 1).
         label_fn: ``module:function`` with label_pair's signature (tests inject small fakes here).
     """
@@ -111,7 +112,7 @@ class JobSpec:
     resume: bool = True
     overwrite: bool = False
     quiet: bool = False
-    compression: str = "lzf"
+    compression: str = DEFAULT_COMPRESSION
     numba_threads: int | None = None
     label_fn: str = DEFAULT_LABELER
 

@@ -8,9 +8,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from hdf5plugin import BLOSC_ID
 
 from pvm_labeler.errors import ShardError
 from pvm_labeler.shards import (
+    COMPRESSIONS,
     INDEX_NAME,
     SCHEMA_NAME,
     SCHEMA_VERSION,
@@ -94,8 +96,25 @@ class TestRoundTrip:
         out, _ = shard_dir
         with h5py.File(out / "shard-00000.h5", "r") as h5:
             dset = h5["f0/label"]
-            assert dset.chunks is not None and dset.compression == "lzf"
+            assert dset.chunks is not None
+            plist = dset.id.get_create_plist()
+            filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+            assert filters == [BLOSC_ID]  # the default, Blosc-LZ4 + shuffle (hdf5plugin)
             assert h5["f0/confidence"].dtype == np.float16 and h5["f0/left"].dtype == np.uint8
+
+    @pytest.mark.parametrize("compression", COMPRESSIONS)
+    def test_every_compression_exact(self, tmp_path: Path, rng: np.random.Generator, compression: str) -> None:
+        rec = make_record(rng, "a", (37, 53))
+        out = write_shard_dir(tmp_path / "s", [rec], config={}, shard_size=1, compression=compression)
+        with open_shard(out / "shard-00000.h5") as h5:
+            assert h5.attrs["compression"] == compression
+            got = read_sample(h5, "a")
+        for name in ("left", "right", "label", "label_right", "gt"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(rec, name), err_msg=f"{compression} {name}")
+
+    def test_unknown_compression(self, tmp_path: Path) -> None:
+        with pytest.raises(ShardError, match="unknown compression 'brotli'"):
+            ShardWriter(tmp_path / "s.h5", {}, compression="brotli")
 
     def test_verify_ok(self, shard_dir: tuple[Path, list[ShardRecord]]) -> None:
         assert verify(shard_dir[0]) == []

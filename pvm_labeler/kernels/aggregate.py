@@ -11,10 +11,10 @@ For a path direction r: L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d+-1) + 
 Speed notes: the path arithmetic is uint8 when the penalties allow it, else uint16 (``_lanes.py``), always with
 explicit casts (numba would widen to int64; narrow lanes let LLVM pack 32 uint8 / 16 uint16 lanes into an AVX2
 vector). The paths of a sweep are updated in ONE loop over d, then their uint16 sum is written in a second short
-loop (one fused loop mixing the widths vectorised worse: 106 vs 72 ms for the backward sweep). The volumes and row buffers are indexed, never sliced per pixel (see :func:`step4`).
-Only previous-row buffers (W + 2, D + 2) per path are kept, walked in ascending addresses by both
-sweeps. The two extra disparity slots hold a
-sentinel so the d +- 1 reads need no branch; the two extra columns stay zero (a path entering the image has L = C).
+loop (one fused loop mixing the widths vectorised worse: 106 vs 72 ms for the backward sweep). The volumes and row
+buffers are indexed, never sliced per pixel (see :func:`step4`). Only previous-row buffers (W + 2, D + 2) per path
+are kept, walked in ascending addresses by both sweeps. The two extra disparity slots hold a sentinel so the
+d +- 1 reads need no branch; the two extra columns stay zero (a path entering the image has L = C).
 The wrapper guarantees L_r <= C_max + P2 < sentinel, the lane bounds of ``_lanes.path_lanes`` and
 n_paths * (C_max + P2) <= 65535, so nothing wraps.
 """
