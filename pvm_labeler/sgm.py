@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.errors import InputError
-from pvm_labeler.kernels._lanes import SENTINEL16, path_lanes
+from pvm_labeler.kernels._lanes import SENTINEL16, disparity_padding, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right
 
@@ -116,9 +116,12 @@ def check_inputs(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_di
 
 
 def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_buffer: np.ndarray,
-                    right_view: bool, c_max: int) -> SGMResult:
-    """Forward + backward sweeps with fused WTA on one view's cost volume (s_buffer is scratch, reused)."""
-    height, width, n_disp = cost.shape
+                    right_view: bool, c_max: int, n_disp: int) -> SGMResult:
+    """Forward + backward sweeps with fused WTA on one view's cost volume (s_buffer is scratch, reused).
+
+    cost: (H, W, D_pad) uint8 with the disparities [0, n_disp) searched and padding beyond (``_lanes.py``).
+    """
+    height, width, _ = cost.shape
     diag = cfg.paths == 8
     lanes = path_lanes(c_max, cfg.p1, cfg.p2)  # uint8 path costs when they fit (2x the SIMD lanes of uint16)
     aggregate_forward(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, *lanes)
@@ -126,7 +129,7 @@ def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_bu
     conf = np.empty((height, width), dtype=np.float32)
     uniq = np.empty((height, width), dtype=np.float32)
     aggregate_backward_wta(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, False, right_view,
-                           float(cfg.paths * c_max), disp, conf, uniq, *lanes)
+                           float(cfg.paths * c_max), n_disp, disp, conf, uniq, *lanes)
     return SGMResult(disp=disp, conf=conf, uniqueness=uniq)
 
 
@@ -153,8 +156,10 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     census_r = np.empty((height, width), dtype=census_dtype(window))
     census_transform(left, window, census_l)
     census_transform(right, window, census_r)
-    shape = (height, width, n_disp)
-    need = height * width * n_disp * (4 if right_view else 3)
+    # D rounded up to the vector width when the bounds allow it: no scalar remainder loops (exact, see _lanes.py)
+    n_padded, pad_cost = disparity_padding(c_max, cfg.p1, cfg.p2, n_disp)
+    shape = (height, width, n_padded)
+    need = height * width * n_padded * (4 if right_view else 3)
     global _arena
     use_arena = _ARENA_LOCK.acquire(blocking=False)
     try:
@@ -166,12 +171,12 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
         else:
             arena = np.empty(need, dtype=np.uint8)
         s_buffer, cost_l, cost_r = _views(arena, shape, right_view)
-        cost_volume(census_l, census_r, c_max, cost_l)
-        res_left = _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max)
+        cost_volume(census_l, census_r, c_max, cost_l, n_disp, pad_cost)
+        res_left = _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp)
         if not right_view:
             return res_left, None
-        cost_volume_right(census_l, census_r, c_max, cost_r)  # = C_l(x + d, d), re-indexed
-        res_right = _aggregate_view(cost_r, right, cfg, s_buffer, True, c_max)
+        cost_volume_right(census_l, census_r, c_max, cost_r, n_disp, pad_cost)  # = C_l(x + d, d), re-indexed
+        res_right = _aggregate_view(cost_r, right, cfg, s_buffer, True, c_max, n_disp)
         return res_left, res_right
     finally:
         if use_arena:

@@ -12,6 +12,7 @@ from conftest import make_synthetic_pair
 
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.errors import InputError
+from pvm_labeler import sgm as sgm_module
 from pvm_labeler.sgm import SGMResult, release_workspace, sgm_pair
 
 CFG = LabelerConfig(max_disp=16)
@@ -111,6 +112,20 @@ class TestSgmPair:
             np.testing.assert_array_equal(a.disp, b.disp)
             np.testing.assert_array_equal(a.conf, b.conf)
         release_workspace()
+
+    @pytest.mark.parametrize("max_disp", [13, 45])
+    def test_padded_disparities_exact(self, rng, max_disp, monkeypatch):
+        # D is rounded up to 32 internally (no scalar loop remainders); with padding switched off the maps must be
+        # bit-identical, both views
+        assert sgm_module.disparity_padding(24, CFG.p1, CFG.p2, max_disp)[0] > max_disp  # padding is on here
+        left, right = smooth_shifted_pair(rng, 30, 90, 7.5)
+        padded = sgm_pair(left, right, CFG, max_disp=max_disp)
+        monkeypatch.setattr(sgm_module, "disparity_padding", lambda c_max, p1, p2, n: (n, 0))
+        plain = sgm_pair(left, right, CFG, max_disp=max_disp)
+        for a, b in zip(padded, plain, strict=True):
+            for name in ("disp", "conf", "uniqueness"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert np.nanmax(padded[0].disp) < max_disp
 
     def test_max_disp_override(self, rng):
         left, right = make_synthetic_pair(rng, 32, 64, 6)

@@ -6,7 +6,7 @@ import naive
 import numpy as np
 import pytest
 
-from pvm_labeler.kernels._lanes import path_lanes
+from pvm_labeler.kernels._lanes import DISPARITY_BLOCK, disparity_padding, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import (
     census_dtype,
@@ -31,7 +31,7 @@ def _cost(rng: np.random.Generator, height: int = 9, width: int = 23, n_disp: in
     right = rng.integers(0, 256, (height, width), dtype=np.uint8)
     cl, cr = _census(left, window), _census(right, window)
     cost = np.empty((height, width, n_disp), dtype=np.uint8)
-    cost_volume(cl, cr, window * window - 1, cost)
+    cost_volume(cl, cr, window * window - 1, cost, n_disp, 0)
     return left, right, cl, cr, cost
 
 
@@ -83,7 +83,7 @@ class TestCostVolume:
         # the matcher computes C_r from the shared census codes; it must be the re-indexed left volume, byte for byte
         *_, cl, cr, cost = _cost(rng, width=29, n_disp=11, window=window)
         direct = np.empty_like(cost)
-        cost_volume_right(cl, cr, window * window - 1, direct)
+        cost_volume_right(cl, cr, window * window - 1, direct, cost.shape[2], 0)
         np.testing.assert_array_equal(direct, naive.naive_reindex_right(cost, window * window - 1))
 
 
@@ -105,7 +105,8 @@ class TestAggregate:
         maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
         n_paths = 2 * len(fwd_dirs)
         s_fwd = s.copy()
-        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), *maps, *lanes)
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), cost.shape[2],
+                               *maps, *lanes)
         expected = naive.naive_aggregate(cost, fwd_dirs + bwd_dirs, p1, p2, grey)
         np.testing.assert_array_equal(s, expected)
         # the fused WTA equals the reference WTA on the reference S, both when S is stored (tests) and in the
@@ -114,8 +115,8 @@ class TestAggregate:
         for got, ref in zip(maps, refs, strict=True):
             np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
         maps2 = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
-        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s_fwd, False, False, float(n_paths * 24), *maps2,
-                               *lanes)
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s_fwd, False, False, float(n_paths * 24),
+                               cost.shape[2], *maps2, *lanes)
         for got, ref in zip(maps2, refs, strict=True):
             np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
 
@@ -131,9 +132,39 @@ class TestAggregate:
         s = np.empty(cost.shape, dtype=np.uint16)
         aggregate_forward(cost, left, p1, p2, False, True, s, *path_lanes(24, p1, p2))
         maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
-        aggregate_backward_wta(cost, left, p1, p2, False, True, s, True, False, 192.0, *maps, *path_lanes(24, p1, p2))
+        aggregate_backward_wta(cost, left, p1, p2, False, True, s, True, False, 192.0, cost.shape[2], *maps,
+                               *path_lanes(24, p1, p2))
         paths = naive.FORWARD_PATHS_8 + naive.BACKWARD_PATHS_8
         np.testing.assert_array_equal(s, naive.naive_aggregate(cost, paths, p1, p2, None))
+
+    @pytest.mark.parametrize(("p1", "p2", "n_disp"), [(8, 64, 11), (3, 5, 33), (8, 111, 7), (0, 115, 5)])
+    def test_padding_exact(self, rng, p1, p2, n_disp):
+        # D rounded up to 32 with cost C_max + P2 + 1 in the extra slots must leave every real S(d), disparity, c
+        # and uniqueness bit-identical (the bound proof is in _lanes.disparity_padding); (8, 111) is the largest P2
+        # that pads with P1 = 8, (0, 115) with P1 = 0.
+        n_pad, pad_cost = disparity_padding(24, p1, p2, n_disp)
+        assert n_pad % DISPARITY_BLOCK == 0 and n_pad > n_disp and pad_cost == 24 + p2 + 1
+        if p2 > 100:  # at the limit: one more and the padded L_r + P1 would not fit in uint8
+            assert disparity_padding(24, p1, p2 + 1, n_disp) == (n_disp, 0)
+        left, right, cl, cr, plain = _cost(rng, height=9, width=45, n_disp=n_disp)
+        padded = np.empty((*plain.shape[:2], n_pad), dtype=np.uint8)
+        cost_volume(cl, cr, 24, padded, n_disp, pad_cost)
+        np.testing.assert_array_equal(padded[:, :, :n_disp], plain)
+        assert (padded[:, :, n_disp:] == pad_cost).all()
+        right_padded = np.empty_like(padded)
+        cost_volume_right(cl, cr, 24, right_padded, n_disp, pad_cost)
+        np.testing.assert_array_equal(right_padded[:, :, :n_disp], naive.naive_reindex_right(plain, 24))
+        lanes = path_lanes(24, p1, p2)
+        results = []
+        for cost in (plain, padded):
+            s = np.empty(cost.shape, dtype=np.uint16)
+            aggregate_forward(cost, left, p1, p2, False, True, s, *lanes)
+            maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
+            aggregate_backward_wta(cost, left, p1, p2, False, True, s, True, False, 192.0, n_disp, *maps, *lanes)
+            results.append((s[:, :, :n_disp], maps))
+        np.testing.assert_array_equal(results[1][0], results[0][0])
+        for got, ref in zip(results[1][1], results[0][1], strict=True):
+            np.testing.assert_array_equal(got, ref)
 
     def test_hand_computed_path(self):
         # one row, left->right path only, D = 3, P1 = 1, P2 = 4: L(x=1) = C + min(L0[d], L0[d+-1] + 1, 0 + 4) - 0

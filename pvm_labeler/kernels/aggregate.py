@@ -250,7 +250,7 @@ def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out, lane_dtype, sen
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view, s_max,
-                  disp, conf, uniq):
+                  n_real, disp, conf, uniq):
     """One row of the backward sweep with the fused WTA (literal ``diag``, see :func:`_forward_row`).
 
     s_fwd and cost are read in DESCENDING addresses here, which the hardware prefetcher follows poorly: the cache
@@ -273,18 +273,19 @@ def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd,
         hmin, s_min = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, total,
                              ty, tx)
         n_valid = width - x if right_view else x + 1
-        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_valid, s_max, s_min)
+        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_real, n_valid, s_max, s_min)
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, disp, conf,
-                           uniq, lane_dtype, sentinel):
+def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, n_real, disp,
+                           conf, uniq, lane_dtype, sentinel):
     """Bottom-to-top sweep of the mirrored paths, S = forward + backward, then WTA per pixel.
 
     Args:
         cost, grey, p1, p2, adaptive, diag: as in :func:`aggregate_forward`.
         s_fwd: (H, W, D) uint16 forward sums; with ``store_sum`` it is overwritten by the full S (for tests).
         right_view, s_max: passed to :func:`wta.select_disparity` (with S_min, tracked while S is written).
+        n_real: the disparities searched, [0, n_real); cost slots beyond it are padding (``_lanes.py``).
         disp, conf, uniq: (H, W) float32 outputs.
         lane_dtype, sentinel: as in :func:`aggregate_forward`.
     """
@@ -296,7 +297,7 @@ def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum,
         prev, cur = (odd, even) if y & 1 == 0 else (even, odd)
         if diag:
             _backward_row(cost, grey, y, p1, table, True, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, disp, conf, uniq)
+                          s_max, n_real, disp, conf, uniq)
         else:
             _backward_row(cost, grey, y, p1, table, False, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, disp, conf, uniq)
+                          s_max, n_real, disp, conf, uniq)

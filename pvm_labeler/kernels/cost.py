@@ -105,7 +105,7 @@ def census_transform(img, window, out):
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def cost_volume(census_left, census_right, invalid_cost, out):
+def cost_volume(census_left, census_right, invalid_cost, out, n_disp, pad_cost):
     """Left-view Hamming cost C(y, x, d) = popcount(census_left[y, x] ^ census_right[y, x - d]).
 
     Columns x < d have no partner in the right image; they get the constant ``invalid_cost`` (the maximal census
@@ -114,10 +114,13 @@ def cost_volume(census_left, census_right, invalid_cost, out):
     Args:
         census_left, census_right: (H, W) uint32 or uint64 census codes (same dtype).
         invalid_cost: cost for x - d < 0 (uint8 range).
-        out: (H, W, D) uint8, written in place; D is the number of disparities [0, D).
+        out: (H, W, D_pad) uint8, written in place.
+        n_disp: the disparities searched are [0, n_disp); slots n_disp..D_pad - 1 get ``pad_cost`` (see
+            ``_lanes.disparity_padding``).
     """
-    height, width, n_disp = out.shape
+    height, width, n_total = out.shape
     fill = np.uint8(invalid_cost)
+    pad = np.uint8(pad_cost)
     for y in prange(height):
         row_right = census_right[y]
         for x in range(width):
@@ -129,6 +132,8 @@ def cost_volume(census_left, census_right, invalid_cost, out):
                 out_px[d] = np.uint8(popcount(code ^ row_right[np.uintp(x - d)]))
             for d in range(n_valid, n_disp):
                 out_px[d] = fill
+            for d in range(n_disp, n_total):
+                out_px[d] = pad
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
@@ -155,7 +160,7 @@ def reindex_right(cost_left, invalid_cost, out):
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def cost_volume_right(census_left, census_right, invalid_cost, out):
+def cost_volume_right(census_left, census_right, invalid_cost, out, n_disp, pad_cost):
     """Right-view cost C_r(y, x, d) = popcount(census_right[y, x] ^ census_left[y, x + d]) = C_l(y, x + d, d).
 
     Byte-identical to ``reindex_right(cost_volume(census_left, census_right, ...))`` (see the module docstring).
@@ -163,10 +168,12 @@ def cost_volume_right(census_left, census_right, invalid_cost, out):
     Args:
         census_left, census_right: (H, W) uint32 or uint64 census codes (same dtype), the ones of the left view.
         invalid_cost: cost for x + d >= W (no partner in the left image).
-        out: (H, W, D) uint8, written in place.
+        out: (H, W, D_pad) uint8, written in place.
+        n_disp, pad_cost: as in :func:`cost_volume`.
     """
-    height, width, n_disp = out.shape
+    height, width, n_total = out.shape
     fill = np.uint8(invalid_cost)
+    pad = np.uint8(pad_cost)
     for y in prange(height):
         row_left = census_left[y]
         for x in range(width):
@@ -177,3 +184,5 @@ def cost_volume_right(census_left, census_right, invalid_cost, out):
                 out_px[d] = np.uint8(popcount(code ^ row_left[np.uintp(x + d)]))
             for d in range(n_valid, n_disp):
                 out_px[d] = fill
+            for d in range(n_disp, n_total):
+                out_px[d] = pad

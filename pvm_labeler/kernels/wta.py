@@ -17,13 +17,15 @@ from pvm_labeler.kernels._flags import FASTMATH
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def select_disparity(s, y, x, n_valid, s_max, s_min_known):
+def select_disparity(s, y, x, n_disp, n_valid, s_max, s_min_known):
     """WTA + parabola + c + uniqueness of one pixel (see the module docstring).
 
     Args:
         s, y, x: the pixel's aggregated costs are s[y, x, :], (D,) uint16 (three entries are overwritten
             temporarily and restored). Indexing the (H, W, D) volume directly instead of taking an s[y, x] view
             per pixel matters: a view per pixel costs reference counting in numba (see aggregate.py).
+        n_disp: the disparities searched, [0, n_disp) (<= s.shape[2]: slots beyond are padding, costlier than any
+            real S_min; see ``_lanes.disparity_padding``).
         n_valid: disparities d < n_valid have a partner pixel; d* >= n_valid gives NaN.
         s_max: normaliser of c (float).
         s_min_known: min_d S if the caller has it already (the backward sweep tracks it while it writes S, for free),
@@ -32,7 +34,6 @@ def select_disparity(s, y, x, n_valid, s_max, s_min_known):
     Returns:
         (disparity, c, uniqueness) as float32 scalars.
     """
-    n_disp = s.shape[2]
     if s_min_known >= 0:
         smin = np.uint16(s_min_known)
     else:
@@ -94,8 +95,8 @@ def wta_volume(cost_sum, right_view, s_max, disp, conf, uniq):
         s_max: see :func:`select_disparity`.
         disp, conf, uniq: (H, W) float32 outputs, written in place.
     """
-    height, width, _ = cost_sum.shape
+    height, width, n_disp = cost_sum.shape
     for y in prange(height):
         for x in range(width):
             n_valid = width - x if right_view else x + 1
-            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum, y, x, n_valid, s_max, -1)
+            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum, y, x, n_disp, n_valid, s_max, -1)
