@@ -186,6 +186,21 @@ class TestWTA:
         assert np.isnan(maps[0][0, 4]) and maps[1][0, 4] == 0.0 and maps[2][0, 4] == 0.0
         assert maps[0][1, 5] == pytest.approx(1 + (9 - 3) / (2 * (9 - 6 + 3)))
 
+    @pytest.mark.parametrize("n_disp", [17, 40, 64])
+    def test_long_vectors(self, rng, n_disp):
+        # D >= 16: d* is found block by block (16 at a time); minima in every block, at block edges, and ties
+        # between blocks (the smallest d wins, the tie is not unique -> NaN) must match the reference
+        s = rng.integers(50, 300, (6, n_disp + 4, n_disp), dtype=np.uint16)
+        for x, d in enumerate(range(0, n_disp, 3)):
+            s[0, min(x + n_disp // 2, n_disp + 3), d] = 10  # a single minimum at every third d
+        s[1, -1, [15, 16]] = 5  # straddles the first block edge: neighbours, smallest d, valid
+        s[2, -1, [3, n_disp - 1]] = 5  # distant tie: NaN
+        maps = [np.empty(s.shape[:2], dtype=np.float32) for _ in range(3)]
+        wta_volume(s, False, 800.0, *maps)
+        for got, ref in zip(maps, naive.naive_wta(s, False, 800.0), strict=True):
+            np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
+        assert np.floor(maps[0][1, -1]) == 15 and np.isnan(maps[0][2, -1])
+
     def test_hand_computed(self):
         # S = [10, 4, 6, 20, 30]: d* = 1, offset = (10 - 6) / (2 (10 - 8 + 6)) = 0.25, second best (d >= 3) = 20
         s = np.array([[[10, 4, 6, 20, 30]] * 2], dtype=np.uint16)
