@@ -8,6 +8,7 @@ real-data run use the real PVM core on small inputs (synthetic pairs, small K / 
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -23,8 +24,9 @@ from pvm_labeler.config import LabelerConfig
 from pvm_labeler.datasets import discover, load_pair
 from pvm_labeler.errors import ConfigError, InputError
 from pvm_labeler.io import write_image
-from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, run
+from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, ShardTask, _longest_first, predicted_work, run
 from pvm_labeler.metrics import MetricAccumulator
+from pvm_labeler.multiscale import draw_eps
 from pvm_labeler.parallel import numba_threads_per_worker, thread_budget
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, read_sample, verify
 
@@ -203,6 +205,27 @@ class TestProgress:
         (tmp_path / "a/shard-00001.h5").unlink()
         run(_spec(tmp_path / "a", shard_size=3, jobs=jobs, quiet=False))
         assert bars[1].updates == [1] and bars[1].n == 4
+
+
+class TestScheduling:
+    def test_predicted_work_hand_computed(self) -> None:
+        # K = 2: the full-resolution term H * W * D plus the k = 2 scale at the frame's own random factor
+        cfg = LabelerConfig(k=2, max_disp=64)
+        eps = draw_eps(cfg.seed, "f7", 2)[1]
+        w2 = round(400 / (2 + eps))
+        h2 = round(100 / (2 + eps))
+        d2 = math.ceil(64 / (400 / w2) - 1e-9)
+        assert predicted_work("f7", 100, 400, cfg) == 100 * 400 * 64 + h2 * w2 * d2
+
+    def test_longest_first(self) -> None:
+        cfg = LabelerConfig(k=6, max_disp=64)
+        sizes = {f"f{i}": (100, 400) for i in range(12)} | {"big": (200, 800)}
+        tasks = [ShardTask(i, f"s{i}", [SimpleNamespace(frame_id=fid)], {}, "none", 1)
+                 for i, fid in enumerate(sizes)]
+        order = [task.refs[0].frame_id for task in _longest_first(tasks, sizes, cfg)]
+        work = [predicted_work(fid, *sizes[fid], cfg) for fid in order]
+        assert order[0] == "big" and work == sorted(work, reverse=True)
+        assert len(set(work)) > 3  # the random factors really make equal-size pairs differ
 
 
 class TestThreadBudget:
