@@ -117,6 +117,35 @@ class TestForward:
             assert torch.isfinite(param.grad).all(), f"{name} has a non-finite gradient"
             assert param.grad.abs().sum() > 0, f"{name} has an all-zero gradient"
 
+    @pytest.mark.parametrize("norm", ["instance", "batch"])
+    def test_encoder_chunking_same_result(self, norm: str) -> None:
+        # per-image encoder calls (the CPU default) must give the one-call outputs and gradients; batch norm is
+        # never chunked (its statistics span the batch), so there the two settings are the same code path
+        torch.manual_seed(2)
+        model = build_model("optstereo", iters=2, norm=norm, **TINY).train()
+        left = torch.rand(3, 3, 32, 64) * 255
+        right = torch.rand(3, 3, 32, 64) * 255
+        calls = []
+        model.feature_encoder.register_forward_hook(lambda mod, inp, out: calls.append(inp[0].shape[0]))
+        results = []
+        for chunk in (0, 1, 4):
+            model.encoder_chunk = chunk
+            model.zero_grad()
+            preds = model(left, right)
+            sum(p.mean() for p in preds).backward()
+            grads = [p.grad.clone() for p in model.feature_encoder.parameters()]
+            results.append(([p.detach() for p in preds], grads))
+        assert calls == ([6, 1, 1, 1, 1, 1, 1, 4, 2] if norm == "instance" else [6, 6, 6])
+        ref_preds, ref_grads = results[0]
+        ref_flat = torch.cat([g.flatten() for g in ref_grads])
+        for preds, grads in results[1:]:
+            for a, b in zip(preds, ref_preds, strict=True):
+                torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+            # float32 sums in another order; some entries are ~0 by construction (a conv bias before instance
+            # norm), so the gradient is compared as one vector: relative error of its norm
+            flat = torch.cat([g.flatten() for g in grads])
+            assert float((flat - ref_flat).norm() / ref_flat.norm()) < 1e-5
+
     def test_feature_detached_lookup(self, monkeypatch: pytest.MonkeyPatch) -> None:
         """D_s is detached before every lookup (RAFT): the lookup never sees a disparity that carries a graph."""
         model = build_model("optstereo", iters=3, **TINY)
