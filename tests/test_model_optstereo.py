@@ -136,6 +136,14 @@ class TestForward:
             grads = [p.grad.clone() for p in model.feature_encoder.parameters()]
             results.append(([p.detach() for p in preds], grads))
         assert calls == ([6, 1, 1, 1, 1, 1, 1, 4, 2] if norm == "instance" else [6, 6, 6])
+        model.encoder_chunk = None  # automatic: these 32x64 images are below CHUNK_MIN_PIXELS -> one call
+        calls.clear()
+        model(left, right)
+        assert calls == [6]
+        big = torch.rand(1, 3, 256, 256) * 255  # CHUNK_MIN_PIXELS: one call per image on CPU (if per-image norm)
+        calls.clear()
+        model(big, big)
+        assert calls == ([1, 1] if norm == "instance" else [2])
         ref_preds, ref_grads = results[0]
         ref_flat = torch.cat([g.flatten() for g in ref_grads])
         for preds, grads in results[1:]:
