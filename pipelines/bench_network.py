@@ -5,10 +5,10 @@ Measured in this process with ``torch.set_num_threads(2)``:
 - GFLOP of one training forward+backward (320x736, batch 2, N_s = 8) and of one inference (384x1248, 8 iters),
   counted by ``torch.utils.flop_counter`` (convs/matmuls only): load-independent, unlike the timings;
 - training step seconds (forward + backward + Adam, PVStereoLoss with lambda_r = lambda_s = 0.1) at 320x736,
-  batch 2, 8 iterations: default (on CPU the encoder runs one image per call), the encoder on all images in one
-  call, channels_last, the convex upsampler and bf16 autocast;
-- inference seconds at 384x1248 (1 pair), 8 iterations, test_mode: no_grad, inference_mode,
-  inference_mode with one encoder call, inference_mode + channels_last, inference_mode + bf16 autocast,
+  batch 2, 8 iterations: default (on CPU the encoder and upsampler run one image per call), both on the whole
+  batch per call, channels_last, the convex upsampler and bf16 autocast;
+- inference seconds at 384x1248 (1 pair), 8 iterations, test_mode: no_grad, inference_mode, inference_mode with
+  batched encoder and upsampler calls, inference_mode + channels_last, inference_mode + bf16 autocast,
   torch.compile (compile time reported separately; skipped if it fails). bf16 pays off on CPUs with native
   bf16 (AVX512-BF16 or AMX);
 - an sgemm throughput probe (GFLOP/s of a 1024^3 float32 matmul) before and after, and the load average,
@@ -99,10 +99,10 @@ def _autocast(bf16: bool) -> contextlib.AbstractContextManager:
 
 
 def _train_step_fn(upsampler: str = "conv", channels_last: bool = False, bf16: bool = False,
-                   encoder_chunk: int | None = None) -> Callable[[], None]:
+                   image_chunk: int | None = None) -> Callable[[], None]:
     torch.manual_seed(0)
     model = build_model("optstereo", iters=ITERS, upsampler=upsampler).train()
-    model.encoder_chunk = encoder_chunk
+    model.image_chunk = image_chunk
     if channels_last:
         model = model.to(memory_format=torch.channels_last)
     loss_fn = PVStereoLoss(gamma=0.8, lambda_r=0.1, lambda_s=0.1)
@@ -124,14 +124,14 @@ def _train_step_fn(upsampler: str = "conv", channels_last: bool = False, bf16: b
 
 
 def _infer_fn(mode: str) -> tuple[Callable[[], None], float]:
-    """mode: no_grad | inference_mode | inference_mode+encoder_one_call | inference_mode+channels_last |
+    """mode: no_grad | inference_mode | inference_mode+batched_calls | inference_mode+channels_last |
     inference_mode+bf16 | compile.
 
     Returns (fn, setup seconds)."""
     torch.manual_seed(0)
     model = build_model("optstereo", iters=ITERS).eval()
-    if mode.endswith("encoder_one_call"):
-        model.encoder_chunk = 0  # both images in one encoder call (the default on CPU is one call per image)
+    if mode.endswith("batched_calls"):
+        model.image_chunk = 0  # whole batch per encoder and upsampler call (the CPU default is one image per call)
     channels_last = mode.endswith("channels_last")
     if channels_last:
         model = model.to(memory_format=torch.channels_last)
@@ -197,7 +197,7 @@ def run(shared: Path) -> dict[str, Any]:
     }
     for label, kwargs in (
         ("default", {}),
-        ("encoder_one_call", {"encoder_chunk": 0}),
+        ("batched_calls", {"image_chunk": 0}),
         ("channels_last", {"channels_last": True}),
         ("convex_upsampler", {"upsampler": "convex"}),
         ("bf16_autocast", {"bf16": True}),
@@ -207,7 +207,7 @@ def run(shared: Path) -> dict[str, Any]:
             continue
         log.info("network bench: train step %s", label)
         results["train"][label] = _median_time(_train_step_fn(**kwargs), REPEATS)
-    for mode in ("no_grad", "inference_mode", "inference_mode+encoder_one_call", "inference_mode+channels_last",
+    for mode in ("no_grad", "inference_mode", "inference_mode+batched_calls", "inference_mode+channels_last",
                  "inference_mode+bf16", "compile"):
         if mode.endswith("bf16") and not results["native_bf16"]:
             results["infer"][mode] = {"skipped": "no native bf16 on this CPU (bf16 would be emulated)"}

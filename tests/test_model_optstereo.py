@@ -118,7 +118,7 @@ class TestForward:
             assert param.grad.abs().sum() > 0, f"{name} has an all-zero gradient"
 
     @pytest.mark.parametrize("norm", ["instance", "batch"])
-    def test_encoder_chunking_same_result(self, norm: str) -> None:
+    def test_image_chunking_same_result(self, norm: str) -> None:
         # per-image encoder calls (the CPU default) must give the one-call outputs and gradients; batch norm is
         # never chunked (its statistics span the batch), so there the two settings are the same code path
         torch.manual_seed(2)
@@ -127,16 +127,20 @@ class TestForward:
         right = torch.rand(3, 3, 32, 64) * 255
         calls = []
         model.feature_encoder.register_forward_hook(lambda mod, inp, out: calls.append(inp[0].shape[0]))
+        up_calls = []
+        model.upsampler.register_forward_hook(lambda mod, inp, out: up_calls.append(inp[0].shape[0]))
         results = []
         for chunk in (0, 1, 4):
-            model.encoder_chunk = chunk
+            model.image_chunk = chunk
             model.zero_grad()
             preds = model(left, right)
             sum(p.mean() for p in preds).backward()
-            grads = [p.grad.clone() for p in model.feature_encoder.parameters()]
+            grads = [p.grad.clone() for p in model.parameters() if p.grad is not None]
             results.append(([p.detach() for p in preds], grads))
         assert calls == ([6, 1, 1, 1, 1, 1, 1, 4, 2] if norm == "instance" else [6, 6, 6])
-        model.encoder_chunk = None  # automatic: these 32x64 images are below CHUNK_MIN_PIXELS -> one call
+        # the upsampler is per image whatever the norm: 2 iterations x (3 | 3 x 1 | 3) samples
+        assert up_calls == [3, 3] + [1] * 6 + [3, 3]
+        model.image_chunk = None  # automatic: these 32x64 images are below CHUNK_MIN_PIXELS -> one call
         calls.clear()
         model(left, right)
         assert calls == [6]
