@@ -478,8 +478,12 @@ def _prepare_out(spec: JobSpec, job_doc: dict[str, Any]) -> None:
             raise InputError(f"cannot read {job_path}: {exc}; pass --overwrite to start afresh") from exc
         changes = _diff(_identity(old), _identity(job_doc))
         if changes:
+            # Shards of an older default compression are still good: say how to keep them.
+            keep = (f", or --compression {old['compression']} to continue them"
+                    if [c.split(":")[0] for c in changes] == ["compression"] else "")
             raise InputError(f"existing shards in {out} were made with a different config/dataset ("
-                             + "; ".join(changes[:6]) + "); pass --overwrite to replace them or choose another --out")
+                             + "; ".join(changes[:6]) + f"); pass --overwrite to replace them{keep}, "
+                             "or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     # Shards past the end of the plan (an earlier run with a larger --limit) would linger unindexed: remove them.
     for path in out.glob("shard-*.h5"):

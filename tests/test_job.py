@@ -145,6 +145,15 @@ class TestJobMechanics:
         summary = run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=new_kappa1), overwrite=True))
         assert summary.shards_written == 2 and read_index(out).config["kappa1"] == new_kappa1
 
+    def test_other_compression_names_the_option(self, tmp_path: Path) -> None:
+        # shards of an older default compression: the error says how to continue them, and that works
+        out = tmp_path / "out"
+        run(_spec(out, compression="lzf"))
+        match = r'compression: "lzf" -> "blosc-lz4"\).*--compression lzf to continue them'
+        with pytest.raises(InputError, match=match):
+            run(_spec(out))
+        assert run(_spec(out, compression="lzf")).shards_resumed == 2
+
     def test_unknown_shards_need_overwrite(self, tmp_path: Path) -> None:
         out = tmp_path / "a"
         run(_spec(out))
