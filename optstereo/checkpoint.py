@@ -20,7 +20,6 @@ import json
 import logging
 import os
 import pickle
-import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ import torch
 from torch import nn
 
 import optstereo
+from pvm_labeler.shards import git_commit
 
 logger = logging.getLogger(__name__)
 
@@ -43,15 +43,7 @@ class CheckpointError(ValueError):
 
 def code_version() -> dict[str, str]:
     """Package version and git commit of the code (``unknown`` outside a git checkout)."""
-    commit = "unknown"
-    try:
-        repo = Path(__file__).resolve().parents[1]
-        commit = subprocess.run(
-            ["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return {"optstereo": optstereo.__version__, "git_commit": commit}
+    return {"optstereo": optstereo.__version__, "git_commit": git_commit()}
 
 
 def _atomic_torch_save(obj: Any, path: Path) -> None:

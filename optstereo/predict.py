@@ -8,6 +8,7 @@ Outputs per frame (``formats`` picks them): ``png`` KITTI 16-bit PNG (disparity 
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import time
 from collections.abc import Iterable
@@ -35,6 +36,7 @@ def _to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tenso
 INFER_AMP = ("none", "bf16", "fp16")
 
 
+@functools.cache
 def cpu_has_native_bf16() -> bool:
     """True when oneDNN has native bf16 kernels on this CPU (AVX512-BF16 or AMX).
 
@@ -46,9 +48,14 @@ def cpu_has_native_bf16() -> bool:
         return False
 
 
+_bf16_warned = False  # once per process: infer() enters inference_autocast for every frame
+
+
 def warn_if_emulated_bf16(amp: str, device: torch.device) -> None:
-    """Log a warning for ``--amp bf16`` on a CPU that would emulate bf16."""
-    if amp == "bf16" and device.type == "cpu" and not cpu_has_native_bf16():
+    """Log a warning (once per process) for ``--amp bf16`` on a CPU that would emulate bf16."""
+    global _bf16_warned
+    if amp == "bf16" and device.type == "cpu" and not _bf16_warned and not cpu_has_native_bf16():
+        _bf16_warned = True
         logger.warning("--amp bf16: this CPU has no native bf16 (AVX512-BF16/AMX); bf16 is emulated and much "
                        "slower than float32 here, use --amp none")
 

@@ -15,19 +15,12 @@ import json
 import logging
 import os
 import platform
-import subprocess
 import time
 from pathlib import Path
 
+from pvm_labeler.shards import git_commit
+
 SECTIONS = ("labeler", "job", "network", "train")
-
-
-def _git_commit() -> str:
-    try:
-        cmd = ["git", "rev-parse", "--short", "HEAD"]
-        return subprocess.run(cmd, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -38,7 +31,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     args.out.mkdir(parents=True, exist_ok=True)
-    meta = {"commit": _git_commit(), "machine": platform.platform(), "cpu": cpu_summary(),
+    meta = {"commit": git_commit(), "machine": platform.platform(), "cpu": cpu_summary(),
             "date": time.strftime("%Y-%m-%d %H:%M:%S")}
     report = _load_report(args.out / "report.json")
     for name in [s.strip() for s in args.only.split(",") if s.strip()]:

@@ -353,53 +353,51 @@ def label_shard(task: ShardTask) -> ShardOutcome:
 
 
 # ------------------------------------------------------------------------------------------------- pre-flight
-def _check_frame_size(height: int, width: int, cfg: LabelerConfig, frame_id: str) -> None:
-    """The PVM core's "image too small for K and max_disp" check, from the image size alone."""
+def _check_frame_size(height: int, width: int, cfg: LabelerConfig, frame_id: str) -> list[tuple[int, int, float, int]]:
+    """The PVM core's "image too small for K and max_disp" check, from the image size alone; returns the frame's
+    pyramid geometry (``multiscale.scale_geometry``)."""
     if cfg.max_disp >= width:
         raise InputError(f"--max-disp {cfg.max_disp} must be smaller than the image width {width}")
     eps = multiscale.draw_eps(cfg.seed, frame_id, cfg.k)
-    multiscale.check_sizes(height, width, multiscale.scale_geometry(height, width, eps, cfg.max_disp), cfg)
+    geometry = multiscale.scale_geometry(height, width, eps, cfg.max_disp)
+    multiscale.check_sizes(height, width, geometry, cfg)
+    return geometry
 
 
-def preflight(refs: list[PairRef], cfg: LabelerConfig) -> dict[str, tuple[int, int]]:
+def preflight(refs: list[PairRef], cfg: LabelerConfig) -> dict[str, int]:
     """Check every pair from file headers before anything is written; raise one InputError listing all problems.
 
     Returns:
-        {frame_id: (height, width)} of every pair.
+        {frame_id: predicted work} of every pair (:func:`predicted_work`, used to order the shards).
     """
     problems = []
-    sizes = {}
+    work = {}
     for ref in refs:
         try:
             height, width = check_pair_sizes(ref)
-            _check_frame_size(height, width, cfg, ref.frame_id)
-            sizes[ref.frame_id] = (height, width)
+            work[ref.frame_id] = predicted_work(_check_frame_size(height, width, cfg, ref.frame_id))
         except InputError as exc:
             problems.append(f"{ref.frame_id}: {exc}")
     if problems:
         more = f"\n  ... and {len(problems) - 20} more" if len(problems) > 20 else ""
         raise InputError(f"{len(problems)} of {len(refs)} pairs are unusable (nothing was written):\n  "
                          + "\n  ".join(problems[:20]) + more)
-    return sizes
+    return work
 
 
-def predicted_work(frame_id: str, height: int, width: int, cfg: LabelerConfig) -> int:
+def predicted_work(geometry: list[tuple[int, int, float, int]]) -> int:
     """Cost-volume cells of one pair's PVM label, sum over the K scales of h_k * w_k * D_k (a relative cost).
 
     The pyramid's random factors make pairs of one size differ in cost (KITTI: 0.44 to 0.71 s of CPU): the
     k = 2 scale alone ranges from 1/27 to nearly all of the full-resolution cost.
     """
-    eps = multiscale.draw_eps(cfg.seed, frame_id, cfg.k)
-    return sum(h * w * d for h, w, _, d in multiscale.scale_geometry(height, width, eps, cfg.max_disp))
+    return sum(h * w * d for h, w, _, d in geometry)
 
 
-def _longest_first(tasks: list[ShardTask], sizes: dict[str, tuple[int, int]], cfg: LabelerConfig) -> list[ShardTask]:
+def _longest_first(tasks: list[ShardTask], work: dict[str, int]) -> list[ShardTask]:
     """Tasks in descending predicted work: the cheapest shards run last, so workers finish close together
     (longest-processing-time-first scheduling). Shard files and labels do not depend on the order."""
-    def work(task: ShardTask) -> int:
-        return sum(predicted_work(ref.frame_id, *sizes[ref.frame_id], cfg) for ref in task.refs)
-
-    return sorted(tasks, key=work, reverse=True)
+    return sorted(tasks, key=lambda task: sum(work[ref.frame_id] for ref in task.refs), reverse=True)
 
 
 # ----------------------------------------------------------------------------------------------- output dir
@@ -479,8 +477,8 @@ def _prepare_out(spec: JobSpec, job_doc: dict[str, Any]) -> None:
         changes = _diff(_identity(old), _identity(job_doc))
         if changes:
             # Shards of an older default compression are still good: say how to keep them.
-            keep = (f", or --compression {old['compression']} to continue them"
-                    if [c.split(":")[0] for c in changes] == ["compression"] else "")
+            same_but_compression = _identity({**old, "compression": job_doc["compression"]}) == _identity(job_doc)
+            keep = f", or --compression {old['compression']} to continue them" if same_but_compression else ""
             raise InputError(f"existing shards in {out} were made with a different config/dataset ("
                              + "; ".join(changes[:6]) + f"); pass --overwrite to replace them{keep}, "
                              "or choose another --out")
@@ -539,7 +537,7 @@ def run(spec: JobSpec) -> JobSummary:
     refs = discover(spec.dataset, spec.root, spec.split, **spec.dataset_options)
     if spec.limit is not None:
         refs = refs[: spec.limit]
-    sizes = preflight(refs, spec.config)
+    work = preflight(refs, spec.config)
     plan = _plan(refs, spec.shard_size)
     job_doc = _job_doc(spec, plan)
     _prepare_out(spec, job_doc)
@@ -559,7 +557,7 @@ def run(spec: JobSpec) -> JobSummary:
         else:
             path.with_name(path.name + TMP_SUFFIX).unlink(missing_ok=True)  # stale from a killed run
             pending.append(ShardTask(index, str(path), shard_refs, config, spec.compression, threads, spec.label_fn))
-    pending = _longest_first(pending, sizes, spec.config)
+    pending = _longest_first(pending, work)
     if pending:
         # An index next to a partial set of shards would look complete to a reader; it is rewritten at the end.
         (out / INDEX_NAME).unlink(missing_ok=True)

@@ -116,14 +116,14 @@ def check_inputs(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_di
 
 
 def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_buffer: np.ndarray,
-                    right_view: bool, c_max: int, n_disp: int) -> SGMResult:
+                    right_view: bool, c_max: int, n_disp: int, lanes: tuple[type, int]) -> SGMResult:
     """Forward + backward sweeps with fused WTA on one view's cost volume (s_buffer is scratch, reused).
 
-    cost: (H, W, D_pad) uint8 with the disparities [0, n_disp) searched and padding beyond (``_lanes.py``).
+    cost: (H, W, D_pad) uint8 with the disparities [0, n_disp) searched and padding beyond; lanes: the path-cost
+    type and sentinel (both from ``_lanes.py``).
     """
     height, width, _ = cost.shape
     diag = cfg.paths == 8
-    lanes = path_lanes(c_max, cfg.p1, cfg.p2)  # uint8 path costs when they fit (2x the SIMD lanes of uint16)
     aggregate_forward(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, *lanes)
     disp = np.empty((height, width), dtype=np.float32)
     conf = np.empty((height, width), dtype=np.float32)
@@ -158,6 +158,7 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     census_transform(right, window, census_r)
     # D rounded up to the vector width when the bounds allow it: no scalar remainder loops (exact, see _lanes.py)
     n_padded, pad_cost = disparity_padding(c_max, cfg.p1, cfg.p2, n_disp)
+    lanes = path_lanes(c_max, cfg.p1, cfg.p2)  # uint8 path costs when they fit (2x the SIMD lanes of uint16)
     shape = (height, width, n_padded)
     need = height * width * n_padded * (4 if right_view else 3)
     global _arena
@@ -172,11 +173,11 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
             arena = np.empty(need, dtype=np.uint8)
         s_buffer, cost_l, cost_r = _views(arena, shape, right_view)
         cost_volume(census_l, census_r, c_max, cost_l, n_disp, pad_cost)
-        res_left = _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp)
+        res_left = _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes)
         if not right_view:
             return res_left, None
         cost_volume_right(census_l, census_r, c_max, cost_r, n_disp, pad_cost)  # = C_l(x + d, d), re-indexed
-        res_right = _aggregate_view(cost_r, right, cfg, s_buffer, True, c_max, n_disp)
+        res_right = _aggregate_view(cost_r, right, cfg, s_buffer, True, c_max, n_disp, lanes)
         return res_left, res_right
     finally:
         if use_arena:

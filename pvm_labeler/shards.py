@@ -83,8 +83,8 @@ def shard_name(index: int) -> str:
 def git_commit() -> str:
     """Short hash of the checked-out commit of the code that runs, or "unknown" outside a git checkout.
 
-    Cached: every shard records it, and forking ``git`` from a labeling worker with ~1 GB resident costs more
-    than writing a small shard.
+    The one place that asks git (shards, OptStereo checkpoints and the bench report record it). Cached: forking
+    ``git`` from a labeling worker with ~1 GB resident costs more than writing a small shard.
     """
     here = Path(__file__).resolve().parent
     try:

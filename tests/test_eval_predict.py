@@ -96,11 +96,14 @@ class TestPredict:
 
     def test_bf16_emulation_warning(self, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
         monkeypatch.setattr(predict_mod, "cpu_has_native_bf16", lambda: False)
+        monkeypatch.setattr(predict_mod, "_bf16_warned", False)
         with caplog.at_level("WARNING", logger="optstereo.predict"):
             warn_if_emulated_bf16("none", torch.device("cpu"))
             assert not caplog.records
             warn_if_emulated_bf16("bf16", torch.device("cpu"))
+            warn_if_emulated_bf16("bf16", torch.device("cpu"))  # every frame of a prediction run: warned once
         assert len(caplog.records) == 1 and "emulated" in caplog.records[0].getMessage()
+        monkeypatch.setattr(predict_mod, "_bf16_warned", False)
         monkeypatch.setattr(predict_mod, "cpu_has_native_bf16", lambda: True)
         caplog.clear()
         warn_if_emulated_bf16("bf16", torch.device("cpu"))

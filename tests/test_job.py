@@ -26,7 +26,7 @@ from pvm_labeler.errors import ConfigError, InputError
 from pvm_labeler.io import write_image
 from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, ShardTask, _longest_first, predicted_work, run
 from pvm_labeler.metrics import MetricAccumulator
-from pvm_labeler.multiscale import draw_eps
+from pvm_labeler.multiscale import draw_eps, scale_geometry
 from pvm_labeler.parallel import numba_threads_per_worker, thread_budget
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, read_sample, verify
 
@@ -224,15 +224,18 @@ class TestScheduling:
         w2 = round(400 / (2 + eps))
         h2 = round(100 / (2 + eps))
         d2 = math.ceil(64 / (400 / w2) - 1e-9)
-        assert predicted_work("f7", 100, 400, cfg) == 100 * 400 * 64 + h2 * w2 * d2
+        geometry = scale_geometry(100, 400, draw_eps(cfg.seed, "f7", 2), cfg.max_disp)
+        assert predicted_work(geometry) == 100 * 400 * 64 + h2 * w2 * d2
 
     def test_longest_first(self) -> None:
         cfg = LabelerConfig(k=6, max_disp=64)
         sizes = {f"f{i}": (100, 400) for i in range(12)} | {"big": (200, 800)}
         tasks = [ShardTask(i, f"s{i}", [SimpleNamespace(frame_id=fid)], {}, "none", 1)
                  for i, fid in enumerate(sizes)]
-        order = [task.refs[0].frame_id for task in _longest_first(tasks, sizes, cfg)]
-        work = [predicted_work(fid, *sizes[fid], cfg) for fid in order]
+        per_frame = {fid: predicted_work(scale_geometry(*sizes[fid], draw_eps(cfg.seed, fid, cfg.k), cfg.max_disp))
+                     for fid in sizes}
+        order = [task.refs[0].frame_id for task in _longest_first(tasks, per_frame)]
+        work = [per_frame[fid] for fid in order]
         assert order[0] == "big" and work == sorted(work, reverse=True)
         assert len(set(work)) > 3  # the random factors really make equal-size pairs differ
 

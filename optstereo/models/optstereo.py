@@ -21,7 +21,7 @@ from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.update import ConvGRU
 
 DIVISOR = 8  # stride of the feature extractor: inputs must have H, W divisible by it
-CHUNK_MIN_PIXELS = 256 * 256  # CPU: run the encoder one image per call from this size on (see OptStereo._encode)
+CHUNK_MIN_PIXELS = 256 * 256  # CPU: encoder and upsampler one image per call from this size on (_chunk_size)
 
 
 def normalize_image(image: torch.Tensor) -> torch.Tensor:

@@ -12,12 +12,12 @@ afterwards, so other numba code in the process caches where it always did.
 import hashlib
 import importlib
 import os
+import pkgutil
 from pathlib import Path
 
 import numba
 
 _HERE = Path(__file__).resolve().parent
-_MODULES = ("_flags", "_lanes", "_prefetch", "wta", "cost", "aggregate", "vote", "lrcheck")
 
 
 def kernel_cache_dir() -> Path:
@@ -33,8 +33,8 @@ def _import_kernels() -> None:
     previous = numba.config.CACHE_DIR
     numba.config.CACHE_DIR = str(kernel_cache_dir())
     try:
-        for name in _MODULES:
-            importlib.import_module(f"{__name__}.{name}")
+        for module in pkgutil.iter_modules([str(_HERE)]):  # every kernels/*.py, the files the hash covers
+            importlib.import_module(f"{__name__}.{module.name}")
     finally:
         numba.config.CACHE_DIR = previous
 
