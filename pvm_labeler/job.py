@@ -18,6 +18,7 @@ point and restarted finishes only the missing shards with the same result.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import logging
@@ -28,7 +29,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,8 @@ from pvm_labeler.errors import ConfigError, InputError, PVMError, ShardError
 from pvm_labeler.metrics import MetricAccumulator
 from pvm_labeler.parallel import (
     BACKENDS,
+    CoreTokens,
+    available_cores,
     numba_threads_per_worker,
     peak_rss_mb,
     reset_peak_rss,
@@ -180,6 +183,7 @@ class ShardTask:
     numba_threads: int
     label_fn: str = DEFAULT_LABELER
     progress: Any = None  # queue-like: the worker puts 1 per finished pair (progress bar); None = no reporting
+    core_tokens: CoreTokens | None = None  # the machine's cores shared by the job's workers (parallel.CoreTokens)
 
 
 @dataclass
@@ -315,7 +319,7 @@ def label_shard(task: ShardTask) -> ShardOutcome:
     labelled_px = total_px = 0
     path = Path(task.path)
     planned = [ref.frame_id for ref in task.refs]
-    with thread_budget(task.numba_threads):
+    with thread_budget(task.numba_threads, task.core_tokens):
         writer = ShardWriter(path, task.config, compression=task.compression, extra_attrs={"planned": planned})
         try:
             for ref in task.refs:
@@ -565,13 +569,33 @@ def run(spec: JobSpec) -> JobSummary:
                 len(refs), len(plan), len(outcomes), len(pending), spec.backend, spec.jobs, threads)
 
     bar = _progress(len(refs), sum(len(o.planned) for o in outcomes.values()), spec.quiet)
-    with _PairProgress(bar, spec, pending) as per_pair:
+    with _PairProgress(bar, spec, pending) as per_pair, _shared_cores(spec, threads, pending):
         for outcome in run_tasks(label_shard, pending, spec.backend, spec.jobs, spec.scheduler):
             outcomes[outcome.index] = outcome
             if not per_pair.active:
                 bar.update(len(outcome.planned))
             bar.set_postfix(shards=f"{len(outcomes)}/{len(plan)}")
     return _finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0)
+
+
+@contextlib.contextmanager
+def _shared_cores(spec: JobSpec, threads: int, tasks: list[ShardTask]) -> Iterator[None]:
+    """Give the tasks one :class:`CoreTokens` when the workers share this machine's cores one each.
+
+    Then a worker with no shard left lends its core to the views of a frame still running on another (the tail of
+    a job: 15 frames on 2 workers otherwise leave one core idle for up to a frame). Not for Dask (workers may sit
+    on other machines), one worker (it owns its cores already), or more threads than cores (nothing is spare).
+    """
+    cores = available_cores()
+    local = spec.backend in ("loky", "threading") and spec.jobs > 1
+    if not tasks or not local or spec.jobs * threads > cores:
+        yield
+        return
+    with tempfile.TemporaryDirectory(prefix="pvm-cores-") as directory:
+        tokens = CoreTokens(directory, cores)
+        for task in tasks:
+            task.core_tokens = tokens
+        yield
 
 
 class _PairProgress:

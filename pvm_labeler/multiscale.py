@@ -212,11 +212,14 @@ def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id
             pyramid.append((cv2.resize(grey_l, (w_k, h_k), interpolation=cv2.INTER_AREA),
                             cv2.resize(grey_r, (w_k, h_k), interpolation=cv2.INTER_AREA)))
     t1 = time.perf_counter()
-    maps = []
-    for (img_l, img_r), (_, _, _, d_k) in zip(pyramid, geometry, strict=True):
+    maps: list[dict[str, np.ndarray]] = [{} for _ in geometry]
+    # Cheapest scale first, full resolution last: the scales are independent, and when a core turns free during
+    # the frame (the other worker finished the job), the costliest views are still ahead to run side by side.
+    for idx in sorted(range(len(geometry)), key=lambda i: geometry[i][0] * geometry[i][1] * geometry[i][3]):
+        (img_l, img_r), (_, _, _, d_k) = pyramid[idx], geometry[idx]
         res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True)
-        maps.append({"disp_l": res_l.disp, "conf_l": res_l.conf, "disp_r": res_r.disp, "conf_r": res_r.conf})
-        if len(maps) == 1:  # eps_1 = 0: scale 1 is the full-resolution SGM, whose uniqueness the baselines use
+        maps[idx] = {"disp_l": res_l.disp, "conf_l": res_l.conf, "disp_r": res_r.disp, "conf_r": res_r.conf}
+        if idx == 0:  # eps_1 = 0: scale 1 is the full-resolution SGM, whose uniqueness the baselines use
             maps[0]["uniqueness_l"] = res_l.uniqueness
             maps[0]["range_l"] = _window_range(img_l, cfg.census_window)
             maps[0]["range_r"] = _window_range(img_r, cfg.census_window)

@@ -7,16 +7,27 @@ leave only complete shards behind.
 Thread budget: ``workers x numba threads <= cores``. Every task calls :func:`thread_budget` around its work, which
 sets numba's (and OpenCV's) thread count for the duration and restores the old values afterwards. joblib's loky
 backend additionally caps NUMBA_NUM_THREADS / OMP_NUM_THREADS in its workers to cores // n_jobs.
+
+Spare cores: a frame's two SGM views can run side by side (:func:`run_two`). They do whenever the calling thread's
+budget is >= 2 cores, and, in a job whose workers fill the machine with one core each, whenever a
+:class:`CoreTokens` token is free: each worker holds one token while it labels a shard, so a free token is a core
+that a worker left idle (the last frames of a job, when fewer frames than workers remain), and the frame still
+running on another worker takes it for its right view. The threads that compute at once never exceed the cores.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import os
 import resource
+import threading
+import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from pvm_labeler.errors import ConfigError
@@ -27,6 +38,10 @@ BACKENDS: tuple[str, ...] = ("loky", "threading", "dask")
 
 T = TypeVar("T")
 R = TypeVar("R")
+A = TypeVar("A")
+B = TypeVar("B")
+
+TOKEN_POLL_S = 0.002  # how often a helper looks for a spare core, and a worker for its own token
 
 
 def available_cores() -> int:
@@ -43,21 +58,144 @@ def numba_threads_per_worker(jobs: int, cores: int | None = None) -> int:
     return max(1, cores // max(1, jobs))
 
 
+@dataclass(frozen=True)
+class CoreTokens:
+    """The cores of one machine shared by the workers of a job: ``count`` lock files in ``directory``, one per core.
+
+    A token is held as an exclusive ``flock`` on one of the files (an open file descriptor). flock works across
+    processes and between threads that open the file separately, and the kernel drops it when its process dies,
+    so a killed worker never leaks a core. Picklable (two fields), so it travels with a task to loky workers.
+    """
+
+    directory: str
+    count: int
+
+    def try_acquire(self) -> int | None:
+        """Take a free token without waiting; returns its file descriptor (pass it to :meth:`release`) or None."""
+        for index in range(self.count):
+            fd = os.open(os.path.join(self.directory, f"core-{index}.lock"), os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return fd
+            except BlockingIOError:
+                os.close(fd)
+        return None
+
+    def acquire(self) -> int:
+        """Take a token, waiting (polling every TOKEN_POLL_S) until one is free; returns its file descriptor."""
+        while (fd := self.try_acquire()) is None:
+            time.sleep(TOKEN_POLL_S)
+        return fd
+
+    @staticmethod
+    def release(fd: int) -> None:
+        """Give a token back (closing the descriptor drops its flock)."""
+        os.close(fd)
+
+
+class _Budget(threading.local):
+    """The calling thread's cores: ``threads`` it owns, and a job's shared tokens to borrow spare ones from."""
+
+    threads: int | None = None  # None: not set by thread_budget (then numba's thread count decides)
+    tokens: CoreTokens | None = None
+
+
+_budget = _Budget()
+
+
 @contextlib.contextmanager
-def thread_budget(threads: int) -> Iterator[None]:
-    """Run the body with numba and OpenCV limited to ``threads`` threads, then restore the previous settings."""
+def thread_budget(threads: int, tokens: CoreTokens | None = None) -> Iterator[None]:
+    """Run the body with numba and OpenCV limited to ``threads`` threads, then restore the previous settings.
+
+    With ``tokens`` the calling thread first takes one token (its own core, waiting if a helper of another worker
+    borrowed it) and holds it for the whole body; :func:`run_two` may then borrow a second, free one.
+    """
     import cv2
     import numba
 
     threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
     old_numba, old_cv = numba.get_num_threads(), cv2.getNumThreads()
+    old_budget = (_budget.threads, _budget.tokens)
+    own = tokens.acquire() if tokens is not None else None
     numba.set_num_threads(threads)
     cv2.setNumThreads(threads)
+    _budget.threads, _budget.tokens = threads, tokens
     try:
         yield
     finally:
         numba.set_num_threads(old_numba)
         cv2.setNumThreads(old_cv)
+        _budget.threads, _budget.tokens = old_budget
+        if own is not None:
+            CoreTokens.release(own)
+
+
+def budget_threads() -> int:
+    """Cores the calling thread owns: its :func:`thread_budget`, else numba's thread count (all cores by default)."""
+    if _budget.threads is not None:
+        return _budget.threads
+    import numba
+
+    return int(numba.get_num_threads())
+
+
+_helpers: ThreadPoolExecutor | None = None
+_helpers_lock = threading.Lock()
+
+
+def _helper_pool() -> ThreadPoolExecutor:
+    global _helpers
+    with _helpers_lock:
+        if _helpers is None:
+            _helpers = ThreadPoolExecutor(max_workers=max(2, available_cores()), thread_name_prefix="pvm-helper")
+        return _helpers
+
+
+_NOT_RUN = object()
+
+
+def _helper(claim: threading.Lock, first_done: threading.Event, tokens: CoreTokens | None,
+            second: Callable[[bool], B]) -> Any:
+    """Run ``second(True)`` if this helper claims it first, on an owned core (tokens None) or a borrowed one."""
+    if tokens is None:
+        return second(True) if claim.acquire(blocking=False) else _NOT_RUN
+    while not first_done.is_set():
+        fd = tokens.try_acquire()
+        if fd is not None:
+            try:
+                return second(True) if claim.acquire(blocking=False) else _NOT_RUN
+            finally:
+                CoreTokens.release(fd)
+        first_done.wait(TOKEN_POLL_S)
+    return _NOT_RUN
+
+
+def run_two(first: Callable[[], A], second: Callable[[bool], B]) -> tuple[A, B]:
+    """``first()`` on this thread and ``second`` beside it on a helper thread when a second core is free.
+
+    A second core is free when this thread's budget (:func:`budget_threads`) is >= 2, or when a token of the job's
+    :class:`CoreTokens` can be borrowed while ``first`` runs. Otherwise (or if ``first`` finishes before a core
+    turns up) ``second(False)`` runs here after ``first``. ``second`` receives True when it runs concurrently,
+    so it must not share ``first``'s scratch memory then. Both must release the GIL to gain anything, and
+    ``second`` must not launch numba ``prange`` kernels (the workqueue threading layer is not thread-safe).
+
+    Returns:
+        (first's result, second's result); exceptions of either are raised here.
+    """
+    owned = budget_threads() >= 2
+    tokens = None if owned else _budget.tokens
+    if not owned and tokens is None:
+        result_first = first()
+        return result_first, second(False)
+    claim, first_done = threading.Lock(), threading.Event()
+    future: Future[Any] = _helper_pool().submit(_helper, claim, first_done, tokens, second)
+    try:
+        result_first = first()
+    finally:
+        first_done.set()
+    if claim.acquire(blocking=False):  # the helper never started it: run it here
+        return result_first, second(False)
+    return result_first, future.result()
 
 
 def peak_rss_mb() -> float:

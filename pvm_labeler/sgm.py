@@ -11,8 +11,10 @@ Reference:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +25,7 @@ from pvm_labeler.errors import InputError
 from pvm_labeler.kernels._lanes import SENTINEL16, disparity_padding, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right
+from pvm_labeler.parallel import run_two
 
 logger = logging.getLogger(__name__)
 
@@ -30,17 +33,44 @@ MAX_CENSUS_WINDOW = 7  # 7 x 7 - 1 = 48 bits fit one uint64 code
 
 # Reused scratch for the cost and S volumes. Freshly allocated 100-MB arrays cost page faults and zeroing in the
 # kernel; measured on a KITTI frame: 46-730 ms of system time per call (noisy, depends on memory pressure) on top
-# of ~500 ms of compute. One arena per process, grown on demand; a concurrent caller (another thread) that finds it
-# busy simply allocates its own arrays.
-_ARENA_LOCK = threading.Lock()
-_arena: np.ndarray | None = None
+# of ~500 ms of compute. Two per process, grown on demand: the main one (S, C_l, C_r) and the helper's (the right
+# view's own S while it runs beside the left view, see parallel.run_two).
+
+
+class _Arena:
+    """A reused flat uint8 scratch buffer; a concurrent caller that finds it busy gets a fresh array instead."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.buffer: np.ndarray | None = None
+
+    @contextlib.contextmanager
+    def take(self, nbytes: int) -> Iterator[np.ndarray]:
+        """The first ``nbytes`` of the arena (grown if needed; 64-byte aligned start) for the body's duration."""
+        if not self.lock.acquire(blocking=False):
+            yield np.empty(nbytes, dtype=np.uint8)
+            return
+        try:
+            if self.buffer is None or self.buffer.size < nbytes:
+                self.buffer = None  # drop the old one before allocating the larger one
+                self.buffer = np.empty(nbytes, dtype=np.uint8)
+            yield self.buffer[:nbytes]
+        finally:
+            self.lock.release()
+
+    def release(self) -> None:
+        with self.lock:
+            self.buffer = None
+
+
+_MAIN_ARENA = _Arena()
+_HELPER_ARENA = _Arena()
 
 
 def release_workspace() -> None:
-    """Free the cached SGM scratch arena (it holds ~H * W * D * 4 bytes of the largest frame seen)."""
-    global _arena
-    with _ARENA_LOCK:
-        _arena = None
+    """Free the cached SGM scratch arenas (they hold up to ~H * W * D * 6 bytes of the largest frame seen)."""
+    _MAIN_ARENA.release()
+    _HELPER_ARENA.release()
 
 
 def _views(arena: np.ndarray, shape: tuple[int, int, int], right_view: bool) -> tuple[np.ndarray, ...]:
@@ -146,7 +176,9 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     Returns:
         (left result, right result or None); their arrays are freshly allocated. Scratch ~ H * W * D * 4 bytes with
         the right view (S uint16, C_l and C_r uint8) lives in a per-process arena reused by the next call (see
-        :func:`release_workspace`).
+        :func:`release_workspace`); another H * W * D * 2 bytes (the right view's S) when the two views run side by
+        side, which they do when a second core is free (:func:`pvm_labeler.parallel.run_two`: a thread budget of
+        >= 2, or a spare core of the job). The results do not depend on it.
     """
     left, right, n_disp = check_inputs(left, right, cfg, max_disp)
     height, width = left.shape
@@ -160,25 +192,21 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     n_padded, pad_cost = disparity_padding(c_max, cfg.p1, cfg.p2, n_disp)
     lanes = path_lanes(c_max, cfg.p1, cfg.p2)  # uint8 path costs when they fit (2x the SIMD lanes of uint16)
     shape = (height, width, n_padded)
-    need = height * width * n_padded * (4 if right_view else 3)
-    global _arena
-    use_arena = _ARENA_LOCK.acquire(blocking=False)
-    try:
-        if use_arena:
-            if _arena is None or _arena.size < need:
-                _arena = None  # drop the old one before allocating the larger one
-                _arena = np.empty(need, dtype=np.uint8)
-            arena = _arena
-        else:
-            arena = np.empty(need, dtype=np.uint8)
+    n_cells = height * width * n_padded
+    with _MAIN_ARENA.take(n_cells * (4 if right_view else 3)) as arena:
         s_buffer, cost_l, cost_r = _views(arena, shape, right_view)
         cost_volume(census_l, census_r, c_max, cost_l, n_disp, pad_cost)
-        res_left = _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes)
         if not right_view:
-            return res_left, None
+            return _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes), None
         cost_volume_right(census_l, census_r, c_max, cost_r, n_disp, pad_cost)  # = C_l(x + d, d), re-indexed
-        res_right = _aggregate_view(cost_r, right, cfg, s_buffer, True, c_max, n_disp, lanes)
-        return res_left, res_right
-    finally:
-        if use_arena:
-            _ARENA_LOCK.release()
+
+        def right_sweeps(concurrent: bool) -> SGMResult:
+            if not concurrent:  # after the left view: its S scratch is free again
+                return _aggregate_view(cost_r, right, cfg, s_buffer, True, c_max, n_disp, lanes)
+            with _HELPER_ARENA.take(2 * n_cells) as scratch:
+                s_right = scratch.view(np.uint16).reshape(shape)
+                return _aggregate_view(cost_r, right, cfg, s_right, True, c_max, n_disp, lanes)
+
+        # The two views' sweeps are independent: beside each other when a second core is free (parallel.run_two).
+        return run_two(lambda: _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes),
+                       right_sweeps)

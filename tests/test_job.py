@@ -20,6 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from pvm_labeler import job as job_module
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.datasets import discover, load_pair
 from pvm_labeler.errors import ConfigError, InputError
@@ -27,7 +28,7 @@ from pvm_labeler.io import write_image
 from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, ShardTask, _longest_first, predicted_work, run
 from pvm_labeler.metrics import MetricAccumulator
 from pvm_labeler.multiscale import draw_eps, scale_geometry
-from pvm_labeler.parallel import numba_threads_per_worker, thread_budget
+from pvm_labeler.parallel import CoreTokens, numba_threads_per_worker, thread_budget
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, read_sample, verify
 
 REPO = Path(__file__).resolve().parents[1]
@@ -323,6 +324,26 @@ def _real_spec(out: Path, **kwargs: object) -> JobSpec:
 @pytest.fixture(scope="module")
 def real_labeler() -> None:
     pytest.importorskip("pvm_labeler.sgm", reason="PVM core (pvm_labeler.sgm) not available yet")
+
+
+def test_spare_cores_leave_labels_unchanged(tmp_path: Path, real_labeler: None) -> None:
+    """--jobs 2 shares the cores through CoreTokens (a worker with nothing left lends its core to the other's
+    right views): the shards equal the --jobs 1 run, and no token is left held."""
+    seen: list[CoreTokens | None] = []
+    real_label_shard = job_module.label_shard
+
+    def spy(task: ShardTask) -> object:
+        seen.append(task.core_tokens)
+        return real_label_shard(task)
+
+    run(_real_spec(tmp_path / "jobs1"))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(job_module, "label_shard", spy)
+        run(_real_spec(tmp_path / "threads2", jobs=2, backend="threading", numba_threads=1))
+    _assert_same_shards(tmp_path / "jobs1", tmp_path / "threads2")
+    tokens = seen[0]
+    assert len(seen) == 3 and tokens is not None and all(t == tokens for t in seen)
+    assert not Path(tokens.directory).exists()  # the token directory is removed with the job
 
 
 @pytest.mark.slow

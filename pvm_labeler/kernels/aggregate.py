@@ -15,7 +15,9 @@ loop (one fused loop mixing the widths vectorised worse: 106 vs 72 ms for the ba
 buffers are indexed, never sliced per pixel (see :func:`step4`). Only previous-row buffers (W + 2, D + 2) per path
 are kept, walked in ascending addresses by both sweeps. The two extra disparity slots hold a sentinel so the
 d +- 1 reads need no branch; the two extra columns stay zero (a path entering the image has L = C).
-The wrapper guarantees L_r <= C_max + P2 < sentinel, the lane bounds of ``_lanes.path_lanes`` and
+Both sweeps release the GIL (``nogil``): ``sgm.sgm_pair`` may run the right view's sweeps on a helper thread
+beside the left view's (``parallel.run_two``). They call no ``prange`` kernel, so they are safe under any numba
+threading layer. The wrapper guarantees L_r <= C_max + P2 < sentinel, the lane bounds of ``_lanes.path_lanes`` and
 n_paths * (C_max + P2) <= 65535, so nothing wraps.
 """
 
@@ -226,7 +228,7 @@ def _forward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, zero, s
                          x)
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, nogil=True)
 def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out, lane_dtype, sentinel):
     """Top-to-bottom sweep: left->right and top paths (plus top-left / top-right with ``diag``).
 
@@ -277,7 +279,7 @@ def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd,
         disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_real, n_valid, s_max, s_min)
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, nogil=True)
 def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, n_real, disp,
                            conf, uniq, lane_dtype, sentinel):
     """Bottom-to-top sweep of the mirrored paths, S = forward + backward, then WTA per pixel.
