@@ -45,6 +45,7 @@ from pvm_labeler.metrics import MetricAccumulator
 from pvm_labeler.parallel import (
     BACKENDS,
     CoreTokens,
+    SpareCores,
     available_cores,
     numba_threads_per_worker,
     peak_rss_mb,
@@ -569,9 +570,13 @@ def run(spec: JobSpec) -> JobSummary:
                 len(refs), len(plan), len(outcomes), len(pending), spec.backend, spec.jobs, threads)
 
     bar = _progress(len(refs), sum(len(o.planned) for o in outcomes.values()), spec.quiet)
-    with _PairProgress(bar, spec, pending) as per_pair, _shared_cores(spec, threads, pending):
+    with _PairProgress(bar, spec, pending) as per_pair, _spare_cores(spec, threads, pending) as spare:
+        running = len(pending)
         for outcome in run_tasks(label_shard, pending, spec.backend, spec.jobs, spec.scheduler):
             outcomes[outcome.index] = outcome
+            running -= 1
+            if spare is not None:
+                spare.outstanding(running)
             if not per_pair.active:
                 bar.update(len(outcome.planned))
             bar.set_postfix(shards=f"{len(outcomes)}/{len(plan)}")
@@ -579,23 +584,25 @@ def run(spec: JobSpec) -> JobSummary:
 
 
 @contextlib.contextmanager
-def _shared_cores(spec: JobSpec, threads: int, tasks: list[ShardTask]) -> Iterator[None]:
-    """Give the tasks one :class:`CoreTokens` when the workers share this machine's cores one each.
+def _spare_cores(spec: JobSpec, threads: int, tasks: list[ShardTask]) -> Iterator[SpareCores | None]:
+    """Give the tasks one :class:`CoreTokens` when the workers share this machine's cores one each (or more).
 
-    Then a worker with no shard left lends its core to the views of a frame still running on another (the tail of
-    a job: 15 frames on 2 workers otherwise leave one core idle for up to a frame). Not for Dask (workers may sit
-    on other machines), one worker (it owns its cores already), or more threads than cores (nothing is spare).
+    The parent holds the workers' tokens and frees a worker's cores once fewer shards than workers remain: a frame
+    still running elsewhere then runs its right views on them (otherwise the last of 15 frames on 2 workers leaves
+    one core idle for up to a frame). Not for Dask (workers may sit on other machines), one worker (it owns its
+    cores already), or more threads than cores (nothing is spare).
     """
-    cores = available_cores()
     local = spec.backend in ("loky", "threading") and spec.jobs > 1
-    if not tasks or not local or spec.jobs * threads > cores:
-        yield
+    if not tasks or not local or spec.jobs * threads > available_cores():
+        yield None
         return
     with tempfile.TemporaryDirectory(prefix="pvm-cores-") as directory:
-        tokens = CoreTokens(directory, cores)
+        tokens = CoreTokens(directory, available_cores())
         for task in tasks:
             task.core_tokens = tokens
-        yield
+        with SpareCores(tokens, spec.jobs, threads) as spare:
+            spare.outstanding(len(tasks))  # fewer shards than workers: the surplus workers never start one
+            yield spare
 
 
 class _PairProgress:

@@ -10,9 +10,10 @@ backend additionally caps NUMBA_NUM_THREADS / OMP_NUM_THREADS in its workers to 
 
 Spare cores: a frame's two SGM views can run side by side (:func:`run_two`). They do whenever the calling thread's
 budget is >= 2 cores, and, in a job whose workers fill the machine with one core each, whenever a
-:class:`CoreTokens` token is free: each worker holds one token while it labels a shard, so a free token is a core
-that a worker left idle (the last frames of a job, when fewer frames than workers remain), and the frame still
-running on another worker takes it for its right view. The threads that compute at once never exceed the cores.
+:class:`CoreTokens` token is free. The job's parent holds the tokens of the workers' cores and gives one back
+when a worker has no shard left (:class:`SpareCores`, the last frames of a job), so the frame still running on
+another worker takes that core for its right view. The threads that compute at once never exceed the cores, and
+while every worker is busy no token is free, so nothing is borrowed back and forth between frames.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ import logging
 import os
 import resource
 import threading
-import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -41,7 +41,7 @@ R = TypeVar("R")
 A = TypeVar("A")
 B = TypeVar("B")
 
-TOKEN_POLL_S = 0.002  # how often a helper looks for a spare core, and a worker for its own token
+TOKEN_POLL_S = 0.002  # how often a helper looks for a spare core
 
 
 def available_cores() -> int:
@@ -81,16 +81,43 @@ class CoreTokens:
                 os.close(fd)
         return None
 
-    def acquire(self) -> int:
-        """Take a token, waiting (polling every TOKEN_POLL_S) until one is free; returns its file descriptor."""
-        while (fd := self.try_acquire()) is None:
-            time.sleep(TOKEN_POLL_S)
-        return fd
-
     @staticmethod
     def release(fd: int) -> None:
         """Give a token back (closing the descriptor drops its flock)."""
         os.close(fd)
+
+
+class SpareCores:
+    """The parent's side of a job's :class:`CoreTokens`: it holds the workers' cores and frees those of idle workers.
+
+    Args:
+        tokens: one token per core of the machine.
+        jobs, threads: workers and the threads each owns; the parent takes ``jobs x threads`` tokens at once (the
+            rest, cores the workers do not use, stay free), and :meth:`outstanding` gives a worker's back when
+            fewer shards than workers remain. Use as a context manager: every token is released at exit.
+    """
+
+    def __init__(self, tokens: CoreTokens, jobs: int, threads: int) -> None:
+        self.tokens, self.jobs, self.threads = tokens, jobs, threads
+        self._held: list[int] = []
+
+    def __enter__(self) -> SpareCores:
+        for _ in range(min(self.tokens.count, self.jobs * self.threads)):
+            fd = self.tokens.try_acquire()
+            if fd is None:
+                break
+            self._held.append(fd)
+        return self
+
+    def outstanding(self, shards: int) -> None:
+        """``shards`` are dispatched but not finished: the workers beyond that many have nothing left to do."""
+        idle = max(0, self.jobs - max(0, shards))
+        while len(self._held) > (self.jobs - idle) * self.threads:
+            CoreTokens.release(self._held.pop())
+
+    def __exit__(self, *exc: object) -> None:
+        while self._held:
+            CoreTokens.release(self._held.pop())
 
 
 class _Budget(threading.local):
@@ -107,8 +134,7 @@ _budget = _Budget()
 def thread_budget(threads: int, tokens: CoreTokens | None = None) -> Iterator[None]:
     """Run the body with numba and OpenCV limited to ``threads`` threads, then restore the previous settings.
 
-    With ``tokens`` the calling thread first takes one token (its own core, waiting if a helper of another worker
-    borrowed it) and holds it for the whole body; :func:`run_two` may then borrow a second, free one.
+    ``tokens``: the job's spare cores, which :func:`run_two` may borrow from inside the body.
     """
     import cv2
     import numba
@@ -116,7 +142,6 @@ def thread_budget(threads: int, tokens: CoreTokens | None = None) -> Iterator[No
     threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
     old_numba, old_cv = numba.get_num_threads(), cv2.getNumThreads()
     old_budget = (_budget.threads, _budget.tokens)
-    own = tokens.acquire() if tokens is not None else None
     numba.set_num_threads(threads)
     cv2.setNumThreads(threads)
     _budget.threads, _budget.tokens = threads, tokens
@@ -126,8 +151,6 @@ def thread_budget(threads: int, tokens: CoreTokens | None = None) -> Iterator[No
         numba.set_num_threads(old_numba)
         cv2.setNumThreads(old_cv)
         _budget.threads, _budget.tokens = old_budget
-        if own is not None:
-            CoreTokens.release(own)
 
 
 def budget_threads() -> int:

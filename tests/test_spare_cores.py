@@ -1,8 +1,9 @@
 """Spare cores: CoreTokens (flock per core), run_two (second view beside the first), and that neither changes a label.
 
-The job gives its loky / threading workers one CoreTokens; a worker holds a token per shard, and the right view of
-an SGM pair runs on a helper thread only while a second core is owned (thread budget >= 2) or borrowed (a free
-token). These tests pin each branch, including that a killed holder gives its token back.
+The job gives its loky / threading workers one CoreTokens; the parent holds the workers' tokens (SpareCores) and
+frees those of workers with no shard left; the right view of an SGM pair runs on a helper thread only while a
+second core is owned (thread budget >= 2) or borrowed (a free token). These tests pin each branch, including that
+a killed holder gives its token back.
 """
 
 from __future__ import annotations
@@ -10,14 +11,13 @@ from __future__ import annotations
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.parallel import CoreTokens, run_two, thread_budget
+from pvm_labeler.parallel import CoreTokens, SpareCores, run_two, thread_budget
 from pvm_labeler.sgm import sgm_pair
 
 BARRIER_S = 20.0  # generous: only a broken run_two (no concurrency) ever waits this long, and then fails
@@ -37,12 +37,13 @@ class TestCoreTokens:
 
     def test_killed_holder_gives_its_token_back(self, tmp_path: Path) -> None:
         tokens = CoreTokens(str(tmp_path), 1)
-        code = ("import sys, time; from pvm_labeler.parallel import CoreTokens; "
-                f"fd = CoreTokens({str(tmp_path)!r}, 1).acquire(); print('held', flush=True); time.sleep(600)")
+        code = ("import time; from pvm_labeler.parallel import CoreTokens; "
+                f"fd = CoreTokens({str(tmp_path)!r}, 1).try_acquire(); print('held', fd is not None, flush=True); "
+                "time.sleep(600)")
         proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
                                 cwd=Path(__file__).resolve().parents[1])
         try:
-            assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "held True"
             assert tokens.try_acquire() is None
         finally:
             proc.kill()
@@ -80,16 +81,16 @@ class TestRunTwo:
 
     def test_borrows_a_free_token_only(self, tmp_path: Path) -> None:
         tokens = CoreTokens(str(tmp_path), 2)
-        other = tokens.try_acquire()  # the other worker is busy: no spare core
         log: list[bool] = []
-        with thread_budget(1, tokens):
+        with SpareCores(tokens, jobs=2, threads=1) as spare, thread_budget(1, tokens):
+            spare.outstanding(2)  # both workers busy: no spare core
             run_two(lambda: None, lambda concurrent: log.append(concurrent))
             assert log == [False]
-            CoreTokens.release(other)  # the other worker finished: its core is spare now
+            spare.outstanding(1)  # the other worker finished: its core is spare now
             barrier = threading.Barrier(2, timeout=BARRIER_S)
             run_two(barrier.wait, lambda concurrent: (log.append(concurrent), barrier.wait()))
             assert log == [False, True]
-        assert tokens.try_acquire() is not None  # thread_budget and the helper gave their tokens back
+        assert tokens.try_acquire() is not None  # the helper and SpareCores gave every token back
 
     def test_helper_exception_is_raised(self) -> None:
         barrier = threading.Barrier(2, timeout=BARRIER_S)
@@ -125,25 +126,34 @@ def cv2_blur(image: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(image, (5, 5), 1.0)
 
 
-def test_tokens_held_per_shard_by_thread_budget(tmp_path: Path) -> None:
-    """The worker's own token is taken when its shard starts and given back when it ends."""
-    tokens = CoreTokens(str(tmp_path), 1)
-    with thread_budget(1, tokens):
-        assert tokens.try_acquire() is None
-    fd = tokens.try_acquire()
-    assert fd is not None
-    # A helper that holds the last token delays the next shard's start instead of oversubscribing the core.
-    started: list[float] = []
-    t0 = time.monotonic()
+class TestSpareCores:
+    def test_frees_the_cores_of_idle_workers_only(self, tmp_path: Path) -> None:
+        tokens = CoreTokens(str(tmp_path), 4)
 
-    def start_shard() -> None:
-        with thread_budget(1, tokens):
-            started.append(time.monotonic() - t0)
+        def free() -> int:
+            fds = []
+            while (fd := tokens.try_acquire()) is not None:
+                fds.append(fd)
+            for fd in fds:
+                CoreTokens.release(fd)
+            return len(fds)
 
-    worker = threading.Thread(target=start_shard)
-    worker.start()
-    time.sleep(0.2)
-    assert not started
-    CoreTokens.release(fd)
-    worker.join(timeout=BARRIER_S)
-    assert started and started[0] >= 0.2
+        with SpareCores(tokens, jobs=3, threads=1) as spare:
+            assert free() == 1  # 4 cores, 3 single-core workers: one core is spare from the start
+            spare.outstanding(7)
+            assert free() == 1
+            spare.outstanding(2)  # 2 shards left for 3 workers
+            assert free() == 2
+            spare.outstanding(0)
+            assert free() == 4
+        assert free() == 4
+
+    def test_two_threads_per_worker(self, tmp_path: Path) -> None:
+        tokens = CoreTokens(str(tmp_path), 4)
+        with SpareCores(tokens, jobs=2, threads=2) as spare:
+            assert tokens.try_acquire() is None
+            spare.outstanding(1)
+            fds = [tokens.try_acquire(), tokens.try_acquire(), tokens.try_acquire()]
+            assert fds[0] is not None and fds[1] is not None and fds[2] is None
+            for fd in fds[:2]:
+                CoreTokens.release(fd)
