@@ -166,6 +166,14 @@ _helpers: ThreadPoolExecutor | None = None
 _helpers_lock = threading.Lock()
 
 
+def _forget_helpers() -> None:
+    global _helpers
+    _helpers = None  # a forked child has none of its parent's threads; run_two would run ``second`` itself anyway
+
+
+os.register_at_fork(after_in_child=_forget_helpers)
+
+
 def _helper_pool() -> ThreadPoolExecutor:
     global _helpers
     with _helpers_lock:
