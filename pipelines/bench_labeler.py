@@ -177,7 +177,25 @@ def _full_label(left: np.ndarray, right: np.ndarray, repeats: int) -> dict[str, 
         runs.append(dict(res.timings, wall=wall, cpu=time.process_time() - c0))
     stages = {key: statistics.median(r[key] for r in runs) for key in runs[0]}
     peak = _peak_mb(lambda: label_pair(left, right, cfg, FRAME))
-    return {"k": cfg.k, "repeats": repeats, "stages_s": stages, "peak_mb": peak}
+    return {"k": cfg.k, "repeats": repeats, "stages_s": stages, "peak_mb": peak,
+            "two_threads": _full_label_two_threads(left, right, cfg, repeats)}
+
+
+def _full_label_two_threads(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, repeats: int) -> dict[str, float]:
+    """The same frame with a budget of 2 threads: the views of every SGM pair side by side (parallel.run_two)."""
+    from pvm_labeler.multiscale import label_pair
+    from pvm_labeler.parallel import thread_budget
+
+    with thread_budget(2):
+        label_pair(left, right, cfg, FRAME)  # warm-up (the helper's own S arena is allocated here)
+        walls, cpus = [], []
+        for _ in range(repeats):
+            c0, t0 = time.process_time(), time.perf_counter()
+            label_pair(left, right, cfg, FRAME)
+            walls.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+        peak = _peak_mb(lambda: label_pair(left, right, cfg, FRAME))
+    return {"wall_s": statistics.median(walls), "cpu_s": statistics.median(cpus), "peak_mb": peak}
 
 
 def _markdown(res: dict[str, Any]) -> str:
@@ -226,6 +244,12 @@ def _markdown(res: dict[str, Any]) -> str:
                   f"peak NumPy memory {full['peak_mb']:.0f} MB (stages: wall ms from LabelResult.timings; 'cpu' is "
                   "the CPU time of the whole call):", "", "| stage | ms |", "| --- | --- |"]
         lines += [f"| {name} | {sec * 1e3:.0f} |" for name, sec in full["stages_s"].items()]
+        two = full.get("two_threads")
+        if two:
+            lines += ["", f"Same frame with 2 threads (the two views of every SGM pair side by side, "
+                      f"parallel.run_two): wall {two['wall_s'] * 1e3:.0f} ms = "
+                      f"{full['stages_s']['wall'] / two['wall_s']:.2f}x faster than 1 thread, CPU "
+                      f"{two['cpu_s'] * 1e3:.0f} ms, peak NumPy memory {two['peak_mb']:.0f} MB."]
     else:
         lines.append(f"Full PVM label: {full['note']}")
     return "\n".join(lines)
