@@ -119,13 +119,13 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
                                                              s_buf, *lanes),
         "backward sweep (4 paths) + WTA": lambda: aggregate_backward_wta(
             cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max), MAX_DISP,
-            *maps, *lanes),
+            *maps, *lanes, False),  # no uniqueness pass, as sgm_pair's default
         # the same sweeps forced to uint16 path costs: what the uint8 lanes buy (same results, tested)
         "forward sweep, uint16 lanes (not used)": lambda: aggregate_forward(
             cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, np.uint16, SENTINEL16),
         "backward sweep + WTA, uint16 lanes (not used)": lambda: aggregate_backward_wta(
             cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max), MAX_DISP,
-            *maps, np.uint16, SENTINEL16),
+            *maps, np.uint16, SENTINEL16, False),
         "right cost from the shared census (used)": lambda: cost_volume_right(cen_l, cen_r, c_max, cost_r, MAX_DISP,
                                                                               0),
         "right cost as a re-index of C_l (same bytes, not used)": lambda: reindex_right(cost, c_max, cost_r),

@@ -89,7 +89,7 @@ def load_frames(shared: Path) -> list[Frame]:
             cfg = LabelerConfig(k=max(KS), max_disp=int(max_disp or sample.max_disp or 192)).validate()
             t0 = time.perf_counter()
             try:
-                stack = compute_scales(sample.left, sample.right, cfg, ref.frame_id)
+                stack = compute_scales(sample.left, sample.right, cfg, ref.frame_id, uniqueness=True)
             except InputError as exc:  # e.g. too small for K = 8 at this search range
                 logger.warning("%s/%s skipped: %s", group, ref.frame_id, exc)
                 continue

@@ -109,7 +109,7 @@ def raw_scales(frame: Frame, cfg: LabelerConfig, cache_dir: Path | None = None) 
                         for k in range(n)]
                 return RawScales(int(data["height"]), int(data["width"]), data["eps"], data["factors"], maps,
                                  {"pyramid": 0.0, "sgm": 0.0})
-    raw = run_scales(frame.left, frame.right, cfg, frame.frame_id)
+    raw = run_scales(frame.left, frame.right, cfg, frame.frame_id, uniqueness=True)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f"{name}_{k}": arr for k, maps in enumerate(raw.maps) for name, arr in maps.items()}

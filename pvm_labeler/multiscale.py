@@ -79,7 +79,8 @@ class ScaleStack:
         eps: (K,) float64.
         factors: (K,) float64 true horizontal factors.
         timings: seconds for "pyramid", "sgm", "upsample".
-        full_res: the finest scale's raw SGM maps "disp_l", "disp_r", "uniqueness_l" (H, W) float32, used by
+        full_res: the finest scale's raw SGM maps "disp_l", "disp_r", "uniqueness_l" (H, W) float32 (the last only
+            when computed with ``uniqueness=True``), used by
             the SGM + LR (+ uniqueness) baselines in pvm_labeler.baselines; and "range_l", "range_r" (H, W) uint8
             grey-level range (max - min) over the census window of each view (the texture test).
     """
@@ -166,7 +167,7 @@ class RawScales:
         height, width: full-resolution size.
         eps: (K,) float64; factors: (K,) float64 true horizontal factors.
         maps: per scale k a dict "disp_l", "conf_l", "disp_r", "conf_r" of (h_k, w_k) float32 maps (disparities in
-            scale-k pixels); scale 1 also has "uniqueness_l" and the texture maps "range_l", "range_r".
+            scale-k pixels); scale 1 also has the texture maps "range_l", "range_r" and, on request, "uniqueness_l".
         timings: seconds for "pyramid" and "sgm".
     """
 
@@ -178,13 +179,16 @@ class RawScales:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str) -> RawScales:
+def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str,
+               uniqueness: bool = False) -> RawScales:
     """Validate the inputs, build the pyramid and run SGM for both views at every scale.
 
     Args:
         left, right: (H, W, 3) uint8 RGB or (H, W) uint8 grey, same shape.
         cfg: labeler config (k, max_disp, seed, SGM settings).
         frame_id: stable frame name; seeds eps together with cfg.seed.
+        uniqueness: also keep the full-resolution left view's uniqueness ratio (``maps[0]["uniqueness_l"]``, for
+            the uniqueness-filter baseline); the labels do not use it.
 
     Raises:
         InputError: wrong dtype/shape, different sizes, or an image too small for K and max_disp.
@@ -217,10 +221,11 @@ def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id
     # the frame (the other worker finished the job), the costliest views are still ahead to run side by side.
     for idx in sorted(range(len(geometry)), key=lambda i: geometry[i][0] * geometry[i][1] * geometry[i][3]):
         (img_l, img_r), (_, _, _, d_k) = pyramid[idx], geometry[idx]
-        res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True)
+        res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True, uniqueness=uniqueness and idx == 0)
         maps[idx] = {"disp_l": res_l.disp, "conf_l": res_l.conf, "disp_r": res_r.disp, "conf_r": res_r.conf}
         if idx == 0:  # eps_1 = 0: scale 1 is the full-resolution SGM, whose uniqueness the baselines use
-            maps[0]["uniqueness_l"] = res_l.uniqueness
+            if res_l.uniqueness is not None:
+                maps[0]["uniqueness_l"] = res_l.uniqueness
             maps[0]["range_l"] = _window_range(img_l, cfg.census_window)
             maps[0]["range_r"] = _window_range(img_r, cfg.census_window)
     timings = {"pyramid": t1 - t0, "sgm": time.perf_counter() - t1}
@@ -242,13 +247,15 @@ def upsample_scales(raw: RawScales, cfg: LabelerConfig) -> ScaleStack:
         for name in names:
             _upsample_into(maps[name], stacks[name][idx], interp, factor if name.startswith("disp") else 1.0)
     timings = dict(raw.timings, upsample=time.perf_counter() - t0)
-    full_res = {name: raw.maps[0][name] for name in ("disp_l", "disp_r", "uniqueness_l", "range_l", "range_r")}
+    full_res = {name: raw.maps[0][name] for name in ("disp_l", "disp_r", "uniqueness_l", "range_l", "range_r")
+                if name in raw.maps[0]}
     return ScaleStack(eps=raw.eps, factors=raw.factors, timings=timings, full_res=full_res, **stacks)
 
 
-def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str) -> ScaleStack:
+def compute_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str,
+                   uniqueness: bool = False) -> ScaleStack:
     """:func:`run_scales` then :func:`upsample_scales` (the expensive, kappa-independent part of label_pair)."""
-    return upsample_scales(run_scales(left, right, cfg, frame_id), cfg)
+    return upsample_scales(run_scales(left, right, cfg, frame_id, uniqueness), cfg)
 
 
 def _window_range(grey: np.ndarray, window: int) -> np.ndarray:

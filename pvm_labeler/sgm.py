@@ -93,12 +93,13 @@ class SGMResult:
             (so n_paths * C_max is what a pixel pays if it matches nothing along any path). Higher = better
             match; 0 at NaN pixels.
         uniqueness: (H, W) float32 1 - S_min / S_second, S_second = min aggregated cost over |d - d_best| > 1;
-            0 at NaN pixels. Used by the "SGM + LR + uniqueness-ratio filter" baseline.
+            0 at NaN pixels. Used by the "SGM + LR + uniqueness-ratio filter" baseline; None unless requested
+            (``sgm_pair(..., uniqueness=True)``: one more pass over every pixel's S).
     """
 
     disp: npt.NDArray[np.float32]
     conf: npt.NDArray[np.float32]
-    uniqueness: npt.NDArray[np.float32]
+    uniqueness: npt.NDArray[np.float32] | None
 
 
 def _check_image(name: str, img: np.ndarray) -> np.ndarray:
@@ -146,7 +147,8 @@ def check_inputs(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_di
 
 
 def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_buffer: np.ndarray,
-                    right_view: bool, c_max: int, n_disp: int, lanes: tuple[type, int]) -> SGMResult:
+                    right_view: bool, c_max: int, n_disp: int, lanes: tuple[type, int],
+                    uniqueness: bool = False) -> SGMResult:
     """Forward + backward sweeps with fused WTA on one view's cost volume (s_buffer is scratch, reused).
 
     cost: (H, W, D_pad) uint8 with the disparities [0, n_disp) searched and padding beyond; lanes: the path-cost
@@ -159,12 +161,12 @@ def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_bu
     conf = np.empty((height, width), dtype=np.float32)
     uniq = np.empty((height, width), dtype=np.float32)
     aggregate_backward_wta(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, False, right_view,
-                           float(cfg.paths * c_max), n_disp, disp, conf, uniq, *lanes)
-    return SGMResult(disp=disp, conf=conf, uniqueness=uniq)
+                           float(cfg.paths * c_max), n_disp, disp, conf, uniq, *lanes, uniqueness)
+    return SGMResult(disp=disp, conf=conf, uniqueness=uniq if uniqueness else None)
 
 
 def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: int | None = None,
-             right_view: bool = True) -> tuple[SGMResult, SGMResult | None]:
+             right_view: bool = True, uniqueness: bool = False) -> tuple[SGMResult, SGMResult | None]:
     """SGM disparity of the left view, and of the right view from the same census cost volume.
 
     Args:
@@ -172,6 +174,8 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
         cfg: labeler config (census_window, paths, p1, p2, p2_adaptive, max_disp).
         max_disp: overrides cfg.max_disp; disparities searched are [0, max_disp).
         right_view: also compute the right view (cost re-indexed as C_r(x, d) = C_l(x + d, d)).
+        uniqueness: also compute the left view's uniqueness ratio (``SGMResult.uniqueness``; off by default, it
+            costs one more pass over S per pixel and only the uniqueness-filter baseline uses it).
 
     Returns:
         (left result, right result or None); their arrays are freshly allocated. Scratch ~ H * W * D * 4 bytes with
@@ -197,7 +201,7 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
         s_buffer, cost_l, cost_r = _views(arena, shape, right_view)
         cost_volume(census_l, census_r, c_max, cost_l, n_disp, pad_cost)
         if not right_view:
-            return _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes), None
+            return _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes, uniqueness), None
         cost_volume_right(census_l, census_r, c_max, cost_r, n_disp, pad_cost)  # = C_l(x + d, d), re-indexed
 
         def right_sweeps(concurrent: bool) -> SGMResult:
@@ -208,5 +212,5 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
                 return _aggregate_view(cost_r, right, cfg, s_right, True, c_max, n_disp, lanes)
 
         # The two views' sweeps are independent: beside each other when a second core is free (parallel.run_two).
-        return run_two(lambda: _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes),
+        return run_two(lambda: _aggregate_view(cost_l, left, cfg, s_buffer, False, c_max, n_disp, lanes, uniqueness),
                        right_sweeps)

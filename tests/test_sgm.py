@@ -43,12 +43,19 @@ def smooth_shifted_pair(
 class TestSgmPair:
     def test_cardinality(self, synthetic_pair):
         left, right, _ = synthetic_pair
-        res_l, res_r = sgm_pair(_grey(left), _grey(right), CFG)
+        res_l, res_r = sgm_pair(_grey(left), _grey(right), CFG, uniqueness=True)
         for res in (res_l, res_r):
             assert isinstance(res, SGMResult)
-            for arr in (res.disp, res.conf, res.uniqueness):
+            for arr in (res.disp, res.conf):
                 assert arr.shape == left.shape[:2] and arr.dtype == np.float32
             assert np.nanmin(res.conf) >= 0 and np.nanmax(res.conf) <= 1
+        assert res_l.uniqueness is not None and res_l.uniqueness.shape == left.shape[:2]
+        assert res_r.uniqueness is None  # the baselines filter the left view only
+        plain_l, plain_r = sgm_pair(_grey(left), _grey(right), CFG)
+        assert plain_l.uniqueness is None and plain_r.uniqueness is None  # on request only: it costs a pass over S
+        for a, b in ((res_l, plain_l), (res_r, plain_r)):  # and it changes nothing else
+            np.testing.assert_array_equal(a.disp, b.disp)
+            np.testing.assert_array_equal(a.conf, b.conf)
         assert sgm_pair(_grey(left), _grey(right), CFG, right_view=False)[1] is None
 
     def test_integer_shift(self, rng):
@@ -82,7 +89,7 @@ class TestSgmPair:
         left, right = _grey(left), _grey(right)
         left[:, 40:100] = 128 + rng.integers(-1, 2, (48, 60))
         right[:, 36:96] = 128 + rng.integers(-1, 2, (48, 60))
-        res_l, _ = sgm_pair(left, right, CFG)
+        res_l, _ = sgm_pair(left, right, CFG, uniqueness=True)
         band = np.s_[5:-5, 55:85]
         textured = np.s_[5:-5, 12:34]
         assert np.median(res_l.conf[band]) < np.median(res_l.conf[textured]) - 0.3

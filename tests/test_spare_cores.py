@@ -110,9 +110,10 @@ def test_sgm_pair_side_by_side_is_bit_identical(paths: int) -> None:
     left, right = base[:, 12:172].copy(), base[:, 20:180].copy()  # left(x) = right(x - 8): disparity 8
     cfg = LabelerConfig(max_disp=40, paths=paths)
     with thread_budget(1):
-        seq_l, seq_r = sgm_pair(left, right, cfg)
+        seq_l, seq_r = sgm_pair(left, right, cfg, uniqueness=True)
     with thread_budget(2):
-        par_l, par_r = sgm_pair(left, right, cfg)
+        par_l, par_r = sgm_pair(left, right, cfg, uniqueness=True)
+    assert par_l.uniqueness is not None
     for a, b in ((seq_l, par_l), (seq_r, par_r)):
         for name in ("disp", "conf", "uniqueness"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)

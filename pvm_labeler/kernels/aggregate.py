@@ -27,7 +27,7 @@ from numba import njit
 from pvm_labeler.kernels._flags import FASTMATH
 from pvm_labeler.kernels._lanes import lane
 from pvm_labeler.kernels._prefetch import prefetch
-from pvm_labeler.kernels.wta import select_disparity
+from pvm_labeler.kernels.wta import disparity_ramp, select_disparity
 
 PREFETCH_AHEAD = 4  # pixels; 2-16 measured alike on a KITTI frame (99-100 ms), 0 = no prefetch (142 ms)
 
@@ -253,7 +253,7 @@ def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out, lane_dtype, sen
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view, s_max,
-                  n_real, disp, conf, uniq):
+                  n_real, disp, conf, uniq, ramp, want_uniq):
     """One row of the backward sweep with the fused WTA (literal ``diag``, see :func:`_forward_row`).
 
     s_fwd and cost are read in DESCENDING addresses here, which the hardware prefetcher follows poorly: the cache
@@ -276,12 +276,13 @@ def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd,
         hmin, s_min = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, total,
                              ty, tx)
         n_valid = width - x if right_view else x + 1
-        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_real, n_valid, s_max, s_min)
+        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_real, n_valid, s_max, s_min, ramp,
+                                                              want_uniq)
 
 
 @njit(cache=True, fastmath=FASTMATH, nogil=True)
 def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, n_real, disp,
-                           conf, uniq, lane_dtype, sentinel):
+                           conf, uniq, lane_dtype, sentinel, want_uniq=True):
     """Bottom-to-top sweep of the mirrored paths, S = forward + backward, then WTA per pixel.
 
     Args:
@@ -289,18 +290,20 @@ def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum,
         s_fwd: (H, W, D) uint16 forward sums; with ``store_sum`` it is overwritten by the full S (for tests).
         right_view, s_max: passed to :func:`wta.select_disparity` (with S_min, tracked while S is written).
         n_real: the disparities searched, [0, n_real); cost slots beyond it are padding (``_lanes.py``).
-        disp, conf, uniq: (H, W) float32 outputs.
+        disp, conf, uniq: (H, W) float32 outputs (uniq is 0 everywhere unless ``want_uniq``).
         lane_dtype, sentinel: as in :func:`aggregate_forward`.
+        want_uniq: compute the uniqueness (one more pass over each pixel's S in the WTA).
     """
     height, width, n_disp = cost.shape
     even, odd, horiz, mins, _ = _buffers(width, n_disp, lane_dtype, sentinel)
     acc = np.empty((1, 1, n_disp), dtype=np.uint16)
+    ramp = disparity_ramp(n_disp)
     table = p2_table(p1, p2, adaptive)
     for y in range(height - 1, -1, -1):
         prev, cur = (odd, even) if y & 1 == 0 else (even, odd)
         if diag:
             _backward_row(cost, grey, y, p1, table, True, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, n_real, disp, conf, uniq)
+                          s_max, n_real, disp, conf, uniq, ramp, want_uniq)
         else:
             _backward_row(cost, grey, y, p1, table, False, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, n_real, disp, conf, uniq)
+                          s_max, n_real, disp, conf, uniq, ramp, want_uniq)
