@@ -272,11 +272,15 @@ def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd,
                 prefetch(s_addr + ahead * s_bytes + offset)
             for offset in range(0, n_disp, 64):
                 prefetch(c_addr + ahead * n_disp + offset)
-        total, ty, tx = (s_fwd, y, x) if store_sum else (acc, 0, 0)
-        hmin, s_min = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, total,
-                             ty, tx)
+        # S goes to the small `acc` always (fixed indices, no aliasing with s_fwd in the hot loops: choosing the
+        # target array per pixel cost ~4 ms per sweep) and is copied out only for the tests' store_sum.
+        hmin, s_min = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, acc,
+                             0, 0)
+        if store_sum:
+            for d in range(n_disp):
+                s_fwd[y, x, d] = acc[0, 0, d]
         n_valid = width - x if right_view else x + 1
-        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(total, ty, tx, n_real, n_valid, s_max, s_min, ramp,
+        disp[y, x], conf[y, x], uniq[y, x] = select_disparity(acc, 0, 0, n_real, n_valid, s_max, s_min, ramp,
                                                               want_uniq)
 
 
