@@ -131,6 +131,9 @@ def sgm_lr_maps(stack: ScaleStack, lr_threshold: float) -> tuple[np.ndarray, np.
     Returns:
         disp (H, W) float32 LR-checked left disparity (NaN = none), uniqueness (H, W) float32 of the left view.
     """
+    if "uniqueness_l" not in stack.full_res:
+        raise InputError("this scale stack has no uniqueness map: build it with compute_scales(..., uniqueness=True) "
+                         "or run_scales(..., uniqueness=True) (one more pass over S, so it is off by default)")
     disp_l, _ = lr_check(stack.full_res["disp_l"], stack.full_res["disp_r"], lr_threshold)
     return disp_l, stack.full_res["uniqueness_l"]
 

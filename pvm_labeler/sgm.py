@@ -46,7 +46,7 @@ class _Arena:
 
     @contextlib.contextmanager
     def take(self, nbytes: int) -> Iterator[np.ndarray]:
-        """The first ``nbytes`` of the arena (grown if needed; 64-byte aligned start) for the body's duration."""
+        """The first ``nbytes`` of the arena (grown if needed) for the body's duration."""
         if not self.lock.acquire(blocking=False):
             yield np.empty(nbytes, dtype=np.uint8)
             return

@@ -5,10 +5,13 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from conftest import make_synthetic_pair
 
 from pipelines.results import pareto, sub_stack
+from pvm_labeler.baselines import sgm_lr_maps
 from pvm_labeler.config import LabelerConfig
+from pvm_labeler.errors import InputError
 from pvm_labeler.multiscale import compute_scales, label_from_scales, label_pair
 
 
@@ -24,6 +27,21 @@ def test_feature_sub_stack_is_the_k_scale_labeler(rng):
         np.testing.assert_array_equal(sliced.eps, direct.eps)
         np.testing.assert_array_equal(sliced.label, direct.label)
         np.testing.assert_array_equal(sliced.label_right, direct.label_right)
+
+
+def test_uniqueness_only_on_request(rng):
+    # The labels never need the uniqueness ratio (a pass over S per pixel); the uniqueness baseline asks for it.
+    left, right = make_synthetic_pair(rng, height=64, width=160, disp=5)
+    cfg = LabelerConfig(k=2, max_disp=24)
+    plain = compute_scales(left, right, cfg, "frame-a")
+    with_uniq = compute_scales(left, right, cfg, "frame-a", uniqueness=True)
+    assert "uniqueness_l" not in plain.full_res
+    with pytest.raises(InputError, match="uniqueness=True"):
+        sgm_lr_maps(plain, 1.0)
+    disp, uniq = sgm_lr_maps(with_uniq, 1.0)
+    assert np.isfinite(disp).mean() > 0.5
+    assert uniq.shape == left.shape[:2] and np.nanmax(uniq) > 0.1  # textured pair: clear minima
+    np.testing.assert_array_equal(plain.disp_l, with_uniq.disp_l)  # and it changes nothing else
 
 
 def test_feature_pareto_hand_computed():
