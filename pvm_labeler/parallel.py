@@ -41,7 +41,7 @@ R = TypeVar("R")
 A = TypeVar("A")
 B = TypeVar("B")
 
-TOKEN_POLL_S = 0.002  # how often a helper looks for a spare core
+TOKEN_POLL_S = 0.02  # how often a helper looks for a spare core
 
 
 def available_cores() -> int:
