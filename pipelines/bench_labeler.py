@@ -166,36 +166,31 @@ def _full_label(left: np.ndarray, right: np.ndarray, repeats: int) -> dict[str, 
         from pvm_labeler.multiscale import label_pair
     except ImportError as exc:
         return {"note": f"pvm_labeler.multiscale.label_pair not available yet: {exc}"}
+    from pvm_labeler.parallel import thread_budget
+
     cfg = LabelerConfig()
-    label_pair(left, right, cfg, FRAME)  # warm-up
+    runs, peak = _label_runs(label_pair, left, right, cfg, repeats)
+    # The same frame with a budget of 2 threads: the views of every SGM pair side by side (parallel.run_two).
+    with thread_budget(2):
+        runs2, peak2 = _label_runs(label_pair, left, right, cfg, repeats)
+    stages = {key: statistics.median(r[key] for r in runs) for key in runs[0]}
+    two = {"wall_s": statistics.median(r["wall"] for r in runs2), "cpu_s": statistics.median(r["cpu"] for r in runs2),
+           "peak_mb": peak2}
+    return {"k": cfg.k, "repeats": repeats, "stages_s": stages, "peak_mb": peak, "two_threads": two}
+
+
+def _label_runs(label_pair: Callable[..., Any], left: np.ndarray, right: np.ndarray, cfg: LabelerConfig,
+                repeats: int) -> tuple[list[dict[str, float]], float]:
+    """A warm-up call (it also allocates the SGM arenas), ``repeats`` timed calls (LabelResult.timings plus wall and
+    cpu seconds each), then the peak NumPy memory of one more call."""
+    label_pair(left, right, cfg, FRAME)
     runs = []
     for _ in range(repeats):
-        c0 = time.process_time()
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         res = label_pair(left, right, cfg, FRAME)
         wall = time.perf_counter() - t0
         runs.append(dict(res.timings, wall=wall, cpu=time.process_time() - c0))
-    stages = {key: statistics.median(r[key] for r in runs) for key in runs[0]}
-    peak = _peak_mb(lambda: label_pair(left, right, cfg, FRAME))
-    return {"k": cfg.k, "repeats": repeats, "stages_s": stages, "peak_mb": peak,
-            "two_threads": _full_label_two_threads(left, right, cfg, repeats)}
-
-
-def _full_label_two_threads(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, repeats: int) -> dict[str, float]:
-    """The same frame with a budget of 2 threads: the views of every SGM pair side by side (parallel.run_two)."""
-    from pvm_labeler.multiscale import label_pair
-    from pvm_labeler.parallel import thread_budget
-
-    with thread_budget(2):
-        label_pair(left, right, cfg, FRAME)  # warm-up (the helper's own S arena is allocated here)
-        walls, cpus = [], []
-        for _ in range(repeats):
-            c0, t0 = time.process_time(), time.perf_counter()
-            label_pair(left, right, cfg, FRAME)
-            walls.append(time.perf_counter() - t0)
-            cpus.append(time.process_time() - c0)
-        peak = _peak_mb(lambda: label_pair(left, right, cfg, FRAME))
-    return {"wall_s": statistics.median(walls), "cpu_s": statistics.median(cpus), "peak_mb": peak}
+    return runs, _peak_mb(lambda: label_pair(left, right, cfg, FRAME))
 
 
 def _markdown(res: dict[str, Any]) -> str:

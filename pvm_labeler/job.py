@@ -396,7 +396,7 @@ def predicted_work(geometry: list[tuple[int, int, float, int]]) -> int:
     The pyramid's random factors make pairs of one size differ in cost (KITTI: 0.44 to 0.71 s of CPU): the
     k = 2 scale alone ranges from 1/27 to nearly all of the full-resolution cost.
     """
-    return sum(h * w * d for h, w, _, d in geometry)
+    return sum(multiscale.scale_cells(scale) for scale in geometry)
 
 
 def _longest_first(tasks: list[ShardTask], work: dict[str, int]) -> list[ShardTask]:
@@ -592,12 +592,13 @@ def _spare_cores(spec: JobSpec, threads: int, tasks: list[ShardTask]) -> Iterato
     one core idle for up to a frame). Not for Dask (workers may sit on other machines), one worker (it owns its
     cores already), or more threads than cores (nothing is spare).
     """
+    cores = available_cores()
     local = spec.backend in ("loky", "threading") and spec.jobs > 1
-    if not tasks or not local or spec.jobs * threads > available_cores():
+    if not tasks or not local or spec.jobs * threads > cores:
         yield None
         return
     with tempfile.TemporaryDirectory(prefix="pvm-cores-") as directory:
-        tokens = CoreTokens(directory, available_cores())
+        tokens = CoreTokens(directory, cores)
         for task in tasks:
             task.core_tokens = tokens
         with SpareCores(tokens, spec.jobs, threads) as spare:

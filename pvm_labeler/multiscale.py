@@ -132,6 +132,12 @@ def scale_geometry(height: int, width: int, eps: np.ndarray, max_disp: int) -> l
     return out
 
 
+def scale_cells(scale: tuple[int, int, float, int]) -> int:
+    """Cost-volume cells h_k * w_k * D_k of one :func:`scale_geometry` entry: the relative SGM cost of that scale."""
+    h_k, w_k, _, d_k = scale
+    return h_k * w_k * d_k
+
+
 def _to_grey(image: np.ndarray, name: str) -> np.ndarray:
     if not isinstance(image, np.ndarray):
         raise InputError(f"{name} must be a numpy array, got {type(image).__name__}")
@@ -219,7 +225,7 @@ def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id
     maps: list[dict[str, np.ndarray]] = [{} for _ in geometry]
     # Cheapest scale first, full resolution last: the scales are independent, and when a core turns free during
     # the frame (the other worker finished the job), the costliest views are still ahead to run side by side.
-    for idx in sorted(range(len(geometry)), key=lambda i: geometry[i][0] * geometry[i][1] * geometry[i][3]):
+    for idx in sorted(range(len(geometry)), key=lambda i: scale_cells(geometry[i])):
         (img_l, img_r), (_, _, _, d_k) = pyramid[idx], geometry[idx]
         res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True, uniqueness=uniqueness and idx == 0)
         maps[idx] = {"disp_l": res_l.disp, "conf_l": res_l.conf, "disp_r": res_r.disp, "conf_r": res_r.conf}

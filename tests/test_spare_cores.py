@@ -13,6 +13,7 @@ import sys
 import threading
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -106,7 +107,8 @@ class TestRunTwo:
 @pytest.mark.parametrize("paths", [8, 4])
 def test_sgm_pair_side_by_side_is_bit_identical(paths: int) -> None:
     rng = np.random.default_rng(3)
-    base = cv2_blur(rng.integers(0, 256, (48, 180), dtype=np.uint8))
+    # smooth random texture (a plain random field is too noisy for a clean SGM optimum)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (48, 180), dtype=np.uint8), (5, 5), 1.0)
     left, right = base[:, 12:172].copy(), base[:, 20:180].copy()  # left(x) = right(x - 8): disparity 8
     cfg = LabelerConfig(max_disp=40, paths=paths)
     with thread_budget(1):
@@ -118,13 +120,6 @@ def test_sgm_pair_side_by_side_is_bit_identical(paths: int) -> None:
         for name in ("disp", "conf", "uniqueness"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     assert np.nanmedian(par_l.disp[:, 48:]) == pytest.approx(8.0, abs=0.25)
-
-
-def cv2_blur(image: np.ndarray) -> np.ndarray:
-    """Smooth random texture (a plain random field is too noisy for a clean SGM optimum)."""
-    import cv2
-
-    return cv2.GaussianBlur(image, (5, 5), 1.0)
 
 
 class TestSpareCores:
