@@ -42,14 +42,24 @@ def _run_guarded(fn, *args, **kwargs):
         raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
 
 
-def _parse_model_opts(values: tuple[str, ...]) -> dict[str, Any]:
+def _parse_model_opts(values: tuple[str, ...], hint: str = "--model-opt") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for item in values:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise click.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="--model-opt")
+            raise click.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint=hint)
         out[key.strip().replace("-", "_")] = yaml.safe_load(value)
     return out
+
+
+def _resolve_checkpoint(spec: Path | str) -> Path:
+    """'pretrained' -> the shipped weights; else the path, which must exist (exit 2 naming it otherwise)."""
+    from optstereo.pretrained import resolve_checkpoint_spec
+
+    try:
+        return resolve_checkpoint_spec(spec)
+    except CheckpointError as exc:
+        raise click.BadParameter(str(exc), param_hint="--checkpoint/--init") from exc
 
 
 def _infer_amp_option(fn):
@@ -68,6 +78,9 @@ def _device_option(fn):
 @click.option("--out", type=click.Path(path_type=Path), help="Run directory (checkpoints, logs, config.yaml).")
 @click.option("--config", "config_file", type=EXISTING, help="YAML file of options; command-line flags override it.")
 @click.option("--resume", type=EXISTING, help="Continue the run in this RUN_DIR from its last.pt at the saved step.")
+@click.option("--init", type=click.Path(path_type=Path),
+              help="Start from this checkpoint's weights (file or RUN_DIR; 'pretrained' = the shipped model) with a "
+                   "new optimizer and schedule; model settings come from the checkpoint.")
 @click.option("--model", help=f"Registry model name. [default: {_D.model}]")
 @click.option("--model-opt", multiple=True, help="Model override KEY=VALUE, e.g. feature_dim=128 (repeatable).")
 @click.option("--supervision", type=click.Choice(SUPERVISIONS),
@@ -81,6 +94,11 @@ def _device_option(fn):
 @click.option("--gamma", type=float, help=f"Sequence weight base of L_P. [default: {_D.gamma}]")
 @click.option("--lambda-r", type=float, help="Weight of L_R. [default: 0.1 for pvm, 0 for gt]")
 @click.option("--lambda-s", type=float, help="Weight of L_S. [default: 0.1 for pvm, 0 for gt]")
+@click.option("--lambda-t", type=float,
+              help="Weight of the transformation self-supervision L_T (learning by analogy); 0 = off. [default: 0]")
+@click.option("--analogy-opt", multiple=True,
+              help="L_T option KEY=VALUE, e.g. occlusion=false, max_scale=1.3, photo_threshold=0.1 (repeatable).")
+@click.option("--analogy-start", type=int, help="First step with L_T. [default: 0]")
 @click.option("--crop", help=f"Random crop HxW, px (whole frame when smaller). [default: {_D.crop[0]}x{_D.crop[1]}]")
 @click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.flip_swap_p}]")
 @click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")
@@ -97,16 +115,25 @@ def _device_option(fn):
 @click.option("--val-root", type=EXISTING, help="Root folder of --val-dataset.")
 @click.option("--val-limit", type=int, help="Evaluate only the first N validation frames (0 = all).")
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
-def train_main(config_file: Path | None, resume: Path | None, model_opt: tuple[str, ...], quiet: bool,
-               **flags: Any) -> None:
+def train_main(config_file: Path | None, resume: Path | None, init: Path | None, model_opt: tuple[str, ...],
+               analogy_opt: tuple[str, ...], quiet: bool, **flags: Any) -> None:
     """Train OptStereo on PVM shards: optstereo-train --labels SHARDS_DIR --out RUN_DIR."""
     _setup_logging(quiet)
-    from optstereo.train import config_for_resume, main
+    from optstereo.train import config_for_resume, main, model_settings_from
 
     overrides = {k: v for k, v in flags.items() if v is not None}
     if model_opt:
         overrides["model_overrides"] = _parse_model_opts(model_opt)
+    if analogy_opt:
+        overrides["analogy"] = _parse_model_opts(analogy_opt, "--analogy-opt")
     try:
+        if init is not None:
+            if resume is not None:
+                raise click.UsageError("--init starts a new run from weights; --resume continues a run: pick one")
+            init = _resolve_checkpoint(init)
+            overrides["init"] = init
+            if "model" not in overrides and "model_overrides" not in overrides:
+                overrides.update(_run_guarded(model_settings_from, init))
         if resume is not None:
             if config_file is not None:
                 raise click.UsageError("--resume uses the run's saved config; do not combine it with --config")
@@ -129,7 +156,8 @@ def train_main(config_file: Path | None, resume: Path | None, model_opt: tuple[s
 
 # -- optstereo-eval ------------------------------------------------------------------------------------------------
 @click.command(context_settings={"show_default": True})
-@click.option("--checkpoint", type=EXISTING, help="Checkpoint file (.pt/.pth/.ckpt/.safetensors) or RUN_DIR.")
+@click.option("--checkpoint", type=click.Path(path_type=Path),
+              help="Checkpoint file (.pt/.pth/.ckpt/.safetensors), RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--labels", type=EXISTING, help="Evaluate this shard directory's own PVM labels instead of a network.")
 @click.option("--dataset", help="Dataset name for --checkpoint (kitti15, kitti12, middlebury, sceneflow, sample...).")
 @click.option("--root", type=EXISTING, help="Dataset root folder (not needed for sample).")
@@ -170,14 +198,15 @@ def _load_model(checkpoint: Path, device: str):
     from optstereo.distributed import resolve_device
 
     dev = _run_guarded(resolve_device, device)
-    return _run_guarded(build_model_from_checkpoint, checkpoint, dev), dev
+    return _run_guarded(build_model_from_checkpoint, _resolve_checkpoint(checkpoint), dev), dev
 
 
 # -- optstereo-predict ---------------------------------------------------------------------------------------------
 @click.command(context_settings={"show_default": True})
 @click.argument("left", type=EXISTING, required=False)
 @click.argument("right", type=EXISTING, required=False)
-@click.option("--checkpoint", type=EXISTING, required=True, help="Checkpoint file or RUN_DIR.")
+@click.option("--checkpoint", type=click.Path(path_type=Path), required=True,
+              help="Checkpoint file, RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @click.option("--dataset", help="Predict a whole dataset instead of one LEFT RIGHT pair (KITTI: disp_0/<frame>.png).")
 @click.option("--root", type=EXISTING, help="Dataset root folder.")

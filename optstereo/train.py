@@ -183,14 +183,40 @@ def _check_finite(total: torch.Tensor, terms: dict[str, torch.Tensor], step: int
         )
 
 
+def _forward(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor,
+             right: torch.Tensor) -> list[torch.Tensor]:
+    with autocast_context(cfg, device):
+        preds = state.model(left, right, iters=cfg.iters)
+    return [p.float() for p in preds]
+
+
+def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor, right: torch.Tensor,
+                 disp0: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """lambda_t-weighted L_T of one batch (optstereo.analogy) and its logs; zero before cfg.analogy_start.
+
+    The transformation draws come from a generator seeded by (seed, step), so a resumed run repeats them.
+    """
+    zero = torch.zeros((), device=device)
+    if cfg.lambda_t <= 0 or state.step < cfg.analogy_start:
+        return zero, {"L_T": zero, "T_valid": zero}
+    from optstereo.analogy import analogy_loss, transform_batch
+
+    gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + state.step)
+    sample = transform_batch(left, right, disp0, cfg.analogy_config(), gen)
+    preds_t = _forward(state, cfg, device, sample.left, sample.right)
+    loss_t = analogy_loss(preds_t, sample, cfg.gamma)
+    return cfg.lambda_t * loss_t, {"L_T": loss_t.detach(), "T_valid": sample.valid.float().mean()}
+
+
 def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainConfig, device: torch.device) -> dict:
     """One optimiser step on one batch; returns float logs (loss terms, label EPE, lr, grad norm)."""
     left, right, label, valid = (t.to(device, non_blocking=True) for t in batch[:4])
     state.model.train()
-    with autocast_context(cfg, device):
-        preds = state.model(left, right, iters=cfg.iters)
-    preds = [p.float() for p in preds]
+    preds = _forward(state, cfg, device, left, right)
     total, terms = loss_fn(preds, left, right, label, valid)
+    weighted_t, terms_t = analogy_term(state, cfg, device, left, right, preds[-1])
+    total = total + weighted_t
+    terms = {**terms, **terms_t, "total": total.detach()}
     _check_finite(total, terms, state.step, device)
     state.optimizer.zero_grad(set_to_none=True)
     state.scaler.scale(total).backward()
@@ -314,6 +340,33 @@ def restore(state: TrainState, ckpt: LoadedCheckpoint) -> None:
     state.step = ckpt.step
 
 
+def init_weights(model: nn.Module, path: Path) -> None:
+    """Load a checkpoint's weights into ``model`` (--init); a key or shape mismatch is a CheckpointError naming them."""
+    from optstereo.checkpoint import CheckpointError
+
+    ckpt = load_checkpoint(path)
+    own = unwrap(model).state_dict()
+    missing = sorted(set(own) - set(ckpt.model_state))
+    unexpected = sorted(set(ckpt.model_state) - set(own))
+    shapes = sorted(f"{k}: checkpoint {tuple(ckpt.model_state[k].shape)} vs model {tuple(v.shape)}"
+                    for k, v in own.items() if k in ckpt.model_state and ckpt.model_state[k].shape != v.shape)
+    if missing or unexpected or shapes:
+        raise CheckpointError(
+            f"--init {ckpt.path} does not fit the model: missing keys {missing[:8]}, unexpected keys "
+            f"{unexpected[:8]}, shape mismatches {shapes[:8]} (take the model settings from the checkpoint: "
+            "leave --model/--model-opt unset)"
+        )
+    unwrap(model).load_state_dict(ckpt.model_state)
+    logger.info("initialised from %s (its step %d)", ckpt.path, ckpt.step)
+
+
+def model_settings_from(path: Path) -> dict[str, Any]:
+    """{"model": name, "model_overrides": {...}} of a checkpoint, for --init (the model is rebuilt as it was)."""
+    ckpt = load_checkpoint(path)
+    overrides = {k: v for k, v in ckpt.model_config.items() if k not in ("name", "iters")}
+    return {"model": ckpt.model_name, "model_overrides": overrides}
+
+
 def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """The saved config of RUN_DIR's last checkpoint with ``overrides`` applied (e.g. more --steps, --workers)."""
     ckpt = load_checkpoint(run_dir)
@@ -358,7 +411,10 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg.save(run_dir)
     torch.manual_seed(cfg.seed)
-    model = build_model(cfg).to(device)
+    model = build_model(cfg)
+    if ckpt is None and cfg.init is not None:
+        init_weights(model, cfg.init)
+    model = model.to(device)
     optimizer, scheduler = build_optimizer(model, cfg)
     scaler = torch.amp.GradScaler(device.type, enabled=cfg.amp == "fp16" and device.type == "cuda")
     state = TrainState(model=model, optimizer=optimizer, scheduler=scheduler, scaler=scaler)

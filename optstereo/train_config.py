@@ -78,6 +78,12 @@ class TrainConfig:
         tensorboard: write TensorBoard events when tensorboard is installed.
         val_dataset, val_root: dataset (pvm_labeler.datasets name) evaluated on GT at the end of the run (optional).
         val_limit: evaluate only the first N frames of the validation dataset (0 = all).
+        lambda_t: weight of the transformation self-supervision L_T ("learning by analogy", optstereo.analogy);
+            0 = off (it costs a second forward/backward per step).
+        analogy: AnalogyConfig overrides (spatial/appearance/occlusion switches, ranges, reliability test).
+        analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).
+        init: start from this checkpoint's weights (fine-tuning / continuing later) with a new optimizer and
+            schedule; the model settings are taken from the checkpoint. Unlike --resume it starts at step 0.
     """
 
     labels: Path | None = None
@@ -115,6 +121,10 @@ class TrainConfig:
     val_dataset: str | None = None
     val_root: Path | None = None
     val_limit: int = 0
+    lambda_t: float = 0.0
+    analogy: dict[str, Any] = field(default_factory=dict)
+    analogy_start: int = 0
+    init: Path | None = None
 
     # -- construction -------------------------------------------------------------------------------------------
     @classmethod
@@ -178,13 +188,27 @@ class TrainConfig:
             if value is not None and value < 0:
                 raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
         parse_crop(self.crop)
+        if self.lambda_t < 0:
+            raise ConfigError(f"--lambda-t must be >= 0, got {self.lambda_t}")
+        if self.analogy_start < 0:
+            raise ConfigError(f"--analogy-start must be >= 0, got {self.analogy_start}")
+        try:
+            self.analogy_config()
+        except ValueError as exc:
+            raise ConfigError(f"analogy: {exc}") from exc
         return self
+
+    def analogy_config(self):
+        """The AnalogyConfig of this run (defaults with ``analogy`` overrides)."""
+        from optstereo.analogy import AnalogyConfig
+
+        return AnalogyConfig.from_dict(dict(self.analogy))
 
     # -- serialisation ------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """Plain YAML/JSON-friendly dict (paths as str, crop as list)."""
         out = dataclasses.asdict(self)
-        for key in ("labels", "out"):
+        for key in ("labels", "out", "val_root", "init"):
             out[key] = None if out[key] is None else str(out[key])
         out["crop"] = list(self.crop)
         return out
@@ -202,11 +226,12 @@ class TrainConfig:
 
 def _normalise(values: dict[str, Any]) -> dict[str, Any]:
     """Coerce YAML/CLI types: paths to Path, crop to a (H, W) tuple, overrides to a dict."""
-    for key in ("labels", "out", "val_root"):
+    for key in ("labels", "out", "val_root", "init"):
         if values.get(key) is not None:
             values[key] = Path(values[key])
     if "crop" in values and values["crop"] is not None:
         values["crop"] = parse_crop(values["crop"])
-    if "model_overrides" in values and values["model_overrides"] is None:
-        values["model_overrides"] = {}
+    for key in ("model_overrides", "analogy"):
+        if key in values and values[key] is None:
+            values[key] = {}
     return values

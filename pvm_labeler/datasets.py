@@ -18,6 +18,9 @@ Supported layouts (``root`` is the folder you pass as ``--root``):
 - ``folder``: any two folders or glob patterns of left/right images (``left=``, ``right=``, optional ``gt=``;
   defaults ``root/left``, ``root/right``, ``root/gt``), paired by file stem (or by sorted order when the stems differ
   but the counts match).
+- ``kitti_unlabelled``: every folder under ``root`` holding a KITTI-style pair of image folders (``image_2``/``image_3``,
+  ``image_02``/``image_03``, or their ``data/`` sub-folders) or a ``left.png``/``right.png`` pair; frame ids are the
+  relative path joined with ``-``. Never any GT: this is self-supervised training data.
 - ``sample``: no files needed: scikit-image's Middlebury 2014 motorcycle pair (GT invalid = +inf -> NaN) plus
   deterministic synthetic layered scenes with exact left, non-occluded and right GT.
 """
@@ -40,7 +43,7 @@ from pvm_labeler.errors import InputError
 
 logger = logging.getLogger(__name__)
 
-DATASETS: tuple[str, ...] = ("kitti15", "kitti12", "middlebury", "sceneflow", "folder", "sample")
+DATASETS: tuple[str, ...] = ("kitti15", "kitti12", "middlebury", "sceneflow", "folder", "kitti_unlabelled", "sample")
 SPLITS: tuple[str, ...] = ("training", "testing")
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
@@ -336,6 +339,41 @@ def _gt_format_for(path: Path, scale: float) -> dict[str, Any]:
     return {"gt_format": "scaled", "gt_scale": float(scale)}
 
 
+# ------------------------------------------------------------------------------------------- KITTI, no GT
+#: (left, right) image-folder names of the KITTI layouts found in the wild (stereo 2012/2015, odometry, raw).
+_UNLABELLED_FOLDERS: tuple[tuple[str, str], ...] = (("image_2", "image_3"), ("image_02", "image_03"),
+                                                   ("colored_0", "colored_1"))
+
+
+def _unlabelled_pairs(folder: Path, root: Path) -> list[PairRef]:
+    """The pairs directly under ``folder``: KITTI view folders (or their ``data/``), or left.png + right.png."""
+    prefix = "" if folder == root else str(folder.relative_to(root)) + "-"
+    meta = {"dataset": "kitti_unlabelled"}
+    for left_name, right_name in _UNLABELLED_FOLDERS:
+        left_dir, right_dir = folder / left_name, folder / right_name
+        if (left_dir / "data").is_dir() and (right_dir / "data").is_dir():  # raw-data layout
+            left_dir, right_dir = left_dir / "data", right_dir / "data"
+        if left_dir.is_dir() and right_dir.is_dir():
+            lefts, rights = _images_in(left_dir), _images_in(right_dir)
+            _check_counts(lefts, rights, left_dir, right_dir)
+            return [PairRef(_safe_id(prefix + stem), lefts[stem], rights[stem], meta=dict(meta)) for stem in lefts]
+    left, right = _first_existing(folder / "left.png"), _first_existing(folder / "right.png")
+    if left is not None and right is not None:
+        return [PairRef(_safe_id(prefix.rstrip("-") or folder.name), left, right, meta=dict(meta))]
+    return []
+
+
+def _discover_kitti_unlabelled(root: Path, split: str, **_: Any) -> list[PairRef]:
+    """Every KITTI-style pair under ``root`` (any depth); GT files are never read, even if present."""
+    folders = [root, *sorted(p for p in root.rglob("*") if p.is_dir())]
+    refs: list[PairRef] = []
+    for folder in folders:
+        if folder.name in ("data", *(name for pair in _UNLABELLED_FOLDERS for name in pair)):
+            continue  # view folders are read through their parent
+        refs.extend(_unlabelled_pairs(folder, root))
+    return refs
+
+
 # ------------------------------------------------------------------------------------------------------ sample
 #: (height, width, seed) of the synthetic layered scenes in the `sample` dataset. Sizes differ on purpose so
 #: consumers cannot assume one shape per shard.
@@ -462,6 +500,7 @@ _DISCOVER: dict[str, Callable[..., list[PairRef]]] = {
     "middlebury": _discover_middlebury,
     "sceneflow": _discover_sceneflow,
     "folder": _discover_folder,
+    "kitti_unlabelled": _discover_kitti_unlabelled,
     "sample": _discover_sample,
 }
 

@@ -42,14 +42,24 @@ from pathlib import Path
 from typing import Any
 
 import h5py
-import hdf5plugin  # registers the Blosc filters with h5py: every shard reader imports this module
 import numpy as np
 import numpy.typing as npt
 
 from pvm_labeler.errors import ShardError
 from pvm_labeler.io import atomic_write_bytes
 
+try:
+    import hdf5plugin  # registers the Blosc filters with h5py: every shard reader imports this module
+except ImportError:  # a machine without it still reads and writes lzf/gzip/none shards
+    hdf5plugin = None
+
 logger = logging.getLogger(__name__)
+
+BLOSC_HINT = (
+    "the shard is compressed with Blosc, an HDF5 filter plugin: `pip install hdf5plugin` and `import hdf5plugin` "
+    "before opening it (or set HDF5_PLUGIN_PATH to hdf5plugin.PLUGINS_PATH for non-Python tools), or rewrite the "
+    "directory without the plugin: `pvm-label convert DIR OUT --compression lzf`"
+)
 
 SCHEMA_NAME = "pvstereo-pvm-shards"
 SCHEMA_VERSION = 1
@@ -179,6 +189,8 @@ def _compression_kwargs(compression: str) -> Mapping[str, Any]:
     # is as small as gzip level 1 at about a third of its write time. The byte-shuffle filter gains nothing with lzf
     # (5.28 vs 5.29 MB/frame) but slows reads by ~25 %; for gzip it helps, and level 1 is within 2 % of level 4's
     # size at ~30 % less write time.
+    if compression.startswith("blosc") and hdf5plugin is None:
+        raise ShardError(f"--compression {compression} needs the hdf5plugin package; install it or use lzf")
     if compression == "blosc-lz4":
         return hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE)
     if compression == "blosc-zstd":
@@ -468,7 +480,8 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
     try:
         arrays = {name: group[name][()] for name in (*REQUIRED, *OPTIONAL) if name in group}
     except (OSError, KeyError) as exc:
-        raise ShardError(f"shard {h5.filename}: sample '{frame_id}' is unreadable ({exc})") from exc
+        hint = f"; {BLOSC_HINT}" if "filter" in str(exc).lower() or "plugin" in str(exc).lower() else ""
+        raise ShardError(f"shard {h5.filename}: sample '{frame_id}' is unreadable ({exc}){hint}") from exc
     missing = [name for name in REQUIRED if name not in arrays]
     if missing:
         raise ShardError(f"shard {h5.filename}: sample '{frame_id}' lacks {missing}")
