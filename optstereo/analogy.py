@@ -147,7 +147,7 @@ def sample_spatial(batch: int, height: int, width: int, max_scale: float, gen: t
 
 
 def _spatial_grid(params: SpatialParams, height: int, width: int, device: torch.device) -> torch.Tensor:
-    """grid_sample grid (B, H, W, 2), align_corners=False: output pixel centre u + 0.5 comes from (u + 0.5 + x0) / sx."""
+    """grid_sample grid (B, H, W, 2), align_corners=False: output pixel centre u + 0.5 samples (u + 0.5 + x0) / sx."""
     sx, sy, x0, y0 = (t.to(device).view(-1, 1, 1) for t in (params.sx, params.sy, params.x0, params.y0))
     u = torch.arange(width, device=device, dtype=torch.float32).view(1, 1, width) + 0.5
     v = torch.arange(height, device=device, dtype=torch.float32).view(1, height, 1) + 0.5

@@ -99,6 +99,7 @@ def _device_option(fn):
 @click.option("--analogy-opt", multiple=True,
               help="L_T option KEY=VALUE, e.g. occlusion=false, max_scale=1.3, photo_threshold=0.1 (repeatable).")
 @click.option("--analogy-start", type=int, help="First step with L_T. [default: 0]")
+@click.option("--analogy-every", type=int, help="Apply L_T on every k-th step from --analogy-start. [default: 1]")
 @click.option("--crop", help=f"Random crop HxW, px (whole frame when smaller). [default: {_D.crop[0]}x{_D.crop[1]}]")
 @click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.flip_swap_p}]")
 @click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")
@@ -224,7 +225,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                  device: str, amp: str, quiet: bool) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
-    from optstereo import predict
+    from optstereo import inference
 
     if dataset is None and (left is None or right is None):
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
@@ -232,11 +233,11 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
     model, dev = _load_model(checkpoint, device)
     if dataset is None:
-        paths = _run_guarded(predict.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
+        paths = _run_guarded(inference.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp)
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
-        written = _run_guarded(predict.predict_dataset, model, dataset, root, out, split=split, iters=iters,
+        written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,
                                formats=formats, device=dev, limit=limit, amp=amp)
         click.echo(f"wrote {len(written)} frames into {out}")
 

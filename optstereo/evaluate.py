@@ -94,7 +94,7 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
     try:
         from pvm_labeler.viz import error_map
     except ImportError:
-        from optstereo.predict import colorize
+        from optstereo.inference import colorize
 
         err = np.where(np.isfinite(gt), np.abs(pred - gt), np.nan).astype(np.float32)
         return colorize(err, max_disp=5.0)  # saturates at 5 px, past KITTI's 3 px outlier threshold
@@ -102,7 +102,7 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
 
 
 def _save_maps(out_dir: Path, frame: Frame) -> None:
-    from optstereo.predict import colorize
+    from optstereo.inference import colorize
     from pvm_labeler.io import write_image
 
     maps = out_dir / "maps"
@@ -171,7 +171,7 @@ def model_frames(
     device: torch.device | str = "cpu", limit: int | None = None, amp: str = "none",
 ) -> Iterator[Frame]:
     """Run the network over a dataset (pvm_labeler.datasets readers), yielding Frames with timings."""
-    from optstereo.predict import infer
+    from optstereo.inference import infer
     from pvm_labeler.datasets import discover, load_pair
 
     for ref in discover(dataset, root, split=split)[:limit]:

@@ -30,7 +30,7 @@ from optstereo import distributed as ddp
 from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, save_checkpoint, unwrap
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
-from optstereo.predict import warn_if_emulated_bf16
+from optstereo.inference import warn_if_emulated_bf16
 from optstereo.train_config import TrainConfig
 
 logger = logging.getLogger(__name__)
@@ -197,7 +197,7 @@ def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left
     The transformation draws come from a generator seeded by (seed, step), so a resumed run repeats them.
     """
     zero = torch.zeros((), device=device)
-    if cfg.lambda_t <= 0 or state.step < cfg.analogy_start:
+    if cfg.lambda_t <= 0 or state.step < cfg.analogy_start or (state.step - cfg.analogy_start) % cfg.analogy_every:
         return zero, {"L_T": zero, "T_valid": zero}
     from optstereo.analogy import analogy_loss, transform_batch
 

@@ -82,6 +82,7 @@ class TrainConfig:
             0 = off (it costs a second forward/backward per step).
         analogy: AnalogyConfig overrides (spatial/appearance/occlusion switches, ranges, reliability test).
         analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).
+        analogy_every: apply L_T on every k-th step only (it doubles a step's cost; k = 2 costs ~1.5x).
         init: start from this checkpoint's weights (fine-tuning / continuing later) with a new optimizer and
             schedule; the model settings are taken from the checkpoint. Unlike --resume it starts at step 0.
     """
@@ -124,6 +125,7 @@ class TrainConfig:
     lambda_t: float = 0.0
     analogy: dict[str, Any] = field(default_factory=dict)
     analogy_start: int = 0
+    analogy_every: int = 1
     init: Path | None = None
 
     # -- construction -------------------------------------------------------------------------------------------
@@ -190,6 +192,8 @@ class TrainConfig:
         parse_crop(self.crop)
         if self.lambda_t < 0:
             raise ConfigError(f"--lambda-t must be >= 0, got {self.lambda_t}")
+        if self.analogy_every < 1:
+            raise ConfigError(f"--analogy-every must be >= 1, got {self.analogy_every}")
         if self.analogy_start < 0:
             raise ConfigError(f"--analogy-start must be >= 0, got {self.analogy_start}")
         try:

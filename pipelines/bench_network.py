@@ -34,7 +34,7 @@ import torch
 
 from optstereo.losses import PVStereoLoss
 from optstereo.models import build_model
-from optstereo.predict import cpu_has_native_bf16
+from optstereo.inference import cpu_has_native_bf16
 
 log = logging.getLogger(__name__)
 

@@ -64,7 +64,7 @@ def _infer_speed(kitti_root: str | None, iters: int, repeats: int) -> dict[str, 
     import torch
 
     from optstereo.models import build_model
-    from optstereo.predict import infer
+    from optstereo.inference import infer
 
     torch.set_num_threads(THREADS)
     torch.manual_seed(0)

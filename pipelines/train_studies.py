@@ -370,7 +370,7 @@ def plot_overview(path: Path, frame_index: int = 0) -> None:
     import matplotlib.pyplot as plt
 
     from optstereo.checkpoint import build_model_from_checkpoint
-    from optstereo.predict import infer
+    from optstereo.inference import infer
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.datasets import discover, load_pair
     from pvm_labeler.multiscale import _to_grey

@@ -18,9 +18,9 @@ Supported layouts (``root`` is the folder you pass as ``--root``):
 - ``folder``: any two folders or glob patterns of left/right images (``left=``, ``right=``, optional ``gt=``;
   defaults ``root/left``, ``root/right``, ``root/gt``), paired by file stem (or by sorted order when the stems differ
   but the counts match).
-- ``kitti_unlabelled``: every folder under ``root`` holding a KITTI-style pair of image folders (``image_2``/``image_3``,
-  ``image_02``/``image_03``, or their ``data/`` sub-folders) or a ``left.png``/``right.png`` pair; frame ids are the
-  relative path joined with ``-``. Never any GT: this is self-supervised training data.
+- ``kitti_unlabelled``: every folder under ``root`` holding a KITTI-style pair of image folders
+  (``image_2``/``image_3``, ``image_02``/``image_03``, or their ``data/`` sub-folders) or a ``left.png``/``right.png``
+  pair; frame ids are the relative path joined with ``-``. Never any GT: this is self-supervised training data.
 - ``sample``: no files needed: scikit-image's Middlebury 2014 motorcycle pair (GT invalid = +inf -> NaN) plus
   deterministic synthetic layered scenes with exact left, non-occluded and right GT.
 """

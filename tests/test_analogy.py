@@ -27,7 +27,7 @@ OFF = AnalogyConfig(spatial=False, appearance=False, occlusion=False)
 
 
 def _ramp_pair(b: int, h: int, w: int, d: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Images linear in x (exact under bilinear resampling): left(x) = x, right(x) = x + d, so left(x) = right(x - d)."""
+    """Images linear in x (exact under bilinear resampling): left(x) = x, right(x) = x + d: left(x) = right(x - d)."""
     xs = torch.arange(w, dtype=torch.float32).view(1, 1, 1, w).expand(b, 3, h, w)
     return xs.clone(), xs + d
 

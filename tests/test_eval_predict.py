@@ -13,12 +13,12 @@ import torch
 from click.testing import CliRunner
 from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
 
-from optstereo import predict as predict_mod
+from optstereo import inference as predict_mod
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
 from optstereo.models import build_model
-from optstereo.predict import infer, warn_if_emulated_bf16, write_disparity
+from optstereo.inference import infer, warn_if_emulated_bf16, write_disparity
 from pvm_labeler.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.metrics import disparity_metrics
 
@@ -97,7 +97,7 @@ class TestPredict:
     def test_bf16_emulation_warning(self, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
         monkeypatch.setattr(predict_mod, "cpu_has_native_bf16", lambda: False)
         monkeypatch.setattr(predict_mod, "_bf16_warned", False)
-        with caplog.at_level("WARNING", logger="optstereo.predict"):
+        with caplog.at_level("WARNING", logger="optstereo.inference"):
             warn_if_emulated_bf16("none", torch.device("cpu"))
             assert not caplog.records
             warn_if_emulated_bf16("bf16", torch.device("cpu"))

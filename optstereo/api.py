@@ -1,0 +1,68 @@
+"""The Python API: ``load_model`` and ``predict``, the same calls the CLIs make.
+
+    from optstereo import load_model, predict
+    model = load_model("pretrained")                 # or a checkpoint file / run directory
+    disp = predict(model, left, right)               # (H, W, 3) uint8 RGB each -> (H, W) float32 px
+    disps = predict(model, [(l1, r1), (l2, r2)])     # a list of pairs -> a list of maps (any sizes)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+Image = npt.NDArray[np.uint8]
+
+
+def load_model(checkpoint: str | Path = "pretrained", device: str | torch.device = "cpu") -> nn.Module:
+    """Build the model a checkpoint records and load its weights (eval mode, on ``device``).
+
+    Args:
+        checkpoint: ``"pretrained"`` (the shipped model), a .pt/.safetensors file or a training RUN_DIR.
+        device: ``"cpu"``, ``"cuda"``, ``"auto"`` (cuda when available) or a torch.device.
+    """
+    from optstereo.checkpoint import build_model_from_checkpoint
+    from optstereo.distributed import resolve_device
+    from optstereo.pretrained import resolve_checkpoint_spec
+
+    dev = resolve_device(device) if isinstance(device, str) else device
+    return build_model_from_checkpoint(resolve_checkpoint_spec(checkpoint), dev)
+
+
+def _device_of(model: nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
+def predict(
+    model: nn.Module,
+    left: Image | Sequence[tuple[Image, Image]],
+    right: Image | None = None,
+    *,
+    iters: int | None = None,
+    amp: str = "none",
+) -> npt.NDArray[np.float32] | list[npt.NDArray[np.float32]]:
+    """Disparity of the left view: positive, full resolution, left(x) matches right(x - d).
+
+    Args:
+        model: from :func:`load_model`.
+        left, right: (H, W, 3) uint8 RGB arrays of one pair (any H, W: padded to a multiple of 8 inside); or
+            ``left`` a list of (left, right) pairs and ``right`` None.
+        iters: GRU iterations (None = the model's own).
+        amp: ``none``, ``bf16`` or ``fp16`` (CUDA).
+
+    Returns:
+        (H, W) float32, or a list of them for a list of pairs (each at its own size).
+    """
+    from optstereo.inference import infer
+
+    device = _device_of(model)
+    if right is None:
+        if isinstance(left, np.ndarray):
+            raise ValueError("predict(model, left, right): give the right image, or a list of (left, right) pairs")
+        return [infer(model, lft, rgt, iters=iters, device=device, amp=amp) for lft, rgt in left]
+    return infer(model, np.asarray(left), np.asarray(right), iters=iters, device=device, amp=amp)

@@ -1,0 +1,250 @@
+"""The shipped model, end to end: label the unlabelled KITTI pairs, train, branch the L_T ablation, evaluate on every
+GT set of ../shared/data against dense SGM, export the weights.
+
+    python -m pipelines.train_pretrained label       PVM labels of kitti_unlabelled (never a GT frame)
+    python -m pipelines.train_pretrained train       the main run (pipelines/recipes/cpu_main.yaml), resumable
+    python -m pipelines.train_pretrained branch      the ablation arms from the main run's checkpoint at analogy_start
+    python -m pipelines.train_pretrained baselines   dense SGM (the labeler's matcher, holes filled along rows)
+    python -m pipelines.train_pretrained eval RUN    a run (or 'pretrained') on every GT set -> results/pretrained/
+    python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/
+    python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
+
+Every number goes to ``results/pretrained/<name>.json`` (committed) with the command, commit, CPU and seconds, so
+the report can be rebuilt after the run directories (git-ignored) are gone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+BIN = Path(sys.executable).parent
+SHARED = Path("../shared/data")
+LABELS = Path("out/labels/kitti_unlabelled")
+RUNS = Path("out/pretrained")
+RESULTS = Path("results/pretrained")
+RECIPE = Path("pipelines/recipes/cpu_main.yaml")
+WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
+TEST_ITERS = 8  # the run trains with N_s = 4; RAFT-style refinement keeps improving with more test iterations
+
+#: (name, reader, root under SHARED, SGM search range or None = 64 / the scene's calib ndisp)
+EVAL_SETS: tuple[tuple[str, str, str, int | None], ...] = (
+    ("kitti15", "kitti15", "kitti15", 192),
+    ("kitti12", "kitti12", "kitti12", 192),
+    ("middlebury", "middlebury", ".", None),
+    ("sceneflow", "sceneflow", "sceneflow", 192),
+)
+#: The ablation (equal budget: the last quarter of the main run's steps, from its checkpoint at analogy_start).
+ARMS: dict[str, list[str]] = {
+    "arm_no_lt": ["--lambda-t", "0"],
+    "arm_lp_only": ["--lambda-t", "0", "--lambda-r", "0", "--lambda-s", "0"],
+}
+
+
+def _show(cmd: list[str]) -> str:
+    return " ".join(shlex.quote(str(c)) for c in cmd)
+
+
+def _run(cmd: list[str]) -> None:
+    print("$ " + _show(cmd), flush=True)
+    subprocess.run(["nice", "-n", "5", *map(str, cmd)], check=True)
+
+
+def _machine() -> dict[str, Any]:
+    from pipelines.bench import cpu_summary
+    from pvm_labeler.shards import git_commit
+
+    return {"cpu": cpu_summary(), "python": platform.python_version(), "git_commit": git_commit(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+
+
+# -- steps ---------------------------------------------------------------------------------------------------------
+def step_label() -> None:
+    _run([BIN / "pvm-label", "run", "--dataset", "kitti_unlabelled", "--root", SHARED / "kitti_unlabelled",
+          "--out", LABELS, "--jobs", "2", "--quiet"])
+
+
+def train_command(run: str = "main") -> list[str]:
+    return [BIN / "optstereo-train", "--config", RECIPE, "--labels", LABELS, "--out", RUNS / run, "--quiet"]
+
+
+def step_train() -> None:
+    resume = (RUNS / "main" / "last.pt").exists()
+    _run([BIN / "optstereo-train", "--resume", RUNS / "main", "--quiet"] if resume else train_command())
+
+
+def branch_commands(start: int) -> dict[str, list[str]]:
+    """Each arm resumes a copy of the main run at ``start`` with its loss overrides (same data, same schedule)."""
+    return {arm: [BIN / "optstereo-train", "--resume", RUNS / arm, *flags, "--threads", "1", "--quiet"]
+            for arm, flags in ARMS.items()}
+
+
+def step_branch() -> None:
+    """Copy ckpt-<analogy_start>.pt of the main run into each arm's RUN_DIR as last.pt and resume it."""
+    from optstereo.train_config import TrainConfig
+
+    start = TrainConfig.load(RECIPE).analogy_start
+    source = RUNS / "main" / f"ckpt-{start:07d}.pt"
+    if not source.exists():
+        sys.exit(f"{source} not found: the main run has not reached analogy_start = {start} yet (or it was rotated)")
+    procs = []
+    for arm, cmd in branch_commands(start).items():
+        rd = RUNS / arm
+        if not (rd / "last.pt").exists():
+            rd.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source, rd / "last.pt")
+            shutil.copyfile(RUNS / "main" / "config.yaml", rd / "config.yaml")
+        print("$ " + _show(cmd), flush=True)
+        procs.append(subprocess.Popen(["nice", "-n", "5", *map(str, cmd)]))
+    if any(p.wait() for p in procs):
+        sys.exit("an ablation arm failed")
+
+
+def fill_rows_nearest(disp: np.ndarray) -> np.ndarray:
+    """NaN pixels take the nearest finite value on their row (dense SGM for dense metrics)."""
+    from pipelines.train_studies import fill_rows_nearest as fill
+
+    return fill(disp)
+
+
+def step_baselines() -> dict[str, Any]:
+    """Dense full-resolution SGM (the labeler's matcher: census 5x5, 8 paths, P1/P2 as labelled) on every GT set."""
+    from optstereo.evaluate import Frame, evaluate_frames
+    from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.datasets import discover, load_pair
+    from pvm_labeler.multiscale import _to_grey
+    from pvm_labeler.sgm import sgm_pair
+
+    cfg = LabelerConfig()
+    out: dict[str, Any] = {"what": "dense SGM, NaN filled by the nearest valid value on the row", **_machine()}
+    for name, reader, root, max_disp in EVAL_SETS:
+        frames, seconds = [], []
+        for ref in discover(reader, SHARED / root):
+            sample = load_pair(ref)
+            t0 = time.perf_counter()
+            res, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg,
+                              max_disp=max_disp or sample.max_disp or 64, right_view=False)
+            seconds.append(time.perf_counter() - t0)
+            frames.append(Frame(ref.frame_id, fill_rows_nearest(res.disp), sample.gt, sample.gt_noc))
+        result = evaluate_frames(frames, RUNS / "eval" / "sgm_dense" / name, title=f"dense SGM on {name}")
+        out[name] = {"summary": result.summary, "frames": result.rows, "seconds_per_frame": float(np.mean(seconds))}
+        print(f"dense SGM {name}: bad3 {result.summary['bad3']:.2f} %, EPE {result.summary['epe']:.3f} px", flush=True)
+    _write(RESULTS / "sgm_dense.json", out)
+    return out
+
+
+def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS) -> dict[str, Any]:
+    """The network (a RUN_DIR under out/pretrained, a checkpoint path, or 'pretrained') on every GT set."""
+    from optstereo.api import load_model
+    from optstereo.evaluate import evaluate_model
+
+    spec = run if run == "pretrained" or Path(run).exists() else RUNS / run
+    name = name or Path(str(run)).name
+    model = load_model(spec)
+    out: dict[str, Any] = {"checkpoint": str(spec), "iters": iters, **_machine()}
+    summary_path = Path(spec) / "summary.json" if Path(spec).is_dir() else None
+    if summary_path is not None and summary_path.exists():
+        out["train_summary"] = json.loads(summary_path.read_text())
+    for set_name, reader, root, _ in EVAL_SETS:
+        result = evaluate_model(model, reader, SHARED / root, iters=iters, out_dir=RUNS / "eval" / name / set_name,
+                                save_maps=set_name == "kitti15")
+        out[set_name] = {"summary": result.summary, "frames": result.rows}
+        s = result.summary
+        print(f"{name} {set_name}: bad3 {s['bad3']:.2f} %, D1 {s['d1_all']:.2f} %, EPE {s['epe']:.3f} px, "
+              f"{s.get('seconds_per_frame', float('nan')):.2f} s/frame", flush=True)
+    _write(RESULTS / f"{name}.json", out)
+    return out
+
+
+def step_ship(run: str) -> None:
+    """Export the run's final weights (float32 safetensors, model config in the metadata) as the shipped model."""
+    from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
+
+    ckpt = load_checkpoint(RUNS / run)
+    model = build_model_from_checkpoint(ckpt)
+    WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
+    export_safetensors(WEIGHTS, model, step=ckpt.step)
+    print(f"wrote {WEIGHTS} ({WEIGHTS.stat().st_size / 1e6:.1f} MB, step {ckpt.step})")
+
+
+def _write(path: Path, doc: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1, default=float))
+
+
+# -- report --------------------------------------------------------------------------------------------------------
+def _cells(summary: dict[str, Any]) -> str:
+    return f"{summary['bad3']:.2f} | {summary['d1_all']:.2f} | {summary['epe']:.3f}"
+
+
+def _scene_rows(doc: dict[str, Any], set_name: str) -> dict[str, dict[str, Any]]:
+    return {row["frame_id"]: row for row in doc[set_name]["frames"]}
+
+
+def step_report() -> str:
+    """Markdown tables: the shipped model vs dense SGM on every set and Middlebury scene; the ablation."""
+    sgm = json.loads((RESULTS / "sgm_dense.json").read_text())
+    docs = {p.stem: json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json")) if p.stem != "sgm_dense"}
+    main = docs.get("main")
+    lines = ["| GT set (dense, every GT-valid pixel, pooled) | frames | network bad-3 % | D1-all % | AEPE px | "
+             "dense SGM bad-3 % | D1-all % | AEPE px | network / SGM bad-3 |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    if main is not None:
+        for set_name, *_ in EVAL_SETS:
+            net, base = main[set_name]["summary"], sgm[set_name]["summary"]
+            lines.append(f"| {set_name} | {net['n_frames']} | {_cells(net)} | {_cells(base)} | "
+                         f"{net['bad3'] / base['bad3']:.2f}x |")
+        for scene, row in _scene_rows(main, "middlebury").items():
+            base = _scene_rows(sgm, "middlebury")[scene]
+            lines.append(f"| middlebury: {scene} | 1 | {row['bad3']:.2f} | {row['d1_all']:.2f} | {row['epe']:.3f} | "
+                         f"{base['bad3']:.2f} | {base['d1_all']:.2f} | {base['epe']:.3f} | "
+                         f"{row['bad3'] / base['bad3']:.2f}x |")
+    lines += ["", "| ablation arm (same checkpoint, same steps, same data order) | KITTI 2015 bad-3 % | D1-all % | "
+              "AEPE px | KITTI 2012 bad-3 % | Middlebury bad-3 % |", "|---|---:|---:|---:|---:|---:|"]
+    for name, what in (("main", "L_P + 0.1 L_R + 0.1 L_S + 0.5 L_T (every 2nd step)"),
+                       ("arm_no_lt", "L_P + 0.1 L_R + 0.1 L_S"), ("arm_lp_only", "L_P only")):
+        if name in docs:
+            d = docs[name]
+            lines.append(f"| {what} (`{name}`) | {_cells(d['kitti15']['summary'])} | "
+                         f"{d['kitti12']['summary']['bad3']:.2f} | {d['middlebury']['summary']['bad3']:.2f} |")
+    text = "\n".join(lines) + "\n"
+    (RESULTS / "report.md").write_text(text)
+    print(text)
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("step", choices=("label", "train", "branch", "baselines", "eval", "ship", "report"))
+    parser.add_argument("run", nargs="?", default="main")
+    parser.add_argument("--name", help="result name for eval (default: the run's name)")
+    parser.add_argument("--iters", type=int, default=TEST_ITERS)
+    args = parser.parse_args(argv)
+    if args.step == "label":
+        step_label()
+    elif args.step == "train":
+        step_train()
+    elif args.step == "branch":
+        step_branch()
+    elif args.step == "baselines":
+        step_baselines()
+    elif args.step == "eval":
+        step_eval(args.run, args.name, args.iters)
+    elif args.step == "ship":
+        step_ship(args.run)
+    else:
+        step_report()
+
+
+if __name__ == "__main__":
+    main()
