@@ -100,6 +100,8 @@ def _device_option(fn):
               help="L_T option KEY=VALUE, e.g. occlusion=false, max_scale=1.3, photo_threshold=0.1 (repeatable).")
 @click.option("--analogy-start", type=int, help="First step with L_T. [default: 0]")
 @click.option("--analogy-every", type=int, help="Apply L_T on every k-th step from --analogy-start. [default: 1]")
+@click.option("--conf-weight/--no-conf-weight", default=None,
+              help="Weight L_P per pixel by the PVM confidence stored in the shards. [default: off]")
 @click.option("--crop", help=f"Random crop HxW, px (whole frame when smaller). [default: {_D.crop[0]}x{_D.crop[1]}]")
 @click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.flip_swap_p}]")
 @click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")

@@ -46,6 +46,7 @@ def sequence_huber_loss(
     label: torch.Tensor,
     valid: torch.Tensor | None = None,
     gamma: float = 0.8,
+    weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """L_P, the PVM guiding loss (paper eq. (guiding loss)); also the supervised loss on ground truth.
 
@@ -56,6 +57,8 @@ def sequence_huber_loss(
         label: (B, 1, H, W) float label D~ (NaN = no label).
         valid: (B, 1, H, W) bool, optional; pixels used are valid & isfinite(label). The mean is over all
             used pixels of the batch (a sample with more labels weighs more, like RAFT's sequence loss).
+        weight: (B, 1, H, W) float >= 0, optional per-pixel weights (PVM confidence): the mean becomes
+            sum(w * l) / sum(w) over the used pixels.
 
     Returns:
         Scalar float32 tensor; 0 (still connected to the graph) if no pixel is labelled.
@@ -69,11 +72,13 @@ def sequence_huber_loss(
         mask = torch.isfinite(label) if valid is None else valid.bool() & torch.isfinite(label)
         target = torch.where(mask, label.float(), torch.zeros((), device=label.device))
         weights = sequence_weights(len(preds), gamma, device=label.device)
-        count = mask.sum().clamp(min=1)
+        zero = torch.zeros((), device=label.device)
+        pixel_w = mask.float() if weight is None else torch.where(mask, weight.float(), zero)
+        count = mask.sum().clamp(min=1) if weight is None else pixel_w.sum().clamp(min=1e-6)
         total = preds[0].float().sum() * 0.0  # keeps the graph when nothing is labelled
         for w, pred in zip(weights, preds, strict=True):
             err = huber((pred.float() - target).abs())
-            total = total + w * torch.where(mask, err, torch.zeros((), device=err.device)).sum() / count
+            total = total + w * (torch.where(mask, err, zero) * pixel_w).sum() / count
     return total
 
 
@@ -187,10 +192,10 @@ class PVStereoLoss(nn.Module):
     gamma weights (8x the full-resolution warps). A term whose lambda is 0 is not computed (reported as 0),
     which is the supervised mode (L_P on ground truth).
 
-    forward(preds, left, right, label, valid) -> (total, terms):
+    forward(preds, left, right, label, valid, weight=None) -> (total, terms):
         preds: list of (B, 1, H, W); left, right: (B, 3, H, W) in [0, 255]; label (B, 1, H, W) float (NaN = none);
-        valid (B, 1, H, W) bool or None. total is the differentiable scalar; terms holds detached float32
-        scalars "L_P", "L_R", "L_S", "total".
+        valid (B, 1, H, W) bool or None; weight (B, 1, H, W) per-pixel L_P weights (confidence) or None.
+        total is the differentiable scalar; terms holds detached float32 scalars "L_P", "L_R", "L_S", "total".
     """
 
     def __init__(
@@ -226,10 +231,11 @@ class PVStereoLoss(nn.Module):
         right: torch.Tensor,
         label: torch.Tensor,
         valid: torch.Tensor | None = None,
+        weight: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         cfg = self.config
         preds = _check_pred_list(preds)
-        loss_p = sequence_huber_loss(preds, label, valid, cfg.gamma)
+        loss_p = sequence_huber_loss(preds, label, valid, cfg.gamma, weight)
         if cfg.photometric_iters == "last":
             photo_preds, photo_weights = preds[-1:], torch.ones(1, device=label.device)
         else:

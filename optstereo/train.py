@@ -84,6 +84,7 @@ def build_loader(cfg: TrainConfig, info: ddp.DistInfo, start_step: int = 0) -> D
         world_size=info.world_size,
         skip_batches=start_step,
         batch_size=cfg.batch_size,
+        with_confidence=cfg.conf_weight,
     )
     return DataLoader(
         stream,
@@ -211,9 +212,10 @@ def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left
 def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainConfig, device: torch.device) -> dict:
     """One optimiser step on one batch; returns float logs (loss terms, label EPE, lr, grad norm)."""
     left, right, label, valid = (t.to(device, non_blocking=True) for t in batch[:4])
+    weight = batch[4].to(device, non_blocking=True) if cfg.conf_weight else None
     state.model.train()
     preds = _forward(state, cfg, device, left, right)
-    total, terms = loss_fn(preds, left, right, label, valid)
+    total, terms = loss_fn(preds, left, right, label, valid, weight)
     weighted_t, terms_t = analogy_term(state, cfg, device, left, right, preds[-1])
     total = total + weighted_t
     terms = {**terms, **terms_t, "total": total.detach()}

@@ -83,6 +83,7 @@ class TrainConfig:
         analogy: AnalogyConfig overrides (spatial/appearance/occlusion switches, ranges, reliability test).
         analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).
         analogy_every: apply L_T on every k-th step only (it doubles a step's cost; k = 2 costs ~1.5x).
+        conf_weight: weight L_P per pixel by the shards' PVM confidence (flip-swapped samples: weight 1).
         init: start from this checkpoint's weights (fine-tuning / continuing later) with a new optimizer and
             schedule; the model settings are taken from the checkpoint. Unlike --resume it starts at step 0.
     """
@@ -126,6 +127,7 @@ class TrainConfig:
     analogy: dict[str, Any] = field(default_factory=dict)
     analogy_start: int = 0
     analogy_every: int = 1
+    conf_weight: bool = False
     init: Path | None = None
 
     # -- construction -------------------------------------------------------------------------------------------

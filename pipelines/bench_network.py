@@ -32,9 +32,9 @@ from typing import Any
 
 import torch
 
+from optstereo.inference import cpu_has_native_bf16
 from optstereo.losses import PVStereoLoss
 from optstereo.models import build_model
-from optstereo.inference import cpu_has_native_bf16
 
 log = logging.getLogger(__name__)
 

@@ -63,8 +63,8 @@ def _infer_speed(kitti_root: str | None, iters: int, repeats: int) -> dict[str, 
     import numpy as np
     import torch
 
-    from optstereo.models import build_model
     from optstereo.inference import infer
+    from optstereo.models import build_model
 
     torch.set_num_threads(THREADS)
     torch.manual_seed(0)

@@ -4,7 +4,8 @@ Steps (each is the real command line a user would type; they are printed before 
 1. ``pvm-label``: PVM pseudo-labels for the sample (scikit-image's Middlebury motorcycle + synthetic scenes);
 2. ``optstereo-train``: self-supervised training from those shards (time-boxed);
 3. ``optstereo-eval``: the network and, with the same ruler, the labels on the sample's ground truth;
-4. ``optstereo-predict``: disparity files for the motorcycle pair, plus an overview picture.
+4. ``optstereo-predict``: disparity files for the motorcycle pair, plus an overview picture;
+5. the shipped model (``--checkpoint pretrained``, trained on unlabelled KITTI pairs only) on the same pair and GT.
 
 Model size: the paper-size OptStereo (C = 256) takes tens of seconds per 320x736 training step on this 2-core CPU,
 so a few minutes would be only a handful of steps. The demo therefore trains a SMALLER configuration (see
@@ -45,8 +46,15 @@ def _run(cmd: list[str], log: Path) -> None:
     print(f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
 
 
-def overview(out: Path, pred_npy: Path) -> Path:
-    """left | PVM labels | network | GT for the motorcycle pair, as one PNG."""
+def _motorcycle_metrics(disp, gt) -> str:
+    from pvm_labeler.metrics import disparity_metrics
+
+    m = disparity_metrics(disp, gt)
+    return f"EPE {m['epe']:.2f} px, bad-3 {m['bad3']:.1f} %, density {m['density']:.0f} %"
+
+
+def overview(out: Path, pred_npy: Path, pretrained_npy: Path) -> Path:
+    """left | PVM labels | demo network | shipped network | GT for the motorcycle pair, metrics in the titles."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -62,17 +70,22 @@ def overview(out: Path, pred_npy: Path) -> Path:
         if "motorcycle" in ids:
             with open_shard(path) as h5:
                 label = read_sample(h5, "motorcycle").label
-    pred = np.load(pred_npy)
+    pred, shipped = np.load(pred_npy), np.load(pretrained_npy)
     vmax = float(np.nanmax(sample.gt))
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8.5))
-    panels = [("left image", sample.left), ("PVM labels (white = no label)", label),
-              ("OptStereo (demo training)", pred), ("ground truth", sample.gt)]
+    fig, axes = plt.subplots(2, 3, figsize=(17, 8.5))
+    panels = [("left image", sample.left), (f"PVM labels: {_motorcycle_metrics(label, sample.gt)}", label),
+              ("ground truth", sample.gt), (None, None),
+              (f"demo OptStereo, 4 CPU min: {_motorcycle_metrics(pred, sample.gt)}", pred),
+              (f"shipped OptStereo (pretrained): {_motorcycle_metrics(shipped, sample.gt)}", shipped)]
     for ax, (title, img) in zip(axes.ravel(), panels, strict=True):
+        if title is None:
+            ax.axis("off")
+            continue
         if img is not None and img.ndim == 3:
             ax.imshow(img)
         elif img is not None:
             ax.imshow(np.ma.masked_invalid(img), cmap="turbo", vmin=0, vmax=vmax)
-        ax.set_title(title)
+        ax.set_title(title, fontsize=10)
         ax.axis("off")
     fig.tight_layout()
     path = out / "overview.png"
@@ -95,12 +108,12 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
 
-    print("== 1/4 PVM pseudo-labels for the embedded sample dataset", flush=True)
+    print("== 1/5 PVM pseudo-labels for the embedded sample dataset", flush=True)
     _run([str(BIN / "pvm-label"), "run", "--dataset", "sample", "--out", str(out / "labels"), "--k", str(args.k),
           "--max-disp", "64", "--jobs", "2", "--quiet", "--overwrite"], log)
 
     shutil.rmtree(out / "run", ignore_errors=True)  # a new run: the trainer refuses to mix two runs in one dir
-    print(f"== 2/4 self-supervised OptStereo training on CPU ({args.minutes:g} min budget, small demo model)",
+    print(f"== 2/5 self-supervised OptStereo training on CPU ({args.minutes:g} min budget, small demo model)",
           flush=True)
     model_opts = [x for k, v in DEMO_MODEL.items() for x in ("--model-opt", f"{k}={v}")]
     _run([str(BIN / "optstereo-train"), "--labels", str(out / "labels"), "--out", str(out / "run"),
@@ -108,26 +121,37 @@ def main(argv: list[str] | None = None) -> None:
           "--iters", "4", "--lr", "4e-4", "--schedule", "constant", "--workers", "1", "--threads", "1",
           "--ckpt-every", "100", "--log-every", "10", "--device", "cpu", *model_opts], log)
 
-    print("== 3/4 evaluation on the sample's ground truth (network, then the labels, one ruler)", flush=True)
+    print("== 3/5 evaluation on the sample's ground truth (network, then the labels, one ruler)", flush=True)
     _run([str(BIN / "optstereo-eval"), "--checkpoint", str(out / "run"), "--dataset", "sample",
           "--out", str(out / "eval_network"), "--device", "cpu"], log)
     _run([str(BIN / "optstereo-eval"), "--labels", str(out / "labels"), "--out", str(out / "eval_labels")], log)
 
-    print("== 4/4 prediction files for the motorcycle pair", flush=True)
+    print("== 4/5 prediction files for the motorcycle pair", flush=True)
     import skimage
 
     data = Path(skimage.__file__).parent / "data"
     _run([str(BIN / "optstereo-predict"), "--checkpoint", str(out / "run"), str(data / "motorcycle_left.png"),
           str(data / "motorcycle_right.png"), "--out", str(out / "predict"), "--format", "png", "--format", "pfm",
           "--format", "npy", "--format", "color", "--device", "cpu"], log)
-    picture = overview(out, out / "predict" / "motorcycle_left.npy")
+
+    print("== 5/5 the shipped model (trained on unlabelled KITTI pairs only) on the same sample", flush=True)
+    _run([str(BIN / "optstereo-eval"), "--checkpoint", "pretrained", "--dataset", "sample",
+          "--out", str(out / "eval_pretrained"), "--device", "cpu"], log)
+    _run([str(BIN / "optstereo-predict"), "--checkpoint", "pretrained", str(data / "motorcycle_left.png"),
+          str(data / "motorcycle_right.png"), "--out", str(out / "predict_pretrained"), "--format", "npy",
+          "--format", "color", "--device", "cpu"], log)
+    picture = overview(out, out / "predict" / "motorcycle_left.npy",
+                       out / "predict_pretrained" / "motorcycle_left.npy")
 
     net = json.loads((out / "eval_network" / "summary.json").read_text())
     lab = json.loads((out / "eval_labels" / "summary.json").read_text())
+    pre = json.loads((out / "eval_pretrained" / "summary.json").read_text())
     steps = json.loads((out / "run" / "summary.json").read_text())["step"]
     print(f"\n== done in {time.perf_counter() - t0:.0f} s ({steps} training steps)")
     print(f"network on sample GT : EPE {net['epe']:.2f} px, bad3 {net['bad3']:.1f} %, D1 {net['d1_all']:.1f} % "
           f"(dense, {net['n_frames']} frames)")
+    print(f"shipped model        : EPE {pre['epe']:.2f} px, bad3 {pre['bad3']:.1f} %, D1 {pre['d1_all']:.1f} % "
+          f"(dense, {pre['n_frames']} frames; trained on unlabelled KITTI, never on this sample)")
     print(f"PVM labels           : EPE {lab['epe']:.2f} px, bad3 {lab['bad3']:.1f} %, density {lab['density']:.1f} %")
     print(f"pictures : {picture}, {out / 'eval_network' / 'maps'}, {out / 'eval_labels' / 'maps'}")
     print(f"reports  : {out / 'eval_network' / 'summary.md'}, {out / 'eval_labels' / 'summary.md'}")

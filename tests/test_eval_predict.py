@@ -17,8 +17,8 @@ from optstereo import inference as predict_mod
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
-from optstereo.models import build_model
 from optstereo.inference import infer, warn_if_emulated_bf16, write_disparity
+from optstereo.models import build_model
 from pvm_labeler.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.metrics import disparity_metrics
 

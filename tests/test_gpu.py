@@ -16,8 +16,8 @@ from test_train import TINY, tiny_config
 
 from optstereo import train
 from optstereo.analogy import AnalogyConfig, transform_batch
-from optstereo.models import build_model
 from optstereo.inference import infer
+from optstereo.models import build_model
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]

@@ -245,3 +245,18 @@ class TestPVStereoLoss:
     def test_exception_unknown_key(self) -> None:
         with pytest.raises(ValueError, match=r"unknown loss config keys \['beta'\]"):
             LossConfig.from_dict({"beta": 1})
+
+
+def test_confidence_weighted_sequence_loss_hand_computed() -> None:
+    """Weighted L_P = sum(w * huber) / sum(w) over labelled pixels: two pixels with errors 2 and 0.5."""
+    from optstereo.losses import sequence_huber_loss
+
+    pred = torch.tensor([[[[3.0, 1.5, 9.0]]]])
+    label = torch.tensor([[[[1.0, 1.0, float("nan")]]]])
+    weight = torch.tensor([[[[0.25, 0.75, 1.0]]]])
+    # huber(2) = 1.5, huber(0.5) = 0.125; the NaN pixel is not used whatever its weight
+    expected = (0.25 * 1.5 + 0.75 * 0.125) / (0.25 + 0.75)
+    assert float(sequence_huber_loss([pred], label, weight=weight)) == pytest.approx(expected)
+    unweighted = (1.5 + 0.125) / 2
+    assert float(sequence_huber_loss([pred], label)) == pytest.approx(unweighted)
+    assert float(sequence_huber_loss([pred], label, weight=torch.ones_like(weight))) == pytest.approx(unweighted)

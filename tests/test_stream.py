@@ -220,3 +220,17 @@ class TestTransforms:
         b = (torch.zeros(3, 24, 24), torch.zeros(3, 24, 24), torch.zeros(1, 24, 24), torch.ones(1, 24, 24, dtype=bool))
         batch = collate_min_size([a, b])
         assert batch[0].shape == (2, 3, 16, 24) and batch[3].shape == (2, 1, 16, 24)
+
+
+def test_stream_with_confidence_crops_it_like_the_label(tmp_path: Path) -> None:
+    shards = make_shards(tmp_path / "s", n=2, shard_size=2, height=32, width=64)
+    plain = list(stream(shards, transform=TrainTransform(crop=(16, 40), flip_swap_p=0.0), with_ids=False))
+    weighted = list(stream(shards, transform=TrainTransform(crop=(16, 40), flip_swap_p=0.0), with_ids=False,
+                           with_confidence=True))
+    for (l0, _, lab0, v0), (l1, _, lab1, v1, w1) in zip(plain, weighted, strict=True):
+        assert torch.equal(l0, l1) and torch.equal(lab0, lab1)  # same random draws with or without the weight
+        assert w1.shape == lab1.shape
+        assert torch.equal(w1 > 0, v1)  # make_shards' confidence is 1 on labelled pixels, 0 elsewhere
+    flipped = next(iter(stream(shards, transform=TrainTransform(crop=(16, 40), flip_swap_p=1.0), with_ids=False,
+                               with_confidence=True)))
+    assert torch.equal(flipped[4], torch.ones_like(flipped[4]))  # no right-view confidence: weight 1

@@ -80,6 +80,8 @@ class ShardStream(IterableDataset):
         rank, world_size: DDP position; None = read from torch.distributed when initialised, else (0, 1).
         infinite: loop over epochs forever (training); False = one epoch.
         with_ids: append the frame id to every yielded tuple.
+        with_confidence: also yield the PVM confidence (1, h, w) float32 after ``valid`` (weights of a
+            confidence-weighted L_P; flip-swapped samples get 1).
         skip_batches, batch_size: skip what the first ``skip_batches`` batches consumed (resume); worker roles
             are rotated so batch ``skip_batches`` comes from the worker that would have made it.
     """
@@ -100,6 +102,7 @@ class ShardStream(IterableDataset):
         skip_batches: int = 0,
         batch_size: int = 1,
         max_open: int = 8,
+        with_confidence: bool = False,
     ) -> None:
         super().__init__()
         if supervision not in ("pvm", "gt"):
@@ -118,6 +121,7 @@ class ShardStream(IterableDataset):
         self._rank, self._world_size = rank, world_size
         self.infinite = infinite
         self.with_ids = with_ids
+        self.with_confidence = with_confidence
         self.skip_batches = int(skip_batches)
         self.batch_size = int(batch_size)
         self.max_open = max_open
@@ -170,6 +174,10 @@ class ShardStream(IterableDataset):
 
     def read(self, path: str, frame_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """(left, right, label, label_right or None) of one sample for the configured supervision."""
+        return self._read(path, frame_id)[:4]
+
+    def _read(self, path: str, frame_id: str) -> tuple:
+        """read() plus the sample's confidence (1 where the supervision is GT)."""
         sample = read_sample(self._open(path), frame_id)
         if self.supervision == "gt":
             if sample.gt is None:
@@ -177,8 +185,8 @@ class ShardStream(IterableDataset):
                     f"--supervision gt needs ground truth, but sample {frame_id!r} in shard {path} has no 'gt' "
                     "(label a dataset with GT, or use --supervision pvm)"
                 )
-            return sample.left, sample.right, sample.gt, sample.gt_right
-        return sample.left, sample.right, sample.label, sample.label_right
+            return sample.left, sample.right, sample.gt, sample.gt_right, np.ones_like(sample.gt)
+        return sample.left, sample.right, sample.label, sample.label_right, sample.confidence
 
     # -- iteration ----------------------------------------------------------------------------------------------
     def __iter__(self) -> Iterator[tuple]:
@@ -209,11 +217,16 @@ class ShardStream(IterableDataset):
             self.close()
 
     def _make(self, path: str, frame_id: str, rng: np.random.Generator) -> tuple:
-        left, right, label, label_right = self.read(path, frame_id)
+        left, right, label, label_right, confidence = self._read(path, frame_id)
+        weight = confidence if self.with_confidence else None
         if self.transform is not None:
-            left, right, label = self.transform(left, right, label, label_right, rng)
+            left, right, label, *rest = self.transform(left, right, label, label_right, rng, weight=weight)
+            weight = rest[0] if rest else None
         else:
             h, w = left.shape[0] // 8 * 8, left.shape[1] // 8 * 8
             left, right, label = left[:h, :w], right[:h, :w], label[:h, :w]
+            weight = None if weight is None else weight[:h, :w]
         out = to_tensors(left, right, label, self.max_disp)
+        if weight is not None:
+            out = (*out, torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float32))[None])
         return (*out, frame_id) if self.with_ids else out

@@ -81,19 +81,27 @@ class TrainTransform:
     photometric: bool = False
 
     def __call__(
-        self, left: Image, right: Image, label: Disp, label_right: Disp | None, rng: np.random.Generator
-    ) -> tuple[Image, Image, Disp]:
-        """Returns augmented (left, right, label); shapes (h, w, 3), (h, w, 3), (h, w)."""
+        self, left: Image, right: Image, label: Disp, label_right: Disp | None, rng: np.random.Generator,
+        weight: Disp | None = None,
+    ) -> tuple[Image, Image, Disp] | tuple[Image, Image, Disp, Disp]:
+        """Returns augmented (left, right, label); shapes (h, w, 3), (h, w, 3), (h, w).
+
+        With ``weight`` (the left view's per-pixel PVM confidence) it returns (left, right, label, weight), the weight
+        cropped like the label. A flip-swapped sample gets weight 1 everywhere: the shards hold no right-view
+        confidence. The random draws are the same with or without a weight.
+        """
         # Draw the flip decision even when it cannot be applied so the random sequence does not depend on data.
         do_flip = rng.random() < self.flip_swap_p
         if do_flip and label_right is not None:
             from optstereo.augment import flip_swap
 
             left, right, label, label_right = flip_swap(left, right, label, label_right)
-        left, right, label = random_crop([left, right, label], self.crop, rng)
+            if weight is not None:
+                weight = np.ones(label.shape, dtype=np.float32)
+        left, right, label, weight = random_crop([left, right, label, weight], self.crop, rng)
         if self.photometric:
             left, right = photometric_jitter(left, right, rng)
-        return left, right, label
+        return (left, right, label) if weight is None else (left, right, label, weight)
 
 
 def to_tensors(
