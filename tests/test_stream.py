@@ -227,7 +227,7 @@ def test_stream_with_confidence_crops_it_like_the_label(tmp_path: Path) -> None:
     plain = list(stream(shards, transform=TrainTransform(crop=(16, 40), flip_swap_p=0.0), with_ids=False))
     weighted = list(stream(shards, transform=TrainTransform(crop=(16, 40), flip_swap_p=0.0), with_ids=False,
                            with_confidence=True))
-    for (l0, _, lab0, v0), (l1, _, lab1, v1, w1) in zip(plain, weighted, strict=True):
+    for (l0, _, lab0, _v0), (l1, _, lab1, v1, w1) in zip(plain, weighted, strict=True):
         assert torch.equal(l0, l1) and torch.equal(lab0, lab1)  # same random draws with or without the weight
         assert w1.shape == lab1.shape
         assert torch.equal(w1 > 0, v1)  # make_shards' confidence is 1 on labelled pixels, 0 elsewhere
