@@ -48,6 +48,7 @@ EVAL_SETS: tuple[tuple[str, str, str, int | None], ...] = (
 ARMS: dict[str, list[str]] = {
     "arm_no_lt": ["--lambda-t", "0"],
     "arm_lp_only": ["--lambda-t", "0", "--lambda-r", "0", "--lambda-s", "0"],
+    "arm_conf": ["--lambda-t", "0", "--conf-weight"],
 }
 
 
@@ -212,7 +213,8 @@ def step_report() -> str:
     lines += ["", "| ablation arm (same checkpoint, same steps, same data order) | KITTI 2015 bad-3 % | D1-all % | "
               "AEPE px | KITTI 2012 bad-3 % | Middlebury bad-3 % |", "|---|---:|---:|---:|---:|---:|"]
     for name, what in (("main", "L_P + 0.1 L_R + 0.1 L_S + 0.5 L_T (every 2nd step)"),
-                       ("arm_no_lt", "L_P + 0.1 L_R + 0.1 L_S"), ("arm_lp_only", "L_P only")):
+                       ("arm_no_lt", "L_P + 0.1 L_R + 0.1 L_S"), ("arm_lp_only", "L_P only"),
+                       ("arm_conf", "confidence-weighted L_P + 0.1 L_R + 0.1 L_S")):
         if name in docs:
             d = docs[name]
             lines.append(f"| {what} (`{name}`) | {_cells(d['kitti15']['summary'])} | "

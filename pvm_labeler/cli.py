@@ -209,6 +209,22 @@ def verify_cmd(shard_dir: Path, verbose: int) -> None:
                f"{index.raw['schema']['version']} ({shard_dir})")
 
 
+@main.command("convert")
+@click.argument("shard_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--compression", type=click.Choice(("blosc-lz4", "blosc-zstd", "lzf", "gzip", "none")), default="lzf",
+              show_default=True, help="Compression of the copy (lzf and gzip need no HDF5 plugin).")
+def convert_cmd(shard_dir: Path, out: Path, compression: str) -> None:
+    """Rewrite SHARD_DIR into OUT with another compression (for tools that lack the Blosc plugin)."""
+    from pvm_labeler.shards import convert, read_index
+
+    try:
+        convert(shard_dir, out, compression)
+    except PVMError as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(f"wrote {read_index(out).num_samples} samples into {out} ({compression})")
+
+
 @main.command("report")
 @click.argument("shard_dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--out", type=click.Path(path_type=Path), default=None,

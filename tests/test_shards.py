@@ -195,3 +195,29 @@ class TestErrors:
             del h5["f3/label_right"]
         problems = verify(out)
         assert problems == [f"shard {out / 'shard-00001.h5'}: sample 'f3' lacks ['label_right']"]
+
+
+def test_convert_to_lzf_round_trips_every_array(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from pvm_labeler.cli import main as pvm_main
+
+    from test_stream import make_shards
+
+    src = make_shards(tmp_path / "src", n=3, shard_size=2)  # Blosc-LZ4, the default
+    result = CliRunner().invoke(pvm_main, ["convert", str(src), str(tmp_path / "lzf"), "--compression", "lzf"])
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "lzf"
+    assert verify(out) == []
+    a, b = read_index(src), read_index(out)
+    assert [ids for _, ids in a.shards] == [ids for _, ids in b.shards] and a.config == b.config
+    for (pa, ids), (pb, _) in zip(a.shards, b.shards, strict=True):
+        with open_shard(pa) as ha, open_shard(pb) as hb:
+            assert hb.attrs["compression"] == "lzf" and hb[ids[0]]["left"].compression == "lzf"
+            for fid in ids:
+                sa, sb = read_sample(ha, fid), read_sample(hb, fid)
+                for name in ("left", "right", "label", "label_right", "confidence", "gt"):
+                    np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name))
+                assert sa.attrs == sb.attrs
+    same = CliRunner().invoke(pvm_main, ["convert", str(src), str(src)])
+    assert same.exit_code == 1 and "must differ" in same.output
