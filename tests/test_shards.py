@@ -199,10 +199,9 @@ class TestErrors:
 
 def test_convert_to_lzf_round_trips_every_array(tmp_path: Path) -> None:
     from click.testing import CliRunner
+    from test_stream import make_shards
 
     from pvm_labeler.cli import main as pvm_main
-
-    from test_stream import make_shards
 
     src = make_shards(tmp_path / "src", n=3, shard_size=2)  # Blosc-LZ4, the default
     result = CliRunner().invoke(pvm_main, ["convert", str(src), str(tmp_path / "lzf"), "--compression", "lzf"])
