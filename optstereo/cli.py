@@ -217,14 +217,19 @@ def _load_model(checkpoint: Path, device: str):
 @click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
-              type=click.Choice(("png", "pfm", "npy", "color")),
-              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color (repeatable).")
+              type=click.Choice(("png", "pfm", "npy", "color", "depth-png", "depth-pfm", "depth-npy", "ply")),
+              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm), "
+                   "depth-pfm / depth-npy (m), ply (coloured point cloud) (repeatable).")
+@click.option("--calib", type=EXISTING,
+              help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
+                   "(fx, cx, cy, baseline [m], doffs).")
+@click.option("--max-depth", type=float, default=None, help="Drop depths beyond this many metres (depth and PLY).")
 @_device_option
 @_infer_amp_option
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
-                 device: str, amp: str, quiet: bool) -> None:
+                 calib: Path | None, max_depth: float | None, device: str, amp: str, quiet: bool) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -233,10 +238,18 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    geometry = [f for f in formats if f in inference.GEOMETRY_FORMATS]
+    if geometry and (calib is None or dataset is not None):
+        raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
+    rig = None
+    if calib is not None:
+        from optstereo.geometry import read_calibration
+
+        rig = _run_guarded(read_calibration, calib)
     model, dev = _load_model(checkpoint, device)
     if dataset is None:
         paths = _run_guarded(inference.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
-                             amp=amp)
+                             amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"))
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
         written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,

@@ -13,6 +13,7 @@ import logging
 import time
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -24,6 +25,7 @@ from optstereo.padding import InputPadder
 logger = logging.getLogger(__name__)
 
 FORMATS = ("png", "pfm", "npy", "color")
+GEOMETRY_FORMATS = ("depth-png", "depth-pfm", "depth-npy", "ply")  # need a calibration (optstereo.geometry)
 DEFAULT_FORMATS = ("png", "color")
 
 
@@ -139,7 +141,7 @@ def write_disparity(
     """
     from pvm_labeler.io import write_image, write_kitti_disp, write_pfm
 
-    formats = tuple(formats)
+    formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
     unknown = sorted(set(formats) - set(FORMATS))
     if unknown:
         raise ValueError(f"unknown output formats {unknown}; choose from {FORMATS}")
@@ -164,11 +166,45 @@ def write_disparity(
     return paths
 
 
+def write_geometry(
+    out_dir: Path, name: str, disp: npt.NDArray[np.float32], image: npt.NDArray[np.uint8], calib: Any,
+    formats: Iterable[str], max_depth: float = float("inf"),
+) -> dict[str, Path]:
+    """Depth (16-bit mm PNG, PFM/NPY in m) and a coloured PLY point cloud of one prediction; format -> path."""
+    from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
+    from pvm_labeler.io import write_pfm
+
+    wanted = [f for f in formats if f in GEOMETRY_FORMATS]
+    if not wanted:
+        return {}
+    if calib is None:
+        raise ValueError(f"formats {wanted} need a calibration: pass --calib FILE")
+    depth = disparity_to_depth(disp, calib, max_depth)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    for fmt in wanted:
+        if fmt == "depth-png":
+            paths[fmt] = out_dir / f"{name}_depth.png"
+            write_depth_png(paths[fmt], depth)
+        elif fmt == "depth-pfm":
+            paths[fmt] = out_dir / f"{name}_depth.pfm"
+            write_pfm(paths[fmt], depth)
+        elif fmt == "depth-npy":
+            paths[fmt] = out_dir / f"{name}_depth.npy"
+            np.save(paths[fmt], depth)
+        else:
+            paths[fmt] = out_dir / f"{name}.ply"
+            write_ply(paths[fmt], *depth_to_points(depth, calib, image))
+    return paths
+
+
 def predict_pair(
     model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
     formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
+    calib: Any = None, max_depth: float = float("inf"),
 ) -> dict[str, Path]:
-    """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir."""
+    """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
     from pvm_labeler.io import read_image
 
     left, right = read_image(left_path), read_image(right_path)
@@ -177,7 +213,9 @@ def predict_pair(
     t0 = time.perf_counter()
     disp = infer(model, left, right, iters=iters, device=device, amp=amp)
     logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
-    return write_disparity(out_dir, Path(left_path).stem, disp, formats)
+    stem = Path(left_path).stem
+    return {**write_disparity(out_dir, stem, disp, formats),
+            **write_geometry(out_dir, stem, disp, left, calib, formats, max_depth)}
 
 
 def predict_dataset(

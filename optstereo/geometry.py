@@ -1,0 +1,152 @@
+"""Depth and point clouds from disparity and a rectified rig's calibration (numpy only).
+
+Z = fx * baseline / (d + doffs); X = (u - cx) Z / fx; Y = (v - cy) Z / fy, in metres, camera frame of the left view
+(x right, y down, z forward). ``doffs`` is the difference of the two cameras' principal points (cx_right - cx_left),
+0 for KITTI, non-zero for Middlebury.
+
+Calibration files (:func:`read_calibration` detects the kind):
+- KITTI ``calib_cam_to_cam.txt`` (raw/stereo 2015): ``P_rect_02`` / ``P_rect_03`` give fx, fy, cx, cy and the
+  baseline (P_rect_02[0, 3] - P_rect_03[0, 3]) / fx (image_2 is the left camera, image_3 the right);
+- Middlebury ``calib.txt``: ``cam0``, ``cam1`` matrices, ``doffs``, ``baseline`` in millimetres;
+- YAML: ``fx``, ``cx``, ``cy``, ``baseline`` (metres), optional ``fy`` (= fx) and ``doffs`` (= 0).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from pvm_labeler.errors import InputError
+
+DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNG in millimetres (0 = invalid), as KITTI depth and most RGB-D tools
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A rectified stereo rig: focal lengths and principal point (px), baseline (m), principal-point offset (px)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline: float
+    doffs: float = 0.0
+
+
+def _numbers(text: str) -> list[float]:
+    return [float(x) for x in re.findall(r"[-+]?\d*\.?\d+(?:[eE][-+]?\d+)?", text)]
+
+
+def _read_kitti(lines: dict[str, str], path: Path, left: str = "02", right: str = "03") -> Calibration:
+    try:
+        p_left = np.array(_numbers(lines[f"P_rect_{left}"]), dtype=np.float64).reshape(3, 4)
+        p_right = np.array(_numbers(lines[f"P_rect_{right}"]), dtype=np.float64).reshape(3, 4)
+    except (KeyError, ValueError) as exc:
+        raise InputError(f"{path}: KITTI calibration needs P_rect_{left} and P_rect_{right} (3x4 each): {exc}") from exc
+    fx = p_left[0, 0]
+    return Calibration(fx=fx, fy=p_left[1, 1], cx=p_left[0, 2], cy=p_left[1, 2],
+                       baseline=(p_left[0, 3] - p_right[0, 3]) / fx, doffs=p_right[0, 2] - p_left[0, 2])
+
+
+def _read_middlebury(lines: dict[str, str], path: Path) -> Calibration:
+    try:
+        cam0 = np.array(_numbers(lines["cam0"]), dtype=np.float64).reshape(3, 3)
+        baseline_mm = float(lines["baseline"])
+        doffs = float(lines.get("doffs", "0"))
+    except (KeyError, ValueError) as exc:
+        raise InputError(f"{path}: Middlebury calibration needs cam0=[...], baseline= and doffs=: {exc}") from exc
+    return Calibration(fx=cam0[0, 0], fy=cam0[1, 1], cx=cam0[0, 2], cy=cam0[1, 2], baseline=baseline_mm / 1000.0,
+                       doffs=doffs)
+
+
+def _read_yaml(path: Path) -> Calibration:
+    import yaml
+
+    doc = yaml.safe_load(path.read_text()) or {}
+    missing = [k for k in ("fx", "cx", "cy", "baseline") if k not in doc]
+    if missing:
+        raise InputError(f"{path}: YAML calibration lacks {missing} (fx, cx, cy in px, baseline in m)")
+    return Calibration(fx=float(doc["fx"]), fy=float(doc.get("fy", doc["fx"])), cx=float(doc["cx"]),
+                       cy=float(doc["cy"]), baseline=float(doc["baseline"]), doffs=float(doc.get("doffs", 0.0)))
+
+
+def read_calibration(path: Path | str) -> Calibration:
+    """KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML (see the module docstring)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"calibration file not found: {path}")
+    if path.suffix.lower() in (".yaml", ".yml"):
+        calib = _read_yaml(path)
+    else:
+        lines = {}
+        for line in path.read_text().splitlines():
+            key, sep, value = line.partition(":") if ":" in line.split("=")[0] else line.partition("=")
+            if sep:
+                lines[key.strip()] = value.strip()
+        if "P_rect_02" in lines:
+            calib = _read_kitti(lines, path)
+        elif "cam0" in lines:
+            calib = _read_middlebury(lines, path)
+        else:
+            raise InputError(f"{path}: not a KITTI calib_cam_to_cam.txt (P_rect_02), Middlebury calib.txt (cam0) "
+                             "or YAML (fx, cx, cy, baseline) calibration")
+    if calib.fx <= 0 or calib.baseline <= 0:
+        raise InputError(f"{path}: focal length and baseline must be > 0, got fx={calib.fx}, baseline={calib.baseline}")
+    return calib
+
+
+def disparity_to_depth(disp: npt.ArrayLike, calib: Calibration, max_depth: float = np.inf) -> npt.NDArray[np.float32]:
+    """(H, W) disparity (px) -> (H, W) float32 depth (m); NaN where d + doffs <= 0, d is not finite or Z > max_depth."""
+    d = np.asarray(disp, dtype=np.float64) + calib.doffs
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = calib.fx * calib.baseline / d
+    bad = ~np.isfinite(depth) | (d <= 0) | (depth > max_depth)
+    return np.where(bad, np.nan, depth).astype(np.float32)
+
+
+def depth_to_points(
+    depth: npt.NDArray[np.floating], calib: Calibration, image: npt.NDArray[np.uint8] | None = None
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8] | None]:
+    """Back-project valid depth pixels: ((N, 3) float32 XYZ in m, (N, 3) uint8 colours or None), row-major order."""
+    v, u = np.nonzero(np.isfinite(depth))
+    z = depth[v, u].astype(np.float64)
+    xyz = np.stack([(u - calib.cx) * z / calib.fx, (v - calib.cy) * z / calib.fy, z], axis=1).astype(np.float32)
+    colours = None if image is None else np.ascontiguousarray(image[v, u, :3], dtype=np.uint8)
+    return xyz, colours
+
+
+def write_depth_png(path: Path | str, depth: npt.NDArray[np.floating]) -> None:
+    """16-bit PNG in millimetres (0 = invalid; depths beyond 65.535 m are clipped to it)."""
+    from pvm_labeler.io import write_image
+
+    mm = np.clip(np.round(np.nan_to_num(depth, nan=0.0) * DEPTH_PNG_SCALE), 0, 65535).astype(np.uint16)
+    write_image(Path(path), mm)
+
+
+def write_ply(path: Path | str, xyz: npt.NDArray[np.float32], colours: npt.NDArray[np.uint8] | None = None) -> None:
+    """Binary little-endian PLY with float x, y, z (m) and, when given, uchar red, green, blue."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colours is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    data = np.empty(len(xyz), dtype=fields)
+    data["x"], data["y"], data["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    if colours is not None:
+        data["red"], data["green"], data["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(xyz)}",
+              *(f"property {'float' if t == '<f4' else 'uchar'} {name}" for name, t in fields), "end_header"]
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(data.tobytes())
+
+
+def read_ply(path: Path | str) -> np.ndarray:
+    """Read a PLY written by :func:`write_ply` (structured array with x, y, z[, red, green, blue])."""
+    raw = Path(path).read_bytes()
+    end = raw.index(b"end_header\n") + len(b"end_header\n")
+    props = [line.split() for line in raw[:end].decode("ascii").splitlines() if line.startswith("property")]
+    dtype = [(name, "<f4" if kind == "float" else "u1") for _, kind, name in props]
+    return np.frombuffer(raw[end:], dtype=dtype)

@@ -1,0 +1,123 @@
+"""Depth and point clouds: calibration readers (KITTI, Middlebury, YAML), exact planes, PNG/PLY writers, the CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from optstereo.geometry import (
+    Calibration,
+    depth_to_points,
+    disparity_to_depth,
+    read_calibration,
+    read_ply,
+    write_depth_png,
+    write_ply,
+)
+from pvm_labeler.errors import InputError
+from pvm_labeler.io import read_grey_raw
+
+RIG = Calibration(fx=700.0, fy=700.0, cx=320.0, cy=120.0, baseline=0.5)
+
+
+def test_kitti_calibration_file(shared_data: Path) -> None:
+    calib = read_calibration(shared_data / "kitti15/training/calib_cam_to_cam/000000.txt")
+    assert calib.fx == pytest.approx(721.5377) and calib.cx == pytest.approx(609.5593)
+    # (44.85728 + 339.5242) / 721.5377, the x-offset difference over f (SOURCES.md: 0.533 m)
+    assert calib.baseline == pytest.approx((44.85728 + 339.5242) / 721.5377) and abs(calib.baseline - 0.533) < 1e-3
+    assert calib.doffs == 0.0
+
+
+def test_middlebury_calibration_file(shared_data: Path) -> None:
+    calib = read_calibration(shared_data / "middlebury_eval3/trainingQ/Motorcycle/calib.txt")
+    assert (calib.fx, calib.cx, calib.cy) == pytest.approx((999.421, 294.182, 252.932))
+    assert calib.baseline == pytest.approx(0.193001) and calib.doffs == pytest.approx(32.778)
+
+
+def test_yaml_calibration(tmp_path: Path) -> None:
+    path = tmp_path / "rig.yaml"
+    path.write_text("fx: 500\ncx: 100\ncy: 80\nbaseline: 0.12\n")
+    assert read_calibration(path) == Calibration(500.0, 500.0, 100.0, 80.0, 0.12, 0.0)
+    path.write_text("fx: 500\n")
+    with pytest.raises(InputError, match="lacks"):
+        read_calibration(path)
+    other = tmp_path / "other.txt"
+    other.write_text("hello=1\n")
+    with pytest.raises(InputError, match="not a KITTI"):
+        read_calibration(other)
+
+
+def test_fronto_parallel_plane_is_exact() -> None:
+    z = 12.5
+    disp = np.full((240, 640), RIG.fx * RIG.baseline / z, np.float32)
+    depth = disparity_to_depth(disp, RIG)
+    np.testing.assert_allclose(depth, z, rtol=1e-6)
+    xyz, _ = depth_to_points(depth, RIG)
+    np.testing.assert_allclose(xyz[:, 2], z, rtol=1e-6)
+    # the principal point's ray is the optical axis; the pixel 100 columns right of it is 100 * z / fx to the right
+    k = 120 * 640 + 420
+    assert xyz[k, 0] == pytest.approx(100 * z / RIG.fx, rel=1e-5) and xyz[k, 1] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_slanted_plane_points_lie_on_the_plane() -> None:
+    # plane Z = 5 + 0.01 * X: along a row, d(u) = fx B / Z with Z solving Z = 5 + 0.01 (u - cx) Z / fx
+    u = np.arange(640, dtype=np.float64)
+    z = 5.0 / (1.0 - 0.01 * (u - RIG.cx) / RIG.fx)
+    disp = np.broadcast_to(RIG.fx * RIG.baseline / z, (240, 640)).astype(np.float64)
+    calib = Calibration(700.0, 700.0, 320.0, 120.0, 0.5, doffs=2.0)
+    depth = disparity_to_depth(disp - 2.0, calib)  # doffs is added back: the same depths
+    np.testing.assert_allclose(depth[7], z, rtol=1e-5)
+    xyz, _ = depth_to_points(depth, calib)
+    np.testing.assert_allclose(xyz[:, 2], 5.0 + 0.01 * xyz[:, 0], rtol=1e-5)
+
+
+def test_invalid_and_far_pixels_are_dropped(tmp_path: Path) -> None:
+    disp = np.array([[35.0, np.nan, 0.0, -1.0, 3.5]], np.float32)
+    depth = disparity_to_depth(disp, RIG, max_depth=50.0)
+    assert depth[0, 0] == pytest.approx(10.0) and np.isnan(depth[0, 1:]).all()  # 3.5 px = 100 m > 50
+    write_depth_png(tmp_path / "d.png", depth)
+    raw = read_grey_raw(tmp_path / "d.png")
+    assert raw.dtype == np.uint16 and raw[0, 0] == 10000 and (raw[0, 1:] == 0).all()
+
+
+def test_ply_round_trip(tmp_path: Path) -> None:
+    depth = np.array([[2.0, np.nan], [4.0, 8.0]], np.float32)
+    image = np.arange(12, dtype=np.uint8).reshape(2, 2, 3)
+    xyz, rgb = depth_to_points(depth, RIG, image)
+    write_ply(tmp_path / "c.ply", xyz, rgb)
+    back = read_ply(tmp_path / "c.ply")
+    assert len(back) == 3
+    np.testing.assert_allclose(back["z"], [2.0, 4.0, 8.0])
+    assert back["red"].tolist() == [0, 6, 9]
+
+
+def test_predict_cli_depth_and_ply(tmp_path: Path, shared_data: Path) -> None:
+    import torch
+    from test_train import TINY
+
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.cli import predict_main
+    from optstereo.models import build_model
+
+    torch.manual_seed(0)
+    ckpt = export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", iters=2, **TINY))
+    left = shared_data / "kitti15/training/image_2/000000_10.png"
+    right = shared_data / "kitti15/training/image_3/000000_10.png"
+    calib = shared_data / "kitti15/training/calib_cam_to_cam/000000.txt"
+    args = ["--checkpoint", str(ckpt), str(left), str(right), "--out", str(tmp_path / "o"), "--device", "cpu"]
+    result = CliRunner().invoke(predict_main, [*args, "--format", "depth-png", "--format", "ply", "--format", "npy",
+                                               "--calib", str(calib), "--max-depth", "80"])
+    assert result.exit_code == 0, result.output
+    disp = np.load(tmp_path / "o/000000_10.npy")
+    depth_mm = read_grey_raw(tmp_path / "o/000000_10_depth.png").astype(np.float64)
+    rig = read_calibration(calib)
+    expected = disparity_to_depth(disp, rig, 80.0)
+    ok = np.isfinite(expected)
+    np.testing.assert_allclose(depth_mm[ok], np.round(np.clip(expected[ok] * 1000, 0, 65535)), atol=1)
+    assert (depth_mm[~ok] == 0).all()
+    assert len(read_ply(tmp_path / "o/000000_10.ply")) == int(ok.sum())
+    missing = CliRunner().invoke(predict_main, [*args, "--format", "ply"])
+    assert missing.exit_code == 2 and "--calib" in missing.output
