@@ -224,12 +224,15 @@ def _load_model(checkpoint: Path, device: str):
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
                    "(fx, cx, cy, baseline [m], doffs).")
 @click.option("--max-depth", type=float, default=None, help="Drop depths beyond this many metres (depth and PLY).")
+@click.option("--submission", type=click.Path(path_type=Path),
+              help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
 @_device_option
 @_infer_amp_option
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
-                 calib: Path | None, max_depth: float | None, device: str, amp: str, quiet: bool) -> None:
+                 calib: Path | None, max_depth: float | None, submission: Path | None, device: str, amp: str,
+                 quiet: bool) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -252,9 +255,12 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"))
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
+        if submission is not None and "png" not in formats:
+            formats = (*formats, "png")
         written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,
-                               formats=formats, device=dev, limit=limit, amp=amp)
-        click.echo(f"wrote {len(written)} frames into {out}")
+                               formats=formats, device=dev, limit=limit, amp=amp, submission=submission)
+        click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
+                                                                 if submission is not None else ""))
 
 
 @click.group()

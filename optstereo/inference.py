@@ -221,15 +221,64 @@ def predict_pair(
 def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
-    limit: int | None = None, amp: str = "none",
+    limit: int | None = None, amp: str = "none", submission: Path | None = None,
 ) -> list[dict[str, Path]]:
-    """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``."""
+    """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
+
+    With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server.
+    """
     from pvm_labeler.datasets import discover, load_pair
 
     refs = discover(dataset, root, split=split)[:limit]
+    if submission is not None and not dataset.startswith("kitti"):
+        raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
     written = []
     for ref in refs:
         sample = load_pair(ref)
         disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp)
         written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
+    if submission is not None:
+        write_submission(out_dir, submission, refs)
     return written
+
+
+def write_submission(pred_dir: Path, zip_path: Path, refs: list[Any]) -> Path:
+    """Zip ``pred_dir/disp_0/<frame>_10.png`` into a KITTI benchmark submission and check it before returning.
+
+    Only the reference frames (``_10``) are submitted. The check re-reads every entry: a 16-bit PNG at its own
+    image's size (KITTI mixes 1242x375, 1241x376, 1224x370, ...), one per frame, nothing else in the archive.
+
+    Raises:
+        ValueError: naming the frame whose file is missing, of another size or not 16-bit.
+    """
+    import zipfile
+
+    import cv2
+
+    from pvm_labeler.io import image_size
+
+    frames = sorted((r for r in refs if r.frame_id.endswith("_10")), key=lambda r: r.frame_id)
+    if not frames:
+        raise ValueError("no reference frames (<id>_10) to submit")
+    zip_path = Path(zip_path)
+    zip_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = zip_path.with_name(zip_path.name + ".tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
+        for ref in frames:
+            src = Path(pred_dir) / "disp_0" / f"{ref.frame_id}.png"
+            if not src.is_file():
+                raise ValueError(f"submission: prediction for frame {ref.frame_id} missing: {src}")
+            zf.write(src, f"disp_0/{ref.frame_id}.png")
+    with zipfile.ZipFile(tmp) as zf:  # check what was written, as the server will read it
+        names = sorted(zf.namelist())
+        expected = sorted(f"disp_0/{r.frame_id}.png" for r in frames)
+        if names != expected:
+            raise ValueError(f"submission {zip_path}: entries {names[:3]}... differ from the frames {expected[:3]}...")
+        for ref in frames:
+            raw = cv2.imdecode(np.frombuffer(zf.read(f"disp_0/{ref.frame_id}.png"), np.uint8), cv2.IMREAD_UNCHANGED)
+            want = image_size(ref.left)
+            if raw is None or raw.dtype != np.uint16 or raw.shape != want:
+                got = None if raw is None else (raw.shape, raw.dtype)
+                raise ValueError(f"submission: frame {ref.frame_id} is {got}, expected uint16 of size {want}")
+    tmp.replace(zip_path)
+    return zip_path

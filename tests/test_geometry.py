@@ -121,3 +121,44 @@ def test_predict_cli_depth_and_ply(tmp_path: Path, shared_data: Path) -> None:
     assert len(read_ply(tmp_path / "o/000000_10.ply")) == int(ok.sum())
     missing = CliRunner().invoke(predict_main, [*args, "--format", "ply"])
     assert missing.exit_code == 2 and "--calib" in missing.output
+
+
+def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
+    """--submission: only _10 frames, disp_0/<frame>_10.png, each 16-bit at its own image's size; checked."""
+    import zipfile
+
+    import cv2
+    import torch
+    from test_train import TINY
+
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.cli import predict_main
+    from optstereo.models import build_model
+
+    src = shared_data / "kitti_unlabelled/kitti15_testing"
+    root = tmp_path / "kitti" / "testing"
+    for view in ("image_2", "image_3"):
+        (root / view).mkdir(parents=True)
+        for stem in ("000001_10", "000001_11"):
+            (root / view / f"{stem}.png").symlink_to((src / view / f"{stem}.png").resolve())
+        image = cv2.imread(str(src / view / "000002_10.png"))
+        cv2.imwrite(str(root / view / "000002_10.png"), image[:370, :1224])  # KITTI's smaller frames exist too
+    torch.manual_seed(0)
+    ckpt = export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", iters=1, **TINY))
+    zip_path = tmp_path / "submit.zip"
+    result = CliRunner().invoke(predict_main, [
+        "--checkpoint", str(ckpt), "--dataset", "kitti15", "--root", str(tmp_path / "kitti"), "--split", "testing",
+        "--out", str(tmp_path / "pred"), "--format", "color", "--submission", str(zip_path), "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    with zipfile.ZipFile(zip_path) as zf:
+        assert sorted(zf.namelist()) == ["disp_0/000001_10.png", "disp_0/000002_10.png"]
+        sizes = [cv2.imdecode(np.frombuffer(zf.read(n), np.uint8), cv2.IMREAD_UNCHANGED).shape for n in
+                 sorted(zf.namelist())]
+    assert sizes == [(375, 1242), (370, 1224)]
+    (tmp_path / "pred/disp_0/000002_10.png").unlink()
+    from optstereo.inference import write_submission
+    from pvm_labeler.datasets import discover
+
+    with pytest.raises(ValueError, match="000002_10 missing"):
+        write_submission(tmp_path / "pred", tmp_path / "again.zip", discover("kitti15", tmp_path / "kitti", "testing"))
+    assert not (tmp_path / "again.zip").exists()
