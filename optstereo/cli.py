@@ -224,6 +224,8 @@ def _load_model(checkpoint: Path, device: str):
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
                    "(fx, cx, cy, baseline [m], doffs).")
 @click.option("--max-depth", type=float, default=None, help="Drop depths beyond this many metres (depth and PLY).")
+@click.option("--backend", type=click.Choice(("torch", "onnxruntime")), default="torch",
+              help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats).")
 @click.option("--submission", type=click.Path(path_type=Path),
               help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
 @_device_option
@@ -231,8 +233,8 @@ def _load_model(checkpoint: Path, device: str):
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
-                 calib: Path | None, max_depth: float | None, submission: Path | None, device: str, amp: str,
-                 quiet: bool) -> None:
+                 calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
+                 amp: str, quiet: bool) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -241,6 +243,9 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    if backend == "onnxruntime":
+        _predict_onnx(checkpoint, left, right, out, formats, dataset)
+        return
     geometry = [f for f in formats if f in inference.GEOMETRY_FORMATS]
     if geometry and (calib is None or dataset is not None):
         raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
@@ -263,6 +268,42 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                                                                  if submission is not None else ""))
 
 
+def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...],
+                  dataset: str | None) -> None:
+    from optstereo import inference
+    from optstereo.export import infer_onnx, onnx_session
+    from pvm_labeler.io import read_image
+
+    if dataset is not None or left is None or right is None or Path(onnx_file).suffix != ".onnx":
+        raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")
+    if not Path(onnx_file).is_file():
+        raise click.BadParameter(f"{onnx_file} does not exist", param_hint="--checkpoint")
+    session = _run_guarded(onnx_session, onnx_file)
+    disp = _run_guarded(infer_onnx, session, read_image(left), read_image(right))
+    paths = _run_guarded(inference.write_disparity, out, Path(left).stem, disp, formats)
+    click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+# -- optstereo-export ----------------------------------------------------------------------------------------------
+@click.command(context_settings={"show_default": True})
+@click.option("--checkpoint", type=click.Path(path_type=Path), required=True,
+              help="Checkpoint file, RUN_DIR, or 'pretrained'.")
+@click.option("--format", "fmt", type=click.Choice(("onnx", "torchscript")), default="onnx")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output file (.onnx / .pt).")
+@click.option("--iters", type=int, default=None, help="GRU iterations unrolled in the graph (default: the model's).")
+@click.option("--quiet", is_flag=True, help="Only warnings and errors.")
+def export_main(checkpoint: Path, fmt: str, out: Path, iters: int | None, quiet: bool) -> None:
+    """Export the inference graph: inputs left, right (B, 3, H, W) float [0, 255] with H, W multiples of 8 (dynamic),
+    output disparity (B, 1, H, W); ONNX opset 18 (see optstereo/export.py)."""
+    _setup_logging(quiet)
+    from optstereo.export import OPSET, export
+
+    model, _ = _load_model(checkpoint, "cpu")
+    path = _run_guarded(export, model, out, fmt, iters)
+    click.echo(f"wrote {path} ({fmt}{f', opset {OPSET}' if fmt == 'onnx' else ''}, "
+               f"{path.stat().st_size / 1e6:.1f} MB)")
+
+
 @click.group()
 def cli() -> None:
     """optstereo commands (for `python -m optstereo.cli` and torchrun)."""
@@ -271,6 +312,7 @@ def cli() -> None:
 cli.add_command(train_main, "train")
 cli.add_command(eval_main, "eval")
 cli.add_command(predict_main, "predict")
+cli.add_command(export_main, "export")
 
 if __name__ == "__main__":
     cli()

@@ -1,0 +1,87 @@
+"""Export the inference graph (``optstereo-export``) and run it with onnxruntime.
+
+The exported graph is the test-mode network: N_s GRU iterations unrolled, the final full-resolution disparity out.
+
+    inputs   left, right: (B, 3, H, W) float32 in [0, 255], RGB; H and W multiples of 8 (dynamic). Padding to a
+             multiple of 8 stays OUTSIDE the graph: :func:`infer_onnx` pads like ``optstereo.inference.infer``
+             (replicate padding, then crops the output back).
+    output   disparity: (B, 1, H, W) float32, positive, left(x) matches right(x - d).
+
+ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimiser of onnxscript 0.7 fails on this
+graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+logger = logging.getLogger(__name__)
+
+OPSET = 18
+FORMATS = ("onnx", "torchscript")
+
+
+class InferenceGraph(nn.Module):
+    """(left, right) -> full-resolution disparity of the last of ``iters`` GRU iterations (test mode)."""
+
+    def __init__(self, model: nn.Module, iters: int | None = None) -> None:
+        super().__init__()
+        self.model = model
+        self.iters = iters
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+        return self.model(left, right, iters=self.iters, test_mode=True)[1]
+
+
+def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = None,
+           example_hw: tuple[int, int] = (64, 128)) -> Path:
+    """Write ``model``'s inference graph to ``out`` (.onnx or TorchScript .pt) and return the path."""
+    if fmt not in FORMATS:
+        raise ValueError(f"export format must be one of {FORMATS}, got {fmt!r}")
+    graph = InferenceGraph(model.cpu().eval(), iters).eval()
+    h, w = example_hw
+    gen = torch.Generator().manual_seed(0)
+    left = torch.rand(1, 3, h, w, generator=gen) * 255
+    right = torch.roll(left, shifts=-2, dims=-1)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    with torch.no_grad():
+        if fmt == "onnx":
+            dims = {0: "batch", 2: "height", 3: "width"}
+            torch.onnx.export(graph, (left, right), str(tmp), dynamo=True, input_names=["left", "right"],
+                              output_names=["disparity"], dynamic_shapes={"left": dims, "right": dims},
+                              opset_version=OPSET, optimize=False, verbose=False)
+        else:
+            torch.jit.save(torch.jit.trace(graph, (left, right), check_trace=False), str(tmp))
+    tmp.replace(out)
+    return out
+
+
+def onnx_session(path: Path | str, threads: int = 0):
+    """An onnxruntime CPU session of an exported file (``threads`` 0 = onnxruntime's default)."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    if threads:
+        options.intra_op_num_threads = threads
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:
+    """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session (padding as ``infer``)."""
+    from optstereo.padding import InputPadder
+
+    if left.shape != right.shape:
+        raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
+    tensors = [torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))).float()[None] for x in (left, right)]
+    padder = InputPadder(tensors[0].shape, divis_by=8)
+    left_t, right_t = padder.pad(*tensors)
+    disp = session.run(["disparity"], {"left": left_t.numpy(), "right": right_t.numpy()})[0]
+    return padder.unpad(torch.from_numpy(disp))[0, 0].numpy().astype(np.float32)
