@@ -20,7 +20,7 @@ from pathlib import Path
 
 from pvm_labeler.shards import git_commit
 
-SECTIONS = ("labeler", "job", "network", "train")
+SECTIONS = ("labeler", "job", "network", "train", "export")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,0 +1,71 @@
+"""`make bench` section "export": the shipped model on a real KITTI frame, eager torch vs onnxruntime (same run).
+
+Both run the same weights (``--checkpoint pretrained``) on KITTI 2015 frame 000000 (375x1242, padded to 376x1248)
+with 2 threads each, one after the other, median of ``REPEATS`` after a warm-up: torch ``inference_mode`` (the
+``optstereo-predict`` path) and an onnxruntime CPU session of ``optstereo-export --format onnx``. The ratio
+onnxruntime / torch is the figure to compare (target <= 0.8 on this CPU); the outputs' difference is reported too.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+THREADS = 2
+REPEATS = int(os.environ.get("PVS_BENCH_REPEATS", "5"))
+TARGET = 0.8
+
+
+def _median(fn: Callable[[], Any], repeats: int = REPEATS) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def run(shared: Path) -> dict[str, Any]:
+    from optstereo.api import load_model
+    from optstereo.export import export, infer_onnx, onnx_session
+    from optstereo.inference import infer
+    from pvm_labeler.io import read_image
+
+    torch.set_num_threads(THREADS)
+    base = Path(shared) / "kitti15/training"
+    left, right = read_image(base / "image_2/000000_10.png"), read_image(base / "image_3/000000_10.png")
+    model = load_model("pretrained")
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        onnx_file = export(model, Path(tmp) / "pretrained.onnx")
+        export_s = time.perf_counter() - t0
+        session = onnx_session(onnx_file, threads=THREADS)
+        torch_s = _median(lambda: infer(model, left, right))
+        ort_s = _median(lambda: infer_onnx(session, left, right))
+        diff = np.abs(infer_onnx(session, left, right) - infer(model, left, right))
+    results = {"threads": THREADS, "repeats": REPEATS, "frame": "kitti15 000000_10 (375x1242)",
+               "iters": model.iters, "torch_s": torch_s, "onnxruntime_s": ort_s, "ratio": ort_s / torch_s,
+               "export_s": export_s, "mean_abs_diff_px": float(diff.mean()), "max_abs_diff_px": float(diff.max()),
+               "load_avg": os.getloadavg()[0]}
+    verdict = "met" if results["ratio"] <= TARGET else "not met"
+    markdown = "\n".join([
+        f"Shipped model, {results['frame']}, {model.iters} GRU iterations, {THREADS} threads, median of {REPEATS}.",
+        "",
+        "| backend | s per frame | ratio to torch |",
+        "| --- | --- | --- |",
+        f"| torch eager (inference_mode) | {torch_s:.3f} | 1.00 |",
+        f"| onnxruntime CPU (opset 18) | {ort_s:.3f} | **{results['ratio']:.2f}** (target <= {TARGET}: {verdict}) |",
+        "",
+        f"Outputs differ by {results['mean_abs_diff_px']:.4f} px on average, {results['max_abs_diff_px']:.4f} px at "
+        f"most; the export took {export_s:.0f} s; load average {results['load_avg']:.1f}.",
+    ])
+    return {"title": "Export (torch vs onnxruntime)", "results": results, "markdown": markdown}
