@@ -202,4 +202,4 @@ class TestErrors:
             load_pair(ref)
 
     def test_names(self) -> None:
-        assert DATASETS == ("kitti15", "kitti12", "middlebury", "sceneflow", "folder", "sample")
+        assert DATASETS == ("kitti15", "kitti12", "middlebury", "sceneflow", "folder", "kitti_unlabelled", "sample")
