@@ -67,6 +67,37 @@ def _infer_amp_option(fn):
                         help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
 
 
+def _reader_options(fn):
+    """The dataset-reader options pvm-label has, for optstereo-eval and optstereo-predict --dataset."""
+    for option in reversed((
+        click.option("--left", "folder_left", default=None,
+                     help="folder dataset: left images (folder or glob, relative to --root)."),
+        click.option("--right", "folder_right", default=None, help="folder dataset: right images (folder or glob)."),
+        click.option("--gt", "folder_gt", default=None,
+                     help="folder dataset: GT folder (KITTI-style PNG, .pfm or .npy)."),
+        click.option("--gt-scale", type=float, default=None, help="folder dataset: integer GT = disparity x this "
+                     "(KITTI 256)."),
+        click.option("--sceneflow-pass", type=click.Choice(("clean", "final")), default=None,
+                     help="sceneflow dataset: render pass."),
+    )):
+        fn = option(fn)
+    return fn
+
+
+def _collect_reader_options(folder_left: str | None, folder_right: str | None, folder_gt: str | None,
+                            gt_scale: float | None, sceneflow_pass: str | None) -> dict[str, Any]:
+    values = {"left": folder_left, "right": folder_right, "gt": folder_gt, "gt_scale": gt_scale,
+              "pass_": sceneflow_pass}
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def _dataset_option(fn):
+    from pvm_labeler.datasets import DATASETS
+
+    return click.option("--dataset", type=click.Choice(DATASETS),
+                        help="Dataset reader (official layouts); `folder` takes --left/--right/--gt.")(fn)
+
+
 def _device_option(fn):
     return click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
                         help="auto = cuda when available, else cpu.")(fn)
@@ -162,8 +193,9 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
 @click.option("--checkpoint", type=click.Path(path_type=Path),
               help="Checkpoint file (.pt/.pth/.ckpt/.safetensors), RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--labels", type=EXISTING, help="Evaluate this shard directory's own PVM labels instead of a network.")
-@click.option("--dataset", help="Dataset name for --checkpoint (kitti15, kitti12, middlebury, sceneflow, sample...).")
+@_dataset_option
 @click.option("--root", type=EXISTING, help="Dataset root folder (not needed for sample).")
+@_reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Report folder.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
@@ -174,7 +206,7 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
               out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
-              quiet: bool) -> None:
+              quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
     _setup_logging(quiet)
     from optstereo import evaluate
@@ -189,7 +221,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
         model, dev = _load_model(checkpoint, device)
         result = _run_guarded(evaluate.evaluate_model, model, dataset, root, split=split, iters=iters, device=dev,
                               out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
-                              amp=amp)
+                              amp=amp, reader_options=_collect_reader_options(**reader))
     s = result.summary
     click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
                f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
@@ -211,8 +243,9 @@ def _load_model(checkpoint: Path, device: str):
 @click.option("--checkpoint", type=click.Path(path_type=Path), required=True,
               help="Checkpoint file, RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
-@click.option("--dataset", help="Predict a whole dataset instead of one LEFT RIGHT pair (KITTI: disp_0/<frame>.png).")
-@click.option("--root", type=EXISTING, help="Dataset root folder.")
+@_dataset_option
+@click.option("--root", type=EXISTING, help="Dataset root (predicts the whole dataset; KITTI: disp_0/<frame>.png).")
+@_reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
@@ -234,7 +267,7 @@ def _load_model(checkpoint: Path, device: str):
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
                  calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
-                 amp: str, quiet: bool) -> None:
+                 amp: str, quiet: bool, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -263,7 +296,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         if submission is not None and "png" not in formats:
             formats = (*formats, "png")
         written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,
-                               formats=formats, device=dev, limit=limit, amp=amp, submission=submission)
+                               formats=formats, device=dev, limit=limit, amp=amp, submission=submission,
+                               reader_options=_collect_reader_options(**reader))
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
 

@@ -17,6 +17,7 @@ frame's own numbers.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -120,13 +121,23 @@ def evaluate_frames(
     """Measure every frame, pool the counts, and (with out_dir) write metrics.csv, summary.json, summary.md."""
     acc_all, acc_noc = MetricAccumulator(), MetricAccumulator()
     rows = []
-    for frame in frames:
-        if frame.gt is None or not np.isfinite(frame.gt).any():
-            logger.warning("frame %s has no ground truth; skipped", frame.frame_id)
-            continue
-        rows.append(_frame_row(frame, acc_all, acc_noc))
-        if out_dir is not None and save_maps:
-            _save_maps(Path(out_dir), frame)
+    with contextlib.ExitStack() as stack:
+        writer = None
+        for frame in frames:
+            if frame.gt is None or not np.isfinite(frame.gt).any():
+                logger.warning("frame %s has no ground truth; skipped", frame.frame_id)
+                continue
+            rows.append(_frame_row(frame, acc_all, acc_noc))
+            if out_dir is not None:  # per-frame CSV as it goes: a long run that dies keeps the frames done so far
+                if writer is None:
+                    Path(out_dir).mkdir(parents=True, exist_ok=True)
+                    fh = stack.enter_context(open(Path(out_dir) / "metrics.csv", "w", newline=""))
+                    writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+                    writer.writeheader()
+                writer.writerow(rows[-1])
+                fh.flush()
+                if save_maps:
+                    _save_maps(Path(out_dir), frame)
     if not rows:
         raise ValueError("no frame with ground truth to evaluate (is this a testing split or a dataset without GT?)")
     summary = {**summarise(acc_all, acc_noc), **(meta or {})}
@@ -169,12 +180,13 @@ def write_reports(result: EvalResult, out_dir: Path, title: str) -> dict[str, Pa
 def model_frames(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", limit: int | None = None, amp: str = "none",
+    reader_options: dict[str, Any] | None = None,
 ) -> Iterator[Frame]:
-    """Run the network over a dataset (pvm_labeler.datasets readers), yielding Frames with timings."""
+    """Run the network over a dataset (pvm_labeler.datasets readers and their options), yielding timed Frames."""
     from optstereo.inference import infer
     from pvm_labeler.datasets import discover, load_pair
 
-    for ref in discover(dataset, root, split=split)[:limit]:
+    for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
         sample = load_pair(ref)
         t0 = time.perf_counter()
         pred = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp)
@@ -202,7 +214,7 @@ def label_frames(labels_dir: Path, limit: int | None = None) -> Iterator[Frame]:
 def evaluate_model(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", out_dir: Path | None = None, limit: int | None = None,
-    save_maps: bool = False, meta: dict | None = None, amp: str = "none",
+    save_maps: bool = False, meta: dict | None = None, amp: str = "none", reader_options: dict[str, Any] | None = None,
 ) -> EvalResult:
     """Evaluate a network on a dataset's GT; summary also holds the mean seconds per frame.
 
@@ -215,7 +227,8 @@ def evaluate_model(
     def timed() -> Iterator[Frame]:
         nonlocal count
         total = 0.0
-        for frame in model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit, amp=amp):
+        for frame in model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit, amp=amp,
+                                  reader_options=reader_options):
             count += 1
             total += frame.seconds
             meta["seconds_per_frame"] = total / count  # evaluate_frames reads meta after the last frame

@@ -222,6 +222,7 @@ def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
     limit: int | None = None, amp: str = "none", submission: Path | None = None,
+    reader_options: dict[str, Any] | None = None,
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
 
@@ -229,7 +230,7 @@ def predict_dataset(
     """
     from pvm_labeler.datasets import discover, load_pair
 
-    refs = discover(dataset, root, split=split)[:limit]
+    refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if submission is not None and not dataset.startswith("kitti"):
         raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
     written = []

@@ -186,4 +186,4 @@ class TestCli:
         assert res.exit_code == 2 and "LEFT RIGHT" in res.output
         res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti99", "--out",
                                         str(tmp_path)])
-        assert res.exit_code == 1 and "kitti99" in res.output
+        assert res.exit_code == 2 and "kitti99" in res.output and "kitti_unlabelled" in res.output
