@@ -19,6 +19,7 @@ point and restarted finishes only the missing shards with the same result.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib
 import json
 import logging
@@ -527,6 +528,19 @@ def _complete_shard(path: Path, planned: list[str], config: dict[str, Any]) -> S
 
 
 # ------------------------------------------------------------------------------------------------------- run
+_META_PATHS = ("noc_mask", "occlusion", "calib")  # PairRef.meta entries that name files
+
+
+def absolute_paths(ref: PairRef) -> PairRef:
+    """A copy of ``ref`` whose file paths (and meta file entries) are absolute; synthetic pairs are unchanged."""
+    if ref.meta.get("synthetic"):
+        return ref
+    files = {name: None if getattr(ref, name) is None else Path(getattr(ref, name)).resolve()
+             for name in ("left", "right", "gt", "gt_noc", "gt_right")}
+    meta = {k: str(Path(v).resolve()) if k in _META_PATHS else v for k, v in ref.meta.items()}
+    return dataclasses.replace(ref, meta=meta, **files)
+
+
 def run(spec: JobSpec) -> JobSummary:
     """Run the labeling job described by ``spec`` (see the module docstring).
 
@@ -561,7 +575,9 @@ def run(spec: JobSpec) -> JobSummary:
             outcomes[index] = done
         else:
             path.with_name(path.name + TMP_SUFFIX).unlink(missing_ok=True)  # stale from a killed run
-            pending.append(ShardTask(index, str(path), shard_refs, config, spec.compression, threads, spec.label_fn))
+            # Absolute paths: Dask workers may run in another working directory, or on another machine.
+            pending.append(ShardTask(index, str(path.resolve()), [absolute_paths(r) for r in shard_refs], config,
+                                     spec.compression, threads, spec.label_fn))
     pending = _longest_first(pending, work)
     if pending:
         # An index next to a partial set of shards would look complete to a reader; it is rewritten at the end.

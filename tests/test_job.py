@@ -403,3 +403,30 @@ def test_real_kitti_two_frames(tmp_path: Path, shared_data: Path, real_labeler: 
     sample = _all_samples(out)["000000_10"]
     assert sample.gt_noc is not None and sample.label.shape == (375, 1242)
     assert np.isfinite(sample.label_right).mean() > 0.1
+
+
+@pytest.mark.slow
+def test_dask_workers_in_another_working_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Relative --root/--out reach Dask workers as absolute paths (workers here start in another directory)."""
+    distributed = pytest.importorskip("distributed")
+    from pvm_labeler import io
+    from pvm_labeler.datasets import make_layered_scene
+
+    work, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
+    for view in ("left", "right"):
+        (work / "rig" / view).mkdir(parents=True)
+    for i in range(2):
+        scene = make_layered_scene(64, 128, seed=i)
+        io.write_image(work / "rig" / "left" / f"{i:04d}.png", scene["left"])
+        io.write_image(work / "rig" / "right" / f"{i:04d}.png", scene["right"])
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # the workers start here
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        monkeypatch.chdir(work)  # the job runs here, with relative paths
+        spec = JobSpec(dataset="folder", root=Path("rig"), out=Path("labels"), config=LabelerConfig(k=2, max_disp=48),
+                       shard_size=1, quiet=True, backend="dask", scheduler=cluster.scheduler_address)
+        summary = run(spec)
+    assert summary.pairs_labeled == 2 and not summary.failures
+    assert verify(work / "labels") == [] and read_index(work / "labels").num_samples == 2
+    assert not (elsewhere / "labels").exists()
