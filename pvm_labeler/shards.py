@@ -480,7 +480,8 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
     try:
         arrays = {name: group[name][()] for name in (*REQUIRED, *OPTIONAL) if name in group}
     except (OSError, KeyError) as exc:
-        hint = f"; {BLOSC_HINT}" if "filter" in str(exc).lower() or "plugin" in str(exc).lower() else ""
+        text = str(exc).lower()
+        hint = f"; {BLOSC_HINT}" if hdf5plugin is None or "filter" in text or "plugin" in text else ""
         raise ShardError(f"shard {h5.filename}: sample '{frame_id}' is unreadable ({exc}){hint}") from exc
     missing = [name for name in REQUIRED if name not in arrays]
     if missing:

@@ -163,3 +163,16 @@ def test_jpeg_folder_pack(tmp_path: Path) -> None:
     original = load_pair(discover("kitti_unlabelled", tmp_path / "src")[0]).left.astype(float)
     packed = load_pair(refs[0]).left.astype(float)
     assert packed.shape == original.shape and np.abs(packed - original).mean() < 2  # lossy, but the same image
+
+
+def test_blosc_shard_without_plugin_names_the_fix(tmp_path: Path) -> None:
+    """A reader without hdf5plugin gets HDF5's plugin-directory error translated: the filter and the fix."""
+    import subprocess
+    import sys
+
+    shards = make_shards(tmp_path / "blosc", n=1, shard_size=1)  # Blosc-LZ4, the default
+    code = ("import sys; sys.modules['hdf5plugin'] = None\n"  # as on a machine without the package
+            "from pvm_labeler.shards import verify\n"
+            f"print('\\n'.join(verify({str(shards)!r})))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "compressed with Blosc" in out and "pvm-label convert" in out and "pip install hdf5plugin" in out
