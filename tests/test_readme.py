@@ -27,4 +27,4 @@ def test_readme_api_snippet_runs() -> None:
     gt = namespace["gt"]
     valid = np.isfinite(gt)
     # the shipped model (KITTI-trained) on Middlebury's motorcycle: most pixels within 3 px of GT
-    assert np.mean(np.abs(disp[valid] - gt[valid]) <= 3.0) > 0.6
+    assert np.mean(np.abs(disp[valid] - gt[valid]) <= 3.0) > 0.75  # measured 0.83 (bad-3 17 %)
