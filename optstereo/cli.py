@@ -325,15 +325,16 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
 @click.option("--format", "fmt", type=click.Choice(("onnx", "torchscript")), default="onnx")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output file (.onnx / .pt).")
 @click.option("--iters", type=int, default=None, help="GRU iterations unrolled in the graph (default: the model's).")
+@click.option("--batch", is_flag=True, help="Dynamic batch size (default: batch 1, per-image calls, faster on CPU).")
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
-def export_main(checkpoint: Path, fmt: str, out: Path, iters: int | None, quiet: bool) -> None:
-    """Export the inference graph: inputs left, right (B, 3, H, W) float [0, 255] with H, W multiples of 8 (dynamic),
-    output disparity (B, 1, H, W); ONNX opset 18 (see optstereo/export.py)."""
+def export_main(checkpoint: Path, fmt: str, out: Path, iters: int | None, batch: bool, quiet: bool) -> None:
+    """Export the inference graph: inputs left, right (1, 3, H, W) float [0, 255] with H, W multiples of 8 (dynamic;
+    --batch: (B, 3, H, W)), output disparity (1 or B, 1, H, W); ONNX opset 18 (see optstereo/export.py)."""
     _setup_logging(quiet)
     from optstereo.export import OPSET, export
 
     model, _ = _load_model(checkpoint, "cpu")
-    path = _run_guarded(export, model, out, fmt, iters)
+    path = _run_guarded(export, model, out, fmt, iters, batch=batch)
     click.echo(f"wrote {path} ({fmt}{f', opset {OPSET}' if fmt == 'onnx' else ''}, "
                f"{path.stat().st_size / 1e6:.1f} MB)")
 

@@ -65,6 +65,24 @@ def test_predict_backend_onnxruntime(exported: tuple[Path, Path], shared_data: P
     assert runs["torch"].shape == (375, 1242) and diff.mean() <= 0.01 and diff.max() <= 0.1
 
 
+def test_dynamic_batch_export(tmp_path: Path, shared_data: Path) -> None:
+    """--batch: a (2, 3, H, W) batch through onnxruntime equals torch per pair; the default graph takes batch 1."""
+    from optstereo.export import export, onnx_session
+
+    torch.manual_seed(0)
+    model = build_model("optstereo", iters=2, **TINY).eval()
+    session = onnx_session(export(model, tmp_path / "b.onnx", batch=True))
+    pairs = [_kitti_crop(shared_data, 64, 128), _kitti_crop(shared_data, 64, 128)[::-1]]
+    to_t = lambda x: np.ascontiguousarray(x.transpose(2, 0, 1)).astype(np.float32)  # noqa: E731
+    left = np.stack([to_t(p[0]) for p in pairs])
+    right = np.stack([to_t(p[1]) for p in pairs])
+    out = session.run(["disparity"], {"left": left, "right": right})[0]
+    for i, (lft, rgt) in enumerate(pairs):
+        assert np.abs(out[i, 0] - infer(model, lft, rgt)).max() <= 0.1
+    single = onnx_session(export(model, tmp_path / "one.onnx"))
+    assert single.get_inputs()[0].shape[0] == 1
+
+
 def test_torchscript_export(exported: tuple[Path, Path], tmp_path: Path, shared_data: Path) -> None:
     ckpt, _ = exported
     result = CliRunner().invoke(export_main, ["--checkpoint", str(ckpt), "--format", "torchscript", "--out",
