@@ -143,7 +143,7 @@ def evaluate_frames(
     summary = {**summarise(acc_all, acc_noc), **(meta or {})}
     result = EvalResult(rows=rows, summary=summary)
     if out_dir is not None:
-        result.files = write_reports(result, Path(out_dir), title)
+        result.files = write_reports(result, Path(out_dir), title, write_csv=False)  # streamed above
     return result
 
 
@@ -153,14 +153,16 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
-def write_reports(result: EvalResult, out_dir: Path, title: str) -> dict[str, Path]:
-    """metrics.csv (per frame), summary.json, summary.md; NaN is written as null / n/a."""
+def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool = True) -> dict[str, Path]:
+    """metrics.csv (per frame; ``write_csv=False`` when it was streamed already), summary.json, summary.md; NaN is
+    written as null / n/a."""
     out_dir.mkdir(parents=True, exist_ok=True)
     files = {"csv": out_dir / "metrics.csv", "json": out_dir / "summary.json", "md": out_dir / "summary.md"}
-    with open(files["csv"], "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(result.rows[0]))
-        writer.writeheader()
-        writer.writerows(result.rows)
+    if write_csv:
+        with open(files["csv"], "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(result.rows[0]))
+            writer.writeheader()
+            writer.writerows(result.rows)
     clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.summary.items()}
     files["json"].write_text(json.dumps(clean, indent=2, default=str))
     keys = [k for k in SUMMARY_KEYS if k in result.summary]

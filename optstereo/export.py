@@ -91,12 +91,14 @@ def onnx_session(path: Path | str, threads: int = 0):
 
 def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:
     """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session (padding as ``infer``)."""
+    from optstereo.inference import to_batch
     from optstereo.padding import InputPadder
 
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
-    tensors = [torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))).float()[None] for x in (left, right)]
-    padder = InputPadder(tensors[0].shape, divis_by=8)
-    left_t, right_t = padder.pad(*tensors)
+    cpu = torch.device("cpu")
+    left_t, right_t = to_batch(left, cpu), to_batch(right, cpu)
+    padder = InputPadder(left_t.shape, divis_by=8)
+    left_t, right_t = padder.pad(left_t, right_t)
     disp = session.run(["disparity"], {"left": left_t.numpy(), "right": right_t.numpy()})[0]
     return padder.unpad(torch.from_numpy(disp))[0, 0].numpy().astype(np.float32)

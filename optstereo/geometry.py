@@ -74,6 +74,16 @@ def _read_yaml(path: Path) -> Calibration:
                        cy=float(doc["cy"]), baseline=float(doc["baseline"]), doffs=float(doc.get("doffs", 0.0)))
 
 
+def _key_values(path: Path) -> dict[str, str]:
+    """``key: value`` lines (KITTI) or ``key=value`` lines (Middlebury, via the dataset reader's own parser)."""
+    from pvm_labeler.datasets import read_middlebury_calib
+
+    text = path.read_text()
+    if "P_rect_02" not in text:
+        return read_middlebury_calib(path)
+    return {k.strip(): v.strip() for k, sep, v in (line.partition(":") for line in text.splitlines()) if sep}
+
+
 def read_calibration(path: Path | str) -> Calibration:
     """KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML (see the module docstring)."""
     path = Path(path)
@@ -82,11 +92,7 @@ def read_calibration(path: Path | str) -> Calibration:
     if path.suffix.lower() in (".yaml", ".yml"):
         calib = _read_yaml(path)
     else:
-        lines = {}
-        for line in path.read_text().splitlines():
-            key, sep, value = line.partition(":") if ":" in line.split("=")[0] else line.partition("=")
-            if sep:
-                lines[key.strip()] = value.strip()
+        lines = _key_values(path)
         if "P_rect_02" in lines:
             calib = _read_kitti(lines, path)
         elif "cam0" in lines:

@@ -29,7 +29,8 @@ GEOMETRY_FORMATS = ("depth-png", "depth-pfm", "depth-npy", "ply")  # need a cali
 DEFAULT_FORMATS = ("png", "color")
 
 
-def _to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor:
+def to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor:
+    """(H, W, 3) uint8 RGB -> (1, 3, H, W) float32 in [0, 255] on ``device`` (the network's input)."""
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) RGB image, got shape {image.shape}")
     return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float()[None].to(device)
@@ -103,7 +104,7 @@ def infer(
     was_training = model.training
     model.eval()
     try:
-        left_t, right_t = _to_batch(left, device), _to_batch(right, device)
+        left_t, right_t = to_batch(left, device), to_batch(right, device)
         padder = InputPadder(left_t.shape, divis_by=8)
         left_t, right_t = padder.pad(left_t, right_t)
         with inference_autocast(amp, device):

@@ -126,20 +126,12 @@ def step_finish() -> None:
     _run([BIN / "optstereo-train", "--resume", rd, "--steps", str(cfg.steps), "--threads", "2", "--quiet"])
 
 
-def fill_rows_nearest(disp: np.ndarray) -> np.ndarray:
-    """NaN pixels take the nearest finite value on their row (dense SGM for dense metrics)."""
-    from pipelines.train_studies import fill_rows_nearest as fill
-
-    return fill(disp)
-
-
 def step_baselines() -> dict[str, Any]:
     """Dense full-resolution SGM (the labeler's matcher: census 5x5, 8 paths, P1/P2 as labelled) on every GT set."""
     from optstereo.evaluate import Frame, evaluate_frames
+    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.datasets import discover, load_pair
-    from pvm_labeler.multiscale import _to_grey
-    from pvm_labeler.sgm import sgm_pair
 
     cfg = LabelerConfig()
     out: dict[str, Any] = {"what": "dense SGM, NaN filled by the nearest valid value on the row", **_machine()}
@@ -147,11 +139,9 @@ def step_baselines() -> dict[str, Any]:
         frames, seconds = [], []
         for ref in discover(reader, SHARED / root):
             sample = load_pair(ref)
-            t0 = time.perf_counter()
-            res, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg,
-                              max_disp=max_disp or sample.max_disp or 64, right_view=False)
-            seconds.append(time.perf_counter() - t0)
-            frames.append(Frame(ref.frame_id, fill_rows_nearest(res.disp), sample.gt, sample.gt_noc))
+            disp, sec = sgm_left(sample.left, sample.right, cfg, max_disp or sample.max_disp or 64)
+            seconds.append(sec)
+            frames.append(Frame(ref.frame_id, fill_rows_nearest(disp), sample.gt, sample.gt_noc))
         result = evaluate_frames(frames, RUNS / "eval" / "sgm_dense" / name, title=f"dense SGM on {name}")
         out[name] = {"summary": result.summary, "frames": result.rows, "seconds_per_frame": float(np.mean(seconds))}
         print(f"dense SGM {name}: bad3 {result.summary['bad3']:.2f} %, EPE {result.summary['epe']:.3f} px", flush=True)

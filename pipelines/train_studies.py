@@ -211,32 +211,12 @@ def labels_eval_command() -> list[str]:
             "--no-save-maps", "--quiet"]
 
 
-def fill_rows_nearest(disp: np.ndarray) -> np.ndarray:
-    """Fill NaN pixels with the nearest finite value on the same row (the closer side; the left one on ties).
-
-    disp: (H, W) float32, NaN = no value. Rows without any finite value stay NaN.
-    """
-    height, width = disp.shape
-    finite = np.isfinite(disp)
-    cols = np.broadcast_to(np.arange(width), (height, width))
-    left_idx = np.maximum.accumulate(np.where(finite, cols, -1), axis=1)  # last finite column at or before x
-    right_idx = np.minimum.accumulate(np.where(finite, cols, width)[:, ::-1], axis=1)[:, ::-1]  # first at/after x
-    use_left = (left_idx >= 0) & ((right_idx >= width) | (cols - left_idx <= right_idx - cols))
-    src = np.where(use_left, left_idx, right_idx)
-    has = (src >= 0) & (src < width)
-    rows = np.broadcast_to(np.arange(height)[:, None], (height, width))
-    out = np.full_like(disp, np.nan)
-    out[has] = disp[rows[has], src[has]]
-    return out
-
-
 def step_sgm_dense() -> dict[str, dict]:
     """Full-resolution SGM (left view, no LR check, no filtering) on the 15 frames, scored three ways."""
     from optstereo.evaluate import Frame, evaluate_frames
+    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.datasets import discover, load_pair
-    from pvm_labeler.multiscale import _to_grey
-    from pvm_labeler.sgm import sgm_pair
     from pvm_labeler.shards import read_index
 
     index_cfg = json.loads((LABELS / "index.json").read_text())["config"]
@@ -245,10 +225,8 @@ def step_sgm_dense() -> dict[str, dict]:
     seconds = []
     for ref in discover("kitti15", DATA_ROOT):
         sample = load_pair(ref)
-        t0 = time.perf_counter()
-        res, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg, right_view=False)
-        seconds.append(time.perf_counter() - t0)
-        disp = res.disp
+        disp, sec = sgm_left(sample.left, sample.right, cfg)
+        seconds.append(sec)
         # NaN -> -1e4 px: wrong by > 3 px and > 5 % for any GT, so a missing pixel counts as an outlier (EPE is then
         # meaningless and not reported for this variant).
         preds = {"sgm_dense_nan_filled": fill_rows_nearest(disp),
@@ -371,10 +349,9 @@ def plot_overview(path: Path, frame_index: int = 0) -> None:
 
     from optstereo.checkpoint import build_model_from_checkpoint
     from optstereo.inference import infer
+    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.datasets import discover, load_pair
-    from pvm_labeler.multiscale import _to_grey
-    from pvm_labeler.sgm import sgm_pair
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     ref = discover("kitti15", DATA_ROOT)[frame_index]
@@ -385,9 +362,9 @@ def plot_overview(path: Path, frame_index: int = 0) -> None:
             with open_shard(Path(shard)) as h5:
                 label = read_sample(h5, ref.frame_id).label
     cfg = LabelerConfig.from_dict(json.loads((LABELS / "index.json").read_text())["config"])
-    sgm, _ = sgm_pair(_to_grey(sample.left, "left"), _to_grey(sample.right, "right"), cfg, right_view=False)
+    sgm, _ = sgm_left(sample.left, sample.right, cfg)
     panels = [("left image", sample.left), ("GT (sparse LiDAR)", sample.gt),
-              ("PVM labels (white = none)", label), ("dense SGM, NaN filled along rows", fill_rows_nearest(sgm.disp))]
+              ("PVM labels (white = none)", label), ("dense SGM, NaN filled along rows", fill_rows_nearest(sgm))]
     for names, title in ((("ms_d4_onecycle", "ms_d4_long", "ms_d4_main"),
                           "OptStereo, PVM labels only (self-supervised)"),
                          (("gt_long", "gt_supervised"), "OptStereo, GT-supervised (sees its eval GT)")):
