@@ -72,7 +72,8 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
             dims = {0: "batch", 2: "height", 3: "width"} if batch else {2: "height", 3: "width"}
             torch.onnx.export(graph, (left, right), str(tmp), dynamo=True, input_names=["left", "right"],
                               output_names=["disparity"], dynamic_shapes={"left": dims, "right": dims},
-                              opset_version=OPSET, optimize=False, verbose=False)
+                              opset_version=OPSET, optimize=False, verbose=False,
+                              external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
             torch.jit.save(torch.jit.trace(graph, (left, right), check_trace=False), str(tmp))
     tmp.replace(out)

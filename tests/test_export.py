@@ -26,6 +26,7 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     ckpt = export_safetensors(root / "tiny.safetensors", build_model("optstereo", iters=3, **TINY))
     result = CliRunner().invoke(export_main, ["--checkpoint", str(ckpt), "--out", str(root / "tiny.onnx"), "--quiet"])
     assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in root.iterdir() if "onnx" in p.name) == ["tiny.onnx"]  # weights inside, no side file
     return ckpt, root / "tiny.onnx"
 
 
