@@ -81,7 +81,7 @@ class AnalogyConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> AnalogyConfig:
-        from pvm_labeler.config import reject_unknown_keys
+        from pvm_labeler.common.configtools import reject_unknown_keys
 
         reject_unknown_keys(cls, values, "analogy config")
         values = dict(values)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +27,8 @@ import torch
 from torch import nn
 
 import optstereo
-from pvm_labeler.shards import git_commit
+from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.version import git_commit
 
 logger = logging.getLogger(__name__)
 
@@ -47,12 +47,8 @@ def code_version() -> dict[str, str]:
 
 
 def _atomic_torch_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        torch.save(obj, fh)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    with atomic_path(path, fsync=True) as tmp:
+        torch.save(obj, tmp)
 
 
 def unwrap(model: nn.Module) -> nn.Module:
@@ -124,9 +120,8 @@ def export_safetensors(path: Path, model: nn.Module, step: int | None = None) ->
         "step": str(step if step is not None else -1),
         "code_version": json.dumps(code_version()),
     }
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(tensors, str(tmp), metadata=metadata)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        save_file(tensors, str(tmp), metadata=metadata)
     return path
 
 

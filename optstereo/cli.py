@@ -18,7 +18,7 @@ import yaml
 
 from optstereo.checkpoint import CheckpointError
 from optstereo.train_config import AMP_MODES, DEVICES, SCHEDULES, SUPERVISIONS, TrainConfig
-from pvm_labeler.errors import ConfigError, PVMError
+from pvm_labeler.common.errors import ConfigError, PVMError
 
 logger = logging.getLogger(__name__)
 
@@ -92,7 +92,7 @@ def _collect_reader_options(folder_left: str | None, folder_right: str | None, f
 
 
 def _dataset_option(fn):
-    from pvm_labeler.datasets import DATASETS
+    from pvm_labeler.common.datasets import DATASETS
 
     return click.option("--dataset", type=click.Choice(DATASETS),
                         help="Dataset reader (official layouts); `folder` takes --left/--right/--gt.")(fn)
@@ -306,7 +306,7 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
                   dataset: str | None) -> None:
     from optstereo import inference
     from optstereo.export import infer_onnx, onnx_session
-    from pvm_labeler.io import read_image
+    from pvm_labeler.common.io import read_image
 
     if dataset is not None or left is None or right is None or Path(onnx_file).suffix != ".onnx":
         raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")

@@ -11,7 +11,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from pvm_labeler.config import reject_unknown_keys
+from pvm_labeler.common.configtools import reject_unknown_keys
 
 UPSAMPLERS = ("conv", "convex")
 NORMS = ("instance", "batch", "group", "none")

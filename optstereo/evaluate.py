@@ -1,9 +1,9 @@
-"""Evaluation on ground truth with the project's single ruler (``pvm_labeler.metrics``): ``optstereo-eval``.
+"""Evaluation on ground truth with the project's single ruler (``pvm_labeler.common.metrics``): ``optstereo-eval``.
 
 Both a network (``evaluate_model``) and a shard directory's own PVM labels (``evaluate_labels``) go through
 ``evaluate_frames``, so labels and network are measured identically.
 
-Metrics (definitions in pvm_labeler/metrics.py; thresholds on the absolute error in pixels):
+Metrics (definitions in pvm_labeler/common/metrics.py; thresholds on the absolute error in pixels):
     epe       AEPE over GT-valid pixels that have a prediction.
     bad1/2/3  % of those pixels with error > 1 / 2 / 3 px.
     f1        the paper's F1: % of pixels with error > 3 px (equal to bad3; named for the paper's tables).
@@ -33,7 +33,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from pvm_labeler.metrics import MetricAccumulator
+from pvm_labeler.common.metrics import MetricAccumulator
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ def summarise(acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[st
 def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
     """KITTI-style error map (labeler's viz.error_map), or a plain |error| rendering when viz is unavailable."""
     try:
-        from pvm_labeler.viz import error_map
+        from pvm_labeler.common.viz import error_map
     except ImportError:
         from optstereo.inference import colorize
 
@@ -104,7 +104,7 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
 
 def _save_maps(out_dir: Path, frame: Frame) -> None:
     from optstereo.inference import colorize
-    from pvm_labeler.io import write_image
+    from pvm_labeler.common.io import write_image
 
     maps = out_dir / "maps"
     maps.mkdir(parents=True, exist_ok=True)
@@ -184,9 +184,9 @@ def model_frames(
     device: torch.device | str = "cpu", limit: int | None = None, amp: str = "none",
     reader_options: dict[str, Any] | None = None,
 ) -> Iterator[Frame]:
-    """Run the network over a dataset (pvm_labeler.datasets readers and their options), yielding timed Frames."""
+    """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames."""
     from optstereo.inference import infer
-    from pvm_labeler.datasets import discover, load_pair
+    from pvm_labeler.common.datasets import discover, load_pair
 
     for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
         sample = load_pair(ref)

@@ -23,6 +23,8 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from pvm_labeler.common.atomic import atomic_path
+
 logger = logging.getLogger(__name__)
 
 OPSET = 18
@@ -65,9 +67,7 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
     gen = torch.Generator().manual_seed(0)
     left = torch.rand(1, 3, h, w, generator=gen) * 255
     right = torch.roll(left, shifts=-2, dims=-1)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    with torch.no_grad():
+    with atomic_path(out) as tmp, torch.no_grad():
         if fmt == "onnx":
             dims = {0: "batch", 2: "height", 3: "width"} if batch else {2: "height", 3: "width"}
             torch.onnx.export(graph, (left, right), str(tmp), dynamo=True, input_names=["left", "right"],
@@ -76,7 +76,6 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
                               external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
             torch.jit.save(torch.jit.trace(graph, (left, right), check_trace=False), str(tmp))
-    tmp.replace(out)
     return out
 
 

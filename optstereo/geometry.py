@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from pvm_labeler.errors import InputError
+from pvm_labeler.common.errors import InputError
 
 DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNG in millimetres (0 = invalid), as KITTI depth and most RGB-D tools
 
@@ -76,7 +76,7 @@ def _read_yaml(path: Path) -> Calibration:
 
 def _key_values(path: Path) -> dict[str, str]:
     """``key: value`` lines (KITTI) or ``key=value`` lines (Middlebury, via the dataset reader's own parser)."""
-    from pvm_labeler.datasets import read_middlebury_calib
+    from pvm_labeler.common.datasets import read_middlebury_calib
 
     text = path.read_text()
     if "P_rect_02" not in text:
@@ -127,7 +127,7 @@ def depth_to_points(
 
 def write_depth_png(path: Path | str, depth: npt.NDArray[np.floating]) -> None:
     """16-bit PNG in millimetres (0 = invalid; depths beyond 65.535 m are clipped to it)."""
-    from pvm_labeler.io import write_image
+    from pvm_labeler.common.io import write_image
 
     mm = np.clip(np.round(np.nan_to_num(depth, nan=0.0) * DEPTH_PNG_SCALE), 0, 65535).astype(np.uint16)
     write_image(Path(path), mm)

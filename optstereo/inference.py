@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from optstereo.padding import InputPadder
+from pvm_labeler.common.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
 
@@ -118,7 +119,7 @@ def infer(
 def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
     """(H, W, 3) uint8 colour rendering of a disparity map (NaN = black), via the labeler's viz module."""
     try:
-        from pvm_labeler.viz import colorize_disparity
+        from pvm_labeler.common.viz import colorize_disparity
     except ImportError:  # viz is optional for inference; fall back to OpenCV's turbo map
         import cv2
 
@@ -140,7 +141,7 @@ def write_disparity(
     With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
     ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders.
     """
-    from pvm_labeler.io import write_image, write_kitti_disp, write_pfm
+    from pvm_labeler.common.io import write_image, write_kitti_disp, write_pfm
 
     formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
     unknown = sorted(set(formats) - set(FORMATS))
@@ -173,7 +174,7 @@ def write_geometry(
 ) -> dict[str, Path]:
     """Depth (16-bit mm PNG, PFM/NPY in m) and a coloured PLY point cloud of one prediction; format -> path."""
     from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
-    from pvm_labeler.io import write_pfm
+    from pvm_labeler.common.io import write_pfm
 
     wanted = [f for f in formats if f in GEOMETRY_FORMATS]
     if not wanted:
@@ -206,7 +207,7 @@ def predict_pair(
     calib: Any = None, max_depth: float = float("inf"),
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
-    from pvm_labeler.io import read_image
+    from pvm_labeler.common.io import read_image
 
     left, right = read_image(left_path), read_image(right_path)
     if left.shape != right.shape:
@@ -229,7 +230,7 @@ def predict_dataset(
 
     With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server.
     """
-    from pvm_labeler.datasets import discover, load_pair
+    from pvm_labeler.common.datasets import discover, load_pair
 
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if submission is not None and not dataset.startswith("kitti"):
@@ -253,18 +254,23 @@ def write_submission(pred_dir: Path, zip_path: Path, refs: list[Any]) -> Path:
     Raises:
         ValueError: naming the frame whose file is missing, of another size or not 16-bit.
     """
-    import zipfile
-
-    import cv2
-
-    from pvm_labeler.io import image_size
-
     frames = sorted((r for r in refs if r.frame_id.endswith("_10")), key=lambda r: r.frame_id)
     if not frames:
         raise ValueError("no reference frames (<id>_10) to submit")
     zip_path = Path(zip_path)
-    zip_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = zip_path.with_name(zip_path.name + ".tmp")
+    with atomic_path(zip_path) as tmp:
+        _write_checked_zip(tmp, zip_path, frames, pred_dir)
+    return zip_path
+
+
+def _write_checked_zip(tmp: Path, zip_path: Path, frames: list, pred_dir: Path) -> None:
+    """Write the submission entries to ``tmp`` and re-read them as the server will."""
+    import zipfile
+
+    import cv2
+
+    from pvm_labeler.common.io import image_size
+
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
         for ref in frames:
             src = Path(pred_dir) / "disp_0" / f"{ref.frame_id}.png"
@@ -282,5 +288,3 @@ def write_submission(pred_dir: Path, zip_path: Path, refs: list[Any]) -> Path:
             if raw is None or raw.dtype != np.uint16 or raw.shape != want:
                 got = None if raw is None else (raw.shape, raw.dtype)
                 raise ValueError(f"submission: frame {ref.frame_id} is {got}, expected uint16 of size {want}")
-    tmp.replace(zip_path)
-    return zip_path

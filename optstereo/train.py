@@ -32,6 +32,7 @@ from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.inference import warn_if_emulated_bf16
 from optstereo.train_config import TrainConfig
+from pvm_labeler.common.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
 
@@ -148,7 +149,7 @@ class RunLogger:
 
 def disparity_images(left: torch.Tensor, pred: torch.Tensor, label: torch.Tensor, valid: torch.Tensor) -> dict:
     """Colour pictures of the first sample of a batch: left image, prediction, label (for TensorBoard)."""
-    from pvm_labeler.viz import colorize_disparity
+    from pvm_labeler.common.viz import colorize_disparity
 
     pred_np = pred[0, 0].detach().float().cpu().numpy()
     label_np = np.where(valid[0, 0].cpu().numpy(), label[0, 0].cpu().numpy(), np.nan).astype(np.float32)
@@ -317,9 +318,8 @@ def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo):
         numbered = run_dir / f"ckpt-{state.step:07d}.pt"
         save_checkpoint(numbered, model=state.model, step=state.step, optimizer=state.optimizer,
                         scheduler=state.scheduler, scaler=state.scaler, train_config=cfg.to_dict())
-        tmp = run_dir / (LAST + ".tmp")
-        shutil.copyfile(numbered, tmp)
-        tmp.replace(run_dir / LAST)
+        with atomic_path(run_dir / LAST) as tmp:
+            shutil.copyfile(numbered, tmp)
         old = sorted(run_dir.glob("ckpt-*.pt"))[: -cfg.keep_ckpts] if cfg.keep_ckpts > 0 else []
         for path in old:
             path.unlink(missing_ok=True)

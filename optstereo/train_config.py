@@ -14,8 +14,9 @@ from typing import Any
 
 import yaml
 
-from pvm_labeler.config import reject_unknown_keys
-from pvm_labeler.errors import ConfigError
+from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.configtools import reject_unknown_keys
+from pvm_labeler.common.errors import ConfigError
 
 SUPERVISIONS = ("pvm", "gt")
 SCHEDULES = ("constant", "onecycle")
@@ -76,7 +77,7 @@ class TrainConfig:
         threads: torch intra-op threads on CPU (0 = leave torch's default).
         max_minutes: stop early (and checkpoint) after this wall time; 0 = no limit. For time-boxed demos.
         tensorboard: write TensorBoard events when tensorboard is installed.
-        val_dataset, val_root: dataset (pvm_labeler.datasets name) evaluated on GT at the end of the run (optional).
+        val_dataset, val_root: dataset name (pvm_labeler.common.datasets) evaluated on GT at the end (optional).
         val_limit: evaluate only the first N frames of the validation dataset (0 = all).
         lambda_t: weight of the transformation self-supervision L_T ("learning by analogy", optstereo.analogy);
             0 = off (it costs a second forward/backward per step).
@@ -221,12 +222,8 @@ class TrainConfig:
 
     def save(self, run_dir: Path) -> Path:
         """Write the config as RUN_DIR/config.yaml (atomically) and return the path."""
-        run_dir = Path(run_dir)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        path = run_dir / CONFIG_FILE
-        tmp = path.with_suffix(".yaml.tmp")
-        tmp.write_text(yaml.safe_dump(self.to_dict(), sort_keys=True))
-        tmp.replace(path)
+        path = Path(run_dir) / CONFIG_FILE
+        atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=True))
         return path
 
 

@@ -18,7 +18,7 @@ import platform
 import time
 from pathlib import Path
 
-from pvm_labeler.shards import git_commit
+from pvm_labeler.common.version import git_commit
 
 SECTIONS = ("labeler", "job", "network", "train", "export")
 

@@ -42,7 +42,7 @@ def run(shared: Path) -> dict[str, Any]:
     from optstereo.api import load_model
     from optstereo.export import export, infer_onnx, onnx_session
     from optstereo.inference import infer
-    from pvm_labeler.io import read_image
+    from pvm_labeler.common.io import read_image
 
     torch.set_num_threads(THREADS)
     base = Path(shared) / "kitti15/training"

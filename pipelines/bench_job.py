@@ -29,8 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.datasets import discover, load_pair
 from pvm_labeler.job import JobSpec
 from pvm_labeler.job import run as run_job
 from pvm_labeler.parallel import available_cores, peak_rss_mb

@@ -70,7 +70,7 @@ def _infer_speed(kitti_root: str | None, iters: int, repeats: int) -> dict[str, 
     torch.manual_seed(0)
     model = build_model("optstereo").eval()
     if kitti_root:
-        from pvm_labeler.datasets import discover, load_pair
+        from pvm_labeler.common.datasets import discover, load_pair
 
         sample = load_pair(discover("kitti15", kitti_root)[0])
         left, right = sample.left, sample.right
@@ -92,7 +92,7 @@ def _write_kitti_shards(kitti_root: Path, out: Path, limit: int) -> Path:
     """Shards of real KITTI frames with GT as the label (the loader's work is the same as with PVM labels)."""
     import numpy as np
 
-    from pvm_labeler.datasets import discover, load_pair
+    from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.shards import ShardRecord, write_shard_dir
 
     records = []

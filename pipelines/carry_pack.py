@@ -17,9 +17,9 @@ from pathlib import Path
 import cv2
 from tqdm import tqdm
 
-from pvm_labeler.datasets import discover
-from pvm_labeler.errors import InputError
-from pvm_labeler.io import read_image
+from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.io import read_image
 
 
 def write_jpeg_folder(dataset: str, root: Path | None, out: Path, quality: int = 95) -> int:

@@ -47,7 +47,7 @@ def _run(cmd: list[str], log: Path) -> None:
 
 
 def _motorcycle_metrics(disp, gt) -> str:
-    from pvm_labeler.metrics import disparity_metrics
+    from pvm_labeler.common.metrics import disparity_metrics
 
     m = disparity_metrics(disp, gt)
     return f"EPE {m['epe']:.2f} px, bad-3 {m['bad3']:.1f} %, density {m['density']:.0f} %"
@@ -61,7 +61,7 @@ def overview(out: Path, pred_npy: Path, pretrained_npy: Path) -> Path:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from pvm_labeler.datasets import discover, load_pair
+    from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     sample = load_pair(next(r for r in discover("sample", None) if r.frame_id == "motorcycle"))

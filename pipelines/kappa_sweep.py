@@ -25,9 +25,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pvm_labeler.common.datasets import DATASETS, discover, load_pair
+from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.datasets import DATASETS, discover, load_pair
-from pvm_labeler.metrics import MetricAccumulator
 
 logger = logging.getLogger("pipelines.kappa_sweep")
 

@@ -33,9 +33,9 @@ from typing import Any
 import numpy as np
 
 from pvm_labeler.baselines import MATCHED_DENSITIES, CurvePoint, bad3_at_density, evaluate, score_curve
+from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.errors import InputError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.datasets import discover, load_pair
-from pvm_labeler.errors import InputError
 from pvm_labeler.multiscale import ScaleStack, compute_scales, draw_eps, label_from_scales, lr_check
 
 logger = logging.getLogger("pipelines.results")

@@ -68,7 +68,7 @@ def _run(cmd: list[str]) -> None:
 
 def _machine() -> dict[str, Any]:
     from pipelines.bench import cpu_summary
-    from pvm_labeler.shards import git_commit
+    from pvm_labeler.common.version import git_commit
 
     return {"cpu": cpu_summary(), "python": platform.python_version(), "git_commit": git_commit(),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
@@ -130,8 +130,8 @@ def step_baselines() -> dict[str, Any]:
     """Dense full-resolution SGM (the labeler's matcher: census 5x5, 8 paths, P1/P2 as labelled) on every GT set."""
     from optstereo.evaluate import Frame, evaluate_frames
     from pipelines.dense_sgm import fill_rows_nearest, sgm_left
+    from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
-    from pvm_labeler.datasets import discover, load_pair
 
     cfg = LabelerConfig()
     out: dict[str, Any] = {"what": "dense SGM, NaN filled by the nearest valid value on the row", **_machine()}

@@ -1,9 +1,26 @@
-"""PVM labeler: multi-scale SGM + pyramid voting + LR check -> semi-dense pseudo-labels (no torch here)."""
+"""PVM labeler: multi-scale SGM + pyramid voting + LR check -> semi-dense pseudo-labels (no torch here).
 
-from pvm_labeler.config import LabelerConfig
-from pvm_labeler.errors import ConfigError, InputError, PVMError, ShardError
-from pvm_labeler.multiscale import LabelResult, draw_eps, label_pair
+``pvm_labeler.common`` is the torch-free base both programs import (datasets, I/O, metrics, errors, atomic writes,
+config helpers, code version); the trainer reaches the rest of the labeler only through ``pvm_labeler.shards``.
+The names below load lazily, so importing ``pvm_labeler.common`` does not pull in numba and the kernels.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from pvm_labeler.common.errors import ConfigError, InputError, PVMError, ShardError
+from pvm_labeler.common.version import __version__
+
+_LAZY = {"LabelerConfig": "pvm_labeler.config", "LabelResult": "pvm_labeler.multiscale",
+         "label_pair": "pvm_labeler.multiscale", "draw_eps": "pvm_labeler.multiscale"}
 
 __all__ = ["LabelerConfig", "PVMError", "InputError", "ConfigError", "ShardError", "LabelResult", "label_pair",
-           "draw_eps"]
-__version__ = "0.1.0"
+           "draw_eps", "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'pvm_labeler' has no attribute {name!r}")

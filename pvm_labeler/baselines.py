@@ -8,8 +8,8 @@ Methods (all on the same matcher, ``pvm_labeler.sgm.sgm_pair``, at full resoluti
   means a more distinctive minimum). Sweeping the threshold gives its density-vs-bad-3 curve.
 - ``pvm``: :func:`pvm_labeler.multiscale.label_pair`; its curve sweeps ``min_confidence`` at the configured kappas.
 
-Metrics come from :mod:`pvm_labeler.metrics` (density in % of GT-valid pixels, bad-3 in %, AEPE in px, pooled over
-pixels). The expensive SGM outputs can be cached under a directory (``cache_dir``) keyed by frame and by the
+Metrics come from :mod:`pvm_labeler.common.metrics` (density in % of GT-valid pixels, bad-3 in %, AEPE in px,
+pooled over pixels). The expensive SGM outputs can be cached under a directory (``cache_dir``) keyed by frame and by the
 SGM-relevant config fields, so sweeps over kappas do not recompute them.
 """
 
@@ -27,9 +27,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.errors import InputError
-from pvm_labeler.metrics import MetricAccumulator
 from pvm_labeler.multiscale import RawScales, ScaleStack, label_from_scales, lr_check, run_scales, upsample_scales
 
 logger = logging.getLogger(__name__)
@@ -111,12 +112,10 @@ def raw_scales(frame: Frame, cfg: LabelerConfig, cache_dir: Path | None = None) 
                                  {"pyramid": 0.0, "sgm": 0.0})
     raw = run_scales(frame.left, frame.right, cfg, frame.frame_id, uniqueness=True)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f"{name}_{k}": arr for k, maps in enumerate(raw.maps) for name, arr in maps.items()}
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, n=len(raw.maps), height=raw.height, width=raw.width, eps=raw.eps, factors=raw.factors,
-                 **arrays)
-        tmp.replace(path)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a file object: np.savez would append ".npz"
+            np.savez(fh, n=len(raw.maps), height=raw.height, width=raw.width, eps=raw.eps, factors=raw.factors,
+                     **arrays)
     return raw
 
 
@@ -189,7 +188,7 @@ def pvm_curve(stacks: Sequence[ScaleStack], gts: Sequence[np.ndarray], cfg: Labe
 
 
 def evaluate(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> dict[str, float]:
-    """Pooled-over-pixels metrics (pvm_labeler.metrics) of several frames."""
+    """Pooled-over-pixels metrics (pvm_labeler.common.metrics) of several frames."""
     acc = MetricAccumulator()
     for pred, gt in zip(preds, gts, strict=True):
         acc.update(pred, gt)

@@ -21,9 +21,9 @@ from typing import Any
 import click
 import yaml
 
+from pvm_labeler.common.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
+from pvm_labeler.common.errors import ConfigError, PVMError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
-from pvm_labeler.errors import ConfigError, PVMError
 from pvm_labeler.parallel import BACKENDS
 from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
 

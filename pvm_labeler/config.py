@@ -10,19 +10,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
-from pvm_labeler.errors import ConfigError
-
-
-def reject_unknown_keys(cls: type, values: dict[str, Any], what: str) -> None:
-    """Raise ConfigError naming the keys of ``values`` that are not fields of the dataclass ``cls``, and the known ones.
-
-    Shared by every config class of both programs (YAML files, checkpoints, shard indexes all go through it).
-    """
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise ConfigError(f"unknown {what} keys {unknown}; known: {sorted(names)}")
-
+from pvm_labeler.common.configtools import reject_unknown_keys
+from pvm_labeler.common.errors import ConfigError
 
 #: How the label of a kept pixel is formed from its K scale disparities (see pvm_labeler.multiscale.vote).
 LABEL_MODES: tuple[str, ...] = ("finest", "median", "mean", "weighted")

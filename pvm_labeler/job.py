@@ -39,10 +39,11 @@ import numpy as np
 import yaml
 
 from pvm_labeler import multiscale
+from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.datasets import DATASETS, PairRef, check_pair_sizes, discover, load_pair
+from pvm_labeler.common.errors import ConfigError, InputError, PVMError, ShardError
+from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.datasets import DATASETS, PairRef, check_pair_sizes, discover, load_pair
-from pvm_labeler.errors import ConfigError, InputError, PVMError, ShardError
-from pvm_labeler.metrics import MetricAccumulator
 from pvm_labeler.parallel import (
     BACKENDS,
     CoreTokens,
@@ -76,7 +77,8 @@ FAILURES_FILE = "failures.json"
 DEFAULT_LABELER = "pvm_labeler.multiscale:label_pair"
 #: Files the job owns in its output directory (``overwrite`` deletes exactly these, nothing else).
 OWNED_GLOBS: tuple[str, ...] = ("shard-*.h5", f"shard-*.h5{TMP_SUFFIX}", INDEX_NAME, JOB_FILE, CONFIG_FILE,
-                                FAILURES_FILE)
+                                FAILURES_FILE) + tuple(f"{name}.*.tmp" for name in (INDEX_NAME, JOB_FILE, CONFIG_FILE,
+                                                                                    FAILURES_FILE))
 
 
 @dataclass(frozen=True)
@@ -84,7 +86,7 @@ class JobSpec:
     """Everything one labeling run needs (the CLI builds it from flags and ``--config`` YAML).
 
     Attributes:
-        dataset: one of :data:`pvm_labeler.datasets.DATASETS`.
+        dataset: one of :data:`pvm_labeler.common.datasets.DATASETS`.
         root: dataset folder (None for ``sample``).
         out: shard output directory.
         config: PVM labeler config.
@@ -494,14 +496,8 @@ def _prepare_out(spec: JobSpec, job_doc: dict[str, Any]) -> None:
         stem = path.name[len("shard-") : -len(".h5")]
         if stem.isdigit() and int(stem) >= len(job_doc["plan"]):
             path.unlink()
-    _write_text_atomic(out / JOB_FILE, json.dumps(job_doc, indent=2))
-    _write_text_atomic(out / CONFIG_FILE, yaml.safe_dump(spec.resolved(), sort_keys=False))
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + TMP_SUFFIX)
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    atomic_write_text(out / JOB_FILE, json.dumps(job_doc, indent=2))
+    atomic_write_text(out / CONFIG_FILE, yaml.safe_dump(spec.resolved(), sort_keys=False))
 
 
 def _complete_shard(path: Path, planned: list[str], config: dict[str, Any]) -> ShardOutcome | None:
@@ -724,7 +720,7 @@ def _finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outco
         failures=failures,
     )
     if failures:
-        _write_text_atomic(out / FAILURES_FILE, json.dumps(failures, indent=2))
+        atomic_write_text(out / FAILURES_FILE, json.dumps(failures, indent=2))
     else:
         (out / FAILURES_FILE).unlink(missing_ok=True)
     write_index(out, shards, json.loads(spec.config.to_json()), spec.dataset_info(),

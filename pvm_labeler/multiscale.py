@@ -33,8 +33,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from pvm_labeler.common.errors import ConfigError, InputError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.errors import ConfigError, InputError
 from pvm_labeler.kernels.lrcheck import lr_check_kernel
 from pvm_labeler.kernels.vote import LABEL_MEDIAN, LABEL_WEIGHTED, vote_kernel
 

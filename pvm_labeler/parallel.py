@@ -30,7 +30,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from pvm_labeler.errors import ConfigError
+from pvm_labeler.common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
 

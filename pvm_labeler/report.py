@@ -1,6 +1,6 @@
 """`pvm-label report`: label quality of one or several shard directories against the GT stored in them.
 
-Per frame and pooled over pixels (the ruler is :mod:`pvm_labeler.metrics`): label density (% of GT-valid pixels
+Per frame and pooled over pixels (the ruler is :mod:`pvm_labeler.common.metrics`): label density (% of GT-valid pixels
 labelled), bad-1/2/3, AEPE, D1, on ``all`` (the most complete GT), ``noc`` (non-occluded GT where the dataset has
 it) and ``occ`` (pixels in ``all`` but not in ``noc``). Writes ``report.json``, ``report.md``, colour label maps and
 KITTI-style error maps for the first few frames of each run, and, for several runs, a density-vs-error plot.
@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from pvm_labeler.errors import ShardError
-from pvm_labeler.io import write_image
-from pvm_labeler.metrics import MetricAccumulator
+from pvm_labeler.common.errors import ShardError
+from pvm_labeler.common.io import write_image
+from pvm_labeler.common.metrics import MetricAccumulator
+from pvm_labeler.common.viz import colorize_disparity, density_error_plot, error_map
 from pvm_labeler.shards import open_shard, read_index, read_sample
-from pvm_labeler.viz import colorize_disparity, density_error_plot, error_map
 
 logger = logging.getLogger(__name__)
 

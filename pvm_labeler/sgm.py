@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from pvm_labeler.common.errors import InputError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.errors import InputError
 from pvm_labeler.kernels._lanes import SENTINEL16, disparity_padding, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right

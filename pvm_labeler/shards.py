@@ -30,11 +30,9 @@ Making a tiny shard directory in tests (no labeler needed)::
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import os
-import subprocess
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -45,8 +43,9 @@ import h5py
 import numpy as np
 import numpy.typing as npt
 
-from pvm_labeler.errors import ShardError
-from pvm_labeler.io import atomic_write_bytes
+from pvm_labeler.common.errors import ShardError
+from pvm_labeler.common.io import atomic_write_bytes
+from pvm_labeler.common.version import code_version, git_commit
 
 try:
     import hdf5plugin  # registers the Blosc filters with h5py: every shard reader imports this module
@@ -87,30 +86,6 @@ OPTIONAL: dict[str, tuple[np.dtype, int]] = {
 def shard_name(index: int) -> str:
     """File name of shard number ``index`` (``shard-00000.h5``)."""
     return SHARD_PATTERN.format(index=index)
-
-
-@functools.lru_cache(maxsize=1)
-def git_commit() -> str:
-    """Short hash of the checked-out commit of the code that runs, or "unknown" outside a git checkout.
-
-    The one place that asks git (shards, OptStereo checkpoints and the bench report record it). Cached: forking
-    ``git`` from a labeling worker with ~1 GB resident costs more than writing a small shard.
-    """
-    here = Path(__file__).resolve().parent
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True, check=True, timeout=10
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return commit or "unknown"
-
-
-def code_version() -> str:
-    """Package version of pvm_labeler."""
-    from pvm_labeler import __version__
-
-    return __version__
 
 
 # ------------------------------------------------------------------------------------------------------ records

@@ -18,7 +18,7 @@ from click.testing import CliRunner, Result
 from conftest import make_synthetic_pair
 
 from pvm_labeler.cli import main
-from pvm_labeler.io import write_image
+from pvm_labeler.common.io import write_image
 from pvm_labeler.shards import read_index
 
 SMALL = ["--k", "2", "--max-disp", "16", "--quiet"]
@@ -49,7 +49,7 @@ def make_folder(root: Path, n: int = 3, size: tuple[int, int] = (64, 128), seed:
         write_image(root / "right" / f"{i:03d}.png", right)
         gt = np.full(size, 4.0, np.float32)
         gt[:, :4] = np.nan
-        from pvm_labeler.io import write_kitti_disp
+        from pvm_labeler.common.io import write_kitti_disp
 
         write_kitti_disp(root / "gt" / f"{i:03d}.png", gt)
     return root
@@ -92,7 +92,7 @@ class TestRun:
         right = cv2.imread(str(data / "right/001.png"))
         cv2.imwrite(str(data / "right/001.png"), cv2.cvtColor(right, cv2.COLOR_BGR2BGRA))  # RGBA
         cv2.imwrite(str(data / "left/002.png"), cv2.imread(str(data / "left/002.png")).astype(np.uint16) * 257)
-        with caplog.at_level(logging.INFO, logger="pvm_labeler.io"):
+        with caplog.at_level(logging.INFO, logger="pvm_labeler.common.io"):
             result = invoke("--dataset", "folder", "--root", data, "--out", out, *SMALL)
         assert result.exit_code == 0, result.output
         assert "000.png: grey image replicated to 3 channels" in caplog.text

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from pvm_labeler import io
-from pvm_labeler.datasets import DATASETS, check_pair_sizes, discover, load_pair, make_layered_scene
-from pvm_labeler.errors import InputError
+from pvm_labeler.common import io
+from pvm_labeler.common.datasets import DATASETS, check_pair_sizes, discover, load_pair, make_layered_scene
+from pvm_labeler.common.errors import InputError
 
 
 def _finite_frac(a: np.ndarray) -> float:

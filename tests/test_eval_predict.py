@@ -19,8 +19,8 @@ from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
 from optstereo.inference import infer, warn_if_emulated_bf16, write_disparity
 from optstereo.models import build_model
-from pvm_labeler.io import read_image, read_kitti_disp, read_pfm, write_image
-from pvm_labeler.metrics import disparity_metrics
+from pvm_labeler.common.io import read_image, read_kitti_disp, read_pfm, write_image
+from pvm_labeler.common.metrics import disparity_metrics
 
 TINY = dict(feature_dim=16, hidden_dim=16, head_dim=16, upsample_dim=8, iters=2)
 

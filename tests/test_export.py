@@ -14,7 +14,7 @@ from optstereo.checkpoint import export_safetensors
 from optstereo.cli import export_main, predict_main
 from optstereo.inference import infer
 from optstereo.models import build_model
-from pvm_labeler.io import read_image
+from pvm_labeler.common.io import read_image
 
 pytest.importorskip("onnxruntime")
 

@@ -17,8 +17,8 @@ from optstereo.geometry import (
     write_depth_png,
     write_ply,
 )
-from pvm_labeler.errors import InputError
-from pvm_labeler.io import read_grey_raw
+from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.io import read_grey_raw
 
 RIG = Calibration(fx=700.0, fy=700.0, cx=320.0, cy=120.0, baseline=0.5)
 
@@ -157,7 +157,7 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
     assert sizes == [(375, 1242), (370, 1224)]
     (tmp_path / "pred/disp_0/000002_10.png").unlink()
     from optstereo.inference import write_submission
-    from pvm_labeler.datasets import discover
+    from pvm_labeler.common.datasets import discover
 
     with pytest.raises(ValueError, match="000002_10 missing"):
         write_submission(tmp_path / "pred", tmp_path / "again.zip", discover("kitti15", tmp_path / "kitti", "testing"))

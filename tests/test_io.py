@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pvm_labeler import io
-from pvm_labeler.errors import InputError
+from pvm_labeler.common import io
+from pvm_labeler.common.errors import InputError
 
 
 class TestPFM:
@@ -83,7 +83,7 @@ class TestReadImage:
     def test_grey_replicated(self, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
         grey = np.arange(12, dtype=np.uint8).reshape(3, 4)
         cv2.imwrite(str(tmp_path / "g.png"), grey)
-        with caplog.at_level(logging.INFO, logger="pvm_labeler.io"):
+        with caplog.at_level(logging.INFO, logger="pvm_labeler.common.io"):
             img = io.read_image(tmp_path / "g.png")
         assert img.shape == (3, 4, 3)
         for c in range(3):
@@ -93,7 +93,7 @@ class TestReadImage:
     def test_16bit_scaled(self, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
         wide = np.array([[0, 257, 65535, 128 * 257]], dtype=np.uint16)
         cv2.imwrite(str(tmp_path / "w.png"), np.dstack([wide] * 3))
-        with caplog.at_level(logging.INFO, logger="pvm_labeler.io"):
+        with caplog.at_level(logging.INFO, logger="pvm_labeler.common.io"):
             img = io.read_image(tmp_path / "w.png")
         assert img.dtype == np.uint8
         np.testing.assert_array_equal(img[0, :, 0], [0, 1, 255, 128])
@@ -103,7 +103,7 @@ class TestReadImage:
         path = shared_data / "sceneflow/flyingthings3d/RGB_cleanpass/left/A-0032-0006.png"
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         assert raw.shape[2] == 4
-        with caplog.at_level(logging.INFO, logger="pvm_labeler.io"):
+        with caplog.at_level(logging.INFO, logger="pvm_labeler.common.io"):
             img = io.read_image(path)
         assert img.shape == (540, 960, 3)
         np.testing.assert_array_equal(img, raw[..., 2::-1])

@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 
 from pvm_labeler import job as job_module
+from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.errors import ConfigError, InputError
+from pvm_labeler.common.io import write_image
+from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.datasets import discover, load_pair
-from pvm_labeler.errors import ConfigError, InputError
-from pvm_labeler.io import write_image
 from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, ShardTask, _longest_first, predicted_work, run
-from pvm_labeler.metrics import MetricAccumulator
 from pvm_labeler.multiscale import draw_eps, scale_geometry
 from pvm_labeler.parallel import CoreTokens, numba_threads_per_worker, thread_budget
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, read_sample, verify
@@ -409,8 +409,8 @@ def test_real_kitti_two_frames(tmp_path: Path, shared_data: Path, real_labeler: 
 def test_dask_workers_in_another_working_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Relative --root/--out reach Dask workers as absolute paths (workers here start in another directory)."""
     distributed = pytest.importorskip("distributed")
-    from pvm_labeler import io
-    from pvm_labeler.datasets import make_layered_scene
+    from pvm_labeler.common import io
+    from pvm_labeler.common.datasets import make_layered_scene
 
     work, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
     for view in ("left", "right"):

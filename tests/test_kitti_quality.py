@@ -1,7 +1,7 @@
 """Quality of the PVM labels on real KITTI 2015 (../shared/data/kitti15), default LabelerConfig.
 
 GT: disp_noc_0 where present, else disp_occ_0 (frame 000046); uint16 PNG / 256, 0 = no GT. Metrics pooled over
-pixels (pvm_labeler.metrics): density = labelled GT-valid pixels / GT-valid pixels, bad-3 and AEPE on the
+pixels (pvm_labeler.common.metrics): density = labelled GT-valid pixels / GT-valid pixels, bad-3 and AEPE on the
 labelled GT-valid pixels. The baselines use the same matcher at full resolution (pvm_labeler.baselines).
 """
 

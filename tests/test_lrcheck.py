@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from naive_pvm import naive_lr_check
 
-from pvm_labeler.errors import InputError
+from pvm_labeler.common.errors import InputError
 from pvm_labeler.multiscale import lr_check
 
 

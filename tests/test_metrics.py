@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pvm_labeler.errors import InputError
-from pvm_labeler.metrics import MetricAccumulator, disparity_metrics
+from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.metrics import MetricAccumulator, disparity_metrics
 
 NAN = np.nan
 
@@ -87,7 +87,7 @@ class TestAccumulator:
 
 class TestViz:
     def test_error_map_colours(self) -> None:
-        from pvm_labeler.viz import KITTI_ERROR_BINS, NO_LABEL_RGB, error_map
+        from pvm_labeler.common.viz import KITTI_ERROR_BINS, NO_LABEL_RGB, error_map
 
         gt = np.array([[10.0, 10.0, 10.0, NAN, 100.0]], np.float32)
         pred = np.array([[10.25, NAN, 70.0, 5.0, 104.0]], np.float32)
@@ -101,7 +101,7 @@ class TestViz:
         assert tuple(img[0, 4]) == KITTI_ERROR_BINS[4][2]
 
     def test_colorize_nan_black(self) -> None:
-        from pvm_labeler.viz import colorize_disparity
+        from pvm_labeler.common.viz import colorize_disparity
 
         img = colorize_disparity(np.array([[NAN, 0.0, 50.0]], np.float32), max_disp=50)
         assert tuple(img[0, 0]) == (0, 0, 0) and img[0, 2].any() and not (img[0, 1] == img[0, 2]).all()

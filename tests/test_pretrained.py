@@ -19,8 +19,8 @@ from optstereo.checkpoint import CheckpointError, load_checkpoint
 from optstereo.cli import predict_main, train_main
 from optstereo.pretrained import WEIGHTS, resolve_checkpoint_spec
 from pvm_labeler import shards as shard_mod
-from pvm_labeler.datasets import discover, load_pair
-from pvm_labeler.errors import ShardError
+from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.errors import ShardError
 
 
 # -- the unlabelled reader ----------------------------------------------------------------------------------------

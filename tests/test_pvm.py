@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from pvm_labeler.common.errors import ConfigError, InputError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.errors import ConfigError, InputError
 from pvm_labeler.multiscale import LabelResult, draw_eps, label_pair, scale_geometry
 
 CFG = LabelerConfig(k=4, max_disp=32)

@@ -11,8 +11,8 @@ import pytest
 from conftest import make_synthetic_pair
 
 from pvm_labeler import sgm as sgm_module
+from pvm_labeler.common.errors import InputError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.errors import InputError
 from pvm_labeler.sgm import SGMResult, release_workspace, sgm_pair
 
 CFG = LabelerConfig(max_disp=16)

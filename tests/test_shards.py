@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hdf5plugin import BLOSC_ID
 
-from pvm_labeler.errors import ShardError
+from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards import (
     COMPRESSIONS,
     INDEX_NAME,

@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader
 from optstereo.data import ShardStream, TrainTransform, collate_min_size, to_tensors
 from optstereo.data.stream import shuffle_buffer, skip_count
 from optstereo.data.transforms import crop_window, photometric_jitter
-from pvm_labeler.errors import ShardError
+from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards import ShardRecord, write_shard_dir
 
 

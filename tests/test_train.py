@@ -15,7 +15,7 @@ from optstereo import train
 from optstereo.checkpoint import load_checkpoint
 from optstereo.cli import train_main
 from optstereo.train_config import TrainConfig, parse_crop
-from pvm_labeler.errors import ConfigError
+from pvm_labeler.common.errors import ConfigError
 
 TINY = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}
 

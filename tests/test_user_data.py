@@ -17,9 +17,9 @@ from optstereo.checkpoint import export_safetensors, load_checkpoint
 from optstereo.cli import eval_main, train_main
 from optstereo.evaluate import evaluate_model
 from optstereo.models import build_model
-from pvm_labeler import io
 from pvm_labeler.cli import main as pvm_main
-from pvm_labeler.datasets import make_layered_scene
+from pvm_labeler.common import io
+from pvm_labeler.common.datasets import make_layered_scene
 
 
 def _rig(root: Path, n: int, height: int = 64, width: int = 128) -> None:

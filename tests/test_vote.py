@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from naive_pvm import naive_vote
 
+from pvm_labeler.common.errors import InputError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.errors import InputError
 from pvm_labeler.multiscale import vote
 
 # float32 outputs of a float64 computation: the kernel and np.std/np.median may differ in the last float32 ulp.

@@ -30,7 +30,7 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from optstereo.data.transforms import TrainTransform, to_tensors
-from pvm_labeler.errors import ShardError
+from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards import open_shard, read_index, read_sample
 
 logger = logging.getLogger(__name__)

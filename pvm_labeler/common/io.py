@@ -1,6 +1,6 @@
 """Field-standard image and disparity file I/O with clear errors (PNG/PGM/PPM via OpenCV, PFM, KITTI uint16 PNG).
 
-Every reader raises :class:`~pvm_labeler.errors.InputError` naming the file when it is missing, unreadable,
+Every reader raises :class:`~pvm_labeler.common.errors.InputError` naming the file when it is missing, unreadable,
 corrupt or truncated. Images always come out as (H, W, 3) uint8 RGB; conversions (grey -> 3 channels, 16-bit ->
 8-bit, RGBA -> RGB) are logged at INFO level with the file name so nothing is converted silently.
 """
@@ -8,16 +8,15 @@ corrupt or truncated. Images always come out as (H, W, 3) uint8 RGB; conversions
 from __future__ import annotations
 
 import logging
-import os
 import re
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-from pvm_labeler.errors import InputError
+from pvm_labeler.common.atomic import atomic_write_bytes
+from pvm_labeler.common.errors import InputError
 
 logger = logging.getLogger(__name__)
 
@@ -110,19 +109,6 @@ def write_image(path: Path | str, image: np.ndarray) -> None:
     if not ok:
         raise InputError(f"cannot encode image for {path} (shape {image.shape}, dtype {image.dtype})")
     atomic_write_bytes(path, buf.tobytes())
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temp file beside ``path`` and rename it over ``path``: readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ----------------------------------------------------------------------------------------------------------- PFM

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from pvm_labeler.errors import InputError
+from pvm_labeler.common.errors import InputError
 
 BAD_THRESHOLDS: tuple[int, ...] = (1, 2, 3)
 METRIC_KEYS: tuple[str, ...] = ("density", "epe", "bad1", "bad2", "bad3", "d1", "n_valid", "n_covered")

@@ -1,0 +1,44 @@
+"""Write-to-temp-then-rename, the one implementation: readers never see half a file, a crash leaves no debris."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path | str, fsync: bool = False) -> Iterator[Path]:
+    """Yield a fresh temp path beside ``path``; when the block succeeds, rename it over ``path``.
+
+    The temp file is ``<dir>/<name>.<random>.tmp`` (same directory, so ``os.replace`` is atomic on POSIX). If the
+    block raises, the temp file is removed and ``path`` is untouched. ``fsync`` flushes the data to disk before
+    the rename (checkpoints: a power cut must not leave a renamed but empty file).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        if fsync:
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_write_bytes(path: Path | str, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def atomic_write_text(path: Path | str, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")

@@ -1,0 +1,16 @@
+"""Helpers every config class of both programs uses (YAML files, checkpoints and shard indexes go through them)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from pvm_labeler.common.errors import ConfigError
+
+
+def reject_unknown_keys(cls: type, values: dict[str, Any], what: str) -> None:
+    """Raise ConfigError naming the keys of ``values`` that are not fields of dataclass ``cls``, and the known ones."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ConfigError(f"unknown {what} keys {unknown}; known: {sorted(names)}")

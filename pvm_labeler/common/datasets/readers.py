@@ -1,0 +1,255 @@
+"""Discovery of pairs in each dataset's official layout (KITTI, Middlebury, Scene Flow, folders, unlabelled KITTI)."""
+
+from __future__ import annotations
+
+import glob as globlib
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+from pvm_labeler.common import io
+from pvm_labeler.common.datasets.refs import (
+    IMAGE_SUFFIXES,
+    PairRef,
+    _check_counts,
+    _first_existing,
+    _images_in,
+    _require_dir,
+    _safe_id,
+)
+from pvm_labeler.common.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------------------------------------------ KITTI
+def _discover_kitti(root: Path, split: str, left: str, right: str, occ: str, noc: str, name: str) -> list[PairRef]:
+    base = _require_dir(root / split, f"{name} split folder '{split}'")
+    left_dir = _require_dir(base / left, f"{name} left image folder")
+    right_dir = _require_dir(base / right, f"{name} right image folder")
+    lefts, rights = _images_in(left_dir), _images_in(right_dir)
+    _check_counts(lefts, rights, left_dir, right_dir)
+    occ_dir, noc_dir = base / occ, base / noc
+    refs = []
+    for stem in sorted(lefts):
+        gt_occ = _first_existing(occ_dir / f"{stem}.png")
+        gt_noc = _first_existing(noc_dir / f"{stem}.png")
+        refs.append(
+            PairRef(
+                frame_id=_safe_id(stem),
+                left=lefts[stem],
+                right=rights[stem],
+                gt=gt_occ or gt_noc,  # most complete first; frames with only disp_noc keep gt = noc
+                gt_noc=gt_noc,
+                meta={"dataset": name, "gt_format": "kitti"},
+            )
+        )
+    return refs
+
+
+def _discover_kitti15(root: Path, split: str, **_: Any) -> list[PairRef]:
+    return _discover_kitti(root, split, "image_2", "image_3", "disp_occ_0", "disp_noc_0", "kitti15")
+
+
+def _discover_kitti12(root: Path, split: str, **_: Any) -> list[PairRef]:
+    return _discover_kitti(root, split, "colored_0", "colored_1", "disp_occ", "disp_noc", "kitti12")
+
+
+# -------------------------------------------------------------------------------------------------- Middlebury
+# (left, right, left GT, right GT, GT scale) per layout; scale None = PFM with inf = unknown.
+_MIDDLEBURY_LAYOUTS: tuple[tuple[str, str, str, str, float | None], ...] = (
+    ("im0.png", "im1.png", "disp0GT.pfm", "disp1GT.pfm", None),  # MiddEval3 / 2014
+    ("im2.png", "im6.png", "disp2.png", "disp6.png", 4.0),  # 2003 (cones, teddy), quarter size
+    ("im2.ppm", "im6.ppm", "disp2.pgm", "disp6.pgm", 8.0),  # 2001 (venus, sawtooth, ...)
+    ("im2.png", "im6.png", "disp2.pgm", "disp6.pgm", 8.0),
+    ("im3.png", "im4.png", "disp3.pgm", "disp4.pgm", 16.0),  # 2001 tsukuba (truedisp scaled by 16)
+    ("im3.ppm", "im4.ppm", "disp3.pgm", "disp4.pgm", 16.0),
+)
+
+
+def read_middlebury_calib(path: Path) -> dict[str, str]:
+    """Parse a MiddEval3 ``calib.txt`` (``key=value`` lines) into a dict of strings."""
+    values = {}
+    for line in path.read_text().splitlines():
+        if "=" in line:
+            key, value = line.split("=", 1)
+            values[key.strip()] = value.strip()
+    return values
+
+
+def _middlebury_ref(folder: Path, root: Path) -> PairRef | None:
+    for left_name, right_name, gt_name, gt_right_name, scale in _MIDDLEBURY_LAYOUTS:
+        left, right = folder / left_name, folder / right_name
+        if not left.is_file():
+            continue
+        if not right.is_file():
+            raise InputError(f"middlebury: left image {left} has no right image {right}")
+        rel = folder.relative_to(root).as_posix()
+        meta: dict[str, Any] = {"dataset": "middlebury", "gt_format": "pfm" if scale is None else "scaled"}
+        if scale is not None:
+            meta["gt_scale"] = scale
+        mask = folder / "mask0nocc.png"
+        if scale is None and mask.is_file():
+            meta["noc_mask"] = str(mask)
+        calib = folder / "calib.txt"
+        if calib.is_file():
+            meta["calib"] = str(calib)
+        return PairRef(
+            frame_id=_safe_id(folder.name if rel == "." else rel),
+            left=left,
+            right=right,
+            gt=_first_existing(folder / gt_name),
+            gt_noc=None,
+            gt_right=_first_existing(folder / gt_right_name),
+            meta=meta,
+        )
+    return None
+
+
+def _discover_middlebury(root: Path, split: str, **_: Any) -> list[PairRef]:
+    # The Middlebury releases have no common split folder names (trainingQ, 2003 scenes ...), so every folder
+    # under root that holds a known pair is a frame; `split` is ignored (documented).
+    _require_dir(root, "middlebury root")
+    folders = [root, *sorted(p for p in root.rglob("*") if p.is_dir())]
+    refs = [ref for ref in (_middlebury_ref(f, root) for f in folders) if ref is not None]
+    return refs
+
+
+# --------------------------------------------------------------------------------------------------- SceneFlow
+_PASS_DIR = re.compile(r"^(frames|RGB)_(clean|final)pass$")
+
+
+def _discover_sceneflow(root: Path, split: str, pass_: str = "clean", **_: Any) -> list[PairRef]:
+    _require_dir(root, "sceneflow root")
+    wanted = {"training": "TRAIN", "testing": "TEST"}[split]
+    pass_dirs = sorted(
+        p for p in [root, *root.rglob("*")] if p.is_dir() and (m := _PASS_DIR.match(p.name)) and m.group(2) == pass_
+    )
+    refs = []
+    for pass_dir in pass_dirs:
+        base = pass_dir.parent
+        for left in sorted(pass_dir.rglob("left/*.png")):
+            rel = left.parent.parent.relative_to(pass_dir)
+            parts = rel.parts
+            # FlyingThings3D has TRAIN/TEST folders; other subsets (Driving, Monkaa, flat copies) have no split.
+            if any(p in ("TRAIN", "TEST") for p in parts) and wanted not in parts:
+                continue
+            right = left.parent.parent / "right" / left.name
+            if not right.is_file():
+                raise InputError(f"sceneflow: left image {left} has no right image {right}")
+            disp_dir = base / "disparity" / rel
+            occ = base / "occlusion" / rel / "left" / left.name
+            meta: dict[str, Any] = {"dataset": "sceneflow", "gt_format": "pfm"}
+            if occ.is_file():
+                meta["occlusion"] = str(occ)
+            id_parts = [*base.relative_to(root).parts, *parts, left.stem]
+            refs.append(
+                PairRef(
+                    frame_id=_safe_id("-".join(id_parts)),
+                    left=left,
+                    right=right,
+                    gt=_first_existing(disp_dir / "left" / f"{left.stem}.pfm"),
+                    gt_right=_first_existing(disp_dir / "right" / f"{left.stem}.pfm"),
+                    meta=meta,
+                )
+            )
+    return refs
+
+
+# ------------------------------------------------------------------------------------------------------ folder
+def _glob_images(spec: str | Path, root: Path | None, what: str) -> tuple[dict[str, Path], str]:
+    spec = Path(spec)
+    if root is not None and not spec.is_absolute():
+        spec = root / spec
+    if spec.is_dir():
+        return _images_in(spec), str(spec)
+    if any(ch in str(spec) for ch in "*?["):
+        files = sorted(Path(p) for p in globlib.glob(str(spec)) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+        return {p.stem: p for p in files}, str(spec)
+    raise InputError(f"folder dataset: {what} '{spec}' is neither a directory nor a glob pattern that exists")
+
+
+def _discover_folder(
+    root: Path | None,
+    split: str,
+    left: str | Path = "left",
+    right: str | Path = "right",
+    gt: str | Path | None = None,
+    gt_scale: float = io.KITTI_SCALE,
+    **_: Any,
+) -> list[PairRef]:
+    lefts, left_spec = _glob_images(left, root, "left")
+    rights, right_spec = _glob_images(right, root, "right")
+    if set(lefts) == set(rights):
+        keys = sorted(lefts)
+        pairs = [(k, lefts[k], rights[k]) for k in keys]
+    elif len(lefts) == len(rights):
+        # Rigs often name the views differently (cam0_0001 / cam1_0001): pair by sorted order, keep the left stem.
+        logger.info("folder dataset: left/right stems differ, pairing %d images by sorted order", len(lefts))
+        pairs = [(lk, lefts[lk], rights[rk]) for lk, rk in zip(sorted(lefts), sorted(rights), strict=True)]
+    else:
+        raise InputError(
+            f"left/right count mismatch: {len(lefts)} images in {left_spec} vs {len(rights)} in {right_spec}"
+        )
+    gts: dict[str, Path] = {}
+    if gt is None and root is not None and (root / "gt").is_dir():
+        gt = "gt"
+    if gt is not None:
+        gt_path = Path(gt) if root is None or Path(gt).is_absolute() else root / gt
+        _require_dir(gt_path, "folder dataset GT folder")
+        gts = {p.stem: p for p in sorted(gt_path.iterdir()) if p.suffix.lower() in (".png", ".pfm", ".npy")}
+    refs = []
+    for stem, lpath, rpath in pairs:
+        gpath = gts.get(stem)
+        meta: dict[str, Any] = {"dataset": "folder"}
+        if gpath is not None:
+            meta.update(_gt_format_for(gpath, gt_scale))
+        refs.append(PairRef(frame_id=_safe_id(stem), left=lpath, right=rpath, gt=gpath, meta=meta))
+    return refs
+
+
+def _gt_format_for(path: Path, scale: float) -> dict[str, Any]:
+    suffix = path.suffix.lower()
+    if suffix == ".pfm":
+        return {"gt_format": "pfm"}
+    if suffix == ".npy":
+        return {"gt_format": "npy"}
+    return {"gt_format": "scaled", "gt_scale": float(scale)}
+
+
+# ------------------------------------------------------------------------------------------- KITTI, no GT
+#: (left, right) image-folder names of the KITTI layouts found in the wild (stereo 2012/2015, odometry, raw).
+_UNLABELLED_FOLDERS: tuple[tuple[str, str], ...] = (("image_2", "image_3"), ("image_02", "image_03"),
+                                                   ("colored_0", "colored_1"))
+
+
+def _unlabelled_pairs(folder: Path, root: Path) -> list[PairRef]:
+    """The pairs directly under ``folder``: KITTI view folders (or their ``data/``), or left.png + right.png."""
+    prefix = "" if folder == root else str(folder.relative_to(root)) + "-"
+    meta = {"dataset": "kitti_unlabelled"}
+    for left_name, right_name in _UNLABELLED_FOLDERS:
+        left_dir, right_dir = folder / left_name, folder / right_name
+        if (left_dir / "data").is_dir() and (right_dir / "data").is_dir():  # raw-data layout
+            left_dir, right_dir = left_dir / "data", right_dir / "data"
+        if left_dir.is_dir() and right_dir.is_dir():
+            lefts, rights = _images_in(left_dir), _images_in(right_dir)
+            _check_counts(lefts, rights, left_dir, right_dir)
+            return [PairRef(_safe_id(prefix + stem), lefts[stem], rights[stem], meta=dict(meta)) for stem in lefts]
+    left, right = _first_existing(folder / "left.png"), _first_existing(folder / "right.png")
+    if left is not None and right is not None:
+        return [PairRef(_safe_id(prefix.rstrip("-") or folder.name), left, right, meta=dict(meta))]
+    return []
+
+
+def _discover_kitti_unlabelled(root: Path, split: str, **_: Any) -> list[PairRef]:
+    """Every KITTI-style pair under ``root`` (any depth); GT files are never read, even if present."""
+    folders = [root, *sorted(p for p in root.rglob("*") if p.is_dir())]
+    refs: list[PairRef] = []
+    for folder in folders:
+        if folder.name in ("data", *(name for pair in _UNLABELLED_FOLDERS for name in pair)):
+            continue  # view folders are read through their parent
+        refs.extend(_unlabelled_pairs(folder, root))
+    return refs
+
+

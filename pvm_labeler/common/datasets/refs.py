@@ -1,0 +1,116 @@
+"""Pair records (paths only) and decoded samples, plus the small path helpers every reader uses."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from pvm_labeler.common.errors import InputError
+
+DATASETS: tuple[str, ...] = ("kitti15", "kitti12", "middlebury", "sceneflow", "folder", "kitti_unlabelled", "sample")
+SPLITS: tuple[str, ...] = ("training", "testing")
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
+
+#: Search range that comfortably covers a dataset when the user gives no --max-disp (sample GT max is 59.9 px).
+DEFAULT_MAX_DISP: dict[str, int] = {"sample": 64}
+
+
+@dataclass
+
+class PairRef:
+    """Where one stereo pair lives on disk (cheap to create, picklable, JSON-able through :meth:`to_dict`).
+
+    Attributes:
+        frame_id: stable unique id within the dataset (also the HDF5 group name; contains no "/").
+        left, right: image files.
+        gt: most complete left-view GT file (occ/all if present, else noc), or None.
+        gt_noc: non-occluded left GT file (or None).
+        gt_right: right-view GT file (or None).
+        meta: dataset name, GT decoding ("gt_format", "gt_scale"), extra files (noc masks, calib) as strings.
+    """
+
+    frame_id: str
+    left: Path
+    right: Path
+    gt: Path | None = None
+    gt_noc: Path | None = None
+    gt_right: Path | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable description (paths as strings)."""
+        out: dict[str, Any] = {"frame_id": self.frame_id, "left": str(self.left), "right": str(self.right)}
+        for name in ("gt", "gt_noc", "gt_right"):
+            value = getattr(self, name)
+            if value is not None:
+                out[name] = str(value)
+        out["meta"] = dict(self.meta)
+        return out
+
+
+@dataclass
+class StereoSample:
+    """One decoded stereo pair.
+
+    Attributes:
+        frame_id: id from the :class:`PairRef`.
+        left, right: (H, W, 3) uint8 RGB.
+        gt: (H, W) float32 most complete left GT (occ/all if present, else noc), NaN = unknown; None if absent.
+        gt_noc: (H, W) float32 non-occluded left GT (KITTI disp_noc, Middlebury mask0nocc == 255, Scene Flow
+            occlusion == False), NaN elsewhere; None if the dataset has no occlusion information.
+        gt_right: (H, W) float32 right-view GT (right(x) matches left(x + d)), NaN = unknown; None if absent.
+        sources: file paths used, by role.
+        max_disp: dataset hint for the search range (MiddEval3 calib ndisp), else None.
+    """
+
+    frame_id: str
+    left: npt.NDArray[np.uint8]
+    right: npt.NDArray[np.uint8]
+    gt: npt.NDArray[np.float32] | None
+    gt_noc: npt.NDArray[np.float32] | None
+    gt_right: npt.NDArray[np.float32] | None
+    sources: dict[str, str]
+    max_disp: int | None = None
+
+
+# --------------------------------------------------------------------------------------------------- helpers
+def _require_dir(path: Path, what: str) -> Path:
+    if not path.is_dir():
+        raise InputError(f"{what} not found: {path} (expected a directory)")
+    return path
+
+
+def _images_in(folder: Path) -> dict[str, Path]:
+    """stem -> image path for every image file directly inside ``folder``."""
+    return {p.stem: p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+
+
+def _check_counts(left: dict[str, Path], right: dict[str, Path], left_dir: Path, right_dir: Path) -> None:
+    missing_right = sorted(set(left) - set(right))
+    missing_left = sorted(set(right) - set(left))
+    if missing_right or missing_left:
+        raise InputError(
+            f"left/right count mismatch: {len(left)} images in {left_dir} vs {len(right)} in {right_dir}; "
+            f"no right image for {[str(left[s]) for s in missing_right[:5]]}, "
+            f"no left image for {[str(right[s]) for s in missing_left[:5]]}"
+        )
+
+
+def _first_existing(*candidates: Path) -> Path | None:
+    for path in candidates:
+        if path.is_file():
+            return path
+    return None
+
+
+def _safe_id(text: str) -> str:
+    """Make a string usable as an HDF5 group name and file-system friendly ("/" separates HDF5 groups)."""
+    text = re.sub(r"[^A-Za-z0-9_.+-]+", "-", text).strip("-.")
+    return text or "frame"
+
+
