@@ -10,7 +10,7 @@ over pixels per dataset:
   (lowest bad-3 at each density) per K. K = 1 has no spread across scales, so it is one point: plain SGM + LRDCC.
 * the labeler's default recipe (kappas of ``LabelerConfig``, confidence filter swept over ``min_confidence``) per K.
 * baselines on the same matcher: full-resolution SGM + LRDCC, and SGM + LRDCC + a uniqueness-ratio filter swept
-  over its threshold (``pvm_labeler.baselines``).
+  over its threshold (``pipelines.baselines``).
 * bad-3 of each curve interpolated at matched densities 30 / 50 / 70 %.
 
 Writes ``results/pvm_ablation.{json,md}``, ``results/pvm_ablation_<dataset>.png`` and assembles ``RESULTS.md``
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from pvm_labeler.baselines import MATCHED_DENSITIES, CurvePoint, bad3_at_density, evaluate, score_curve
+from pipelines.baselines import MATCHED_DENSITIES, CurvePoint, bad3_at_density, evaluate, score_curve
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import InputError
 from pvm_labeler.config import LabelerConfig

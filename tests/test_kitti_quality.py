@@ -2,7 +2,7 @@
 
 GT: disp_noc_0 where present, else disp_occ_0 (frame 000046); uint16 PNG / 256, 0 = no GT. Metrics pooled over
 pixels (pvm_labeler.common.metrics): density = labelled GT-valid pixels / GT-valid pixels, bad-3 and AEPE on the
-labelled GT-valid pixels. The baselines use the same matcher at full resolution (pvm_labeler.baselines).
+labelled GT-valid pixels. The baselines use the same matcher at full resolution (pipelines.baselines).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from pvm_labeler.baselines import KITTI15_IDS, MATCHED_DENSITIES, load_kitti15, quality_report
+from pipelines.baselines import MATCHED_DENSITIES, load_frames, quality_report
 from pvm_labeler.config import LabelerConfig
 
 # The issue's bars on all 15 frames.
@@ -37,14 +37,14 @@ def _check_bars(report: dict, bars: dict) -> None:
 
 
 def test_kitti15_two_frames(shared_data):
-    frames = load_kitti15(shared_data, QUICK_FRAMES)
+    frames = load_frames("kitti15", shared_data / "kitti15", QUICK_FRAMES)
     report = quality_report(frames, LabelerConfig())
     _check_bars(report, QUICK_BARS)
 
 
 @pytest.mark.slow
 def test_kitti15_all_frames(shared_data):
-    frames = load_kitti15(shared_data, KITTI15_IDS)
+    frames = load_frames("kitti15", shared_data / "kitti15")
     assert len(frames) == 15
     report = quality_report(frames, LabelerConfig())
     _check_bars(report, FULL_BARS)

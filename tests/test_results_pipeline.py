@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from conftest import make_synthetic_pair
 
+from pipelines.baselines import sgm_lr_maps
 from pipelines.results import pareto, sub_stack
-from pvm_labeler.baselines import sgm_lr_maps
 from pvm_labeler.common.errors import InputError
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.multiscale import compute_scales, label_from_scales, label_pair

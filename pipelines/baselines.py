@@ -1,4 +1,4 @@
-"""Baselines the PVM labels must beat, threshold sweeps and density-vs-bad-3 curves (used by tests and results).
+"""Study code: baselines the PVM labels must beat, threshold sweeps and density-vs-bad-3 curves (tests, `make results`).
 
 Methods (all on the same matcher, ``pvm_labeler.sgm.sgm_pair``, at full resolution):
 
@@ -10,7 +10,9 @@ Methods (all on the same matcher, ``pvm_labeler.sgm.sgm_pair``, at full resoluti
 
 Metrics come from :mod:`pvm_labeler.common.metrics` (density in % of GT-valid pixels, bad-3 in %, AEPE in px,
 pooled over pixels). The expensive SGM outputs can be cached under a directory (``cache_dir``) keyed by frame and by the
-SGM-relevant config fields, so sweeps over kappas do not recompute them.
+SGM-relevant config fields, so sweeps over kappas do not recompute them. Frames come from the shared readers
+(:mod:`pvm_labeler.common.datasets`) with the evaluator's GT rule: non-occluded GT where the dataset has it, else the
+most complete GT.
 """
 
 from __future__ import annotations
@@ -23,11 +25,12 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
+import pvm_labeler
 from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import InputError
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
@@ -40,9 +43,6 @@ _POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample"
                     "min_confidence", "extra")
 #: Sources whose content determines the cached per-scale SGM outputs.
 _SGM_SOURCES = ("sgm.py", "multiscale.py", "kernels/cost.py", "kernels/aggregate.py", "kernels/wta.py")
-#: Frame ids of ../shared/data/kitti15 (GT noc where present, 000046 has only occ).
-KITTI15_IDS = ("000000", "000001", "000002", "000004", "000005", "000006", "000007", "000009", "000010",
-               "000011", "000012", "000014", "000015", "000016", "000046")
 
 
 @dataclass
@@ -55,35 +55,34 @@ class Frame:
     gt: npt.NDArray[np.float32]
 
 
-def load_kitti15(shared: Path, ids: Iterable[str] = KITTI15_IDS) -> list[Frame]:
-    """Read KITTI 2015 frames from ``<shared>/kitti15/training`` (GT: disp_noc_0, else disp_occ_0; /256, 0 = none).
+def load_frames(dataset: str, root: Path | str | None, ids: Iterable[str] | None = None) -> list[Frame]:
+    """GT frames of a dataset through the shared readers: noc GT where present, else the most complete GT.
+
+    Args:
+        dataset, root: as for :func:`pvm_labeler.common.datasets.discover` (e.g. ``"kitti15"``,
+            ``../shared/data/kitti15``).
+        ids: keep only these frames (a frame id or its prefix before ``_``, e.g. KITTI ``000046``); None = all.
 
     Raises:
-        InputError: a file is missing or unreadable (the message names it).
+        InputError: a file is missing or unreadable (the message names it), a requested id does not exist, or a
+            frame has no GT.
     """
-    root = Path(shared) / "kitti15" / "training"
+    refs = discover(dataset, root)
+    if ids is not None:
+        wanted = list(ids)
+        by_id = {r.frame_id: r for r in refs} | {r.frame_id.split("_")[0]: r for r in refs}
+        missing = [i for i in wanted if i not in by_id]
+        if missing:
+            raise InputError(f"{dataset} under {root}: no frames {missing}")
+        refs = [by_id[i] for i in wanted]
     frames = []
-    for fid in ids:
-        name = f"{fid}_10.png"
-        left = _read_rgb(root / "image_2" / name)
-        right = _read_rgb(root / "image_3" / name)
-        gt_path = root / "disp_noc_0" / name
-        if not gt_path.is_file():
-            gt_path = root / "disp_occ_0" / name
-        raw = cv2.imread(str(gt_path), cv2.IMREAD_UNCHANGED)
-        if raw is None or raw.dtype != np.uint16:
-            raise InputError(f"cannot read KITTI GT {gt_path} as uint16 PNG (got {None if raw is None else raw.dtype})")
-        gt = raw.astype(np.float32) / 256.0
-        gt[raw == 0] = np.nan
-        frames.append(Frame(fid, left, right, gt))
+    for ref in refs:
+        sample = load_pair(ref)
+        gt = sample.gt_noc if sample.gt_noc is not None else sample.gt
+        if gt is None:
+            raise InputError(f"{dataset} frame {ref.frame_id} has no GT ({ref.left})")
+        frames.append(Frame(ref.frame_id, sample.left, sample.right, gt))
     return frames
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise InputError(f"cannot read image {path}")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 def sgm_key(cfg: LabelerConfig) -> str:
@@ -91,7 +90,7 @@ def sgm_key(cfg: LabelerConfig) -> str:
     (so a changed SGM or pyramid never reads a stale cache)."""
     values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in _POST_SGM_FIELDS}
     digest = hashlib.sha1(json.dumps(values, sort_keys=True).encode())
-    package = Path(__file__).resolve().parent
+    package = Path(pvm_labeler.__file__).resolve().parent
     for name in _SGM_SOURCES:
         source = package / name
         digest.update(source.read_bytes() if source.is_file() else name.encode())
@@ -237,13 +236,13 @@ def quality_report(frames: Sequence[Frame], cfg: LabelerConfig, cache_dir: Path 
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m pvm_labeler.baselines``: print the KITTI 2015 quality report of the default config as JSON."""
+    """``python -m pipelines.baselines``: print the KITTI 2015 quality report of the default config as JSON."""
     import argparse  # noqa: PLC0415
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("--shared", type=Path, default=Path("../shared/data"), help="real data root")
     parser.add_argument("--cache", type=Path, default=None, help="cache dir for per-scale SGM outputs (e.g. /tmp)")
-    parser.add_argument("--frames", default=",".join(KITTI15_IDS), help="comma-separated KITTI 2015 frame ids")
+    parser.add_argument("--frames", default="", help="comma-separated KITTI 2015 frame ids (default: all with GT)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a LabelerConfig field (JSON value), e.g. --set kappa1=1.5")
     args = parser.parse_args(argv)
@@ -255,7 +254,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         except json.JSONDecodeError:
             overrides[key] = value
     cfg = LabelerConfig.from_dict({**dataclasses.asdict(LabelerConfig()), **overrides})
-    frames = load_kitti15(args.shared, [f for f in args.frames.split(",") if f])
+    frames = load_frames("kitti15", args.shared / "kitti15", [f for f in args.frames.split(",") if f] or None)
     report = quality_report(frames, cfg, args.cache)
     report.pop("curves")
     print(json.dumps({"config": cfg.to_dict(), **report}, indent=1, default=float))
