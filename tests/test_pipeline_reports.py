@@ -11,6 +11,7 @@ import pytest
 
 from pipelines import bench
 from pipelines import train_studies as ts
+from pipelines import train_studies_report as tsr
 
 
 def _fake_section(title: str, value: int) -> types.ModuleType:
@@ -53,11 +54,11 @@ def test_feature_studies_report_falls_back_to_committed_json(tmp_path: Path, mon
 
 
 def test_feature_claim_uses_longest_evaluated_self_supervised_run() -> None:
-    assert ts.claim_pair({"ms_d4_main": {}, "ms_d4_long": {}}) == ("ms_d4_long", "gt_long", ts.LONG_STEPS)
-    assert ts.claim_pair({"ms_d4_long": {}, "ms_d4_onecycle": {}})[0] == "ms_d4_onecycle"
-    text = ts.claim_text({"ms_d4_onecycle": {"bad3": 9.0}, "gt_long": {"bad3": 6.5}},
+    assert tsr.claim_pair({"ms_d4_main": {}, "ms_d4_long": {}}) == ("ms_d4_long", "gt_long", ts.LONG_STEPS)
+    assert tsr.claim_pair({"ms_d4_long": {}, "ms_d4_onecycle": {}})[0] == "ms_d4_onecycle"
+    text = tsr.claim_text({"ms_d4_onecycle": {"bad3": 9.0}, "gt_long": {"bad3": 6.5}},
                          {"sgm_dense_nan_filled": {"bad3": 10.3}, "sgm_dense_nan_as_error": {"bad3": 10.56}})
     assert "**met**" in text and f"`gt_long`, {ts.LONG_STEPS} steps" in text
-    text = ts.claim_text({"ms_d4_onecycle": {"bad3": 10.4}},
+    text = tsr.claim_text({"ms_d4_onecycle": {"bad3": 10.4}},
                          {"sgm_dense_nan_filled": {"bad3": 10.3}, "sgm_dense_nan_as_error": {"bad3": 10.56}})
     assert "**not met**" in text
