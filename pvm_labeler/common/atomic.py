@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,15 +13,14 @@ from pathlib import Path
 def atomic_path(path: Path | str, fsync: bool = False) -> Iterator[Path]:
     """Yield a fresh temp path beside ``path``; when the block succeeds, rename it over ``path``.
 
-    The temp file is ``<dir>/<name>.<random>.tmp`` (same directory, so ``os.replace`` is atomic on POSIX). If the
+    The temp file is ``<dir>/<name>.<random>.tmp`` (same directory, so ``os.replace`` is atomic on POSIX); it is not
+    created here, so the writer creates it with the usual permissions (umask), as a plain ``open`` would. If the
     block raises, the temp file is removed and ``path`` is untouched. ``fsync`` flushes the data to disk before
     the rename (checkpoints: a power cut must not leave a renamed but empty file).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(name)
+    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:12]}.tmp")
     try:
         yield tmp
         if fsync:
