@@ -14,14 +14,17 @@ from typing import Any
 
 from torch import nn
 
-from optstereo.config import ModelConfig
+from optstereo.models.config import ModelConfig
 from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.extractor import FeatureEncoder
 from optstereo.models.optstereo import OptStereo
 from optstereo.models.update import ConvGRU, DispHead, HiddenInit
 from optstereo.models.upsample import ConvexUpsampler, ConvUpsampler
 
-__all__ = ["OptStereo", "build_from_config", "build_model", "build_optstereo", "list_models", "register_model"]
+__all__ = [
+    "ModelConfig", "OptStereo", "build_from_config", "build_model", "build_optstereo", "list_models", "model_config",
+    "register_model",
+]
 
 Builder = Callable[[ModelConfig], nn.Module]
 
@@ -70,17 +73,21 @@ def list_models() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def model_config(name: str = "optstereo", **overrides: Any) -> ModelConfig:
+    """The resolved ModelConfig of a registered model: its variant defaults, then ``overrides`` (ModelConfig fields)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown model {name!r}; available: {list_models()}")
+    overrides.pop("name", None)
+    _, defaults = _REGISTRY[name]
+    return ModelConfig.from_dict({**defaults, **overrides, "name": name})
+
+
 def build_model(name: str = "optstereo", **overrides: Any) -> nn.Module:
     """Build a registered model; ``overrides`` are ModelConfig fields (iters=, hidden_dim=, upsampler=, ...).
 
     The returned module carries ``.config`` (the resolved ModelConfig, with ``name``).
     """
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown model {name!r}; available: {list_models()}")
-    overrides.pop("name", None)
-    _, defaults = _REGISTRY[name]
-    cfg = ModelConfig.from_dict({**defaults, **overrides, "name": name})
-    return build_from_config(cfg)
+    return build_from_config(model_config(name, **overrides))
 
 
 def build_from_config(cfg: ModelConfig | dict[str, Any]) -> nn.Module:

@@ -16,7 +16,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from optstereo.config import ModelConfig
+from optstereo.models.config import ModelConfig
 from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.update import ConvGRU
 

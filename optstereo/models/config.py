@@ -1,0 +1,77 @@
+"""Typed configuration of one OptStereo network (no I/O, no torch, nothing of training).
+
+``ModelConfig`` is frozen and YAML/JSON friendly: ``to_dict()`` gives plain Python values and ``from_dict()`` rejects
+unknown keys, so a checkpoint or a YAML file rebuilds exactly the same model (``optstereo.models.build_from_config``).
+The trainer composes it as the ``model`` section of its TrainConfig; this module must not import the trainer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from pvm_labeler.common.configtools import reject_unknown_keys
+
+UPSAMPLERS = ("conv", "convex")
+NORMS = ("instance", "batch", "group", "none")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Hyper-parameters of one OptStereo network (paper Section III-B).
+
+    Attributes:
+        name: registry name the model was built from ("optstereo", "optstereo_ss_d4", ...).
+        feature_dim: C, channels of the 1/8 features F_l, F_r (paper: 256).
+        hidden_dim: channels of the ConvGRU hidden state h (the paper does not state it; RAFT uses 128).
+        corr_levels: number of cost-volume levels M0..M_{L-1} (paper: 4; Table I (a): 1).
+        corr_radius: d, lookup radius per level (paper: 4; Table I (b)-(d): 1, 2, 4).
+        iters: N_s, refinement iterations when forward() is called with iters=None (paper: 8).
+        upsampler: "conv" = the paper's upsampling layer + two convs; "convex" = RAFT's learned convex
+            combination (beyond the paper, off by default).
+        upsample_dim: width of the first conv of the "conv" upsampler.
+        head_dim: width of the first conv of the Delta-D head (two convs on h).
+        norm: normalisation in the feature extractor (RAFT's fnet uses instance norm).
+        corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
+    """
+
+    name: str = "optstereo"
+    feature_dim: int = 256
+    hidden_dim: int = 128
+    corr_levels: int = 4
+    corr_radius: int = 4
+    iters: int = 8
+    upsampler: str = "conv"
+    upsample_dim: int = 16
+    head_dim: int = 128
+    norm: str = "instance"
+    corr_scale: bool = True
+
+    @property
+    def corr_channels(self) -> int:
+        """Channels of the lookup output M_l: levels x (2d + 1) (36 for the paper's 4 levels, d = 4)."""
+        return self.corr_levels * (2 * self.corr_radius + 1)
+
+    def validate(self) -> ModelConfig:
+        """Raise ValueError naming the option if a value is out of range; return self."""
+        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
+        if self.corr_radius < 0:
+            raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
+        if self.upsampler not in UPSAMPLERS:
+            raise ValueError(f"model option upsampler must be one of {UPSAMPLERS}, got {self.upsampler!r}")
+        if self.norm not in NORMS:
+            raise ValueError(f"model option norm must be one of {NORMS}, got {self.norm!r}")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (YAML/JSON-serialisable), including ``name``."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> ModelConfig:
+        """Build from a dict, rejecting unknown keys with a clear message."""
+        reject_unknown_keys(cls, values, "model config")  # ConfigError, a ValueError
+        return cls(**values).validate()
