@@ -1,0 +1,123 @@
+"""Reading shards (no torch here): the index, one shard file, one sample; every error names the file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from pvm_labeler.common.errors import ShardError
+from pvm_labeler.shards.schema import (
+    BLOSC_HINT,
+    INDEX_NAME,
+    OPTIONAL,
+    REQUIRED,
+    SCHEMA_NAME,
+    SCHEMA_VERSION,
+    ShardIndex,
+    ShardSample,
+    blosc_plugin,
+    decode_attr,
+)
+
+
+def read_index(shard_dir: Path | str) -> ShardIndex:
+    """Parse and check ``shard_dir/index.json``.
+
+    Raises:
+        ShardError: naming the file, when the index is missing/unparsable, has another schema name or version,
+            or lists a shard file that does not exist.
+    """
+    shard_dir = Path(shard_dir)
+    path = shard_dir / INDEX_NAME
+    if not path.is_file():
+        raise ShardError(f"no shard index at {path} (the labeling job writes it last; did it finish?)")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ShardError(f"cannot parse shard index {path}: {exc}") from exc
+    schema = doc.get("schema", {}) if isinstance(doc, dict) else {}
+    if schema.get("name") != SCHEMA_NAME:
+        raise ShardError(f"{path}: schema name {schema.get('name')!r}, expected {SCHEMA_NAME!r}")
+    if schema.get("version") != SCHEMA_VERSION:
+        raise ShardError(f"{path}: schema version {schema.get('version')!r}, this code reads version {SCHEMA_VERSION}")
+    shards = []
+    for entry in doc.get("shards", []):
+        shard_path = shard_dir / entry["file"]
+        if not shard_path.is_file():
+            raise ShardError(f"{path}: lists shard {shard_path}, which does not exist")
+        shards.append((shard_path, list(entry["samples"])))
+    return ShardIndex(
+        root=shard_dir,
+        shards=shards,
+        num_samples=int(doc.get("num_samples", sum(len(ids) for _, ids in shards))),
+        config=doc.get("config", {}),
+        dataset=doc.get("dataset", {}),
+        raw=doc,
+    )
+
+
+def open_shard(path: Path | str) -> h5py.File:
+    """Open a shard read-only after checking its root schema attributes.
+
+    Raises:
+        ShardError: naming the file, when it is missing, not HDF5 / truncated, or of another schema or version.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ShardError(f"shard file not found: {path}")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as exc:
+        raise ShardError(f"corrupt or truncated shard {path}: {exc}") from exc
+    try:
+        name = decode_attr(h5.attrs.get("schema_name"))
+        version = decode_attr(h5.attrs.get("schema_version"))
+    except (OSError, KeyError) as exc:
+        h5.close()
+        raise ShardError(f"corrupt shard {path}: cannot read root attributes ({exc})") from exc
+    if name != SCHEMA_NAME or version is None or int(version) != SCHEMA_VERSION:
+        h5.close()
+        raise ShardError(
+            f"shard {path}: schema {name!r} version {version!r}, expected {SCHEMA_NAME!r} version {SCHEMA_VERSION}"
+        )
+    return h5
+
+
+def shard_sample_ids(h5: h5py.File) -> list[str]:
+    """Sample ids of an open shard in write order (from the root attrs)."""
+    return list(json.loads(h5.attrs["samples"]))
+
+
+def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
+    """Read one sample group fully into memory.
+
+    Raises:
+        ShardError: naming the shard file and frame, when the group or a required array is missing or unreadable.
+    """
+    if frame_id not in h5:
+        raise ShardError(f"shard {h5.filename}: no sample '{frame_id}'")
+    group = h5[frame_id]
+    try:
+        arrays = {name: group[name][()] for name in (*REQUIRED, *OPTIONAL) if name in group}
+    except (OSError, KeyError) as exc:
+        text = str(exc).lower()
+        hint = f"; {BLOSC_HINT}" if blosc_plugin() is None or "filter" in text or "plugin" in text else ""
+        raise ShardError(f"shard {h5.filename}: sample '{frame_id}' is unreadable ({exc}){hint}") from exc
+    missing = [name for name in REQUIRED if name not in arrays]
+    if missing:
+        raise ShardError(f"shard {h5.filename}: sample '{frame_id}' lacks {missing}")
+    return ShardSample(
+        frame_id=frame_id,
+        left=arrays["left"],
+        right=arrays["right"],
+        label=arrays["label"],
+        label_right=arrays["label_right"],
+        confidence=arrays["confidence"].astype(np.float32),
+        gt=arrays.get("gt"),
+        gt_noc=arrays.get("gt_noc"),
+        gt_right=arrays.get("gt_right"),
+        attrs={key: decode_attr(value) for key, value in group.attrs.items()},
+    )
