@@ -29,7 +29,7 @@ import numpy as np
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.kernels._lanes import SENTINEL16, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
-from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right, reindex_right
+from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right
 from pvm_labeler.sgm import release_workspace, sgm_pair
 
 logger = logging.getLogger(__name__)
@@ -118,17 +118,16 @@ def _sgm_stages(grey_l: np.ndarray, grey_r: np.ndarray, cfg: LabelerConfig, repe
         "forward sweep (4 paths)": lambda: aggregate_forward(cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True,
                                                              s_buf, *lanes),
         "backward sweep (4 paths) + WTA": lambda: aggregate_backward_wta(
-            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max), MAX_DISP,
+            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, float(8 * c_max), MAX_DISP,
             *maps, *lanes, False),  # no uniqueness pass, as sgm_pair's default
         # the same sweeps forced to uint16 path costs: what the uint8 lanes buy (same results, tested)
         "forward sweep, uint16 lanes (not used)": lambda: aggregate_forward(
             cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, np.uint16, SENTINEL16),
         "backward sweep + WTA, uint16 lanes (not used)": lambda: aggregate_backward_wta(
-            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, False, float(8 * c_max), MAX_DISP,
+            cost, grey_l, cfg.p1, cfg.p2, cfg.p2_adaptive, True, s_buf, False, float(8 * c_max), MAX_DISP,
             *maps, np.uint16, SENTINEL16, False),
         "right cost from the shared census (used)": lambda: cost_volume_right(cen_l, cen_r, c_max, cost_r, MAX_DISP,
                                                                               0),
-        "right cost as a re-index of C_l (same bytes, not used)": lambda: reindex_right(cost, c_max, cost_r),
     }
     _, cpu = _round_robin(stages, repeats)
     return {name: statistics.median(ts) for name, ts in cpu.items()}

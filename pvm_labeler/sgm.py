@@ -21,15 +21,13 @@ import numpy as np
 import numpy.typing as npt
 
 from pvm_labeler.common.errors import InputError
-from pvm_labeler.config import LabelerConfig
-from pvm_labeler.kernels._lanes import SENTINEL16, disparity_padding, path_lanes
+from pvm_labeler.config import CENSUS_WINDOWS, LabelerConfig, census_max_cost, penalty_problem
+from pvm_labeler.kernels._lanes import disparity_padding, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right
 from pvm_labeler.parallel import run_two
 
 logger = logging.getLogger(__name__)
-
-MAX_CENSUS_WINDOW = 7  # 7 x 7 - 1 = 48 bits fit one uint64 code
 
 # Reused scratch for the cost and S volumes. Freshly allocated 100-MB arrays cost page faults and zeroing in the
 # kernel; measured on a KITTI frame: 46-730 ms of system time per call (noisy, depends on memory pressure) on top
@@ -118,7 +116,8 @@ def check_inputs(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_di
 
     Raises:
         InputError: wrong type/ndim/dtype, different shapes, image narrower than D or smaller than the census
-            window, census window > 7, or penalties too large for the uint16 aggregation.
+            window; and, for a config that skipped ``LabelerConfig.validate``, a census window or penalties beyond
+            the kernels' limits (the same checks, from the constants in ``config.py``).
     """
     left = _check_image("left", left)
     right = _check_image("right", right)
@@ -132,17 +131,13 @@ def check_inputs(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_di
     if width < n_disp:
         raise InputError(f"image width {width} must be >= max_disp {n_disp}")
     window = cfg.census_window
-    if window > MAX_CENSUS_WINDOW or window < 3 or window % 2 == 0:
-        raise InputError(f"census_window must be odd in [3, {MAX_CENSUS_WINDOW}], got {window}")
+    if window not in CENSUS_WINDOWS:
+        raise InputError(f"census_window must be one of {CENSUS_WINDOWS}, got {window}")
     if height < window or width < window:
         raise InputError(f"image size {(height, width)} is smaller than the census window {window}x{window}")
-    c_max = window * window - 1
-    if c_max + cfg.p2 >= SENTINEL16 or cfg.p1 > cfg.p2 or cfg.p1 < 0:
-        raise InputError(f"SGM penalties need 0 <= p1 <= p2 and C_max + p2 < {SENTINEL16}, got p1={cfg.p1}, "
-                         f"p2={cfg.p2}, C_max={c_max}")
-    # 8 paths of at most C_max + P2 each must fit the uint16 S volume.
-    if cfg.paths * (c_max + cfg.p2) > 0xFFFF:
-        raise InputError(f"{cfg.paths} paths x (C_max={c_max} + p2={cfg.p2}) overflows the uint16 cost sum (65535)")
+    problem = penalty_problem(window, cfg.paths, cfg.p1, cfg.p2)  # LabelerConfig.validate's check, for raw configs
+    if problem:
+        raise InputError(problem)
     return left, right, n_disp
 
 
@@ -160,7 +155,7 @@ def _aggregate_view(cost: np.ndarray, grey: np.ndarray, cfg: LabelerConfig, s_bu
     disp = np.empty((height, width), dtype=np.float32)
     conf = np.empty((height, width), dtype=np.float32)
     uniq = np.empty((height, width), dtype=np.float32)
-    aggregate_backward_wta(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, False, right_view,
+    aggregate_backward_wta(cost, grey, cfg.p1, cfg.p2, cfg.p2_adaptive, diag, s_buffer, right_view,
                            float(cfg.paths * c_max), n_disp, disp, conf, uniq, *lanes, uniqueness)
     return SGMResult(disp=disp, conf=conf, uniqueness=uniq if uniqueness else None)
 
@@ -187,7 +182,7 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     left, right, n_disp = check_inputs(left, right, cfg, max_disp)
     height, width = left.shape
     window = cfg.census_window
-    c_max = window * window - 1
+    c_max = census_max_cost(window)
     census_l = np.empty((height, width), dtype=census_dtype(window))
     census_r = np.empty((height, width), dtype=census_dtype(window))
     census_transform(left, window, census_l)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import naive
 import numpy as np
 import pytest
+from kernel_refs import backward_sum, wta_volume
 
 from pvm_labeler.kernels._lanes import DISPARITY_BLOCK, disparity_padding, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
@@ -15,9 +16,7 @@ from pvm_labeler.kernels.cost import (
     cost_volume_right,
     popcount32,
     popcount64,
-    reindex_right,
 )
-from pvm_labeler.kernels.wta import wta_volume
 
 
 def _census(img: np.ndarray, window: int) -> np.ndarray:
@@ -71,13 +70,6 @@ class TestCostVolume:
         # edge columns x < d carry the invalid cost
         assert cost[:, 0, 1:].min() == c_max and cost[:, 3, 4:].min() == c_max
 
-    def test_reindex(self, rng):
-        *_, cost = _cost(rng)
-        out = np.empty_like(cost)
-        reindex_right(cost, 24, out)
-        np.testing.assert_array_equal(out, naive.naive_reindex_right(cost, 24))
-        assert out[:, -1, 1:].min() == 24  # last column: only d = 0 has a partner
-
     @pytest.mark.parametrize("window", [3, 5, 7])
     def test_direct_right_equals_reindex(self, rng, window):
         # the matcher computes C_r from the shared census codes; it must be the re-indexed left volume, byte for byte
@@ -105,19 +97,14 @@ class TestAggregate:
         maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
         n_paths = 2 * len(fwd_dirs)
         s_fwd = s.copy()
-        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s, True, False, float(n_paths * 24), cost.shape[2],
-                               *maps, *lanes)
+        backward_sum(cost, left, p1, p2, adaptive, diag, s, *lanes)  # the production backward paths, S stored
         expected = naive.naive_aggregate(cost, fwd_dirs + bwd_dirs, p1, p2, grey)
         np.testing.assert_array_equal(s, expected)
-        # the fused WTA equals the reference WTA on the reference S, both when S is stored (tests) and in the
-        # production mode that keeps only one pixel's S
+        # the fused WTA, which keeps only one pixel's S, equals the reference WTA on the reference S
+        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s_fwd, False, float(n_paths * 24), cost.shape[2],
+                               *maps, *lanes)
         refs = naive.naive_wta(expected, False, float(n_paths * 24))
         for got, ref in zip(maps, refs, strict=True):
-            np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
-        maps2 = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
-        aggregate_backward_wta(cost, left, p1, p2, adaptive, diag, s_fwd, False, False, float(n_paths * 24),
-                               cost.shape[2], *maps2, *lanes)
-        for got, ref in zip(maps2, refs, strict=True):
             np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
 
     @pytest.mark.parametrize(("p1", "p2"), [(0, 231), (8, 223), (115, 116)])
@@ -131,11 +118,16 @@ class TestAggregate:
         cost = (rng.random((7, 21, 9)) < 0.7).astype(np.uint8) * 24
         s = np.empty(cost.shape, dtype=np.uint16)
         aggregate_forward(cost, left, p1, p2, False, True, s, *path_lanes(24, p1, p2))
-        maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
-        aggregate_backward_wta(cost, left, p1, p2, False, True, s, True, False, 192.0, cost.shape[2], *maps,
-                               *path_lanes(24, p1, p2))
+        s_fwd = s.copy()
+        backward_sum(cost, left, p1, p2, False, True, s, *path_lanes(24, p1, p2))
         paths = naive.FORWARD_PATHS_8 + naive.BACKWARD_PATHS_8
-        np.testing.assert_array_equal(s, naive.naive_aggregate(cost, paths, p1, p2, None))
+        expected = naive.naive_aggregate(cost, paths, p1, p2, None)
+        np.testing.assert_array_equal(s, expected)
+        maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
+        aggregate_backward_wta(cost, left, p1, p2, False, True, s_fwd, False, 192.0, cost.shape[2], *maps,
+                               *path_lanes(24, p1, p2))
+        for got, ref in zip(maps, naive.naive_wta(expected, False, 192.0), strict=True):
+            np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)
 
     @pytest.mark.parametrize(("p1", "p2", "n_disp"), [(8, 64, 11), (3, 5, 33), (8, 111, 7), (0, 115, 5)])
     def test_padding_exact(self, rng, p1, p2, n_disp):
@@ -160,7 +152,8 @@ class TestAggregate:
             s = np.empty(cost.shape, dtype=np.uint16)
             aggregate_forward(cost, left, p1, p2, False, True, s, *lanes)
             maps = [np.empty(left.shape, dtype=np.float32) for _ in range(3)]
-            aggregate_backward_wta(cost, left, p1, p2, False, True, s, True, False, 192.0, n_disp, *maps, *lanes)
+            aggregate_backward_wta(cost, left, p1, p2, False, True, s, False, 192.0, n_disp, *maps, *lanes)
+            backward_sum(cost, left, p1, p2, False, True, s, *lanes)
             results.append((s[:, :, :n_disp], maps))
         np.testing.assert_array_equal(results[1][0], results[0][0])
         for got, ref in zip(results[1][1], results[0][1], strict=True):

@@ -252,8 +252,8 @@ def aggregate_forward(cost, grey, p1, p2, adaptive, diag, s_out, lane_dtype, sen
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view, s_max,
-                  n_real, disp, conf, uniq, ramp, want_uniq):
+def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd, acc, right_view, s_max, n_real, disp,
+                  conf, uniq, ramp, want_uniq):
     """One row of the backward sweep with the fused WTA (literal ``diag``, see :func:`_forward_row`).
 
     s_fwd and cost are read in DESCENDING addresses here, which the hardware prefetcher follows poorly: the cache
@@ -272,26 +272,23 @@ def _backward_row(cost, grey, y, p1, table, diag, prev, cur, horiz, mins, s_fwd,
                 prefetch(s_addr + ahead * s_bytes + offset)
             for offset in range(0, n_disp, 64):
                 prefetch(c_addr + ahead * n_disp + offset)
-        # S goes to the small `acc` always (fixed indices, no aliasing with s_fwd in the hot loops: choosing the
-        # target array per pixel cost ~4 ms per sweep) and is copied out only for the tests' store_sum.
+        # S goes to the small `acc` (fixed indices, no aliasing with s_fwd in the hot loops: choosing the target
+        # array per pixel cost ~4 ms per sweep); the tests rebuild the full S from _pixel (tests/kernel_refs.py).
         hmin, s_min = _pixel(cost, grey, y, x, -1, p1, table, diag, prev, cur, horiz, mins, hmin, s_fwd, y, x, acc,
                              0, 0)
-        if store_sum:
-            for d in range(n_disp):
-                s_fwd[y, x, d] = acc[0, 0, d]
         n_valid = width - x if right_view else x + 1
         disp[y, x], conf[y, x], uniq[y, x] = select_disparity(acc, 0, 0, n_real, n_valid, s_max, s_min, ramp,
                                                               want_uniq)
 
 
 @njit(cache=True, fastmath=FASTMATH, nogil=True)
-def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum, right_view, s_max, n_real, disp,
-                           conf, uniq, lane_dtype, sentinel, want_uniq=True):
+def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, right_view, s_max, n_real, disp, conf, uniq,
+                           lane_dtype, sentinel, want_uniq=True):
     """Bottom-to-top sweep of the mirrored paths, S = forward + backward, then WTA per pixel.
 
     Args:
         cost, grey, p1, p2, adaptive, diag: as in :func:`aggregate_forward`.
-        s_fwd: (H, W, D) uint16 forward sums; with ``store_sum`` it is overwritten by the full S (for tests).
+        s_fwd: (H, W, D) uint16 forward sums (read only; S itself is never stored, one pixel's S at a time).
         right_view, s_max: passed to :func:`wta.select_disparity` (with S_min, tracked while S is written).
         n_real: the disparities searched, [0, n_real); cost slots beyond it are padding (``_lanes.py``).
         disp, conf, uniq: (H, W) float32 outputs (uniq is 0 everywhere unless ``want_uniq``).
@@ -306,8 +303,8 @@ def aggregate_backward_wta(cost, grey, p1, p2, adaptive, diag, s_fwd, store_sum,
     for y in range(height - 1, -1, -1):
         prev, cur = (odd, even) if y & 1 == 0 else (even, odd)
         if diag:
-            _backward_row(cost, grey, y, p1, table, True, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, n_real, disp, conf, uniq, ramp, want_uniq)
+            _backward_row(cost, grey, y, p1, table, True, prev, cur, horiz, mins, s_fwd, acc, right_view, s_max,
+                          n_real, disp, conf, uniq, ramp, want_uniq)
         else:
-            _backward_row(cost, grey, y, p1, table, False, prev, cur, horiz, mins, s_fwd, acc, store_sum, right_view,
-                          s_max, n_real, disp, conf, uniq, ramp, want_uniq)
+            _backward_row(cost, grey, y, p1, table, False, prev, cur, horiz, mins, s_fwd, acc, right_view, s_max,
+                          n_real, disp, conf, uniq, ramp, want_uniq)

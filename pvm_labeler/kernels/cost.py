@@ -1,10 +1,10 @@
 """Numba kernels of the SGM matching cost: census transform, Hamming cost volume, right-view re-indexing.
 
-The right view's cost is by definition the left volume re-indexed, C_r(y, x, d) = C_l(y, x + d, d)
-(:func:`reindex_right`). :func:`cost_volume_right` produces exactly those bytes from the SAME census codes (no
-second census, no flipped images): popcount(census_r[x] ^ census_l[x + d]) IS C_l(x + d, d). It is the one the
-matcher uses because the re-index is a byte gather with stride D + 1 that does not vectorise (55-89 ms per KITTI
-frame at D = 192) while the direct form is a contiguous popcount loop (8 ms); tests assert the two are equal.
+The right view's cost is by definition the left volume re-indexed, C_r(y, x, d) = C_l(y, x + d, d).
+:func:`cost_volume_right` produces exactly those bytes from the SAME census codes (no second census, no flipped
+images): popcount(census_r[x] ^ census_l[x + d]) IS C_l(x + d, d). It replaced the re-index, a byte gather with
+stride D + 1 that does not vectorise (55-89 ms per KITTI frame at D = 192), by a contiguous popcount loop (8 ms);
+tests assert it equals the re-indexed left volume (``tests/naive.py::naive_reindex_right``).
 
 Layouts: images (H, W) uint8; census codes (H, W) uint32 (<= 5x5) or uint64 (7x7, 48 bits); cost volumes
 (H, W, D) uint8 so that the disparity axis is contiguous for the aggregation kernels.
@@ -137,33 +137,10 @@ def cost_volume(census_left, census_right, invalid_cost, out, n_disp, pad_cost):
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def reindex_right(cost_left, invalid_cost, out):
-    """Right-view cost from the left-view volume: C_r(y, x, d) = C_l(y, x + d, d), invalid_cost where x + d >= W.
-
-    Right(x) matches left(x + d), and C_l(y, x + d, d) is exactly the Hamming distance of that pair, so no second
-    census or cost computation is needed.
-
-    Args:
-        cost_left: (H, W, D) uint8 left-view cost volume.
-        invalid_cost: cost for x + d >= W.
-        out: (H, W, D) uint8, written in place.
-    """
-    height, width, n_disp = cost_left.shape
-    fill = np.uint8(invalid_cost)
-    for y in prange(height):
-        for x in range(width):
-            n_valid = min(width - x, n_disp)
-            for d in range(n_valid):
-                out[y, x, d] = cost_left[y, x + d, d]
-            for d in range(n_valid, n_disp):
-                out[y, x, d] = fill
-
-
-@njit(cache=True, fastmath=FASTMATH, parallel=True)
 def cost_volume_right(census_left, census_right, invalid_cost, out, n_disp, pad_cost):
     """Right-view cost C_r(y, x, d) = popcount(census_right[y, x] ^ census_left[y, x + d]) = C_l(y, x + d, d).
 
-    Byte-identical to ``reindex_right(cost_volume(census_left, census_right, ...))`` (see the module docstring).
+    Byte-identical to the left volume of :func:`cost_volume` re-indexed (see the module docstring).
 
     Args:
         census_left, census_right: (H, W) uint32 or uint64 census codes (same dtype), the ones of the left view.

@@ -12,7 +12,7 @@ Definitions (per pixel, S = aggregated cost vector over d in [0, D), uint16):
 """
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from pvm_labeler.kernels._flags import FASTMATH
 
@@ -93,22 +93,3 @@ def disparity_ramp(n_disp):
     for d in range(n_disp):
         ramp[d] = np.uint16(d)
     return ramp
-
-
-@njit(cache=True, fastmath=FASTMATH, parallel=True)
-def wta_volume(cost_sum, right_view, s_max, disp, conf, uniq):
-    """Apply :func:`select_disparity` to every pixel of an aggregated volume.
-
-    Args:
-        cost_sum: (H, W, D) uint16 aggregated cost S.
-        right_view: False: d is valid iff x - d >= 0; True: valid iff x + d < W.
-        s_max: see :func:`select_disparity`.
-        disp, conf, uniq: (H, W) float32 outputs, written in place.
-    """
-    height, width, n_disp = cost_sum.shape
-    ramp = disparity_ramp(n_disp)
-    for y in prange(height):
-        for x in range(width):
-            n_valid = width - x if right_view else x + 1
-            disp[y, x], conf[y, x], uniq[y, x] = select_disparity(cost_sum, y, x, n_disp, n_valid, s_max, -1,
-                                                                  ramp, True)
