@@ -4,6 +4,7 @@ Forms::
 
     pvm-label --dataset kitti15 --root data/kitti15 --out out/labels/kitti15   # same as `pvm-label run ...`
     pvm-label run --config labels.yaml --kappa1 0.8                            # YAML sets defaults, flags win
+    pvm-label run --config labels.yaml --print-config                          # the resolved YAML; labels nothing
     pvm-label verify DIR                                                       # schema, counts, readability
     pvm-label report DIR [DIR ...] --out REPORT_DIR                            # label quality vs GT + pictures
 
@@ -170,9 +171,12 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
 @click.option("--gt", default=None, help="folder dataset: optional GT folder (KITTI-style PNG x256, .pfm or .npy).")
 @click.option("--sceneflow-pass", type=click.Choice(["clean", "final"]), default=None,
               help="sceneflow dataset: render pass.  [default: clean]")
+@click.option("--print-config", is_flag=True, default=False,
+              help="Print the resolved configuration (defaults + --config + flags) as YAML, the content "
+                   "OUT/config.yaml would get, and exit without labelling.")
 @click.option("-v", "--verbose", count=True, help="-v info, -vv debug logging on stderr.")
 @click.pass_context
-def run_cmd(ctx: click.Context, config_file: Path | None, verbose: int, **_: Any) -> None:
+def run_cmd(ctx: click.Context, config_file: Path | None, print_config: bool, verbose: int, **_: Any) -> None:
     """Label a dataset into versioned HDF5 shards (resumable; see docs/labeling.md)."""
     _setup_logging(verbose)
     from pvm_labeler.job import run
@@ -181,6 +185,9 @@ def run_cmd(ctx: click.Context, config_file: Path | None, verbose: int, **_: Any
     values = _merged(ctx, yaml_doc)
     try:
         spec = build_spec(values, yaml_doc)
+        if print_config:
+            click.echo(yaml.safe_dump(spec.validate().resolved(), sort_keys=False), nl=False)
+            return
         summary = run(spec)
     except ConfigError as exc:
         raise click.UsageError(str(exc), ctx=ctx) from exc

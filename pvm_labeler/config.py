@@ -18,6 +18,36 @@ LABEL_MODES: tuple[str, ...] = ("finest", "median", "mean", "weighted")
 #: Interpolation that brings each scale's disparity and c back to full resolution.
 UPSAMPLE_MODES: tuple[str, ...] = ("linear", "nearest")
 
+# Limits of the SGM kernels, checked here so that a bad value fails before a job writes anything (the kernels
+# themselves never check: see docs/sgm.md). sgm.check_inputs and kernels/_lanes.py use the same constants.
+#: Census window sides: the codes are uint32 up to 5x5 (24 bits) and uint64 up to 7x7 (48 bits).
+CENSUS_WINDOWS: tuple[int, ...] = (3, 5, 7)
+#: Path-cost sentinel of the uint16 lanes: every path cost C_max + P2 must stay below it, and it + P1 fits uint16.
+PATH_SENTINEL = 0x3FFF
+#: The aggregated cost S is uint16: n_paths * (C_max + P2) must not exceed this.
+S_MAX = 0xFFFF
+#: The WTA indexes disparities as uint16 lanes (0xFFFF = none) after padding D to a multiple of 32.
+MAX_DISP_LIMIT = 0xFFFF - 31
+_INT_FIELDS = ("k", "max_disp", "seed", "census_window", "paths", "p1", "p2", "min_texture")
+
+
+def census_max_cost(window: int) -> int:
+    """C_max: the largest census (Hamming) cost of a ``window`` x ``window`` census, window * window - 1 bits."""
+    return window * window - 1
+
+
+def penalty_problem(census_window: int, paths: int, p1: int, p2: int) -> str | None:
+    """Why the SGM kernels cannot take these penalties (the path costs would wrap), or None when they can."""
+    c_max = census_max_cost(census_window)
+    if not 0 <= p1 <= p2:
+        return f"SGM penalties need 0 <= p1 <= p2, got p1={p1}, p2={p2}"
+    if c_max + p2 >= PATH_SENTINEL:
+        return f"p2={p2} too large: the uint16 path costs need C_max + p2 < {PATH_SENTINEL} (C_max={c_max})"
+    if paths * (c_max + p2) > S_MAX:
+        return (f"p2={p2} too large for {paths} paths: {paths} x (C_max={c_max} + p2) overflows the uint16 cost "
+                f"sum ({S_MAX})")
+    return None
+
 
 @dataclass(frozen=True)
 class LabelerConfig:
@@ -64,21 +94,27 @@ class LabelerConfig:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> LabelerConfig:
-        """Raise ConfigError naming the option if any value is out of range; return self."""
+        """Raise ConfigError naming the option if any value is out of range or beyond a kernel's limits; return self."""
+        for name in _INT_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ConfigError(f"{name} must be an integer, got {value!r}")
         if self.k < 1:
             raise ConfigError(f"--k must be >= 1 (K = 1 is plain SGM + LR check), got {self.k}")
         if self.kappa1 < 0 or self.kappa2 < 0:
             raise ConfigError(f"--kappa1/--kappa2 must be >= 0, got kappa1={self.kappa1}, kappa2={self.kappa2}")
-        if self.max_disp < 2:
-            raise ConfigError(f"--max-disp must be >= 2, got {self.max_disp}")
+        if not 2 <= self.max_disp <= MAX_DISP_LIMIT:
+            raise ConfigError(f"--max-disp must be in [2, {MAX_DISP_LIMIT}], got {self.max_disp}")
         if self.lr_threshold < 0:
             raise ConfigError(f"--lr-threshold must be >= 0, got {self.lr_threshold}")
-        if self.census_window < 3 or self.census_window % 2 == 0:
-            raise ConfigError(f"census_window must be odd and >= 3, got {self.census_window}")
+        if self.census_window not in CENSUS_WINDOWS:
+            raise ConfigError(f"census_window must be one of {CENSUS_WINDOWS} (odd, at most 7x7 = 48 bits per "
+                              f"census code), got {self.census_window}")
         if self.paths not in (4, 8):
             raise ConfigError(f"paths must be 4 or 8, got {self.paths}")
-        if not 0 <= self.p1 <= self.p2:
-            raise ConfigError(f"SGM penalties need 0 <= p1 <= p2, got p1={self.p1}, p2={self.p2}")
+        problem = penalty_problem(self.census_window, self.paths, self.p1, self.p2)
+        if problem:
+            raise ConfigError(problem)
         if self.label_mode not in LABEL_MODES:
             raise ConfigError(f"label_mode must be one of {LABEL_MODES}, got {self.label_mode!r}")
         if not 0 <= self.min_confidence <= 1:

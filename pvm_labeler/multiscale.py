@@ -151,9 +151,13 @@ def _to_grey(image: np.ndarray, name: str) -> np.ndarray:
 
 
 def check_sizes(height: int, width: int, geometry: list[tuple[int, int, float, int]], cfg: LabelerConfig) -> None:
-    """Every scale must be wider than its search range plus the census window, and taller than the window."""
+    """Every scale must search >= 2 disparities, be wider than its search range plus the census window, and taller
+    than the window."""
     margin = cfg.census_window
     for idx, (h_k, w_k, factor, d_k) in enumerate(geometry):
+        if d_k < 2:  # the SGM needs two disparities to choose from
+            raise InputError(f"max_disp={cfg.max_disp} too small for k={cfg.k}: scale {idx + 1} (factor {factor:.2f}) "
+                             f"would search {d_k} disparity; every scale needs >= 2, so raise max_disp or lower k")
         if w_k <= d_k + margin or h_k <= margin:
             # Worst case over eps is factor K + 1; this width always works for the given K and max_disp.
             need_w = math.ceil((cfg.k + 1) * (margin + 2)) + cfg.max_disp

@@ -136,6 +136,36 @@ class TestBadInput:
         assert result.exit_code == 1 and "too small for k=6 and max_disp=64" in result.output
         assert not (tmp_path / "o").exists()
 
+    def test_yaml_beyond_kernel_limits_writes_nothing(self, tmp_path: Path) -> None:
+        # census_window 9 used to pass pre-flight, write job.json and then fail in every worker
+        data, out = make_folder(tmp_path / "d", n=1), tmp_path / "out"
+        cfg = tmp_path / "labels.yaml"
+        cfg.write_text(yaml.safe_dump({"dataset": "folder", "root": str(data), "max_disp": 16,
+                                       "labeler": {"census_window": 9}}))
+        result = invoke("run", "--config", cfg, "--out", out, "--k", "2", "--quiet")
+        assert result.exit_code == 2, result.output
+        assert "census_window must be one of (3, 5, 7)" in result.output and "got 9" in result.output
+        assert not out.exists()
+
+    def test_print_config(self, tmp_path: Path) -> None:
+        cfg = tmp_path / "labels.yaml"
+        cfg.write_text(yaml.safe_dump({"dataset": "sample", "kappa1": 0.7, "labeler": {"census_window": 7}}))
+        out = tmp_path / "out"
+        result = invoke("run", "--config", cfg, "--k", "3", "--out", out, "--print-config")
+        assert result.exit_code == 0, result.output
+        printed = yaml.safe_load(result.output)
+        assert printed["dataset"] == "sample" and printed["out"] == str(out)
+        assert printed["labeler"]["k"] == 3 and printed["labeler"]["kappa1"] == 0.7  # flag, then YAML
+        assert printed["labeler"]["census_window"] == 7 and printed["labeler"]["max_disp"] == 64  # sample default
+        assert not out.exists()  # nothing labelled, nothing written
+        (tmp_path / "printed.yaml").write_text(result.output)  # the printout is itself a valid --config
+        again = invoke("run", "--config", tmp_path / "printed.yaml", "--print-config")
+        assert again.exit_code == 0 and yaml.safe_load(again.output) == printed
+
+    def test_print_config_rejects_bad_values(self, tmp_path: Path) -> None:
+        result = invoke("--dataset", "sample", "--out", tmp_path / "o", "--k", "1", "--print-config")
+        assert result.exit_code == 2 and "--k must be >= 2" in result.output
+
     @pytest.mark.parametrize(
         ("args", "match"),
         [(["--k", "1"], "--k must be >= 2"), (["--kappa1", "-1"], "kappa1=-1.0"), (["--kappa2", "-0.1"], "kappa2=-0.1"),

@@ -23,11 +23,31 @@ class TestLabelerConfig:
             ({"census_window": 4}, "census_window"),
             ({"paths": 5}, "paths"),
             ({"p1": 10, "p2": 5}, "p1=10"),
+            # the kernels' limits (config.py constants), rejected here before a job writes anything
+            ({"census_window": 9}, r"census_window must be one of \(3, 5, 7\)"),
+            ({"census_window": 1}, "census_window"),
+            ({"p1": -1}, "p1=-1"),
+            ({"p2": 20000, "paths": 4}, r"C_max \+ p2 < 16383"),
+            ({"p2": 8168}, r"p2=8168 too large for 8 paths"),  # 8 x (24 + 8168) = 65536
+            ({"census_window": 7, "p2": 8144}, "overflows the uint16 cost sum"),  # 8 x (48 + 8144) = 65536
+            ({"max_disp": 65505}, r"--max-disp must be in \[2, 65504\]"),
+            ({"k": 2.5}, "k must be an integer, got 2.5"),
+            ({"max_disp": 64.0}, "max_disp must be an integer"),
+            ({"census_window": True}, "census_window must be an integer"),
+            ({"min_texture": 256}, "min_texture"),
+            ({"min_confidence": 1.5}, "min_confidence"),
+            ({"label_mode": "vote"}, "label_mode"),
+            ({"upsample": "cubic"}, "upsample"),
         ],
     )
     def test_exception(self, kwargs: dict, match: str) -> None:
         with pytest.raises(ConfigError, match=match):
             LabelerConfig(**kwargs).validate()
+
+    @pytest.mark.parametrize(("kwargs"), [{"p2": 8167}, {"census_window": 7, "p2": 8143}, {"paths": 4, "p2": 16358},
+                                          {"max_disp": 65504}, {"p1": 0, "p2": 0}])
+    def test_limits_inclusive(self, kwargs: dict) -> None:
+        LabelerConfig(**kwargs).validate()  # the largest values the kernels take
 
     def test_json_roundtrip(self) -> None:
         cfg = LabelerConfig(k=4, kappa1=0.5)

@@ -154,7 +154,7 @@ class TestSgmPairExceptions:
             (Z, Z, CFG, 1, "max_disp must be an integer >= 2, got 1"),
             (Z, Z, CFG, 2.5, "max_disp must be an integer >= 2, got 2.5"),
             (Z, Z, CFG, 64, "image width 40 must be >= max_disp 64"),
-            (Z, Z, dataclasses.replace(CFG, census_window=9), None, r"census_window must be odd in \[3, 7\], got 9"),
+            (Z, Z, dataclasses.replace(CFG, census_window=9), None, r"census_window must be one of \(3, 5, 7\), got 9"),
             (np.zeros((4, 40), np.uint8), np.zeros((4, 40), np.uint8), CFG, None, r"image size \(4, 40\) is smaller"),
             (Z, Z, dataclasses.replace(CFG, p2=20000), None, "C_max \\+ p2 < 16383"),
             (Z, Z, dataclasses.replace(CFG, p2=9000), None, "overflows the uint16 cost sum"),

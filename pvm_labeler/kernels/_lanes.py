@@ -15,7 +15,9 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
-SENTINEL16 = 0x3FFF  # > any L_r the wrapper allows, and SENTINEL16 + P1 still fits in uint16
+from pvm_labeler.config import PATH_SENTINEL
+
+SENTINEL16 = PATH_SENTINEL  # > any L_r LabelerConfig.validate allows, and SENTINEL16 + P1 still fits in uint16
 
 
 def path_lanes(c_max: int, p1: int, p2: int) -> tuple[type, int]:
