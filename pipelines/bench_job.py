@@ -4,7 +4,7 @@ In one run (so ratios are meaningful on a shared, noisy machine):
 
 - warm-up: one frame labelled in-process (numba JIT compile / cache load excluded from the timings);
 - ``--jobs 1`` with 1 numba thread, ``--jobs 1`` with all cores as numba threads (the two views of every SGM pair
-  side by side), ``--jobs 2`` (loky, numba threads = cores // 2, an idle worker's core lent to the last frames):
+  side by side), ``--jobs 2`` (loky, numba threads = cores // 2):
   pairs/s of the whole job (read, label, write shards), scaling ratios, peak RSS per worker;
 - ``--jobs 2`` twice: "cold" starts the loky workers (process start, imports, numba cache load: what a short job
   pays once), "warm" runs again on the same, reused loky workers (joblib keeps them alive between calls), which is
@@ -186,8 +186,7 @@ def _markdown(r: dict[str, Any]) -> str:
         f"Scaling --jobs 2 vs --jobs 1 (1 thread): **{r['scaling_jobs2_vs_jobs1']:.2f}x** ({ok} the "
         f"{r['scaling_target']}x target; {r['runs']['jobs2_warm']['pairs']} one-frame shards on 2 workers would "
         f"reach at most {r['scaling_bound']:.3f}x if every frame ran on one core and the frames cost alike; the "
-        "pyramid's random factors make them differ, the job dispatches them longest first, and a worker with no "
-        "shard left lends its core to the right-view SGM sweeps of the frame still running (parallel.SpareCores)); "
+        "pyramid's random factors make them differ, and the job dispatches them longest first); "
         "vs --jobs 1 with all cores as numba threads: "
         f"{r['scaling_jobs2_vs_jobs1_all_threads']:.2f}x. The machine is shared: a 1-minute load average above "
         f"{r['cores']} means other processes took CPU during the run and wall-clock ratios understate scaling; "

@@ -6,20 +6,16 @@ leave only complete shards behind.
 
 Thread budget: ``workers x numba threads <= cores``. Every task calls :func:`thread_budget` around its work, which
 sets numba's (and OpenCV's) thread count for the duration and restores the old values afterwards. joblib's loky
-backend additionally caps NUMBA_NUM_THREADS / OMP_NUM_THREADS in its workers to cores // n_jobs.
+backend additionally caps NUMBA_NUM_THREADS / OMP_NUM_THREADS in its workers to cores // n_jobs. A frame's two SGM
+views run side by side (:func:`run_two`) when the calling thread's budget is >= 2 cores.
 
-Spare cores: a frame's two SGM views can run side by side (:func:`run_two`). They do whenever the calling thread's
-budget is >= 2 cores, and, in a job whose workers fill the machine with one core each, whenever a
-:class:`CoreTokens` token is free. The job's parent holds the tokens of the workers' cores and gives one back
-when a worker has no shard left (:class:`SpareCores`, the last frames of a job), so the frame still running on
-another worker takes that core for its right view. The threads that compute at once never exceed the cores, and
-while every worker is busy no token is free, so nothing is borrowed back and forth between frames.
+A job whose workers own one core each used to lend an idle worker's core to the frames still running at its end
+(``CoreTokens`` / ``SpareCores``); it bought no clear gain in an A/B run and was removed (docs/labeling.md).
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import logging
 import os
 import resource
@@ -27,7 +23,6 @@ import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from pvm_labeler.common.errors import ConfigError
@@ -40,8 +35,6 @@ T = TypeVar("T")
 R = TypeVar("R")
 A = TypeVar("A")
 B = TypeVar("B")
-
-TOKEN_POLL_S = 0.02  # how often a helper looks for a spare core
 
 
 def available_cores() -> int:
@@ -58,99 +51,32 @@ def numba_threads_per_worker(jobs: int, cores: int | None = None) -> int:
     return max(1, cores // max(1, jobs))
 
 
-@dataclass(frozen=True)
-class CoreTokens:
-    """The cores of one machine shared by the workers of a job: ``count`` lock files in ``directory``, one per core.
-
-    A token is held as an exclusive ``flock`` on one of the files (an open file descriptor). flock works across
-    processes and between threads that open the file separately, and the kernel drops it when its process dies,
-    so a killed worker never leaks a core. Picklable (two fields), so it travels with a task to loky workers.
-    """
-
-    directory: str
-    count: int
-
-    def try_acquire(self) -> int | None:
-        """Take a free token without waiting; returns its file descriptor (pass it to :meth:`release`) or None."""
-        for index in range(self.count):
-            fd = os.open(os.path.join(self.directory, f"core-{index}.lock"), os.O_RDWR | os.O_CREAT, 0o600)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                return fd
-            except BlockingIOError:
-                os.close(fd)
-        return None
-
-    @staticmethod
-    def release(fd: int) -> None:
-        """Give a token back (closing the descriptor drops its flock)."""
-        os.close(fd)
-
-
-class SpareCores:
-    """The parent's side of a job's :class:`CoreTokens`: it holds the workers' cores and frees those of idle workers.
-
-    Args:
-        tokens: one token per core of the machine.
-        jobs, threads: workers and the threads each owns; the parent takes ``jobs x threads`` tokens at once (the
-            rest, cores the workers do not use, stay free), and :meth:`outstanding` gives a worker's back when
-            fewer shards than workers remain. Use as a context manager: every token is released at exit.
-    """
-
-    def __init__(self, tokens: CoreTokens, jobs: int, threads: int) -> None:
-        self.tokens, self.jobs, self.threads = tokens, jobs, threads
-        self._held: list[int] = []
-
-    def __enter__(self) -> SpareCores:
-        for _ in range(min(self.tokens.count, self.jobs * self.threads)):
-            fd = self.tokens.try_acquire()
-            if fd is None:
-                break
-            self._held.append(fd)
-        return self
-
-    def outstanding(self, shards: int) -> None:
-        """``shards`` are dispatched but not finished: the workers beyond that many have nothing left to do."""
-        idle = max(0, self.jobs - max(0, shards))
-        while len(self._held) > (self.jobs - idle) * self.threads:
-            CoreTokens.release(self._held.pop())
-
-    def __exit__(self, *exc: object) -> None:
-        while self._held:
-            CoreTokens.release(self._held.pop())
-
-
 class _Budget(threading.local):
-    """The calling thread's cores: ``threads`` it owns, and a job's shared tokens to borrow spare ones from."""
+    """The calling thread's cores, as set by :func:`thread_budget`."""
 
     threads: int | None = None  # None: not set by thread_budget (then numba's thread count decides)
-    tokens: CoreTokens | None = None
 
 
 _budget = _Budget()
 
 
 @contextlib.contextmanager
-def thread_budget(threads: int, tokens: CoreTokens | None = None) -> Iterator[None]:
-    """Run the body with numba and OpenCV limited to ``threads`` threads, then restore the previous settings.
-
-    ``tokens``: the job's spare cores, which :func:`run_two` may borrow from inside the body.
-    """
+def thread_budget(threads: int) -> Iterator[None]:
+    """Run the body with numba and OpenCV limited to ``threads`` threads, then restore the previous settings."""
     import cv2
     import numba
 
     threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
-    old_numba, old_cv = numba.get_num_threads(), cv2.getNumThreads()
-    old_budget = (_budget.threads, _budget.tokens)
+    old_numba, old_cv, old_budget = numba.get_num_threads(), cv2.getNumThreads(), _budget.threads
     numba.set_num_threads(threads)
     cv2.setNumThreads(threads)
-    _budget.threads, _budget.tokens = threads, tokens
+    _budget.threads = threads
     try:
         yield
     finally:
         numba.set_num_threads(old_numba)
         cv2.setNumThreads(old_cv)
-        _budget.threads, _budget.tokens = old_budget
+        _budget.threads = old_budget
 
 
 def budget_threads() -> int:
@@ -185,45 +111,29 @@ def _helper_pool() -> ThreadPoolExecutor:
 _NOT_RUN = object()
 
 
-def _helper(claim: threading.Lock, first_done: threading.Event, tokens: CoreTokens | None,
-            second: Callable[[bool], B]) -> Any:
-    """Run ``second(True)`` if this helper claims it first, on an owned core (tokens None) or a borrowed one."""
-    if tokens is None:
-        return second(True) if claim.acquire(blocking=False) else _NOT_RUN
-    while not first_done.is_set():
-        fd = tokens.try_acquire()
-        if fd is not None:
-            try:
-                return second(True) if claim.acquire(blocking=False) else _NOT_RUN
-            finally:
-                CoreTokens.release(fd)
-        first_done.wait(TOKEN_POLL_S)
-    return _NOT_RUN
+def _helper(claim: threading.Lock, second: Callable[[bool], B]) -> Any:
+    """Run ``second(True)`` if this helper claims it before the calling thread does."""
+    return second(True) if claim.acquire(blocking=False) else _NOT_RUN
 
 
 def run_two(first: Callable[[], A], second: Callable[[bool], B]) -> tuple[A, B]:
-    """``first()`` on this thread and ``second`` beside it on a helper thread when a second core is free.
+    """``first()`` on this thread and ``second`` beside it on a helper thread when this thread owns >= 2 cores.
 
-    A second core is free when this thread's budget (:func:`budget_threads`) is >= 2, or when a token of the job's
-    :class:`CoreTokens` can be borrowed while ``first`` runs. Otherwise (or if ``first`` finishes before a core
-    turns up) ``second(False)`` runs here after ``first``. ``second`` receives True when it runs concurrently,
-    so it must not share ``first``'s scratch memory then. Both must release the GIL to gain anything, and
-    ``second`` must not launch numba ``prange`` kernels (the workqueue threading layer is not thread-safe).
+    The cores are this thread's budget (:func:`budget_threads`). With one core (or if the helper has not started
+    ``second`` by the time ``first`` finishes) ``second(False)`` runs here after ``first``. ``second`` receives
+    True when it runs concurrently, so it must not share ``first``'s scratch memory then. Both must release the GIL
+    to gain anything, and ``second`` must not launch numba ``prange`` kernels (the workqueue threading layer is
+    not thread-safe).
 
     Returns:
         (first's result, second's result); exceptions of either are raised here.
     """
-    owned = budget_threads() >= 2
-    tokens = None if owned else _budget.tokens
-    if not owned and tokens is None:
+    if budget_threads() < 2:
         result_first = first()
         return result_first, second(False)
-    claim, first_done = threading.Lock(), threading.Event()
-    future: Future[Any] = _helper_pool().submit(_helper, claim, first_done, tokens, second)
-    try:
-        result_first = first()
-    finally:
-        first_done.set()
+    claim = threading.Lock()
+    future: Future[Any] = _helper_pool().submit(_helper, claim, second)
+    result_first = first()
     if claim.acquire(blocking=False):  # the helper never started it: run it here
         return result_first, second(False)
     return result_first, future.result()
@@ -330,8 +240,3 @@ def _run_dask(fn: Callable[[T], R], tasks: list[T], jobs: int, scheduler: str | 
         client.close()
         if cluster is not None:
             cluster.close()
-
-
-def describe_budget(backend: str, jobs: int, numba_threads: int) -> dict[str, Any]:
-    """Record of the parallel setup for index.json / the summary."""
-    return {"backend": backend, "jobs": jobs, "numba_threads_per_worker": numba_threads, "cores": available_cores()}

@@ -20,15 +20,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from pvm_labeler import job as job_module
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import ConfigError, InputError
 from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, ShardTask, _longest_first, predicted_work, run
+from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, ShardTask, longest_first, predicted_work, run
 from pvm_labeler.multiscale import draw_eps, scale_geometry
-from pvm_labeler.parallel import CoreTokens, numba_threads_per_worker, thread_budget
+from pvm_labeler.parallel import numba_threads_per_worker, thread_budget
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, read_sample, verify
 
 REPO = Path(__file__).resolve().parents[1]
@@ -203,11 +202,9 @@ class _Bar:
 class TestProgress:
     @pytest.mark.parametrize("jobs", [1, pytest.param(2, marks=pytest.mark.slow)])
     def test_bar_advances_per_pair(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, jobs: int) -> None:
-        import pvm_labeler.job as job
-
         bars: list[_Bar] = []
-        monkeypatch.setattr(job, "_progress", lambda total, initial, quiet: bars.append(_Bar(total, initial))
-                            or bars[-1])
+        monkeypatch.setattr("pvm_labeler.job.runner.progress_bar",
+                            lambda total, initial, quiet: bars.append(_Bar(total, initial)) or bars[-1])
         run(_spec(tmp_path / "a", shard_size=3, jobs=jobs, quiet=False))
         (bar,) = bars
         assert bar.updates == [1, 1, 1, 1] and bar.n == bar.total == 4 and bar.closed
@@ -235,7 +232,7 @@ class TestScheduling:
                  for i, fid in enumerate(sizes)]
         per_frame = {fid: predicted_work(scale_geometry(*sizes[fid], draw_eps(cfg.seed, fid, cfg.k), cfg.max_disp))
                      for fid in sizes}
-        order = [task.refs[0].frame_id for task in _longest_first(tasks, per_frame)]
+        order = [task.refs[0].frame_id for task in longest_first(tasks, per_frame)]
         work = [per_frame[fid] for fid in order]
         assert order[0] == "big" and work == sorted(work, reverse=True)
         assert len(set(work)) > 3  # the random factors really make equal-size pairs differ
@@ -282,6 +279,13 @@ class TestBadInput:
                       config=LabelerConfig(k=6, max_disp=48)))
         assert not (tmp_path / "out").exists()
 
+    def test_search_range_too_small_for_k(self, tmp_path: Path) -> None:
+        # max_disp 4 at K = 6: the coarsest scales would search a single disparity, which the SGM cannot take
+        self._folder(tmp_path / "d", [((200, 300), (200, 300))])
+        with pytest.raises(InputError, match=r"000: max_disp=4 too small for k=6: scale \d .* would search 1 disp"):
+            run(_spec(tmp_path / "out", dataset="folder", root=tmp_path / "d", config=LabelerConfig(k=6, max_disp=4)))
+        assert not (tmp_path / "out").exists()
+
     def test_out_not_writable(self, tmp_path: Path) -> None:
         (tmp_path / "file").write_text("x")
         with pytest.raises(InputError, match="output dir not writable: --out .*file/labels"):
@@ -293,6 +297,8 @@ class TestBadInput:
             (LabelerConfig(k=1), r"--k must be >= 2.*got 1"),
             (LabelerConfig(kappa1=-0.5), "kappa1=-0.5"),
             (LabelerConfig(kappa2=-1.0), "kappa2=-1.0"),
+            (LabelerConfig(census_window=9), r"census_window must be one of \(3, 5, 7\)"),
+            (LabelerConfig(p2=9000), "overflows the uint16 cost sum"),
         ],
     )
     def test_config(self, tmp_path: Path, config: LabelerConfig, match: str) -> None:
@@ -326,24 +332,11 @@ def real_labeler() -> None:
     pytest.importorskip("pvm_labeler.sgm", reason="PVM core (pvm_labeler.sgm) not available yet")
 
 
-def test_spare_cores_leave_labels_unchanged(tmp_path: Path, real_labeler: None) -> None:
-    """--jobs 2 shares the cores through CoreTokens (a worker with nothing left lends its core to the other's
-    right views): the shards equal the --jobs 1 run, and no token is left held."""
-    seen: list[CoreTokens | None] = []
-    real_label_shard = job_module.label_shard
-
-    def spy(task: ShardTask) -> object:
-        seen.append(task.core_tokens)
-        return real_label_shard(task)
-
+def test_two_workers_leave_labels_unchanged(tmp_path: Path, real_labeler: None) -> None:
+    """--jobs 2 (threads, one numba thread each): the shards equal the --jobs 1 run."""
     run(_real_spec(tmp_path / "jobs1"))
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(job_module, "label_shard", spy)
-        run(_real_spec(tmp_path / "threads2", jobs=2, backend="threading", numba_threads=1))
+    run(_real_spec(tmp_path / "threads2", jobs=2, backend="threading", numba_threads=1))
     _assert_same_shards(tmp_path / "jobs1", tmp_path / "threads2")
-    tokens = seen[0]
-    assert len(seen) == 3 and tokens is not None and all(t == tokens for t in seen)
-    assert not Path(tokens.directory).exists()  # the token directory is removed with the job
 
 
 @pytest.mark.slow

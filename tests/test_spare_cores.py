@@ -1,57 +1,22 @@
-"""Spare cores: CoreTokens (flock per core), run_two (second view beside the first), and that neither changes a label.
+"""The two SGM views side by side: run_two (second view beside the first when the thread owns 2 cores), and that
+it never changes a label.
 
-The job gives its loky / threading workers one CoreTokens; the parent holds the workers' tokens (SpareCores) and
-frees those of workers with no shard left; the right view of an SGM pair runs on a helper thread only while a
-second core is owned (thread budget >= 2) or borrowed (a free token). These tests pin each branch, including that
-a killed holder gives its token back.
+(The job's spare-core lending, CoreTokens / SpareCores, was removed: it bought no clear gain, docs/labeling.md.)
 """
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.parallel import CoreTokens, SpareCores, run_two, thread_budget
+from pvm_labeler.parallel import run_two, thread_budget
 from pvm_labeler.sgm import sgm_pair
 
 BARRIER_S = 20.0  # generous: only a broken run_two (no concurrency) ever waits this long, and then fails
-
-
-class TestCoreTokens:
-    def test_count_and_release(self, tmp_path: Path) -> None:
-        tokens = CoreTokens(str(tmp_path), 2)
-        a, b = tokens.try_acquire(), tokens.try_acquire()
-        assert a is not None and b is not None
-        assert tokens.try_acquire() is None  # both cores taken
-        CoreTokens.release(a)
-        c = tokens.try_acquire()
-        assert c is not None and tokens.try_acquire() is None
-        CoreTokens.release(b)
-        CoreTokens.release(c)
-
-    def test_killed_holder_gives_its_token_back(self, tmp_path: Path) -> None:
-        tokens = CoreTokens(str(tmp_path), 1)
-        code = ("import time; from pvm_labeler.parallel import CoreTokens; "
-                f"fd = CoreTokens({str(tmp_path)!r}, 1).try_acquire(); print('held', fd is not None, flush=True); "
-                "time.sleep(600)")
-        proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
-                                cwd=Path(__file__).resolve().parents[1])
-        try:
-            assert proc.stdout is not None and proc.stdout.readline().strip() == "held True"
-            assert tokens.try_acquire() is None
-        finally:
-            proc.kill()
-            proc.wait()
-        fd = tokens.try_acquire()
-        assert fd is not None, "the kernel drops a dead process's flock"
-        CoreTokens.release(fd)
 
 
 class TestRunTwo:
@@ -80,19 +45,6 @@ class TestRunTwo:
             assert run_two(first, second) == ("a", "b")
         assert log[0][1] != threading.get_ident() and log[0][2] is True
 
-    def test_borrows_a_free_token_only(self, tmp_path: Path) -> None:
-        tokens = CoreTokens(str(tmp_path), 2)
-        log: list[bool] = []
-        with SpareCores(tokens, jobs=2, threads=1) as spare, thread_budget(1, tokens):
-            spare.outstanding(2)  # both workers busy: no spare core
-            run_two(lambda: None, lambda concurrent: log.append(concurrent))
-            assert log == [False]
-            spare.outstanding(1)  # the other worker finished: its core is spare now
-            barrier = threading.Barrier(2, timeout=BARRIER_S)
-            run_two(barrier.wait, lambda concurrent: (log.append(concurrent), barrier.wait()))
-            assert log == [False, True]
-        assert tokens.try_acquire() is not None  # the helper and SpareCores gave every token back
-
     def test_helper_exception_is_raised(self) -> None:
         barrier = threading.Barrier(2, timeout=BARRIER_S)
 
@@ -120,36 +72,3 @@ def test_sgm_pair_side_by_side_is_bit_identical(paths: int) -> None:
         for name in ("disp", "conf", "uniqueness"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     assert np.nanmedian(par_l.disp[:, 48:]) == pytest.approx(8.0, abs=0.25)
-
-
-class TestSpareCores:
-    def test_frees_the_cores_of_idle_workers_only(self, tmp_path: Path) -> None:
-        tokens = CoreTokens(str(tmp_path), 4)
-
-        def free() -> int:
-            fds = []
-            while (fd := tokens.try_acquire()) is not None:
-                fds.append(fd)
-            for fd in fds:
-                CoreTokens.release(fd)
-            return len(fds)
-
-        with SpareCores(tokens, jobs=3, threads=1) as spare:
-            assert free() == 1  # 4 cores, 3 single-core workers: one core is spare from the start
-            spare.outstanding(7)
-            assert free() == 1
-            spare.outstanding(2)  # 2 shards left for 3 workers
-            assert free() == 2
-            spare.outstanding(0)
-            assert free() == 4
-        assert free() == 4
-
-    def test_two_threads_per_worker(self, tmp_path: Path) -> None:
-        tokens = CoreTokens(str(tmp_path), 4)
-        with SpareCores(tokens, jobs=2, threads=2) as spare:
-            assert tokens.try_acquire() is None
-            spare.outstanding(1)
-            fds = [tokens.try_acquire(), tokens.try_acquire(), tokens.try_acquire()]
-            assert fds[0] is not None and fds[1] is not None and fds[2] is None
-            for fd in fds[:2]:
-                CoreTokens.release(fd)

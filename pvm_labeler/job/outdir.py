@@ -1,0 +1,155 @@
+"""The job's output directory: its identity (job.json), the files it owns, and which shards are already complete.
+
+Existing shards are reused only when they come from the same job (config, dataset, shard size, compression);
+``--overwrite`` deletes exactly the files in :data:`OWNED_GLOBS`, nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.datasets import PairRef
+from pvm_labeler.common.errors import InputError, ShardError
+from pvm_labeler.job.spec import JobSpec
+from pvm_labeler.job.worker import ShardOutcome
+from pvm_labeler.shards import INDEX_NAME, TMP_SUFFIX, open_shard, shard_sample_ids, verify_shard
+
+logger = logging.getLogger(__name__)
+
+JOB_FILE = "job.json"
+CONFIG_FILE = "config.yaml"
+FAILURES_FILE = "failures.json"
+#: Files the job owns in its output directory (``overwrite`` deletes exactly these, nothing else).
+OWNED_GLOBS: tuple[str, ...] = ("shard-*.h5", f"shard-*.h5{TMP_SUFFIX}", INDEX_NAME, JOB_FILE, CONFIG_FILE,
+                                FAILURES_FILE) + tuple(f"{name}.*.tmp" for name in (INDEX_NAME, JOB_FILE, CONFIG_FILE,
+                                                                                    FAILURES_FILE))
+
+
+def check_writable(out: Path) -> None:
+    """Raise InputError naming ``--out`` when neither it nor its nearest existing parent takes a new file."""
+    probe_dir = out
+    while not probe_dir.exists():
+        probe_dir = probe_dir.parent
+    if not probe_dir.is_dir():
+        raise InputError(f"output dir not writable: --out {out} ({probe_dir} is a file, not a directory)")
+    try:
+        with tempfile.TemporaryFile(dir=probe_dir):
+            pass
+    except OSError as exc:
+        raise InputError(f"output dir not writable: --out {out} ({probe_dir}: {exc.strerror})") from exc
+
+
+def plan_shards(refs: list[PairRef], shard_size: int) -> list[list[PairRef]]:
+    """The pairs of each shard, in frame-id order, ``shard_size`` per shard."""
+    return [refs[i : i + shard_size] for i in range(0, len(refs), shard_size)]
+
+
+def job_doc(spec: JobSpec, plan: list[list[PairRef]]) -> dict[str, Any]:
+    """The content of ``job.json``: config, dataset, shard size, compression and the plan's frame ids."""
+    return {
+        "config": json.loads(spec.config.to_json()),
+        "dataset": spec.dataset_info(),
+        "shard_size": spec.shard_size,
+        "compression": spec.compression,
+        "plan": [[ref.frame_id for ref in shard] for shard in plan],
+    }
+
+
+def _identity(doc: dict[str, Any]) -> dict[str, Any]:
+    """What must match for existing shards to be reusable: config, dataset, shard size, compression.
+
+    The plan and --limit may change (e.g. a quick --limit 4 run, then the whole dataset): every shard is
+    re-checked against its own planned frame ids, so shards whose frames did not change are kept.
+    """
+    identity = {k: v for k, v in doc.items() if k != "plan"}
+    identity["dataset"] = {k: v for k, v in doc.get("dataset", {}).items() if k != "limit"}
+    return identity
+
+
+def _diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _diff(a, b, f"{prefix}{key}.")
+        elif a != b:
+            text_a, text_b = json.dumps(a)[:60], json.dumps(b)[:60]
+            out.append(f"{prefix}{key}: {text_a} -> {text_b}")
+    return out
+
+
+def _owned_files(out: Path) -> list[Path]:
+    return sorted({p for pattern in OWNED_GLOBS for p in out.glob(pattern)})
+
+
+def _check_same_job(out: Path, doc: dict[str, Any]) -> None:
+    """Raise InputError unless ``out/job.json`` describes the same job as ``doc`` (see :func:`_identity`)."""
+    job_path = out / JOB_FILE
+    if not job_path.is_file():
+        raise InputError(f"--out {out} already holds shards from an unknown run (no {JOB_FILE}); "
+                         f"pass --overwrite to replace them or choose another --out")
+    try:
+        old = json.loads(job_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"cannot read {job_path}: {exc}; pass --overwrite to start afresh") from exc
+    changes = _diff(_identity(old), _identity(doc))
+    if changes:
+        # Shards of an older default compression are still good: say how to keep them.
+        same_but_compression = _identity({**old, "compression": doc["compression"]}) == _identity(doc)
+        keep = f", or --compression {old['compression']} to continue them" if same_but_compression else ""
+        raise InputError(f"existing shards in {out} were made with a different config/dataset ("
+                         + "; ".join(changes[:6]) + f"); pass --overwrite to replace them{keep}, "
+                         "or choose another --out")
+
+
+def prepare_out(spec: JobSpec, doc: dict[str, Any]) -> None:
+    """Check ``spec.out``, delete or vet a previous run's files, then write job.json and config.yaml."""
+    out = spec.out
+    check_writable(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file, expected a directory")
+    owned = _owned_files(out) if out.is_dir() else []
+    if owned and spec.overwrite:
+        logger.info("--overwrite: deleting %d files of a previous run in %s", len(owned), out)
+        for path in owned:
+            path.unlink()
+    elif owned:
+        _check_same_job(out, doc)
+    out.mkdir(parents=True, exist_ok=True)
+    # Shards past the end of the plan (an earlier run with a larger --limit) would linger unindexed: remove them.
+    for path in out.glob("shard-*.h5"):
+        stem = path.name[len("shard-") : -len(".h5")]
+        if stem.isdigit() and int(stem) >= len(doc["plan"]):
+            path.unlink()
+    atomic_write_text(out / JOB_FILE, json.dumps(doc, indent=2))
+    atomic_write_text(out / CONFIG_FILE, yaml.safe_dump(spec.resolved(), sort_keys=False))
+
+
+def complete_shard(path: Path, planned: list[str], config: dict[str, Any]) -> ShardOutcome | None:
+    """The outcome of an already complete shard (same plan and config, every array readable), else None."""
+    if not path.is_file():
+        return None
+    try:
+        with open_shard(path) as h5:
+            ids = shard_sample_ids(h5)
+            old_planned = json.loads(h5.attrs["planned"])
+            stats = json.loads(h5.attrs["stats"])
+    except (ShardError, KeyError, ValueError, OSError) as exc:
+        logger.warning("shard %s is not reusable (%s); relabelling it", path, exc)
+        return None
+    if old_planned != planned:
+        logger.warning("shard %s holds another plan; relabelling it", path)
+        return None
+    problems = verify_shard(path, ids, config)
+    if problems:
+        logger.warning("shard %s is broken (%s); relabelling it", path, problems[0])
+        return None
+    return ShardOutcome(index=-1, file=path.name, sample_ids=ids, planned=planned, failures=stats["failures"],
+                        stats=stats, seconds=0.0, peak_rss_mb=0.0, pid=0, resumed=True)

@@ -1,0 +1,121 @@
+"""The end of a run: pool the shards' statistics into a JobSummary, write failures.json and index.json (last)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.datasets import PairRef
+from pvm_labeler.common.metrics import MetricAccumulator
+from pvm_labeler.job.outdir import FAILURES_FILE
+from pvm_labeler.job.spec import JobSpec
+from pvm_labeler.job.worker import ShardOutcome
+from pvm_labeler.shards import write_index
+
+
+@dataclass
+class JobSummary:
+    """End-of-run summary (also stored in index.json under "summary")."""
+
+    out: str
+    pairs_total: int
+    pairs_labeled: int
+    pairs_failed: int
+    shards_total: int
+    shards_written: int
+    shards_resumed: int
+    seconds: float
+    pairs_per_s: float
+    label_fraction: float  # % of all image pixels that received a label
+    metrics: dict[str, float] | None  # labels vs the most complete GT, pooled over pixels
+    metrics_noc: dict[str, float] | None  # labels vs non-occluded GT where known
+    peak_rss_mb_per_worker: float
+    cpu_seconds_per_pair: float  # worker CPU time (all threads) per labelled pair: load-independent cost
+    parallel: dict[str, Any]
+    failures: list[dict[str, Any]]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def format(self) -> str:
+        """Human-readable multi-line summary."""
+        lines = [
+            f"labelled {self.pairs_labeled}/{self.pairs_total} pairs into {self.out} "
+            f"({self.shards_written} shards written, {self.shards_resumed} resumed) in {self.seconds:.1f} s "
+            f"({self.pairs_per_s:.2f} pairs/s, peak RSS per worker {self.peak_rss_mb_per_worker:.0f} MiB)",
+            f"label density: {self.label_fraction:.1f} % of all pixels",
+        ]
+        for name, m in (("GT", self.metrics), ("GT noc", self.metrics_noc)):
+            if m and m.get("n_valid"):
+                lines.append(
+                    f"vs {name}: density {m['density']:.1f} % of GT-valid pixels, bad-1 {m['bad1']:.2f} %, "
+                    f"bad-3 {m['bad3']:.2f} %, AEPE {m['epe']:.3f} px, D1 {m['d1']:.2f} %"
+                )
+        if self.failures:
+            lines.append(f"{len(self.failures)} pairs FAILED (see {Path(self.out) / FAILURES_FILE}):")
+            lines += [f"  {f['frame_id']}: {f['error']}" for f in self.failures[:10]]
+        return "\n".join(lines)
+
+
+def _json_safe(value: Any) -> Any:
+    """Replace NaN/inf by None so index.json stays strict JSON (readable outside Python)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _pooled(outcomes: list[ShardOutcome]) -> tuple[MetricAccumulator, MetricAccumulator, int, int]:
+    """GT accumulators (all, noc) and labelled / total pixels summed over the shards."""
+    acc, acc_noc = MetricAccumulator(), MetricAccumulator()
+    labelled_px = total_px = 0
+    for outcome in outcomes:
+        acc.merge(MetricAccumulator(**outcome.stats["acc"]))
+        acc_noc.merge(MetricAccumulator(**outcome.stats["acc_noc"]))
+        labelled_px += outcome.stats["labelled_px"]
+        total_px += outcome.stats["total_px"]
+    return acc, acc_noc, labelled_px, total_px
+
+
+def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcomes: dict[int, ShardOutcome],
+           threads: int, seconds: float) -> JobSummary:
+    """Summarise the run, write (or remove) failures.json, and write index.json last."""
+    ordered = [outcomes[index] for index in range(len(plan))]
+    failures = [failure for outcome in ordered for failure in outcome.failures]
+    shards = [(o.file, o.sample_ids) for o in ordered if o.sample_ids]
+    acc, acc_noc, labelled_px, total_px = _pooled(ordered)
+    written = [o for o in outcomes.values() if not o.resumed]
+    work_pairs = sum(len(o.planned) for o in written)
+    summary = JobSummary(
+        out=str(spec.out),
+        pairs_total=len(refs),
+        pairs_labeled=sum(len(ids) for _, ids in shards),
+        pairs_failed=len(failures),
+        shards_total=len(plan),
+        shards_written=sum(1 for o in written if o.sample_ids),
+        shards_resumed=sum(1 for o in outcomes.values() if o.resumed),
+        seconds=seconds,
+        pairs_per_s=work_pairs / seconds if seconds > 0 else math.nan,
+        label_fraction=100.0 * labelled_px / total_px if total_px else math.nan,
+        metrics=acc.compute() if acc.n_frames else None,
+        metrics_noc=acc_noc.compute() if acc_noc.n_frames else None,
+        peak_rss_mb_per_worker=max((o.peak_rss_mb for o in written), default=0.0),
+        cpu_seconds_per_pair=sum(o.cpu_seconds for o in written) / work_pairs if work_pairs else math.nan,
+        parallel={"backend": spec.backend, "jobs": spec.jobs, "numba_threads_per_worker": threads,
+                  "scheduler": spec.scheduler},
+        failures=failures,
+    )
+    if failures:
+        atomic_write_text(spec.out / FAILURES_FILE, json.dumps(failures, indent=2))
+    else:
+        (spec.out / FAILURES_FILE).unlink(missing_ok=True)
+    write_index(spec.out, shards, json.loads(spec.config.to_json()), spec.dataset_info(),
+                extra={"summary": _json_safe(summary.to_dict()), "compression": spec.compression})
+    return summary
