@@ -1,133 +1,291 @@
-"""Typed configuration of the OptStereo network and the PVStereo loss (no I/O, no torch).
+"""Sections of the trainer's TrainConfig (no I/O, no torch) and the map from the old flat keys to them.
 
-Both dataclasses are frozen and YAML/JSON friendly: ``to_dict()`` gives plain Python values and
-``from_dict()`` rejects unknown keys, so a checkpoint or a YAML file can rebuild exactly the same
-model (``optstereo.models.build_from_config``).
+``optstereo.train_config.TrainConfig`` composes ``model`` (``optstereo.models.config.ModelConfig``, the network's
+own config), ``loss`` (LossConfig), ``data`` (DataConfig), ``optim`` (OptimConfig) and ``val`` (ValConfig) with a
+few run-level fields. Every section is a frozen dataclass validated on construction; ``from_dict`` rejects unknown
+keys and ``to_dict`` gives YAML/JSON-friendly values (paths as str, tuples as lists).
+
+Run directories and checkpoints written before the sections existed hold ONE flat mapping (``lr: 1e-4``,
+``model_overrides: {...}``); ``nest`` reads it into the nested form, key by key (``FLAT_KEYS``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
 
+from optstereo.models.config import ModelConfig
 from pvm_labeler.common.configtools import reject_unknown_keys
+from pvm_labeler.common.errors import ConfigError
 
-UPSAMPLERS = ("conv", "convex")
-NORMS = ("instance", "batch", "group", "none")
+__all__ = [
+    "FLAT_KEYS", "DataConfig", "LossConfig", "ModelConfig", "OptimConfig", "ValConfig", "merge", "nest", "parse_crop",
+]
+
 PHOTOMETRIC_ITERS = ("last", "all")
 SMOOTHNESS_NORMS = ("none", "mean")
+SUPERVISIONS = ("pvm", "gt")
+SCHEDULES = ("constant", "onecycle")
+
+# old flat key -> "section.key" (the trainer's config before issue 17 was one flat dataclass). The CLI's flags use
+# the same flat names (--lr -> lr -> optim.lr). "model_overrides" spreads into model.* (see nest).
+FLAT_KEYS: dict[str, str] = {
+    "model": "model.name", "iters": "model.iters",
+    "gamma": "loss.gamma", "lambda_r": "loss.lambda_r", "lambda_s": "loss.lambda_s", "alpha": "loss.alpha",
+    "photometric_iters": "loss.photometric_iters", "smoothness_norm": "loss.smoothness_norm",
+    "conf_weight": "loss.conf_weight", "lambda_t": "loss.lambda_t", "analogy": "loss.analogy",
+    "analogy_start": "loss.analogy_start", "analogy_every": "loss.analogy_every",
+    "labels": "data.labels", "supervision": "data.supervision", "batch_size": "data.batch_size",
+    "crop": "data.crop", "flip_swap_p": "data.flip_swap_p", "photometric": "data.photometric",
+    "max_disp": "data.max_disp", "workers": "data.workers", "shuffle_buffer": "data.shuffle_buffer",
+    "steps": "optim.steps", "lr": "optim.lr", "weight_decay": "optim.weight_decay", "schedule": "optim.schedule",
+    "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
+    "val_dataset": "val.dataset", "val_root": "val.root", "val_limit": "val.limit",
+}
+SECTIONS = ("model", "loss", "data", "optim", "val")
 
 
-def _from_dict(cls: type, values: dict[str, Any], what: str) -> Any:
-    reject_unknown_keys(cls, values, what)  # ConfigError, a ValueError
-    return cls(**values).validate()
+def parse_crop(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
+    """Parse ``"320x736"`` (H x W) or a 2-sequence into a (H, W) tuple of ints > 0, multiples of 8."""
+    if isinstance(text, (tuple, list)):
+        parts = list(text)
+    else:
+        parts = str(text).lower().replace(",", "x").split("x")
+    try:
+        h, w = (int(p) for p in parts)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"--crop must look like HxW (e.g. 320x736), got {text!r}") from exc
+    if h <= 0 or w <= 0 or h % 8 or w % 8:
+        raise ConfigError(f"--crop sides must be positive multiples of 8 (the network works at 1/8), got {h}x{w}")
+    return h, w
 
 
-@dataclass(frozen=True)
-class ModelConfig:
-    """Hyper-parameters of one OptStereo network (paper Section III-B).
+def _require(checks: list[tuple[bool, str]]) -> None:
+    for ok, message in checks:
+        if not ok:
+            raise ConfigError(message)
 
-    Attributes:
-        name: registry name the model was built from ("optstereo", "optstereo_ss_d4", ...).
-        feature_dim: C, channels of the 1/8 features F_l, F_r (paper: 256).
-        hidden_dim: channels of the ConvGRU hidden state h (the paper does not state it; RAFT uses 128).
-        corr_levels: number of cost-volume levels M0..M_{L-1} (paper: 4; Table I (a): 1).
-        corr_radius: d, lookup radius per level (paper: 4; Table I (b)-(d): 1, 2, 4).
-        iters: N_s, refinement iterations when forward() is called with iters=None (paper: 8).
-        upsampler: "conv" = the paper's upsampling layer + two convs; "convex" = RAFT's learned convex
-            combination (beyond the paper, off by default).
-        upsample_dim: width of the first conv of the "conv" upsampler.
-        head_dim: width of the first conv of the Delta-D head (two convs on h).
-        norm: normalisation in the feature extractor (RAFT's fnet uses instance norm).
-        corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
-    """
 
-    name: str = "optstereo"
-    feature_dim: int = 256
-    hidden_dim: int = 128
-    corr_levels: int = 4
-    corr_radius: int = 4
-    iters: int = 8
-    upsampler: str = "conv"
-    upsample_dim: int = 16
-    head_dim: int = 128
-    norm: str = "instance"
-    corr_scale: bool = True
+def plain(value: Any) -> Any:
+    """YAML/JSON-friendly copy: Path -> str, tuple -> list, dicts and lists recursively."""
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list)):
+        return [plain(v) for v in value]
+    return value
 
-    @property
-    def corr_channels(self) -> int:
-        """Channels of the lookup output M_l: levels x (2d + 1) (36 for the paper's 4 levels, d = 4)."""
-        return self.corr_levels * (2 * self.corr_radius + 1)
 
-    def validate(self) -> ModelConfig:
-        """Raise ValueError naming the option if a value is out of range; return self."""
-        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
-        if self.corr_radius < 0:
-            raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
-        if self.upsampler not in UPSAMPLERS:
-            raise ValueError(f"model option upsampler must be one of {UPSAMPLERS}, got {self.upsampler!r}")
-        if self.norm not in NORMS:
-            raise ValueError(f"model option norm must be one of {NORMS}, got {self.norm!r}")
-        return self
+class _Section:
+    """from_dict / to_dict shared by the sections; subclasses validate in ``__post_init__``."""
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain dict (YAML/JSON-serialisable), including ``name``."""
-        return dataclasses.asdict(self)
+    NAME: ClassVar[str] = ""
+    PATHS: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> ModelConfig:
-        """Build from a dict, rejecting unknown keys with a clear message."""
-        return _from_dict(cls, values, "model config")
+    def from_dict(cls, values: dict[str, Any]) -> Any:
+        """Build from a plain dict (YAML/JSON), rejecting unknown keys; path fields become Path."""
+        reject_unknown_keys(cls, values, f"{cls.NAME} config")
+        values = {k: (Path(v) if k in cls.PATHS and v is not None else v) for k, v in values.items()}
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict in field order."""
+        return {f.name: plain(getattr(self, f.name)) for f in dataclasses.fields(self)}  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
-class LossConfig:
-    """Weights of the PVStereo loss L = L_P + lambda_r L_R + lambda_s L_S (paper Section III-C).
+class LossConfig(_Section):
+    """Every knob of the training loss L = L_P + lambda_r L_R + lambda_s L_S + lambda_t L_T (paper Section III-C).
 
     Attributes:
         gamma: sequence weight base; iteration i of N_s gets gamma^(N_s - i) (paper: 0.8).
-        lambda_r: weight of the reconstruction loss L_R (paper lambda_1 = 0.1; 0 = supervised mode).
-        lambda_s: weight of the edge-aware smoothness loss L_S (paper lambda_2 = 0.1; 0 = supervised mode).
+        lambda_r: weight of the reconstruction loss L_R (paper lambda_1 = 0.1); None = by supervision (TrainConfig
+            resolves it: 0.1 for pvm, 0 for gt, the plain supervised L_P).
+        lambda_s: weight of the edge-aware smoothness loss L_S (paper lambda_2 = 0.1); None as for lambda_r.
         alpha: SSIM vs L1 balance inside L_R (paper: 0.85).
         photometric_iters: "last" applies L_R and L_S to the final prediction only; "all" applies them to
             every iteration with the same gamma weights as L_P.
         smoothness_norm: "none" follows the paper's eq. (on D itself); "mean" divides D by its per-image
             mean first (Monodepth2's scale-invariant variant).
+        conf_weight: weight L_P per pixel by the shards' PVM confidence (flip-swapped samples: weight 1).
+        lambda_t: weight of the transformation self-supervision L_T ("learning by analogy", optstereo.analogy);
+            0 = off (it costs a second forward/backward per step).
+        analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).
+        analogy_every: apply L_T on every k-th step only (it doubles a step's cost; k = 2 costs ~1.5x).
+        analogy: AnalogyConfig overrides (spatial/appearance/occlusion switches, ranges, reliability test).
     """
 
+    NAME: ClassVar[str] = "loss"
+
     gamma: float = 0.8
-    lambda_r: float = 0.1
-    lambda_s: float = 0.1
+    lambda_r: float | None = None
+    lambda_s: float | None = None
     alpha: float = 0.85
     photometric_iters: str = "last"
     smoothness_norm: str = "none"
+    conf_weight: bool = False
+    lambda_t: float = 0.0
+    analogy_start: int = 0
+    analogy_every: int = 1
+    analogy: dict[str, Any] = field(default_factory=dict)
 
-    def validate(self) -> LossConfig:
-        """Raise ValueError naming the option if a value is out of range; return self."""
-        if not 0.0 < self.gamma <= 1.0:
-            raise ValueError(f"loss option gamma must be in (0, 1], got {self.gamma}")
-        if self.lambda_r < 0 or self.lambda_s < 0:
-            raise ValueError(f"loss weights must be >= 0, got lambda_r={self.lambda_r}, lambda_s={self.lambda_s}")
-        if not 0.0 <= self.alpha <= 1.0:
-            raise ValueError(f"loss option alpha must be in [0, 1], got {self.alpha}")
-        if self.photometric_iters not in PHOTOMETRIC_ITERS:
-            raise ValueError(
-                f"loss option photometric_iters must be one of {PHOTOMETRIC_ITERS}, got {self.photometric_iters!r}"
-            )
-        if self.smoothness_norm not in SMOOTHNESS_NORMS:
-            raise ValueError(
-                f"loss option smoothness_norm must be one of {SMOOTHNESS_NORMS}, got {self.smoothness_norm!r}"
-            )
-        return self
+    def __post_init__(self) -> None:
+        weights = [w for w in (self.lambda_r, self.lambda_s) if w is not None]
+        _require([
+            (0.0 < self.gamma <= 1.0, f"--gamma must be in (0, 1], got {self.gamma}"),
+            (all(w >= 0 for w in weights),
+             f"--lambda-r/--lambda-s must be >= 0, got lambda_r={self.lambda_r}, lambda_s={self.lambda_s}"),
+            (0.0 <= self.alpha <= 1.0, f"--alpha must be in [0, 1], got {self.alpha}"),
+            (self.photometric_iters in PHOTOMETRIC_ITERS,
+             f"--photometric-iters must be one of {PHOTOMETRIC_ITERS}, got {self.photometric_iters!r}"),
+            (self.smoothness_norm in SMOOTHNESS_NORMS,
+             f"--smoothness-norm must be one of {SMOOTHNESS_NORMS}, got {self.smoothness_norm!r}"),
+            (self.lambda_t >= 0, f"--lambda-t must be >= 0, got {self.lambda_t}"),
+            (self.analogy_start >= 0, f"--analogy-start must be >= 0, got {self.analogy_start}"),
+            (self.analogy_every >= 1, f"--analogy-every must be >= 1, got {self.analogy_every}"),
+        ])
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain dict (YAML/JSON-serialisable)."""
-        return dataclasses.asdict(self)
+    def with_supervision_defaults(self, supervision: str) -> LossConfig:
+        """lambda_r/lambda_s left None take the supervision's default: 0.1 for pvm, 0 for gt (L_P alone)."""
+        default = 0.1 if supervision == "pvm" else 0.0
+        return dataclasses.replace(
+            self,
+            lambda_r=default if self.lambda_r is None else float(self.lambda_r),
+            lambda_s=default if self.lambda_s is None else float(self.lambda_s),
+        )
 
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> LossConfig:
-        """Build from a dict, rejecting unknown keys with a clear message."""
-        return _from_dict(cls, values, "loss config")
+
+@dataclass(frozen=True)
+class DataConfig(_Section):
+    """Shard stream, augmentation and batching.
+
+    Attributes:
+        labels: shard directory written by `pvm-label` (index.json + shard-*.h5).
+        supervision: "pvm" trains on the PVM pseudo-labels (self-supervised PVStereo); "gt" on the shards' `gt`
+            (the paper's supervised OptStereo row).
+        batch_size: samples per step and per rank.
+        crop: (H, W) random crop; frames smaller than the crop use the whole frame (rounded down to multiples of 8).
+        flip_swap_p: probability of the flip-swap augmentation (needs the right-view label).
+        photometric: enable photometric jitter (brightness/contrast/gamma/saturation).
+        max_disp: labels >= max_disp (or < 0) are ignored in the loss, px. This is a mask on the TARGETS, not a
+            search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt. The labeler's
+            ``LabelerConfig.max_disp`` (192) is SGM's search range, so PVM labels never reach it; the two
+            differ on purpose and neither is derived from the other.
+        workers: DataLoader worker processes per rank (0 = load in the main process).
+        shuffle_buffer: size of the seeded shuffle buffer (in samples) of every worker.
+    """
+
+    NAME: ClassVar[str] = "data"
+    PATHS: ClassVar[tuple[str, ...]] = ("labels",)
+
+    labels: Path | None = None
+    supervision: str = "pvm"
+    batch_size: int = 2
+    crop: tuple[int, int] = (320, 736)
+    flip_swap_p: float = 0.5
+    photometric: bool = False
+    max_disp: float = 256.0
+    workers: int = 2
+    shuffle_buffer: int = 16
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "crop", parse_crop(self.crop))  # YAML gives "320x736" or a list
+        _require([
+            (self.supervision in SUPERVISIONS, f"--supervision must be in {SUPERVISIONS}, got {self.supervision!r}"),
+            (self.batch_size >= 1, f"--batch-size must be >= 1, got {self.batch_size}"),
+            (0 <= self.flip_swap_p <= 1, f"--flip-swap-p must be in [0, 1], got {self.flip_swap_p}"),
+            (self.max_disp > 0, f"max_disp must be > 0, got {self.max_disp}"),
+            (self.workers >= 0, f"--workers must be >= 0, got {self.workers}"),
+            (self.shuffle_buffer >= 1, f"shuffle_buffer must be >= 1, got {self.shuffle_buffer}"),
+        ])
+
+
+@dataclass(frozen=True)
+class OptimConfig(_Section):
+    """Optimiser and schedule.
+
+    Attributes:
+        steps: total optimiser steps of the run (resume continues up to this number).
+        lr: Adam learning rate (paper: 1e-4); the peak rate with OneCycle.
+        weight_decay: Adam weight decay.
+        schedule: "constant" or "onecycle" (linear warm-up over pct_start, linear decay).
+        pct_start: OneCycle warm-up fraction.
+        clip_grad: max global gradient norm (<= 0 disables clipping).
+    """
+
+    NAME: ClassVar[str] = "optim"
+
+    steps: int = 1000
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    schedule: str = "constant"
+    pct_start: float = 0.05
+    clip_grad: float = 1.0
+
+    def __post_init__(self) -> None:
+        _require([
+            (self.steps >= 1, f"--steps must be >= 1, got {self.steps}"),
+            (self.lr > 0, f"--lr must be > 0, got {self.lr}"),
+            (self.schedule in SCHEDULES, f"--schedule must be one of {SCHEDULES}, got {self.schedule!r}"),
+            (0 < self.pct_start < 1, f"pct_start must be in (0, 1), got {self.pct_start}"),
+        ])
+
+
+@dataclass(frozen=True)
+class ValConfig(_Section):
+    """Evaluation on a dataset's GT at the end of the run (optional).
+
+    Attributes:
+        dataset: dataset name (pvm_labeler.common.datasets); None = no validation.
+        root: root folder of the dataset.
+        limit: evaluate only the first N frames (0 = all).
+    """
+
+    NAME: ClassVar[str] = "val"
+    PATHS: ClassVar[tuple[str, ...]] = ("root",)
+
+    dataset: str | None = None
+    root: Path | None = None
+    limit: int = 0
+
+    def __post_init__(self) -> None:
+        _require([(self.limit >= 0, f"--val-limit must be >= 0, got {self.limit}")])
+
+
+# -- flat -> nested ------------------------------------------------------------------------------------------------
+def nest(values: dict[str, Any]) -> dict[str, Any]:
+    """One config layer (flat, nested or mixed; '-' or '_' in keys) in the nested form.
+
+    Old flat keys go to their section (``FLAT_KEYS``), ``model_overrides`` spreads into ``model``; a section given as
+    a mapping (``optim: {lr: ...}``) wins over flat keys of the same layer. Keys neither flat nor a section stay at
+    the top level (run-level fields, or unknown keys that TrainConfig rejects). ``None`` sections mean empty.
+    """
+    out: dict[str, Any] = {}
+    sections: dict[str, dict[str, Any]] = {}
+    for raw_key, value in values.items():
+        key = raw_key.replace("-", "_")
+        if key in SECTIONS and (isinstance(value, dict) or value is None):
+            sections[key] = {k.replace("-", "_"): v for k, v in (value or {}).items()}
+        elif key == "model_overrides":
+            out.setdefault("model", {}).update(value or {})
+        elif key in FLAT_KEYS:
+            section, name = FLAT_KEYS[key].split(".")
+            out.setdefault(section, {})[name] = {} if key == "analogy" and value is None else value
+        else:
+            out[key] = value
+    return merge(out, sections)
+
+
+def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Recursive dict merge: ``over``'s keys win, nested mappings merge key by key (neither input is changed)."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = value
+    return out

@@ -17,6 +17,8 @@ from torch import nn
 
 from optstereo.config import LossConfig
 
+# the LossConfig fields this module reads; the others (conf_weight, lambda_t, analogy*) are the trainer's
+TERM_FIELDS = ("gamma", "lambda_r", "lambda_s", "alpha", "photometric_iters", "smoothness_norm")
 SSIM_C1 = 0.01**2  # SSIM stabilisers for images in [0, 1] (Wang et al. 2004; Monodepth)
 SSIM_C2 = 0.03**2
 
@@ -208,6 +210,8 @@ class PVStereoLoss(nn.Module):
         smoothness_norm: str = "none",
     ) -> None:
         super().__init__()
+        if lambda_r is None or lambda_s is None:
+            raise ValueError("lambda_r and lambda_s must be numbers (None, by supervision, is for TrainConfig)")
         self.config = LossConfig(
             gamma=gamma,
             lambda_r=lambda_r,
@@ -215,14 +219,15 @@ class PVStereoLoss(nn.Module):
             alpha=alpha,
             photometric_iters=photometric_iters,
             smoothness_norm=smoothness_norm,
-        ).validate()
+        )
 
     @classmethod
     def from_config(cls, cfg: LossConfig) -> PVStereoLoss:
-        return cls(**cfg.to_dict())
+        """The module of ``cfg``'s L_P/L_R/L_S knobs (conf_weight and L_T are applied by the trainer)."""
+        return cls(**{k: getattr(cfg, k) for k in TERM_FIELDS})
 
     def extra_repr(self) -> str:
-        return ", ".join(f"{k}={v}" for k, v in self.config.to_dict().items())
+        return ", ".join(f"{k}={getattr(self.config, k)}" for k in TERM_FIELDS)
 
     def forward(
         self,

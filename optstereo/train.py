@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import shutil
 import sys
 import time
 from collections.abc import Iterator
@@ -27,12 +26,12 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from optstereo import distributed as ddp
-from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, save_checkpoint, unwrap
+from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, unwrap
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.inference import warn_if_emulated_bf16
 from optstereo.train_config import TrainConfig
-from pvm_labeler.common.atomic import atomic_path
+from optstereo.train_resume import checkpoint_saver, init_weights, restore
 
 logger = logging.getLogger(__name__)
 
@@ -45,26 +44,27 @@ class NonFiniteLossError(RuntimeError):
 
 # -- building blocks ------------------------------------------------------------------------------------------------
 def build_model(cfg: TrainConfig) -> nn.Module:
-    """The registry model named by cfg.model with cfg.iters and cfg.model_overrides."""
-    from optstereo.models import build_model as registry_build
+    """The network of cfg.model (a resolved ModelConfig; its iters is N_s of training)."""
+    from optstereo.models import build_from_config
 
-    return registry_build(cfg.model, **{"iters": cfg.iters, **cfg.model_overrides})
+    return build_from_config(cfg.model)
 
 
 def build_loss(cfg: TrainConfig) -> nn.Module:
-    """PVStereoLoss with the run's weights (lambda_r/lambda_s already resolved for the supervision)."""
+    """PVStereoLoss of cfg.loss (lambda_r/lambda_s already resolved for the supervision)."""
     from optstereo.losses import PVStereoLoss
 
-    return PVStereoLoss(gamma=cfg.gamma, lambda_r=cfg.lambda_r, lambda_s=cfg.lambda_s)
+    return PVStereoLoss.from_config(cfg.loss)
 
 
 def build_optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Optimizer, Any | None]:
-    """Adam (lr from cfg) and, for schedule "onecycle", OneCycleLR over cfg.steps (linear, RAFT-Stereo style)."""
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    if cfg.schedule == "constant":
+    """Adam (cfg.optim.lr) and, for schedule "onecycle", OneCycleLR over optim.steps (linear, RAFT-Stereo style)."""
+    opt = cfg.optim
+    optimizer = torch.optim.Adam(model.parameters(), lr=opt.lr, weight_decay=opt.weight_decay)
+    if opt.schedule == "constant":
         return optimizer, None
     scheduler = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=cfg.pct_start,
+        optimizer, max_lr=opt.lr, total_steps=opt.steps, pct_start=opt.pct_start,
         cycle_momentum=False, anneal_strategy="linear",
     )
     return optimizer, scheduler
@@ -72,28 +72,29 @@ def build_optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Opt
 
 def build_loader(cfg: TrainConfig, info: ddp.DistInfo, start_step: int = 0) -> DataLoader:
     """Infinite DataLoader over the shard stream; skips the samples the first ``start_step`` batches used."""
-    if cfg.labels is None:
+    data = cfg.data
+    if data.labels is None:
         raise ValueError("--labels SHARDS_DIR is required for training")
     stream = ShardStream(
-        cfg.labels,
-        supervision=cfg.supervision,
-        transform=TrainTransform(crop=cfg.crop, flip_swap_p=cfg.flip_swap_p, photometric=cfg.photometric),
+        data.labels,
+        supervision=data.supervision,
+        transform=TrainTransform(crop=data.crop, flip_swap_p=data.flip_swap_p, photometric=data.photometric),
         seed=cfg.seed,
-        shuffle_size=cfg.shuffle_buffer,
-        max_disp=cfg.max_disp,
+        shuffle_size=data.shuffle_buffer,
+        max_disp=data.max_disp,
         rank=info.rank,
         world_size=info.world_size,
         skip_batches=start_step,
-        batch_size=cfg.batch_size,
-        with_confidence=cfg.conf_weight,
+        batch_size=data.batch_size,
+        with_confidence=cfg.loss.conf_weight,
     )
     return DataLoader(
         stream,
-        batch_size=cfg.batch_size,
-        num_workers=cfg.workers,
+        batch_size=data.batch_size,
+        num_workers=data.workers,
         collate_fn=collate_min_size,
         persistent_workers=False,
-        prefetch_factor=2 if cfg.workers > 0 else None,
+        prefetch_factor=2 if data.workers > 0 else None,
     )
 
 
@@ -188,32 +189,32 @@ def _check_finite(total: torch.Tensor, terms: dict[str, torch.Tensor], step: int
 def _forward(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor,
              right: torch.Tensor) -> list[torch.Tensor]:
     with autocast_context(cfg, device):
-        preds = state.model(left, right, iters=cfg.iters)
+        preds = state.model(left, right, iters=cfg.model.iters)
     return [p.float() for p in preds]
 
 
 def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor, right: torch.Tensor,
                  disp0: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """lambda_t-weighted L_T of one batch (optstereo.analogy) and its logs; zero before cfg.analogy_start.
+    """lambda_t-weighted L_T of one batch (optstereo.analogy) and its logs; zero before loss.analogy_start.
 
     The transformation draws come from a generator seeded by (seed, step), so a resumed run repeats them.
     """
-    zero = torch.zeros((), device=device)
-    if cfg.lambda_t <= 0 or state.step < cfg.analogy_start or (state.step - cfg.analogy_start) % cfg.analogy_every:
+    zero, loss = torch.zeros((), device=device), cfg.loss
+    if loss.lambda_t <= 0 or state.step < loss.analogy_start or (state.step - loss.analogy_start) % loss.analogy_every:
         return zero, {"L_T": zero, "T_valid": zero}
     from optstereo.analogy import analogy_loss, transform_batch
 
     gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + state.step)
     sample = transform_batch(left, right, disp0, cfg.analogy_config(), gen)
     preds_t = _forward(state, cfg, device, sample.left, sample.right)
-    loss_t = analogy_loss(preds_t, sample, cfg.gamma)
-    return cfg.lambda_t * loss_t, {"L_T": loss_t.detach(), "T_valid": sample.valid.float().mean()}
+    loss_t = analogy_loss(preds_t, sample, loss.gamma)
+    return loss.lambda_t * loss_t, {"L_T": loss_t.detach(), "T_valid": sample.valid.float().mean()}
 
 
 def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainConfig, device: torch.device) -> dict:
     """One optimiser step on one batch; returns float logs (loss terms, label EPE, lr, grad norm)."""
     left, right, label, valid = (t.to(device, non_blocking=True) for t in batch[:4])
-    weight = batch[4].to(device, non_blocking=True) if cfg.conf_weight else None
+    weight = batch[4].to(device, non_blocking=True) if cfg.loss.conf_weight else None
     state.model.train()
     preds = _forward(state, cfg, device, left, right)
     total, terms = loss_fn(preds, left, right, label, valid, weight)
@@ -224,7 +225,7 @@ def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainCo
     state.optimizer.zero_grad(set_to_none=True)
     state.scaler.scale(total).backward()
     state.scaler.unscale_(state.optimizer)
-    max_norm = cfg.clip_grad if cfg.clip_grad > 0 else float("inf")
+    max_norm = cfg.optim.clip_grad if cfg.optim.clip_grad > 0 else float("inf")
     grad_norm = torch.nn.utils.clip_grad_norm_(state.model.parameters(), max_norm)
     state.scaler.step(state.optimizer)
     state.scaler.update()
@@ -250,25 +251,25 @@ def train_steps(
     on_checkpoint: Any | None = None,
     show_progress: bool = True,
 ) -> TrainState:
-    """Run optimiser steps until ``state.step == cfg.steps`` (or the time budget), logging and checkpointing."""
+    """Run optimiser steps until ``state.step == cfg.optim.steps`` (or the time budget), logging and checkpointing."""
     start_time = time.perf_counter()
     world = torch.distributed.get_world_size() if torch.distributed.is_initialized() else 1
-    bar = tqdm(total=cfg.steps, initial=state.step, desc="train", unit="step", dynamic_ncols=True,
+    bar = tqdm(total=cfg.optim.steps, initial=state.step, desc="train", unit="step", dynamic_ncols=True,
                disable=not (show_progress and sys.stderr.isatty()), file=sys.stderr)
     window: list[dict[str, float]] = []
     tick, tick_step = time.perf_counter(), state.step
     try:
-        while state.step < cfg.steps:
+        while state.step < cfg.optim.steps:
             batch = next(batches)
             logs = train_step(state, batch, loss_fn, cfg, device)
             window.append(logs)
             bar.update(1)
             time_up = cfg.max_minutes > 0 and _time_is_up(start_time, cfg.max_minutes, device)
-            if state.step % cfg.log_every == 0 or state.step == cfg.steps or time_up:
+            if state.step % cfg.log_every == 0 or state.step == cfg.optim.steps or time_up:
                 now = time.perf_counter()
                 mean = {k: float(np.nanmean([w[k] for w in window])) for k in window[0]}
                 mean = ddp.all_reduce_mean(mean, device)
-                mean["samples_per_s"] = (state.step - tick_step) * cfg.batch_size * world / max(now - tick, 1e-9)
+                mean["samples_per_s"] = (state.step - tick_step) * cfg.data.batch_size * world / max(now - tick, 1e-9)
                 mean["step_time_s"] = (now - tick) / max(state.step - tick_step, 1)
                 tick, tick_step, window = now, state.step, []
                 state.history.append({"step": state.step, **mean})
@@ -278,7 +279,7 @@ def train_steps(
             if run_logger is not None and cfg.image_every and state.step % cfg.image_every == 0:
                 with torch.no_grad(), contextlib.suppress(ImportError):
                     left, right, label, valid = (t.to(device) for t in batch[:4])
-                    _, pred = unwrap(state.model)(left[:1], right[:1], iters=cfg.iters, test_mode=True)
+                    _, pred = unwrap(state.model)(left[:1], right[:1], iters=cfg.model.iters, test_mode=True)
                     run_logger.images(state.step, disparity_images(left, pred, label, valid))
             if on_checkpoint is not None and (state.step % cfg.ckpt_every == 0):
                 on_checkpoint(state)
@@ -298,96 +299,26 @@ def _time_is_up(start: float, max_minutes: float, device: torch.device) -> bool:
 
 
 def evaluate(model: nn.Module, cfg: TrainConfig, device: torch.device, out_dir: Path | None = None) -> dict:
-    """Evaluate on cfg.val_dataset/cfg.val_root with the project's ruler (optstereo.evaluate); {} if unset."""
-    if not cfg.val_dataset:
+    """Evaluate on cfg.val (dataset, root) with the project's ruler (optstereo.evaluate); {} if unset."""
+    if not cfg.val.dataset:
         return {}
     from optstereo.evaluate import evaluate_model
 
-    result = evaluate_model(unwrap(model), cfg.val_dataset, cfg.val_root, iters=None, device=device,
-                            out_dir=out_dir, limit=cfg.val_limit or None)
+    result = evaluate_model(unwrap(model), cfg.val.dataset, cfg.val.root, iters=None, device=device,
+                            out_dir=out_dir, limit=cfg.val.limit or None)
     return result.summary
 
 
-# -- checkpoints ---------------------------------------------------------------------------------------------------
-def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo):
-    """Callable(state) writing ckpt-<step>.pt and last.pt atomically on rank 0, keeping cfg.keep_ckpts files."""
-
-    def save(state: TrainState) -> None:
-        if not info.is_main:
-            return
-        numbered = run_dir / f"ckpt-{state.step:07d}.pt"
-        save_checkpoint(numbered, model=state.model, step=state.step, optimizer=state.optimizer,
-                        scheduler=state.scheduler, scaler=state.scaler, train_config=cfg.to_dict())
-        with atomic_path(run_dir / LAST) as tmp:
-            shutil.copyfile(numbered, tmp)
-        old = sorted(run_dir.glob("ckpt-*.pt"))[: -cfg.keep_ckpts] if cfg.keep_ckpts > 0 else []
-        for path in old:
-            path.unlink(missing_ok=True)
-        logger.info("checkpoint %s (step %d)", numbered, state.step)
-
-    return save
-
-
-def restore(state: TrainState, ckpt: LoadedCheckpoint) -> None:
-    """Load model/optimizer/scheduler/scaler/RNG state from a checkpoint into ``state``."""
-    unwrap(state.model).load_state_dict(ckpt.model_state)
-    if ckpt.optimizer is not None:
-        state.optimizer.load_state_dict(ckpt.optimizer)
-    if state.scheduler is not None and ckpt.scheduler is not None:
-        state.scheduler.load_state_dict(ckpt.scheduler)
-    if ckpt.scaler is not None and state.scaler.is_enabled():
-        state.scaler.load_state_dict(ckpt.scaler)
-    if ckpt.rng and "torch" in ckpt.rng:
-        torch.set_rng_state(ckpt.rng["torch"])
-    state.step = ckpt.step
-
-
-def init_weights(model: nn.Module, path: Path) -> None:
-    """Load a checkpoint's weights into ``model`` (--init); a key or shape mismatch is a CheckpointError naming them."""
-    from optstereo.checkpoint import CheckpointError
-
-    ckpt = load_checkpoint(path)
-    own = unwrap(model).state_dict()
-    missing = sorted(set(own) - set(ckpt.model_state))
-    unexpected = sorted(set(ckpt.model_state) - set(own))
-    shapes = sorted(f"{k}: checkpoint {tuple(ckpt.model_state[k].shape)} vs model {tuple(v.shape)}"
-                    for k, v in own.items() if k in ckpt.model_state and ckpt.model_state[k].shape != v.shape)
-    if missing or unexpected or shapes:
-        raise CheckpointError(
-            f"--init {ckpt.path} does not fit the model: missing keys {missing[:8]}, unexpected keys "
-            f"{unexpected[:8]}, shape mismatches {shapes[:8]} (take the model settings from the checkpoint: "
-            "leave --model/--model-opt unset)"
-        )
-    unwrap(model).load_state_dict(ckpt.model_state)
-    logger.info("initialised from %s (its step %d)", ckpt.path, ckpt.step)
-
-
-def model_settings_from(path: Path) -> dict[str, Any]:
-    """{"model": name, "model_overrides": {...}} of a checkpoint, for --init (the model is rebuilt as it was)."""
-    ckpt = load_checkpoint(path)
-    overrides = {k: v for k, v in ckpt.model_config.items() if k not in ("name", "iters")}
-    return {"model": ckpt.model_name, "model_overrides": overrides}
-
-
-def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
-    """The saved config of RUN_DIR's last checkpoint with ``overrides`` applied (e.g. more --steps, --workers)."""
-    ckpt = load_checkpoint(run_dir)
-    if not ckpt.train_config:
-        raise ValueError(f"checkpoint {ckpt.path} holds no training config; cannot resume from it")
-    cfg = TrainConfig.from_dict(ckpt.train_config)
-    return cfg.replace(**(overrides or {}), out=Path(run_dir))
-
-
 # -- entry point ---------------------------------------------------------------------------------------------------
-def main(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict[str, Any]:
+def main(cfg: TrainConfig, resume: bool = False, progress: bool = True,
+         init_ckpt: LoadedCheckpoint | None = None) -> dict[str, Any]:
     """Train (or resume) a run; returns a summary dict (steps, final logs, checkpoint path, validation metrics).
 
     With ``resume=True`` the run directory's last.pt is loaded and training continues at its step; pass the
-    config from ``config_for_resume`` so the schedule and data order are the original ones. A new run refuses a
-    RUN_DIR that already holds a last.pt (it would silently mix two runs). ``progress`` shows the tqdm bar
-    (only on a TTY).
+    config from ``train_resume.config_for_resume`` so the schedule and data order are the original ones. A new run
+    refuses a RUN_DIR that already holds a last.pt (it would silently mix two runs). ``progress`` shows the tqdm bar
+    (only on a TTY). ``init_ckpt`` is cfg.init already loaded (the CLI read it for the model settings); None loads it.
     """
-    cfg = cfg.resolved()
     if cfg.out is None:
         raise ValueError("--out RUN_DIR is required")
     run_dir = Path(cfg.out)
@@ -401,13 +332,13 @@ def main(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> dict[
     if not resume and (run_dir / LAST).exists():
         raise ValueError(f"{run_dir} already holds a training run ({LAST}); use --resume {run_dir} or another --out")
     try:
-        return _run(cfg, run_dir, device, info, resume, progress)
+        return _run(cfg, run_dir, device, info, resume, progress, init_ckpt)
     finally:
         ddp.cleanup()
 
 
 def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistInfo, resume: bool,
-         progress: bool) -> dict:
+         progress: bool, init_ckpt: LoadedCheckpoint | None) -> dict:
     ckpt = load_checkpoint(run_dir) if resume else None
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -415,21 +346,21 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
     if ckpt is None and cfg.init is not None:
-        init_weights(model, cfg.init)
+        init_weights(model, init_ckpt if init_ckpt is not None else cfg.init)
     model = model.to(device)
     optimizer, scheduler = build_optimizer(model, cfg)
     scaler = torch.amp.GradScaler(device.type, enabled=cfg.amp == "fp16" and device.type == "cuda")
     state = TrainState(model=model, optimizer=optimizer, scheduler=scheduler, scaler=scaler)
     if ckpt is not None:
         restore(state, ckpt)
-        logger.info("resuming %s at step %d of %d", run_dir, state.step, cfg.steps)
+        logger.info("resuming %s at step %d of %d", run_dir, state.step, cfg.optim.steps)
     state.model = ddp.wrap_model(model, device, info)
     loss_fn = build_loss(cfg).to(device)
     run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard)
     save = checkpoint_saver(run_dir, cfg, info)
     start_step, t0 = state.step, time.perf_counter()
     try:
-        if state.step < cfg.steps:
+        if state.step < cfg.optim.steps:
             loader = build_loader(cfg, info, start_step=state.step)
             train_steps(state, iter(loader), loss_fn, cfg, device, run_logger=run_logger, on_checkpoint=save,
                         show_progress=progress and info.is_main)

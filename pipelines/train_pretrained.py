@@ -99,7 +99,7 @@ def step_branch() -> None:
     """Copy ckpt-<analogy_start>.pt of the main run into each arm's RUN_DIR as last.pt and resume it."""
     from optstereo.train_config import TrainConfig
 
-    start = TrainConfig.load(RECIPE).analogy_start
+    start = TrainConfig.load(RECIPE).loss.analogy_start
     source = RUNS / "main" / f"ckpt-{start:07d}.pt"
     if not source.exists():
         sys.exit(f"{source} not found: the main run has not reached analogy_start = {start} yet (or it was rotated)")
@@ -122,8 +122,8 @@ def step_finish() -> None:
 
     cfg = TrainConfig.load(RECIPE)
     rd = RUNS / "arm_no_lt"
-    shutil.copyfile(rd / f"ckpt-{cfg.analogy_start + ARM_STEPS:07d}.pt", rd / "last.pt")
-    _run([BIN / "optstereo-train", "--resume", rd, "--steps", str(cfg.steps), "--threads", "2", "--quiet"])
+    shutil.copyfile(rd / f"ckpt-{cfg.loss.analogy_start + ARM_STEPS:07d}.pt", rd / "last.pt")
+    _run([BIN / "optstereo-train", "--resume", rd, "--steps", str(cfg.optim.steps), "--threads", "2", "--quiet"])
 
 
 def step_baselines() -> dict[str, Any]:

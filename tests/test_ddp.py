@@ -27,9 +27,9 @@ def worker(shards: Path, out: Path) -> None:
     rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
     stream = ShardStream(shards, rank=rank, world_size=world, infinite=False, with_ids=True)
     ids = sorted(item[-1] for item in stream)
-    cfg = TrainConfig(labels=shards, out=out / "run", steps=3, batch_size=1, crop=(32, 64), workers=1, iters=2,
-                      model_overrides=TINY, log_every=1, ckpt_every=3, image_every=0, tensorboard=False,
-                      device="cpu", seed=0)
+    cfg = TrainConfig.from_dict(dict(labels=shards, out=out / "run", steps=3, batch_size=1, crop=(32, 64), workers=1,
+                                     iters=2, model_overrides=TINY, log_every=1, ckpt_every=3, image_every=0,
+                                     tensorboard=False, device="cpu", seed=0))
     summary = main(cfg)
     (out / f"rank{rank}.json").write_text(json.dumps({"ids": ids, "world": summary["world_size"],
                                                       "checksum": summary["param_checksum"],

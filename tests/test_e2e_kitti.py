@@ -79,10 +79,10 @@ def test_train_resume_eval(kitti_shards: Path, shared_data: Path, tmp_path: Path
 
 def test_overfit_one_crop(kitti_shards: Path, tmp_path: Path) -> None:
     """The loss falls when the trainer sees the same real crop again and again."""
-    cfg = TrainConfig(labels=kitti_shards, out=tmp_path, crop=(64, 128), iters=2, lr=1e-3, batch_size=1,
-                      model_overrides={"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8},
-                      flip_swap_p=0.0).resolved()
-    stream = ShardStream(kitti_shards, transform=TrainTransform(crop=cfg.crop, flip_swap_p=0.0), seed=1)
+    cfg = TrainConfig.from_dict(dict(
+        labels=kitti_shards, out=tmp_path, crop=(64, 128), iters=2, lr=1e-3, batch_size=1, flip_swap_p=0.0,
+        model_overrides={"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}))
+    stream = ShardStream(kitti_shards, transform=TrainTransform(crop=cfg.data.crop, flip_swap_p=0.0), seed=1)
     batch = collate_min_size([next(iter(stream))])
     assert batch[3].float().mean() > 0.05  # the crop carries PVM labels
     torch.manual_seed(0)

@@ -224,7 +224,7 @@ class TestPVStereoLoss:
         torch.testing.assert_close(terms["L_R"], want)
 
     def test_smoke_from_config(self) -> None:
-        cfg = LossConfig(lambda_r=0.2)
+        cfg = LossConfig(lambda_r=0.2, lambda_s=0.1)
         assert PVStereoLoss.from_config(cfg).config == cfg
         assert LossConfig.from_dict(cfg.to_dict()) == cfg
 
@@ -234,8 +234,8 @@ class TestPVStereoLoss:
             ({"gamma": 0.0}, "gamma must be in"),
             ({"lambda_r": -1.0}, "lambda_r=-1.0"),
             ({"alpha": 2.0}, "alpha must be in"),
-            ({"photometric_iters": "first"}, "photometric_iters must be one of"),
-            ({"smoothness_norm": "max"}, "smoothness_norm must be one of"),
+            ({"photometric_iters": "first"}, "--photometric-iters must be one of"),
+            ({"smoothness_norm": "max"}, "--smoothness-norm must be one of"),
         ],
     )
     def test_exception(self, kwargs: dict, match: str) -> None:

@@ -1,8 +1,11 @@
-"""Training: config precedence, a tiny run's artefacts, exact resume, non-finite loss, the CLI's exit codes."""
+"""Training: nested config (old flat keys, precedence, --print-config), a tiny run's artefacts, exact resume (also of
+a run saved with the old flat config), non-finite loss, the CLI's exit codes."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -12,19 +15,42 @@ from click.testing import CliRunner
 from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
 
 from optstereo import train
-from optstereo.checkpoint import load_checkpoint
+from optstereo.checkpoint import load_checkpoint, save_checkpoint
 from optstereo.cli import train_main
+from optstereo.config import FLAT_KEYS, DataConfig
 from optstereo.train_config import TrainConfig, parse_crop
+from optstereo.train_resume import config_for_resume
 from pvm_labeler.common.errors import ConfigError
 
 TINY = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}
+# pipelines/recipes/cpu_main.yaml as it was written before the config had sections (flat keys)
+OLD_CPU_MAIN = {
+    "model": "optstereo", "model_overrides": {"feature_dim": 128, "hidden_dim": 128, "head_dim": 128},
+    "supervision": "pvm", "iters": 4, "gamma": 0.8, "lambda_r": 0.1, "lambda_s": 0.1, "lambda_t": 0.5,
+    "analogy_start": 900, "analogy_every": 2, "steps": 1200, "batch_size": 2, "crop": "256x640", "flip_swap_p": 0.5,
+    "photometric": True, "lr": 4.0e-4, "schedule": "onecycle", "pct_start": 0.05, "clip_grad": 1.0, "amp": "none",
+    "device": "cpu", "workers": 1, "threads": 2, "shuffle_buffer": 32, "log_every": 10, "image_every": 0,
+    "ckpt_every": 100, "keep_ckpts": 2, "tensorboard": False, "seed": 0,
+}
+RECIPES = sorted(Path(__file__).resolve().parents[1].glob("pipelines/recipes/*.yaml"))
 
 
 def tiny_config(labels: Path, out: Path, **changes) -> TrainConfig:
-    base = TrainConfig(labels=labels, out=out, steps=4, batch_size=2, crop=(32, 64), workers=0, iters=2,
-                       model_overrides=TINY, log_every=1, ckpt_every=2, image_every=0, tensorboard=False,
-                       shuffle_buffer=4)
-    return base.replace(**changes)
+    """A tiny run; ``changes`` use the old flat keys (lr=, iters=, model_overrides=), as the CLI flags do."""
+    base = dict(labels=labels, out=out, steps=4, batch_size=2, crop=(32, 64), workers=0, iters=2,
+                model_overrides=TINY, log_every=1, ckpt_every=2, image_every=0, tensorboard=False, shuffle_buffer=4)
+    return TrainConfig.from_dict({**base, **changes})
+
+
+def flatten(nested: dict) -> dict:
+    """The flat train_config of a checkpoint written before the config had sections (inverse of FLAT_KEYS)."""
+    out = {k: v for k, v in nested.items() if not isinstance(v, dict)}
+    for flat, place in FLAT_KEYS.items():
+        section, key = place.split(".")
+        if flat not in ("alpha", "photometric_iters", "smoothness_norm"):  # knobs the flat config never had
+            out[flat] = nested[section][key]
+    out["model_overrides"] = {k: v for k, v in nested["model"].items() if k not in ("name", "iters")}
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -36,19 +62,51 @@ class TestConfig:
     def test_yaml_then_flags(self, tmp_path: Path) -> None:
         path = tmp_path / "cfg.yaml"
         path.write_text(yaml.safe_dump({"steps": 7, "lr": 3e-4, "crop": "64x128", "batch-size": 4}))
-        cfg = TrainConfig.load(path, {"lr": 2e-4, "steps": None})
-        assert (cfg.steps, cfg.lr, cfg.crop, cfg.batch_size) == (7, 2e-4, (64, 128), 4)
+        cfg = TrainConfig.load(path, {"lr": 2e-4, "steps": None}, {"optim": {"lr": 5e-4}})
+        assert (cfg.optim.steps, cfg.optim.lr, cfg.data.crop, cfg.data.batch_size) == (7, 5e-4, (64, 128), 4)
 
     def test_resolved_loss_weights_follow_supervision(self) -> None:
-        assert (TrainConfig().resolved().lambda_r, TrainConfig().resolved().lambda_s) == (0.1, 0.1)
-        gt = TrainConfig(supervision="gt").resolved()
-        assert (gt.lambda_r, gt.lambda_s) == (0.0, 0.0)
-        assert TrainConfig(supervision="gt", lambda_r=0.5).resolved().lambda_r == 0.5
+        assert (TrainConfig().loss.lambda_r, TrainConfig().loss.lambda_s) == (0.1, 0.1)
+        gt = TrainConfig(data=DataConfig(supervision="gt"))
+        assert (gt.loss.lambda_r, gt.loss.lambda_s) == (0.0, 0.0)
+        assert TrainConfig.from_dict({"supervision": "gt", "lambda_r": 0.5}).loss.lambda_r == 0.5
 
     def test_save_and_reload(self, tmp_path: Path) -> None:
-        cfg = TrainConfig(labels=tmp_path, steps=3, model_overrides={"feature_dim": 8}).resolved()
+        cfg = TrainConfig.from_dict({"labels": tmp_path, "steps": 3, "model_overrides": {"feature_dim": 8}})
         loaded = TrainConfig.load(cfg.save(tmp_path / "run"))
-        assert loaded == cfg
+        assert loaded == cfg and loaded.model.feature_dim == 8
+        assert set(yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())) >= {"model", "loss", "optim"}
+
+    @pytest.mark.parametrize("recipe", RECIPES, ids=lambda p: p.stem)
+    def test_recipes_load_and_round_trip(self, recipe: Path) -> None:
+        cfg = TrainConfig.load(recipe)
+        assert set(yaml.safe_load(recipe.read_text())) <= {f.name for f in dataclasses.fields(TrainConfig)}
+        assert TrainConfig.from_dict(cfg.to_dict()) == cfg  # the nested dump reads back
+
+    def test_flat_recipe_equals_nested(self) -> None:
+        """cpu_main.yaml as it was written before the sections (flat) resolves to the nested file's config."""
+        nested = TrainConfig.load(next(p for p in RECIPES if p.stem == "cpu_main"))
+        assert TrainConfig.from_dict(OLD_CPU_MAIN) == nested
+        assert (nested.model.feature_dim, nested.model.iters, nested.loss.analogy_start, nested.data.crop) == (
+            128, 4, 900, (256, 640))
+
+    def test_flat_checkpoint_config(self) -> None:
+        nested = tiny_config(Path("shards"), Path("run"), lambda_t=0.5, analogy={"occlusion": False},
+                             supervision="gt", conf_weight=True, val_dataset="sample").to_dict()
+        flat = flatten(nested)
+        assert set(flat) >= {"iters", "lr", "model_overrides", "lambda_r", "val_root", "analogy_every", "crop"}
+        cfg = TrainConfig.from_dict(flat)
+        assert cfg.to_dict() == nested
+        assert (cfg.model.iters, cfg.loss.lambda_r, cfg.val.dataset) == (2, 0.0, "sample")
+        assert cfg.loss.analogy == {"occlusion": False}
+
+    def test_loss_knobs_from_yaml(self, tmp_path: Path) -> None:
+        path = tmp_path / "cfg.yaml"
+        path.write_text(yaml.safe_dump({"loss": {"alpha": 0.7, "photometric_iters": "all", "smoothness_norm": "mean"},
+                                        "iters": 3}))
+        cfg = TrainConfig.load(path)
+        assert (cfg.loss.alpha, cfg.loss.photometric_iters, cfg.loss.smoothness_norm) == (0.7, "all", "mean")
+        assert train.build_loss(cfg).config.alpha == 0.7 and train.build_model(cfg).iters == 3
 
     @pytest.mark.parametrize(
         ("change", "message"),
@@ -57,7 +115,7 @@ class TestConfig:
     )
     def test_exception(self, change: dict, message: str) -> None:
         with pytest.raises(ConfigError, match=message):
-            TrainConfig(**change).resolved()
+            TrainConfig.from_dict(change)
 
     def test_crop_parsing(self) -> None:
         assert parse_crop("320x736") == (320, 736) and parse_crop([8, 16]) == (8, 16)
@@ -67,6 +125,19 @@ class TestConfig:
             parse_crop("big")
         with pytest.raises(ConfigError, match="unknown training config keys"):
             TrainConfig.from_dict({"stepz": 3})
+
+    @pytest.mark.parametrize(
+        ("values", "message"),
+        [({"stepz": 3}, "'stepz' (did you mean 'optim.steps'?)"),
+         ({"optim": {"batch_size": 4}}, "'optim.batch_size' (it is now 'data.batch_size')"),
+         ({"loss": {"iters": 4}}, "'loss.iters' (it is now 'model.iters')"),
+         ({"model": {"model_overrides": {}}}, "'model.model_overrides' (it is now 'model.<field>')"),
+         ({"model": {"hidden": 3}}, "'model.hidden'"),
+         ({"optim": 3}, "section 'optim' must be a mapping")],
+    )
+    def test_exception_unknown_key_names_new_place(self, values: dict, message: str) -> None:
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            TrainConfig.from_dict(values)
 
 
 class TestRun:
@@ -81,7 +152,7 @@ class TestRun:
         for r in records:
             assert all(torch.isfinite(torch.tensor(r[k])) for k in ("L_P", "L_R", "L_S", "total", "label_epe"))
             assert r["L_R"] > 0 and r["L_S"] > 0  # pvm supervision uses the self-supervised terms
-        assert yaml.safe_load((run / "config.yaml").read_text())["lambda_r"] == 0.1
+        assert yaml.safe_load((run / "config.yaml").read_text())["loss"]["lambda_r"] == 0.1
         assert load_checkpoint(run).step == 4
         with pytest.raises(ValueError, match="already holds a training run"):
             train.main(cfg)  # a second run into the same dir must not overwrite the first silently
@@ -107,7 +178,7 @@ class TestRun:
         first = tiny_config(shards, tmp_path / "part", schedule="onecycle", photometric=True)
         _run_until(first, stop_at=2)
         assert load_checkpoint(tmp_path / "part").step == 2
-        resumed = train.main(train.config_for_resume(tmp_path / "part"), resume=True)
+        resumed = train.main(config_for_resume(tmp_path / "part"), resume=True)
         assert resumed["start_step"] == 2 and resumed["step"] == 4
         a, b = load_checkpoint(tmp_path / "full"), load_checkpoint(tmp_path / "part")
         assert a.scheduler["last_epoch"] == b.scheduler["last_epoch"] == 4
@@ -171,10 +242,53 @@ class TestCli:
         assert result.exit_code == 0, result.output
         assert "trained 0 -> 2 steps" in result.output
         saved = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
-        assert saved["steps"] == 2 and saved["iters"] == 2 and saved["crop"] == [32, 64]
+        assert saved["optim"]["steps"] == 2 and saved["model"]["iters"] == 2 and saved["data"]["crop"] == [32, 64]
         more = CliRunner().invoke(train_main, ["--resume", str(tmp_path / "run"), "--steps", "3", "--quiet"])
         assert more.exit_code == 0, more.output
         assert "trained 2 -> 3 steps" in more.output
+
+    def test_resume_of_a_flat_config_run(self, shards: Path, tmp_path: Path) -> None:
+        """A run saved by the trainer before the config had sections (flat config.yaml and train_config) resumes."""
+        run = tmp_path / "old"
+        train.main(tiny_config(shards, run, steps=2), progress=False)
+        ckpt = load_checkpoint(run)
+        flat = flatten(ckpt.train_config)
+        model = train.build_model(TrainConfig.from_dict(flat))
+        model.load_state_dict(ckpt.model_state)
+        for path in run.glob("*.pt"):
+            path.unlink()
+        save_checkpoint(run / "ckpt-0000002.pt", model=model, step=2, optimizer=None, train_config=flat)
+        save_checkpoint(run / "last.pt", model=model, step=2, optimizer=None, train_config=flat)
+        (run / "config.yaml").write_text(yaml.safe_dump(flat))
+        result = CliRunner().invoke(train_main, ["--resume", str(run), "--steps", "3", "--alpha", "0.8", "--quiet"])
+        assert result.exit_code == 0, result.output
+        assert "trained 2 -> 3 steps" in result.output
+        saved = yaml.safe_load((run / "config.yaml").read_text())
+        assert saved["optim"]["steps"] == 3 and saved["loss"]["alpha"] == 0.8 and saved["model"]["feature_dim"] == 16
+
+    def test_print_config_of_a_flat_recipe_is_nested(self, tmp_path: Path) -> None:
+        recipe = tmp_path / "flat.yaml"
+        recipe.write_text(yaml.safe_dump(OLD_CPU_MAIN))
+        result = CliRunner().invoke(train_main, ["--config", str(recipe), "--out", str(tmp_path / "run"), "--steps",
+                                                 "5", "--alpha", "0.7", "--photometric-iters", "all",
+                                                 "--set", "data.max_disp=192", "--print-config"])
+        assert result.exit_code == 0, result.output
+        printed = yaml.safe_load(result.output)
+        assert list(printed)[:5] == ["model", "loss", "data", "optim", "val"] and "lr" not in printed
+        assert (printed["model"]["feature_dim"], printed["model"]["iters"], printed["optim"]["steps"]) == (128, 4, 5)
+        assert (printed["loss"]["alpha"], printed["loss"]["photometric_iters"], printed["loss"]["lambda_t"]) == (
+            0.7, "all", 0.5)
+        assert printed["data"]["max_disp"] == 192 and printed["out"] == str(tmp_path / "run")
+        assert not (tmp_path / "run").exists()  # nothing trained, nothing written
+        assert TrainConfig.from_dict(printed) == TrainConfig.load(recipe, {"steps": 5, "out": tmp_path / "run",
+                                                                           "alpha": 0.7, "photometric_iters": "all"},
+                                                                  {"data": {"max_disp": 192}})
+
+    def test_print_config_defaults_and_bad_key(self) -> None:
+        result = CliRunner().invoke(train_main, ["--print-config"])
+        assert result.exit_code == 0 and yaml.safe_load(result.output) == TrainConfig().to_dict()
+        bad = CliRunner().invoke(train_main, ["--set", "optim.batch_size=4", "--print-config"])
+        assert bad.exit_code == 2 and "it is now 'data.batch_size'" in bad.output
 
     def test_missing_labels_dir_is_usage_error(self, tmp_path: Path) -> None:
         result = CliRunner().invoke(train_main, ["--labels", str(tmp_path / "nope"), "--out", str(tmp_path)])

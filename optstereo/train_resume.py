@@ -1,0 +1,104 @@
+"""Checkpoints of a training run: periodic saving, ``--resume`` (state and config) and ``--init`` (weights only).
+
+``checkpoint_saver`` writes ``ckpt-<step>.pt`` and ``last.pt`` atomically on rank 0; ``restore`` puts a checkpoint's
+model/optimizer/scheduler/scaler/RNG states back into the loop's ``TrainState``; ``config_for_resume`` rebuilds the
+run's TrainConfig from its last checkpoint (nested, or the flat dict of runs saved before the config had sections);
+``init_settings`` and ``init_weights`` take the model settings and the weights of an ``--init`` checkpoint, which is
+read once (``load_checkpoint``) and passed to both.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import nn
+
+from optstereo import distributed as ddp
+from optstereo.checkpoint import LAST, CheckpointError, LoadedCheckpoint, load_checkpoint, save_checkpoint, unwrap
+from optstereo.train_config import TrainConfig
+from pvm_labeler.common.atomic import atomic_path
+
+if TYPE_CHECKING:
+    from optstereo.train import TrainState
+
+logger = logging.getLogger(__name__)
+
+
+def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Callable[[TrainState], None]:
+    """Callable(state) writing ckpt-<step>.pt and last.pt atomically on rank 0, keeping cfg.keep_ckpts files."""
+
+    def save(state: TrainState) -> None:
+        if not info.is_main:
+            return
+        numbered = run_dir / f"ckpt-{state.step:07d}.pt"
+        save_checkpoint(numbered, model=state.model, step=state.step, optimizer=state.optimizer,
+                        scheduler=state.scheduler, scaler=state.scaler, train_config=cfg.to_dict())
+        with atomic_path(run_dir / LAST) as tmp:
+            shutil.copyfile(numbered, tmp)
+        old = sorted(run_dir.glob("ckpt-*.pt"))[: -cfg.keep_ckpts] if cfg.keep_ckpts > 0 else []
+        for path in old:
+            path.unlink(missing_ok=True)
+        logger.info("checkpoint %s (step %d)", numbered, state.step)
+
+    return save
+
+
+def restore(state: TrainState, ckpt: LoadedCheckpoint) -> None:
+    """Load model/optimizer/scheduler/scaler/RNG state from a checkpoint into ``state``."""
+    unwrap(state.model).load_state_dict(ckpt.model_state)
+    if ckpt.optimizer is not None:
+        state.optimizer.load_state_dict(ckpt.optimizer)
+    if state.scheduler is not None and ckpt.scheduler is not None:
+        state.scheduler.load_state_dict(ckpt.scheduler)
+    if ckpt.scaler is not None and state.scaler.is_enabled():
+        state.scaler.load_state_dict(ckpt.scaler)
+    if ckpt.rng and "torch" in ckpt.rng:
+        torch.set_rng_state(ckpt.rng["torch"])
+    state.step = ckpt.step
+
+
+def _as_checkpoint(source: Path | LoadedCheckpoint) -> LoadedCheckpoint:
+    return source if isinstance(source, LoadedCheckpoint) else load_checkpoint(source)
+
+
+def init_weights(model: nn.Module, source: Path | LoadedCheckpoint) -> None:
+    """Load a checkpoint's weights into ``model`` (--init); a key or shape mismatch is a CheckpointError naming them."""
+    ckpt = _as_checkpoint(source)
+    own = unwrap(model).state_dict()
+    missing = sorted(set(own) - set(ckpt.model_state))
+    unexpected = sorted(set(ckpt.model_state) - set(own))
+    shapes = sorted(f"{k}: checkpoint {tuple(ckpt.model_state[k].shape)} vs model {tuple(v.shape)}"
+                    for k, v in own.items() if k in ckpt.model_state and ckpt.model_state[k].shape != v.shape)
+    if missing or unexpected or shapes:
+        raise CheckpointError(
+            f"--init {ckpt.path} does not fit the model: missing keys {missing[:8]}, unexpected keys "
+            f"{unexpected[:8]}, shape mismatches {shapes[:8]} (take the model settings from the checkpoint: "
+            "leave --model/--model-opt unset)"
+        )
+    unwrap(model).load_state_dict(ckpt.model_state)
+    logger.info("initialised from %s (its step %d)", ckpt.path, ckpt.step)
+
+
+def init_settings(source: Path | LoadedCheckpoint) -> dict[str, Any]:
+    """{"model": {name, feature_dim, ...}}: a config layer rebuilding a checkpoint's network for --init.
+
+    N_s (``iters``) is left out: it is a training choice of the new run (--iters or the recipe), not of the weights.
+    """
+    ckpt = _as_checkpoint(source)
+    return {"model": {**{k: v for k, v in ckpt.model_config.items() if k != "iters"}, "name": ckpt.model_name}}
+
+
+def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """The saved config of RUN_DIR's last checkpoint with ``overrides`` applied (e.g. more --steps, --workers).
+
+    The saved config may be nested or the flat dict of an older run; ``overrides`` may be either too.
+    """
+    ckpt = load_checkpoint(run_dir)
+    if not ckpt.train_config:
+        raise ValueError(f"checkpoint {ckpt.path} holds no training config; cannot resume from it")
+    return TrainConfig.from_layers(ckpt.train_config, overrides, {"out": Path(run_dir)})
