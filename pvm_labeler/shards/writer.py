@@ -15,20 +15,8 @@ import numpy as np
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.common.io import atomic_write_bytes
 from pvm_labeler.common.version import code_version, git_commit
-from pvm_labeler.shards.schema import (
-    COMPRESSIONS,
-    DEFAULT_COMPRESSION,
-    INDEX_NAME,
-    OPTIONAL,
-    REQUIRED,
-    SCHEMA_NAME,
-    SCHEMA_VERSION,
-    TMP_SUFFIX,
-    ShardRecord,
-    blosc_plugin,
-    jsonable,
-    shard_name,
-)
+from pvm_labeler.shards import schema
+from pvm_labeler.shards.schema import DEFAULT_COMPRESSION, ShardRecord, blosc_plugin, jsonable, shard_name
 
 
 def _chunks(shape: tuple[int, ...]) -> tuple[int, ...]:
@@ -56,7 +44,7 @@ def _compression_kwargs(compression: str) -> Mapping[str, Any]:
         return {"compression": "gzip", "compression_opts": 1, "shuffle": True}
     if compression == "none":
         return {}
-    raise ShardError(f"unknown compression '{compression}', expected one of {COMPRESSIONS}")
+    raise ShardError(f"unknown compression '{compression}', expected one of {schema.COMPRESSIONS}")
 
 
 class ShardWriter:
@@ -79,13 +67,13 @@ class ShardWriter:
         extra_attrs: dict[str, Any] | None = None,
     ) -> None:
         self.path = Path(path)
-        self.tmp_path = self.path.with_name(self.path.name + TMP_SUFFIX)
+        self.tmp_path = self.path.with_name(self.path.name + schema.TMP_SUFFIX)
         self._kwargs = _compression_kwargs(compression)
         self._ids: list[str] = []
         self._file = h5py.File(self.tmp_path, "w")
         attrs = self._file.attrs
-        attrs["schema_name"] = SCHEMA_NAME
-        attrs["schema_version"] = SCHEMA_VERSION
+        attrs["schema_name"] = schema.SCHEMA_NAME
+        attrs["schema_version"] = schema.SCHEMA_VERSION
         attrs["config"] = json.dumps(config, sort_keys=True, default=jsonable)
         attrs["git_commit"] = git_commit()
         attrs["code_version"] = code_version()
@@ -153,10 +141,10 @@ def _record_arrays(record: ShardRecord) -> dict[str, np.ndarray]:
     for name in ("right", "label", "label_right", "confidence", "gt", "gt_noc", "gt_right"):
         value = getattr(record, name)
         if value is None:
-            if name in REQUIRED:
+            if name in schema.REQUIRED:
                 raise ShardError(f"sample {record.frame_id}: '{name}' is required")
             continue
-        dtype, ndim = (REQUIRED | OPTIONAL)[name]
+        dtype, ndim = (schema.REQUIRED | schema.OPTIONAL)[name]
         array = np.ascontiguousarray(value, dtype=dtype if name != "right" else None)
         if array.dtype != dtype or array.ndim != ndim or array.shape[:2] != shape:
             raise ShardError(
@@ -188,7 +176,7 @@ def write_index(
     """
     out_dir = Path(out_dir)
     doc: dict[str, Any] = {
-        "schema": {"name": SCHEMA_NAME, "version": SCHEMA_VERSION},
+        "schema": {"name": schema.SCHEMA_NAME, "version": schema.SCHEMA_VERSION},
         "config": config,
         "code_version": code_version(),
         "git_commit": git_commit(),
@@ -198,7 +186,7 @@ def write_index(
         "num_samples": sum(len(ids) for _, ids in shards),
     }
     doc.update(extra or {})
-    path = out_dir / INDEX_NAME
+    path = out_dir / schema.INDEX_NAME
     atomic_write_bytes(path, json.dumps(doc, indent=2, default=jsonable).encode())
     return path
 
