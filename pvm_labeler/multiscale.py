@@ -227,8 +227,7 @@ def run_scales(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id
                             cv2.resize(grey_r, (w_k, h_k), interpolation=cv2.INTER_AREA)))
     t1 = time.perf_counter()
     maps: list[dict[str, np.ndarray]] = [{} for _ in geometry]
-    # Cheapest scale first, full resolution last: the scales are independent, and when a core turns free during
-    # the frame (the other worker finished the job), the costliest views are still ahead to run side by side.
+    # Cheapest scale first, full resolution last (the scales are independent: the order changes no label).
     for idx in sorted(range(len(geometry)), key=lambda i: scale_cells(geometry[i])):
         (img_l, img_r), (_, _, _, d_k) = pyramid[idx], geometry[idx]
         res_l, res_r = sgm_pair(img_l, img_r, cfg, max_disp=d_k, right_view=True, uniqueness=uniqueness and idx == 0)

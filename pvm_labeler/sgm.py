@@ -176,8 +176,8 @@ def sgm_pair(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
         (left result, right result or None); their arrays are freshly allocated. Scratch ~ H * W * D * 4 bytes with
         the right view (S uint16, C_l and C_r uint8) lives in a per-process arena reused by the next call (see
         :func:`release_workspace`); another H * W * D * 2 bytes (the right view's S) when the two views run side by
-        side, which they do when a second core is free (:func:`pvm_labeler.parallel.run_two`: a thread budget of
-        >= 2, or a spare core of the job). The results do not depend on it.
+        side, which they do when the thread budget is >= 2 cores (:func:`pvm_labeler.parallel.run_two`). The results
+        do not depend on it.
     """
     left, right, n_disp = check_inputs(left, right, cfg, max_disp)
     height, width = left.shape
