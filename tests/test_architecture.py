@@ -1,0 +1,139 @@
+"""The layering rules of docs/architecture.md, checked by reading every module's imports (static, AST-based).
+
+Function-local imports count: a rule holds for every import statement anywhere in the file, not only at the top.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: A module longer than this has more than one job (issue: "no module of either package over ~400 lines").
+MAX_MODULE_LINES = 420
+
+
+def _modules(package: str) -> list[Path]:
+    return sorted((ROOT / package).rglob("*.py"))
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Absolute names of every module ``path`` imports (``from x import y`` gives ``x`` and ``x.y``)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    package = _module_name(path).rsplit(".", 1)[0] if path.name != "__init__.py" else _module_name(path)
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative import: resolve against the importing package
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+    return names
+
+
+def _offenders(package: str, forbidden: tuple[str, ...], allowed: tuple[str, ...] = (),
+               skip: tuple[str, ...] = ()) -> dict[str, list[str]]:
+    """{module: [forbidden imports]} for every module under ``package`` (files named in ``skip`` excepted)."""
+    out = {}
+    for path in _modules(package):
+        if path.name in skip:
+            continue
+        bad = sorted(n for n in imported_modules(path)
+                     if any(n == f or n.startswith(f + ".") for f in forbidden)
+                     and not any(n == a or n.startswith(a + ".") for a in allowed))
+        if bad:
+            out[str(path.relative_to(ROOT))] = bad
+    return out
+
+
+def test_the_reader_sees_relative_and_local_imports(tmp_path: Path) -> None:
+    pkg = ROOT / "pvm_labeler" / "common" / "datasets" / "__init__.py"
+    assert "pvm_labeler.common.datasets.refs" in imported_modules(pkg)
+    probe = ROOT / "pvm_labeler" / "_architecture_probe.py"
+    probe.write_text("def f():\n    import torch\n    from .common import io\n")
+    try:
+        assert {"torch", "pvm_labeler.common", "pvm_labeler.common.io"} <= imported_modules(probe)
+        assert "pvm_labeler/_architecture_probe.py" in _offenders("pvm_labeler", ("torch",))
+    finally:
+        probe.unlink()
+
+
+def test_the_labeler_never_imports_torch() -> None:
+    assert _offenders("pvm_labeler", ("torch", "torchvision", "optstereo")) == {}
+
+
+def test_the_shared_base_imports_only_itself() -> None:
+    """pvm_labeler.common is the base of both programs: nothing of the labeler proper, no numba, no torch."""
+    assert _offenders("pvm_labeler/common", ("pvm_labeler", "numba", "torch", "joblib", "h5py"),
+                      allowed=("pvm_labeler.common",)) == {}
+
+
+def test_kernels_do_no_io() -> None:
+    """Kernels take arrays and return arrays: no files, no datasets, no shards.
+
+    ``kernels/__init__.py`` is exempt: it points numba's JIT cache at a directory keyed by the kernel sources (it
+    reads the sources to hash them), which is build infrastructure, not data I/O.
+    """
+    io_modules = ("pvm_labeler.common", "pvm_labeler.shards", "pvm_labeler.job", "h5py", "cv2", "json", "pathlib",
+                  "pickle", "yaml", "shutil", "tempfile")
+    assert _offenders("pvm_labeler/kernels", io_modules, skip=("__init__.py",)) == {}
+    opened = [str(p.relative_to(ROOT)) for p in _modules("pvm_labeler/kernels") if p.name != "__init__.py"
+              and any(isinstance(n, ast.Call) and getattr(n.func, "id", None) == "open"
+                     for n in ast.walk(ast.parse(p.read_text())))]
+    assert opened == []
+
+
+def test_models_know_no_training() -> None:
+    training = ("optstereo.train", "optstereo.train_config", "optstereo.config", "optstereo.losses",
+                "optstereo.analogy", "optstereo.data", "optstereo.cli", "optstereo.evaluate", "optstereo.distributed",
+                "optstereo.checkpoint", "pvm_labeler")
+    assert _offenders("optstereo/models", training, allowed=("pvm_labeler.common",)) == {}
+
+
+def test_the_trainer_reaches_the_labeler_only_through_the_base_and_the_shard_schema() -> None:
+    assert _offenders("optstereo", ("pvm_labeler",), allowed=("pvm_labeler.common", "pvm_labeler.shards")) == {}
+
+
+def test_no_module_has_more_than_one_job() -> None:
+    long = {str(p.relative_to(ROOT)): n for pkg in ("pvm_labeler", "optstereo") for p in _modules(pkg)
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert long == {}
+
+
+@pytest.mark.parametrize("module", ["pvm_labeler.common.datasets", "pvm_labeler.common.io",
+                                    "pvm_labeler.common.metrics", "pvm_labeler.shards"])
+def test_the_base_and_the_schema_load_without_numba_or_torch(module: str) -> None:
+    code = f"import sys, {module}; print(sorted(m for m in ('numba', 'torch') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stderr
+
+
+def test_the_readme_layout_names_every_module() -> None:
+    """The README's layout section matches the tree: every module and subpackage of both packages is named."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Repository layout"):]
+    section = section[: section.index("\n## ", 3)]
+    missing = []
+    for pkg in ("pvm_labeler", "pvm_labeler/common", "optstereo"):
+        for child in sorted((ROOT / pkg).iterdir()):
+            name = child.name if child.is_dir() else child.stem
+            is_module = child.suffix == ".py" and child.stem != "__init__"
+            is_package = child.is_dir() and (child / "__init__.py").exists() and name != "common"
+            if (is_module or is_package) and name not in section:
+                missing.append(f"{pkg}/{child.name}")
+    assert missing == []
