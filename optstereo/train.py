@@ -70,6 +70,17 @@ def build_optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Opt
     return optimizer, scheduler
 
 
+def _warn_unflippable(stream: ShardStream, flip_swap_p: float, is_main: bool) -> None:
+    """One warning per run (rank 0) counting the samples flip-swap cannot mirror: it needs a right-view label."""
+    if flip_swap_p <= 0 or not is_main:
+        return
+    missing = stream.count_unflippable()
+    if missing:
+        label = "gt_right" if stream.supervision == "gt" else "label_right"
+        logger.warning("flip-swap (p = %.2f) cannot flip %d of %d samples: they have no right-view label (%s); "
+                       "those are never flipped", flip_swap_p, missing, stream.num_samples, label)
+
+
 def build_loader(cfg: TrainConfig, info: ddp.DistInfo, start_step: int = 0) -> DataLoader:
     """Infinite DataLoader over the shard stream; skips the samples the first ``start_step`` batches used."""
     data = cfg.data
@@ -88,6 +99,7 @@ def build_loader(cfg: TrainConfig, info: ddp.DistInfo, start_step: int = 0) -> D
         batch_size=data.batch_size,
         with_confidence=cfg.loss.conf_weight,
     )
+    _warn_unflippable(stream, data.flip_swap_p, info.is_main)
     return DataLoader(
         stream,
         batch_size=data.batch_size,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -234,3 +235,19 @@ def test_stream_with_confidence_crops_it_like_the_label(tmp_path: Path) -> None:
     flipped = next(iter(stream(shards, transform=TrainTransform(crop=(16, 40), flip_swap_p=1.0), with_ids=False,
                                with_confidence=True)))
     assert torch.equal(flipped[4], torch.ones_like(flipped[4]))  # no right-view confidence: weight 1
+
+
+def test_unflippable_samples_are_counted_and_warned_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """GT shards without gt_right: flip-swap cannot apply to any sample; PVM shards always have label_right."""
+    from optstereo.distributed import DistInfo
+    from optstereo.train import _warn_unflippable
+
+    shards = make_shards(tmp_path / "s", n=5, shard_size=2)
+    gt_stream = ShardStream(shards, supervision="gt")
+    assert gt_stream.count_unflippable() == 5
+    assert ShardStream(shards, supervision="pvm").count_unflippable() == 0
+    caplog.set_level(logging.WARNING, logger="optstereo.train")
+    _warn_unflippable(gt_stream, 0.5, DistInfo(0, 1, 0).is_main)
+    _warn_unflippable(gt_stream, 0.0, True)  # flip-swap off: nothing to say
+    warnings = [r.getMessage() for r in caplog.records if "flip-swap" in r.getMessage()]
+    assert len(warnings) == 1 and "cannot flip 5 of 5 samples" in warnings[0] and "gt_right" in warnings[0]

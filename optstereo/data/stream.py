@@ -172,6 +172,16 @@ class ShardStream(IterableDataset):
         while self._handles:
             self._handles.popitem()[1].close()
 
+    def count_unflippable(self) -> int:
+        """Samples of this stream without a right-view label (``gt_right`` for "gt", ``label_right`` for "pvm"): the
+        flip-swap can never apply to them. Reads group keys only (no arrays), closing the files again."""
+        key = "gt_right" if self.supervision == "gt" else "label_right"
+        missing = 0
+        for path, ids in self.shards:
+            with open_shard(path) as h5:
+                missing += sum(1 for frame_id in ids if frame_id not in h5 or key not in h5[frame_id])
+        return missing
+
     def read(self, path: str, frame_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """(left, right, label, label_right or None) of one sample for the configured supervision."""
         return self._read(path, frame_id)[:4]
