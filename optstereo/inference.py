@@ -20,7 +20,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from optstereo.padding import InputPadder
+from optstereo.padding import InputPadder, divisor_of
 from pvm_labeler.common.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
@@ -92,7 +92,7 @@ def infer(
 
     Args:
         model: OptStereo-like model (test_mode=True returns (low, full)).
-        left, right: (H, W, 3) uint8 RGB of equal shape (any H, W: padded to a multiple of 8 and un-padded).
+        left, right: (H, W, 3) uint8 RGB of equal shape (any H, W: padded to the model's multiple and un-padded).
         iters: GRU iterations (None = the model's default).
         amp: ``none`` (float32), ``bf16`` (CPU with AVX512-BF16/AMX, or CUDA) or ``fp16`` (CUDA).
 
@@ -106,7 +106,7 @@ def infer(
     model.eval()
     try:
         left_t, right_t = to_batch(left, device), to_batch(right, device)
-        padder = InputPadder(left_t.shape, divis_by=8)
+        padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
         left_t, right_t = padder.pad(left_t, right_t)
         with inference_autocast(amp, device):
             _, full = model(left_t, right_t, iters=iters, test_mode=True)

@@ -1,6 +1,8 @@
 """InputPadder: pad (..., H, W) tensors to a multiple of the network stride and crop predictions back.
 
-KITTI frames are 375 x 1242 (and 370 x 1224, 376 x 1241); OptStereo needs H, W divisible by 8.
+KITTI frames are 375 x 1242 (and 370 x 1224, 376 x 1241); OptStereo needs H, W divisible by 8. Each network class
+states its multiple as a class attribute ``divisor`` (OptStereo 8, HITNet 8: its finest tiles); ``divisor_of(model)``
+reads it, so inference pads for whichever network a checkpoint holds.
 Padding is split evenly between the two sides (the extra pixel, if odd, goes bottom/right) with
 edge replication. Padding both views by the same columns shifts left and right equally, so
 disparities are unchanged; ``unpad`` only crops.
@@ -12,6 +14,18 @@ from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
+from torch import nn
+
+DEFAULT_DIVISOR = 8  # OptStereo's 1/8 features; used for a model that does not state its divisor
+
+
+def divisor_of(model: nn.Module) -> int:
+    """The multiple a model needs H and W to be: its ``divisor`` attribute (DDP/compile wrappers unwrapped), else 8."""
+    for wrapper_attr in ("module", "_orig_mod"):
+        inner = getattr(model, wrapper_attr, None)
+        if isinstance(inner, nn.Module):
+            return divisor_of(inner)
+    return int(getattr(model, "divisor", DEFAULT_DIVISOR))
 
 
 class InputPadder:

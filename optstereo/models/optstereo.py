@@ -12,6 +12,7 @@ Paper symbol -> module:
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -29,6 +30,27 @@ def normalize_image(image: torch.Tensor) -> torch.Tensor:
     return image * (2.0 / 255.0) - 1.0
 
 
+def check_stereo_pair(left: torch.Tensor, right: torch.Tensor, divisor: int) -> None:
+    """Raise ValueError (with the actual shapes) unless left, right are equal (B, 3, H, W) with H, W % divisor == 0."""
+    if left.ndim != 4 or right.ndim != 4:
+        raise ValueError(f"left/right must be 4-D (B, 3, H, W), got {tuple(left.shape)} and {tuple(right.shape)}")
+    if left.shape != right.shape:
+        raise ValueError(f"left/right shapes differ: {tuple(left.shape)} vs {tuple(right.shape)}")
+    if left.shape[1] != 3:
+        raise ValueError(f"left/right must have 3 channels (B, 3, H, W), got {tuple(left.shape)}")
+    h, w = left.shape[-2:]
+    if h % divisor or w % divisor:
+        raise ValueError(f"H, W must be divisible by {divisor}, got ({h}, {w}); pad with optstereo.padding.InputPadder")
+
+
+def resolve_iters(iters: int | None, default: int) -> int:
+    """The iteration count of one forward: ``iters``, or the model's ``default`` when None; ValueError below 1."""
+    iters = default if iters is None else iters
+    if iters < 1:
+        raise ValueError(f"iters must be >= 1, got {iters}")
+    return iters
+
+
 class OptStereo(nn.Module):
     """Iterative 1-D stereo network of PVStereo.
 
@@ -39,6 +61,8 @@ class OptStereo(nn.Module):
         test_mode=True: returns (D_s^{N_s} (B, 1, H/8, W/8) in 1/8-resolution pixels, D^{N_s} (B, 1, H, W));
             only the last iteration is upsampled.
     """
+
+    divisor: ClassVar[int] = DIVISOR  # what optstereo.padding.divisor_of reads to pad inputs for this network
 
     def __init__(
         self,
@@ -101,17 +125,8 @@ class OptStereo(nn.Module):
         return self._in_chunks(self.upsampler, self._chunk_size(image), disp, hidden, image)
 
     def _check_inputs(self, left: torch.Tensor, right: torch.Tensor) -> None:
-        if left.ndim != 4 or right.ndim != 4:
-            raise ValueError(f"left/right must be 4-D (B, 3, H, W), got {tuple(left.shape)} and {tuple(right.shape)}")
-        if left.shape != right.shape:
-            raise ValueError(f"left/right shapes differ: {tuple(left.shape)} vs {tuple(right.shape)}")
-        if left.shape[1] != 3:
-            raise ValueError(f"left/right must have 3 channels (B, 3, H, W), got {tuple(left.shape)}")
-        h, w = left.shape[-2:]
-        if h % DIVISOR or w % DIVISOR:
-            raise ValueError(
-                f"H, W must be divisible by {DIVISOR}, got ({h}, {w}); pad with optstereo.padding.InputPadder"
-            )
+        check_stereo_pair(left, right, self.divisor)
+        w = left.shape[-1]
         if w // DIVISOR < self.corr_block.min_width:
             raise ValueError(
                 f"W must be >= {DIVISOR * self.corr_block.min_width} for {self.corr_block.num_levels} cost-volume "
@@ -122,9 +137,7 @@ class OptStereo(nn.Module):
         self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False
     ) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
         self._check_inputs(left, right)
-        iters = self.iters if iters is None else iters
-        if iters < 1:
-            raise ValueError(f"iters must be >= 1, got {iters}")
+        iters = resolve_iters(iters, self.iters)
         image_left = normalize_image(left)
         image_right = normalize_image(right)
         feats = self._encode(torch.cat([image_left, image_right], dim=0))
