@@ -251,6 +251,12 @@ def _overfit(steps: int, iters: int, lr: float) -> tuple[float, float]:
     torch.manual_seed(0)
     left, right, label = _two_plane_pair(np.random.default_rng(0))
     model = build_model("optstereo", iters=iters, feature_dim=32, hidden_dim=32, head_dim=32, upsample_dim=8)
+    return overfit_epe(model, left, right, label, steps, lr)
+
+
+def overfit_epe(model: torch.nn.Module, left: torch.Tensor, right: torch.Tensor, label: torch.Tensor, steps: int,
+                lr: float) -> tuple[float, float]:
+    """Adam on L_P alone (gamma 0.8) over one pair; (EPE before, EPE after) on the finite label pixels."""
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     valid = torch.isfinite(label)
 

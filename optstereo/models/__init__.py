@@ -2,9 +2,10 @@
 
 Names: "optstereo" (the paper's network) and the Table I ablation variants
 "optstereo_ss_d4" (single-scale cost volume, d = 4), "optstereo_ms_d1", "optstereo_ms_d2", "optstereo_ms_d4"
-(multi-scale with d = 1, 2, 4; "optstereo_ms_d4" is "optstereo"). A second network (e.g. a HITNet-like
-one fed by PVM labels) plugs in with ``register_model(name, builder, defaults)`` where ``builder(cfg)``
-returns an ``nn.Module`` whose forward follows the OptStereo contract.
+(multi-scale with d = 1, 2, 4; "optstereo_ms_d4" is "optstereo"), and "hitnet" (a compact HITNet, the paper's
+PVM-HITNet row: PVM labels train a second supervised network). Another network plugs in with
+``register_model(name, builder, defaults)`` where ``builder(cfg)`` returns an ``nn.Module`` whose forward follows
+the OptStereo contract (and whose class ``divisor`` tells optstereo.padding how to pad its inputs).
 """
 
 from __future__ import annotations
@@ -17,13 +18,14 @@ from torch import nn
 from optstereo.models.config import ModelConfig
 from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.extractor import FeatureEncoder
+from optstereo.models.hitnet import HITNet, build_hitnet
 from optstereo.models.optstereo import OptStereo
 from optstereo.models.update import ConvGRU, DispHead, HiddenInit
 from optstereo.models.upsample import ConvexUpsampler, ConvUpsampler
 
 __all__ = [
-    "ModelConfig", "OptStereo", "build_from_config", "build_model", "build_optstereo", "list_models", "model_config",
-    "register_model",
+    "HITNet", "ModelConfig", "OptStereo", "build_from_config", "build_hitnet", "build_model", "build_optstereo",
+    "list_models", "model_config", "register_model",
 ]
 
 Builder = Callable[[ModelConfig], nn.Module]
@@ -58,6 +60,8 @@ _REGISTRY: dict[str, tuple[Builder, dict[str, Any]]] = {
     "optstereo_ms_d1": (build_optstereo, {"corr_levels": 4, "corr_radius": 1}),
     "optstereo_ms_d2": (build_optstereo, {"corr_levels": 4, "corr_radius": 2}),
     "optstereo_ms_d4": (build_optstereo, {"corr_levels": 4, "corr_radius": 4}),
+    # 4 resolutions (tiles of 8 to 64 px: the paper's coarsest), offsets d - 1, d, d + 1, 2 finest-level steps.
+    "hitnet": (build_hitnet, {"feature_dim": 16, "hidden_dim": 32, "corr_levels": 4, "corr_radius": 1, "iters": 2}),
 }
 
 

@@ -34,6 +34,13 @@ class ModelConfig:
         head_dim: width of the first conv of the Delta-D head (two convs on h).
         norm: normalisation in the feature extractor (RAFT's fnet uses instance norm).
         corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
+        max_disp: HITNet only: the initial local cost volumes search [0, max_disp) full-resolution pixels
+            (OptStereo has no search range and ignores it; 192 is the PVM labeler's default range).
+
+    HITNet ("hitnet", optstereo.models.hitnet) reads the shared fields with its own meaning: feature_dim = channels
+    of its finest (1/2) U-Net level, hidden_dim = width of the propagation CNNs, corr_levels = resolutions (one
+    local cost volume each), corr_radius = disparity offsets either side of each tile's plane, iters = propagation
+    steps at the finest level; it ignores upsampler, upsample_dim, head_dim, norm and corr_scale.
     """
 
     name: str = "optstereo"
@@ -47,6 +54,7 @@ class ModelConfig:
     head_dim: int = 128
     norm: str = "instance"
     corr_scale: bool = True
+    max_disp: int = 192
 
     @property
     def corr_channels(self) -> int:
@@ -55,7 +63,7 @@ class ModelConfig:
 
     def validate(self) -> ModelConfig:
         """Raise ValueError naming the option if a value is out of range; return self."""
-        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim"):
+        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim", "max_disp"):
             if getattr(self, key) < 1:
                 raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
         if self.corr_radius < 0:
