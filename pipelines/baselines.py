@@ -40,7 +40,7 @@ logger = logging.getLogger(__name__)
 
 #: Config fields that do not change the per-scale SGM outputs (so cached scale stacks stay valid across them).
 _POST_SGM_FIELDS = ("kappa1", "kappa2", "lr_threshold", "label_mode", "upsample", "min_texture",
-                    "min_confidence", "extra")
+                    "min_confidence", "c2_scale", "extra")
 #: Sources whose content determines the cached per-scale SGM outputs.
 _SGM_SOURCES = ("sgm.py", "multiscale.py", "kernels/cost.py", "kernels/aggregate.py", "kernels/wta.py")
 

@@ -24,7 +24,7 @@ import yaml
 
 from pvm_labeler.common.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
 from pvm_labeler.common.errors import ConfigError, PVMError
-from pvm_labeler.config import LabelerConfig
+from pvm_labeler.config import RECIPES, LabelerConfig, recipe_values
 from pvm_labeler.parallel import BACKENDS
 from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
 
@@ -34,8 +34,8 @@ _DEFAULTS = LabelerConfig()
 _LABELER_FLAGS = {"k": "k", "kappa1": "kappa1", "kappa2": "kappa2", "max_disp": "max_disp",
                   "lr_threshold": "lr_threshold", "seed": "seed"}
 #: Job options that may come from --config YAML (same names as the flags, with underscores).
-_JOB_KEYS = ("dataset", "root", "out", "split", "limit", "jobs", "backend", "scheduler", "shard_size", "resume",
-             "overwrite", "quiet", "compression", "numba_threads", "left", "right", "gt", "sceneflow_pass")
+_JOB_KEYS = ("recipe", "dataset", "root", "out", "split", "limit", "jobs", "backend", "scheduler", "shard_size",
+             "resume", "overwrite", "quiet", "compression", "numba_threads", "left", "right", "gt", "sceneflow_pass")
 
 
 class _DefaultRunGroup(click.Group):
@@ -97,7 +97,7 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
     if "max_disp" not in labeler and dataset in DEFAULT_MAX_DISP:
         labeler["max_disp"] = DEFAULT_MAX_DISP[dataset]  # e.g. sample: GT max 59.9 px, 192 would waste time
     try:
-        config = LabelerConfig.from_dict({**_DEFAULTS.to_dict(), **labeler})
+        config = LabelerConfig.from_dict({**recipe_values(values.get("recipe") or "default"), **labeler})
     except TypeError as exc:
         raise ConfigError(f"bad labeler config: {exc}") from exc
     options = dict(yaml_doc.get("dataset_options") or {})
@@ -138,6 +138,9 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
 @click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="YAML file of option defaults (flag names with underscores; `labeler:` mapping for all "
                    "LabelerConfig fields). Flags override it. The resolved config is written to OUT/config.yaml.")
+@click.option("--recipe", type=click.Choice(sorted(RECIPES)), default="default", show_default=True,
+              help="Starting point of the labeler config: 'paper' = the paper's PVM as written (finest-scale label, "
+                   "binary votes on C1 and C2, LRDCC, nothing else); --config's labeler: and the flags override it.")
 @click.option("--k", type=int, default=_DEFAULTS.k, show_default=True, help="Pyramid scales K (>= 2).")
 @click.option("--kappa1", type=float, default=_DEFAULTS.kappa1, show_default=True,
               help="Threshold on the std of disparity across scales, px (full resolution).")

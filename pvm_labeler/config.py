@@ -70,15 +70,18 @@ class LabelerConfig:
         min_texture: a pixel gets a label only if the grey-level range (max - min) over its census window at full
             resolution is >= this (1 rejects exactly constant windows, which SGM fills by propagation only;
             0 disables the test).
-        min_confidence: drop voted pixels whose confidence mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / kappa2) is
+        min_confidence: drop voted pixels whose confidence mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / c2_scale) is
             below this, before the LR check (0 = the paper's binary vote only).
+        c2_scale: normaliser of C2 in that confidence (beyond the paper). Decoupled from kappa2 so the hard C2 vote
+            and the soft ranking are two settings: at equal density the soft ranking with 0.6 gives the lowest bad-3
+            (docs/pvm.md, "What each stage earns").
         upsample: interpolation of each scale's disparity/c back to full resolution: "linear" or "nearest".
         extra: free-form extra settings recorded with the run (JSON-serialisable).
     """
 
     k: int = 6
     kappa1: float = 2.0
-    kappa2: float = 0.6
+    kappa2: float = 0.3
     max_disp: int = 192
     lr_threshold: float = 1.0
     seed: int = 0
@@ -91,6 +94,7 @@ class LabelerConfig:
     upsample: str = "linear"
     min_texture: int = 1
     min_confidence: float = 0.15
+    c2_scale: float = 0.6
     extra: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> LabelerConfig:
@@ -117,6 +121,8 @@ class LabelerConfig:
             raise ConfigError(problem)
         if self.label_mode not in LABEL_MODES:
             raise ConfigError(f"label_mode must be one of {LABEL_MODES}, got {self.label_mode!r}")
+        if not self.c2_scale > 0:
+            raise ConfigError(f"c2_scale must be > 0 (it divides C2 in the confidence), got {self.c2_scale}")
         if not 0 <= self.min_confidence <= 1:
             raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if not 0 <= self.min_texture <= 255:
@@ -138,3 +144,21 @@ class LabelerConfig:
         """Build from a dict, rejecting unknown keys with a clear message."""
         reject_unknown_keys(cls, values, "labeler config")
         return cls(**values).validate()
+
+
+#: Named starting points of a labeling run (``pvm-label --recipe NAME``, ``recipe:`` in YAML); the YAML ``labeler:``
+#: mapping and the flags override them. "paper": the method as written (label = the finest scale, the binary vote
+#: on C1 and C2, LRDCC, nothing else) with kappas under which both votes reject pixels on the KITTI 2015 frames
+#: (docs/pvm.md, "The paper's recipe").
+RECIPES: dict[str, dict[str, Any]] = {
+    "default": {},
+    "paper": {"label_mode": "finest", "kappa1": 1.0, "kappa2": 0.2, "min_confidence": 0.0, "min_texture": 0},
+}
+
+
+def recipe_values(name: str) -> dict[str, Any]:
+    """LabelerConfig fields of recipe ``name`` over the defaults (a dict, so YAML and flags can override it)."""
+    if name not in RECIPES:
+        raise ConfigError(f"unknown recipe {name!r}; known: {sorted(RECIPES)}")
+    return {**LabelerConfig().to_dict(), **RECIPES[name], "extra": {"recipe": name} if name != "default" else {}}
+

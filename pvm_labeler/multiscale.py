@@ -23,6 +23,7 @@ Pipeline of :func:`label_pair` (Wang et al., "PVStereo", Section III-A):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -35,8 +36,8 @@ import numpy.typing as npt
 
 from pvm_labeler.common.errors import ConfigError, InputError
 from pvm_labeler.config import LabelerConfig
-from pvm_labeler.kernels.lrcheck import lr_check_kernel
-from pvm_labeler.kernels.vote import LABEL_MEDIAN, LABEL_WEIGHTED, vote_kernel
+from pvm_labeler.stages import stage_codes
+from pvm_labeler.voting import lr_check, vote  # re-exported: the stages' public home stays multiscale
 
 logger = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ class LabelResult:
     Attributes:
         label: (H, W) float32 left-view semi-dense label, NaN = no label.
         label_right: (H, W) float32 right-view consistent label (right(x) matches left(x + d)), NaN = no label.
-        confidence: (H, W) float32 in [0, 1], ``mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / kappa2)`` on labelled
+        confidence: (H, W) float32 in [0, 1], ``mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / c2_scale)`` on labelled
             pixels, 0 where there is no label.
         eps: (K,) float64 eps_k per scale (eps_1 = 0).
         factors: (K,) float64 true horizontal downsampling factor ``W / w_k`` per scale (after rounding sizes).
@@ -59,6 +60,8 @@ class LabelResult:
             maps; "C1", "C2", "C1_right", "C2_right" (H, W) float32; "V" (H, W) uint8 vote count (2 where some scale
             is invalid); "voted", "voted_right" (H, W) float32 maps after the vote and the confidence/texture filters,
             before the LR check.
+        stages: (candidate (H, W) float32 vote without rejection, codes (H, W) uint8 into
+            ``pvm_labeler.stages.GROUPS``): which stage removed each left-view pixel (the vote table).
     """
 
     label: npt.NDArray[np.float32]
@@ -67,6 +70,7 @@ class LabelResult:
     eps: npt.NDArray[np.float64]
     factors: npt.NDArray[np.float64]
     timings: dict[str, float] = field(default_factory=dict)
+    stages: tuple[np.ndarray, np.ndarray] | None = None
     intermediates: dict[str, np.ndarray] | None = None
 
 
@@ -81,7 +85,7 @@ class ScaleStack:
         timings: seconds for "pyramid", "sgm", "upsample".
         full_res: the finest scale's raw SGM maps "disp_l", "disp_r", "uniqueness_l" (H, W) float32 (the last only
             when computed with ``uniqueness=True``), used by
-            the SGM + LR (+ uniqueness) baselines in pvm_labeler.baselines; and "range_l", "range_r" (H, W) uint8
+            the SGM + LR (+ uniqueness) baselines in pipelines.baselines; and "range_l", "range_r" (H, W) uint8
             grey-level range (max - min) over the census window of each view (the texture test).
     """
 
@@ -286,70 +290,6 @@ def _upsample_into(values: np.ndarray, out: np.ndarray, interp: int, scale: floa
         np.multiply(out, np.float32(scale), out=out)
 
 
-def vote(
-    disp: np.ndarray, conf: np.ndarray, cfg: LabelerConfig, factors: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Variance voting over the scales (wrapper of ``kernels.vote.vote_kernel``).
-
-    Args:
-        disp: (K, H, W) float32 full-resolution disparities (NaN = invalid).
-        conf: (K, H, W) float32 full-resolution c maps (NaN = invalid).
-        cfg: uses kappa1, kappa2, label_mode.
-        factors: (K,) true factors, needed for label_mode "weighted" (weights 1 / factor_k**2: the disparity
-            quantisation noise of scale k grows with its factor).
-
-    Returns:
-        label (H, W) float32 (NaN = rejected), confidence (H, W) float32 (0 = rejected), C1, C2 (H, W) float32.
-    """
-    if disp.ndim != 3 or disp.shape != conf.shape:
-        raise InputError(f"disp/conf must be (K, H, W) of equal shape, got {disp.shape} and {conf.shape}")
-    n = disp.shape[0]
-    weights = np.zeros(n, dtype=np.float64)
-    mode = LABEL_WEIGHTED
-    if cfg.label_mode == "finest":
-        weights[0] = 1.0
-    elif cfg.label_mode == "mean":
-        weights[:] = 1.0
-    elif cfg.label_mode == "weighted":
-        if factors is None or len(factors) != n:
-            raise InputError(f"label_mode 'weighted' needs {n} scale factors, got {factors}")
-        weights[:] = 1.0 / np.asarray(factors, dtype=np.float64) ** 2
-    else:
-        mode = LABEL_MEDIAN
-    disp = np.ascontiguousarray(disp, dtype=np.float32)
-    conf = np.ascontiguousarray(conf, dtype=np.float32)
-    shape = disp.shape[1:]
-    label = np.empty(shape, np.float32)
-    confidence = np.empty(shape, np.float32)
-    c1 = np.empty(shape, np.float32)
-    c2 = np.empty(shape, np.float32)
-    vote_kernel(disp, conf, float(cfg.kappa1), float(cfg.kappa2), mode, weights, label, confidence, c1, c2)
-    return label, confidence, c1, c2
-
-
-def lr_check(disp_l: np.ndarray, disp_r: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """LRDCC of a left and a right disparity map (wrapper of ``kernels.lrcheck.lr_check_kernel``).
-
-    Args:
-        disp_l: (H, W) float32 left disparity (left(x) matches right(x - d)), NaN = none.
-        disp_r: (H, W) float32 right disparity (right(x) matches left(x + d)), NaN = none.
-        threshold: pixels, >= 0.
-
-    Returns:
-        (left, right) (H, W) float32 with pixels failing the check set to NaN.
-    """
-    if disp_l.ndim != 2 or disp_l.shape != disp_r.shape:
-        raise InputError(f"left/right disparities must be (H, W) of equal shape, got {disp_l.shape}, {disp_r.shape}")
-    if not threshold >= 0:
-        raise InputError(f"LR threshold must be >= 0 px, got {threshold}")
-    disp_l = np.ascontiguousarray(disp_l, dtype=np.float32)
-    disp_r = np.ascontiguousarray(disp_r, dtype=np.float32)
-    out_l = np.empty_like(disp_l)
-    out_r = np.empty_like(disp_r)
-    lr_check_kernel(disp_l, disp_r, float(threshold), out_l, out_r)
-    return out_l, out_r
-
-
 def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediates: bool = False) -> LabelResult:
     """Voting (both views) and LRDCC on precomputed scale maps; cheap, so kappa sweeps reuse one ScaleStack."""
     cfg = _validated(cfg)
@@ -371,6 +311,10 @@ def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediate
     t1 = time.perf_counter()
     label, label_right = lr_check(voted_l, voted_r, cfg.lr_threshold)
     confidence = np.where(np.isfinite(label), conf_l, np.float32(0.0)).astype(np.float32)
+    free = dataclasses.replace(cfg, kappa1=np.inf, kappa2=np.inf)  # the candidate: the vote with no rejection
+    candidate = vote(stack.disp_l, stack.conf_l, free, stack.factors)[0]
+    codes = stage_codes(candidate, c1_l, c2_l, conf_l, stack.full_res["range_l"], label, cfg.kappa1, cfg.kappa2,
+                        cfg.min_confidence, cfg.min_texture)
     t2 = time.perf_counter()
     timings = dict(stack.timings)
     timings.update(vote=t1 - t0, lrcheck=t2 - t1)
@@ -385,7 +329,7 @@ def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediate
             "voted": voted_l, "voted_right": voted_r,
         }
     return LabelResult(label=label, label_right=label_right, confidence=confidence, eps=stack.eps,
-                       factors=stack.factors, timings=timings, intermediates=intermediates)
+                       factors=stack.factors, timings=timings, intermediates=intermediates, stages=(candidate, codes))
 
 
 def label_pair(

@@ -21,6 +21,7 @@ from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.common.viz import colorize_disparity, density_error_plot, error_map
 from pvm_labeler.shards import open_shard, read_index, read_sample
+from pvm_labeler.stages import add_counts, stage_markdown, stage_rows
 
 logger = logging.getLogger(__name__)
 
@@ -44,6 +45,7 @@ def evaluate_dir(shard_dir: Path, pictures: int = 0, picture_dir: Path | None = 
     frames: dict[str, dict[str, Any]] = {}
     written: list[str] = []
     labelled = total = 0
+    stages: dict[str, list[int]] = {}
     for path, ids in index.shards:
         with open_shard(path) as h5:
             for frame_id in ids:
@@ -51,6 +53,8 @@ def evaluate_dir(shard_dir: Path, pictures: int = 0, picture_dir: Path | None = 
                 labelled += int(np.isfinite(sample.label).sum())
                 total += sample.label.size
                 frames[frame_id] = _frame_metrics(sample, accs)
+                if "stages" in sample.attrs:
+                    stages = add_counts(stages, sample.attrs["stages"])
                 if picture_dir is not None and len(written) < 2 * pictures:
                     written += _pictures(sample, picture_dir)
     pooled = {region: acc.compute() for region, acc in accs.items() if acc.n_frames}
@@ -63,6 +67,7 @@ def evaluate_dir(shard_dir: Path, pictures: int = 0, picture_dir: Path | None = 
         "frames": frames,
         "pooled": pooled,
         "pictures": written,
+        "stages": stage_rows(stages) if stages else None,
     }
 
 
@@ -116,6 +121,11 @@ def markdown(runs: list[dict[str, Any]], per_frame: bool = True) -> str:
     lines.append("")
     lines.append("Density = % of GT-valid pixels that got a label; errors are measured on the labelled pixels. "
                  "`noc` = non-occluded GT, `occ` = GT pixels outside `noc`.")
+    for run in runs:
+        if run.get("stages"):
+            lines += ["", f"### {run['name']}: what each stage removes (left view, GT noc where present)", "",
+                      stage_markdown(run["stages"]).rstrip(), "",
+                      "bad-3 of a removed group: of the label the pixel would have had without any rejection."]
     if per_frame:
         for run in runs:
             lines += ["", f"### {run['name']}: per frame (region `all`)", "", _HEADER]

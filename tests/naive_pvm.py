@@ -7,7 +7,7 @@ import numpy as np
 
 def naive_vote(
     disp: np.ndarray, conf: np.ndarray, kappa1: float, kappa2: float, label_mode: str = "finest",
-    weights: np.ndarray | None = None,
+    weights: np.ndarray | None = None, c2_scale: float = 0.6,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Reference voting with np.std / np.median over the scale axis.
 
@@ -17,6 +17,7 @@ def naive_vote(
         kappa1, kappa2: thresholds on C1 = std_k disp and C2 = std_k conf (keep iff C1 < kappa1 and C2 < kappa2).
         label_mode: "finest" (D^1), "median", "mean" or "weighted" (with ``weights``).
         weights: (K,) scale weights for "weighted".
+        c2_scale: normaliser of C2 in the confidence mean c * (1 - C1 / kappa1) * (1 - C2 / c2_scale).
 
     Returns:
         label (H, W) float32 (NaN = rejected), confidence (H, W) float32 (0 = rejected), C1, C2 (H, W) float32
@@ -45,7 +46,7 @@ def naive_vote(
         raise ValueError(f"unknown label_mode {label_mode!r}")
     label = np.where(keep, value, np.nan).astype(np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
-        score = np.mean(c64, axis=0) * (1.0 - c1 / kappa1) * (1.0 - c2 / kappa2)
+        score = np.mean(c64, axis=0) * (1.0 - c1 / kappa1) * (1.0 - c2 / c2_scale)
     confidence = np.where(keep, np.clip(score, 0.0, 1.0), 0.0).astype(np.float32)
     return label, confidence, c1.astype(np.float32), c2.astype(np.float32)
 

@@ -33,7 +33,7 @@ class TestVote:
         factors = np.arange(1, k + 1) + np.r_[0.0, rng.uniform(-1, 1, k - 1)]
         cfg = LabelerConfig(k=k, kappa1=1.0, kappa2=0.06, label_mode=mode)
         got = vote(disp, conf, cfg, factors)
-        ref = naive_vote(disp, conf, 1.0, 0.06, mode, 1.0 / factors**2)
+        ref = naive_vote(disp, conf, 1.0, 0.06, mode, 1.0 / factors**2, c2_scale=cfg.c2_scale)
         for g, r in zip(got, ref, strict=True):
             np.testing.assert_allclose(g, r, rtol=RTOL, atol=ATOL, equal_nan=True)
         # The random stack must exercise both outcomes, or the comparison proves little.
@@ -44,10 +44,15 @@ class TestVote:
         # c = 0.75, 0.75, 0.5, 0.5 -> mean 0.625, std 0.125.
         disp = np.array([10, 11, 10, 11], np.float32).reshape(4, 1, 1)
         conf = np.array([0.75, 0.75, 0.5, 0.5], np.float32).reshape(4, 1, 1)
-        label, confidence, c1, c2 = vote(disp, conf, LabelerConfig(k=4, kappa1=1.0, kappa2=0.25, label_mode="finest"))
+        cfg = LabelerConfig(k=4, kappa1=1.0, kappa2=0.25, c2_scale=0.25, label_mode="finest")
+        label, confidence, c1, c2 = vote(disp, conf, cfg)
         assert c1[0, 0] == 0.5 and c2[0, 0] == 0.125
         assert label[0, 0] == 10.0
         assert confidence[0, 0] == 0.625 * 0.5 * 0.5
+        # The soft confidence divides C2 by c2_scale, the hard vote compares it with kappa2: two settings.
+        _, confidence, _, _ = vote(disp, conf, LabelerConfig(k=4, kappa1=1.0, kappa2=0.25, c2_scale=0.5,
+                                                             label_mode="finest"))
+        assert confidence[0, 0] == 0.625 * 0.5 * 0.75
         # C1 exactly at kappa1 votes against (V counts C1 >= kappa1).
         label, confidence, _, _ = vote(disp, conf, LabelerConfig(k=4, kappa1=0.5, kappa2=0.25, label_mode="finest"))
         assert np.isnan(label[0, 0]) and confidence[0, 0] == 0.0

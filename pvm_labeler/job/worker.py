@@ -21,6 +21,7 @@ from pvm_labeler.config import LabelerConfig
 from pvm_labeler.job.spec import DEFAULT_LABELER
 from pvm_labeler.parallel import peak_rss_mb, reset_peak_rss, thread_budget
 from pvm_labeler.shards import ShardRecord, ShardWriter
+from pvm_labeler.stages import count_stages
 
 logger = logging.getLogger(__name__)
 
@@ -85,6 +86,9 @@ def _record_for(ref: PairRef, cfg: LabelerConfig, labeler: Callable[..., Any]) -
     }
     if sample.max_disp is not None:
         attrs["dataset_max_disp"] = int(sample.max_disp)
+    gt = sample.gt_noc if sample.gt_noc is not None else sample.gt  # the evaluator's GT rule
+    if gt is not None and getattr(result, "stages", None) is not None:
+        attrs["stages"] = count_stages(*result.stages, gt)  # the vote table of `pvm-label report`
     record = ShardRecord(
         frame_id=ref.frame_id,
         left=sample.left,

@@ -15,7 +15,7 @@ LABEL_MEDIAN = 1  # median of D^k over the scales
 
 
 @njit(cache=True, fastmath=FASTMATH, parallel=True)
-def vote_kernel(disp, conf, kappa1, kappa2, label_mode, weights, out_label, out_conf, out_c1, out_c2):
+def vote_kernel(disp, conf, kappa1, kappa2, c2_scale, label_mode, weights, out_label, out_conf, out_c1, out_c2):
     """Variance voting over K full-resolution scale maps.
 
     A pixel is kept iff every scale is finite there (disparity and c) and V(p) = [C1 >= kappa1] + [C2 >= kappa2] = 0,
@@ -29,10 +29,12 @@ def vote_kernel(disp, conf, kappa1, kappa2, label_mode, weights, out_label, out_
         conf: (K, H, W) float32 normalized inverse cost c in [0, 1] at full resolution (NaN = invalid).
         kappa1: threshold on C1 in full-resolution pixels.
         kappa2: threshold on C2 (unitless).
+        c2_scale: normaliser of C2 in the soft confidence (kappa2 before the two were decoupled; see out_conf).
         label_mode: LABEL_WEIGHTED or LABEL_MEDIAN.
         weights: (K,) float64 non-negative scale weights for LABEL_WEIGHTED (sum > 0).
         out_label: (H, W) float32 output, voted disparity, NaN where rejected.
-        out_conf: (H, W) float32 output, mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / kappa2); 0 where rejected.
+        out_conf: (H, W) float32 output, mean_k c^k * (1 - C1 / kappa1) * (1 - C2 / c2_scale), clipped to
+            [0, 1]; 0 where rejected.
         out_c1: (H, W) float32 output, C1 (NaN where some scale is invalid).
         out_c2: (H, W) float32 output, C2 (NaN where some scale is invalid).
     """
@@ -84,7 +86,7 @@ def vote_kernel(disp, conf, kappa1, kappa2, label_mode, weights, out_label, out_
                 out_label[y, x] = _median(disp, y, x, scratch)
             else:
                 out_label[y, x] = comb[x] / wsum
-            score = mean_c[x] * (1.0 - c1 / kappa1) * (1.0 - c2 / kappa2)
+            score = mean_c[x] * (1.0 - c1 / kappa1) * (1.0 - c2 / c2_scale)
             out_conf[y, x] = min(max(score, 0.0), 1.0)
 
 
