@@ -121,7 +121,7 @@ def reliable_mask(
         mask = ~occlusion_mask(disp, cfg.occ_tolerance)
         if cfg.photo_threshold > 0:
             warped, inside = warp_right_to_left(right.float() / 255.0, disp)
-            err = photometric_error(left.float() / 255.0, warped)
+            err = photometric_error(left.float() / 255.0, warped, color_norm="mean")  # photo_threshold's scale
             mask = mask & inside & (err < cfg.photo_threshold)
     return mask
 

@@ -26,6 +26,7 @@ __all__ = [
 
 PHOTOMETRIC_ITERS = ("last", "all")
 SMOOTHNESS_NORMS = ("none", "mean")
+COLOR_NORMS = ("l1", "mean")
 SUPERVISIONS = ("pvm", "gt")
 SCHEDULES = ("constant", "onecycle")
 
@@ -35,6 +36,7 @@ FLAT_KEYS: dict[str, str] = {
     "model": "model.name", "iters": "model.iters",
     "gamma": "loss.gamma", "lambda_r": "loss.lambda_r", "lambda_s": "loss.lambda_s", "alpha": "loss.alpha",
     "photometric_iters": "loss.photometric_iters", "smoothness_norm": "loss.smoothness_norm",
+    "color_norm": "loss.color_norm",
     "conf_weight": "loss.conf_weight", "lambda_t": "loss.lambda_t", "analogy": "loss.analogy",
     "analogy_start": "loss.analogy_start", "analogy_every": "loss.analogy_every",
     "labels": "data.labels", "supervision": "data.supervision", "batch_size": "data.batch_size",
@@ -111,6 +113,9 @@ class LossConfig(_Section):
             every iteration with the same gamma weights as L_P.
         smoothness_norm: "none" follows the paper's eq. (on D itself); "mean" divides D by its per-image
             mean first (Monodepth2's scale-invariant variant).
+        color_norm: how colour channels combine in the L1 term of L_R and in L_S's edge weights: "l1" = the L1
+            norm over channels, as the paper's equations write it; "mean" = the channel mean (1/3 of it), which every
+            run before issue 15 used, the shipped model included (a checkpoint without this key resumes with it).
         conf_weight: weight L_P per pixel by the shards' PVM confidence (flip-swapped samples: weight 1).
         lambda_t: weight of the transformation self-supervision L_T ("learning by analogy", optstereo.analogy);
             0 = off (it costs a second forward/backward per step).
@@ -127,6 +132,7 @@ class LossConfig(_Section):
     alpha: float = 0.85
     photometric_iters: str = "last"
     smoothness_norm: str = "none"
+    color_norm: str = "l1"
     conf_weight: bool = False
     lambda_t: float = 0.0
     analogy_start: int = 0
@@ -144,6 +150,7 @@ class LossConfig(_Section):
              f"--photometric-iters must be one of {PHOTOMETRIC_ITERS}, got {self.photometric_iters!r}"),
             (self.smoothness_norm in SMOOTHNESS_NORMS,
              f"--smoothness-norm must be one of {SMOOTHNESS_NORMS}, got {self.smoothness_norm!r}"),
+            (self.color_norm in COLOR_NORMS, f"--color-norm must be one of {COLOR_NORMS}, got {self.color_norm!r}"),
             (self.lambda_t >= 0, f"--lambda-t must be >= 0, got {self.lambda_t}"),
             (self.analogy_start >= 0, f"--analogy-start must be >= 0, got {self.analogy_start}"),
             (self.analogy_every >= 1, f"--analogy-every must be >= 1, got {self.analogy_every}"),

@@ -18,7 +18,7 @@ from torch import nn
 from optstereo.config import LossConfig
 
 # the LossConfig fields this module reads; the others (conf_weight, lambda_t, analogy*) are the trainer's
-TERM_FIELDS = ("gamma", "lambda_r", "lambda_s", "alpha", "photometric_iters", "smoothness_norm")
+TERM_FIELDS = ("gamma", "lambda_r", "lambda_s", "alpha", "photometric_iters", "smoothness_norm", "color_norm")
 SSIM_C1 = 0.01**2  # SSIM stabilisers for images in [0, 1] (Wang et al. 2004; Monodepth)
 SSIM_C2 = 0.03**2
 
@@ -132,15 +132,29 @@ def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return num / den
 
 
-def photometric_error(left: torch.Tensor, warped: torch.Tensor, alpha: float = 0.85) -> torch.Tensor:
-    """alpha (1 - SSIM) / 2 + (1 - alpha) |I_l - I^_l|, channel-averaged: (B, 3, H, W) [0, 1] -> (B, 1, H, W)."""
-    dssim = ((1.0 - ssim(left, warped)) / 2.0).clamp(0.0, 1.0)
-    l1 = (left - warped).abs()
-    return (alpha * dssim + (1.0 - alpha) * l1).mean(dim=1, keepdim=True)
+def _combine_channels(x: torch.Tensor, color_norm: str) -> torch.Tensor:
+    """(B, C, H, W) non-negative -> (B, 1, H, W): the L1 norm over channels ("l1") or their mean ("mean")."""
+    if color_norm == "l1":
+        return x.sum(dim=1, keepdim=True)
+    if color_norm == "mean":
+        return x.mean(dim=1, keepdim=True)
+    raise ValueError(f"color_norm must be 'l1' or 'mean', got {color_norm!r}")
+
+
+def photometric_error(left: torch.Tensor, warped: torch.Tensor, alpha: float = 0.85,
+                      color_norm: str = "l1") -> torch.Tensor:
+    """alpha (1 - SSIM) / 2 + (1 - alpha) ||I_l - I^_l||: (B, 3, H, W) [0, 1] -> (B, 1, H, W).
+
+    SSIM is averaged over channels; the photometric difference is the L1 norm over channels (the paper's
+    equation) or, with ``color_norm="mean"``, its channel mean.
+    """
+    dssim = ((1.0 - ssim(left, warped)) / 2.0).clamp(0.0, 1.0).mean(dim=1, keepdim=True)
+    l1 = _combine_channels((left - warped).abs(), color_norm)
+    return alpha * dssim + (1.0 - alpha) * l1
 
 
 def reconstruction_loss(
-    left: torch.Tensor, right: torch.Tensor, disp: torch.Tensor, alpha: float = 0.85
+    left: torch.Tensor, right: torch.Tensor, disp: torch.Tensor, alpha: float = 0.85, color_norm: str = "l1"
 ) -> torch.Tensor:
     """L_R: photometric error between I_l and I_r warped by D, averaged over pixels warping inside I_r.
 
@@ -148,6 +162,7 @@ def reconstruction_loss(
         left, right: (B, 3, H, W) float in [0, 255].
         disp: (B, 1, H, W) float full-resolution disparity.
         alpha: SSIM weight (paper: 0.85).
+        color_norm: "l1" (the paper) or "mean", see :func:`photometric_error`.
 
     Returns:
         Scalar float32 tensor (0, still connected to the graph, if no pixel warps inside).
@@ -156,18 +171,20 @@ def reconstruction_loss(
         raise ValueError(f"left/right shapes differ: {tuple(left.shape)} vs {tuple(right.shape)}")
     with torch.autocast(device_type=left.device.type, enabled=False):
         warped, valid = warp_right_to_left(right.float() / 255.0, disp)
-        err = photometric_error(left.float() / 255.0, warped, alpha)
+        err = photometric_error(left.float() / 255.0, warped, alpha, color_norm)
         count = valid.sum().clamp(min=1)
         return torch.where(valid, err, torch.zeros((), device=err.device)).sum() / count
 
 
-def smoothness_loss(disp: torch.Tensor, image: torch.Tensor, normalize: str = "none") -> torch.Tensor:
-    """L_S, edge-aware smoothness: mean |dx D| exp(-|dx I_l|) + mean |dy D| exp(-|dy I_l|).
+def smoothness_loss(disp: torch.Tensor, image: torch.Tensor, normalize: str = "none",
+                    color_norm: str = "l1") -> torch.Tensor:
+    """L_S, edge-aware smoothness: mean |dx D| exp(-||dx I_l||) + mean |dy D| exp(-||dy I_l||).
 
     Args:
         disp: (B, 1, H, W) float disparity.
-        image: (B, 3, H, W) float in [0, 255]; gradients are taken on image / 255, averaged over channels.
+        image: (B, 3, H, W) float in [0, 255]; gradients are taken on image / 255.
         normalize: "none" = the paper's eq. on D itself; "mean" = D / mean(D) per image (Monodepth2).
+        color_norm: ||dI|| = the L1 norm over channels ("l1", the paper) or their mean ("mean").
 
     Returns:
         Scalar float32 tensor.
@@ -181,8 +198,8 @@ def smoothness_loss(disp: torch.Tensor, image: torch.Tensor, normalize: str = "n
         img = image.float() / 255.0
         dx_d = (d[..., :, 1:] - d[..., :, :-1]).abs()
         dy_d = (d[..., 1:, :] - d[..., :-1, :]).abs()
-        dx_i = (img[..., :, 1:] - img[..., :, :-1]).abs().mean(dim=1, keepdim=True)
-        dy_i = (img[..., 1:, :] - img[..., :-1, :]).abs().mean(dim=1, keepdim=True)
+        dx_i = _combine_channels((img[..., :, 1:] - img[..., :, :-1]).abs(), color_norm)
+        dy_i = _combine_channels((img[..., 1:, :] - img[..., :-1, :]).abs(), color_norm)
         return (dx_d * torch.exp(-dx_i)).mean() + (dy_d * torch.exp(-dy_i)).mean()
 
 
@@ -208,6 +225,7 @@ class PVStereoLoss(nn.Module):
         alpha: float = 0.85,
         photometric_iters: str = "last",
         smoothness_norm: str = "none",
+        color_norm: str = "l1",
     ) -> None:
         super().__init__()
         if lambda_r is None or lambda_s is None:
@@ -219,6 +237,7 @@ class PVStereoLoss(nn.Module):
             alpha=alpha,
             photometric_iters=photometric_iters,
             smoothness_norm=smoothness_norm,
+            color_norm=color_norm,
         )
 
     @classmethod
@@ -249,9 +268,9 @@ class PVStereoLoss(nn.Module):
         loss_s = torch.zeros((), device=label.device)
         for w, pred in zip(photo_weights, photo_preds, strict=True):
             if cfg.lambda_r > 0:
-                loss_r = loss_r + w * reconstruction_loss(left, right, pred, cfg.alpha)
+                loss_r = loss_r + w * reconstruction_loss(left, right, pred, cfg.alpha, cfg.color_norm)
             if cfg.lambda_s > 0:
-                loss_s = loss_s + w * smoothness_loss(pred, left, cfg.smoothness_norm)
+                loss_s = loss_s + w * smoothness_loss(pred, left, cfg.smoothness_norm, cfg.color_norm)
         total = loss_p + cfg.lambda_r * loss_r + cfg.lambda_s * loss_s
         terms = {
             "L_P": loss_p.detach(),

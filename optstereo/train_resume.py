@@ -101,4 +101,13 @@ def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) ->
     ckpt = load_checkpoint(run_dir)
     if not ckpt.train_config:
         raise ValueError(f"checkpoint {ckpt.path} holds no training config; cannot resume from it")
-    return TrainConfig.from_layers(ckpt.train_config, overrides, {"out": Path(run_dir)})
+    return TrainConfig.from_layers(legacy_loss(ckpt.train_config), overrides, {"out": Path(run_dir)})
+
+
+def legacy_loss(saved: dict[str, Any]) -> dict[str, Any]:
+    """A saved config without ``color_norm`` comes from a run before issue 15, which combined colour channels by
+    their mean: it resumes with that, not with today's default (the paper's L1 norm)."""
+    loss = saved.get("loss")
+    if isinstance(loss, dict):
+        return saved if "color_norm" in loss else {**saved, "loss": {**loss, "color_norm": "mean"}}
+    return saved if "color_norm" in saved else {**saved, "color_norm": "mean"}

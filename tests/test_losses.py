@@ -174,9 +174,27 @@ class TestSmoothness:
         disp = torch.tensor([[[[0.0, 1.0, 3.0], [0.0, 1.0, 3.0]]]])
         image = torch.zeros(1, 3, 2, 3)
         image[..., 2] = 255.0  # an intensity edge between columns 1 and 2
-        # dx D = 1, 2 per row; weights exp(0) = 1 and exp(-1); dy D = 0.
-        want = (1.0 + 2.0 * np.exp(-1.0)) / 2
+        # dx D = 1, 2 per row; dy D = 0. The edge is 1 in each of the 3 channels: the paper's L1 norm over
+        # channels gives weights exp(0) = 1 and exp(-3); the channel mean exp(-1).
+        want = (1.0 + 2.0 * np.exp(-3.0)) / 2
         assert abs(smoothness_loss(disp, image).item() - want) < 1e-6
+        want_mean = (1.0 + 2.0 * np.exp(-1.0)) / 2
+        assert abs(smoothness_loss(disp, image, color_norm="mean").item() - want_mean) < 1e-6
+
+    def test_photometric_l1_term_is_the_norm_over_channels(self) -> None:
+        left = torch.zeros(1, 3, 5, 5)
+        warped = left.clone()
+        warped[:, 0] += 0.3
+        warped[:, 2] += 0.1  # per-pixel differences 0.3, 0, 0.1: L1 norm 0.4, channel mean 0.4 / 3
+        from optstereo.losses import ssim
+
+        dssim = ((1.0 - ssim(left, warped)) / 2.0).clamp(0, 1).mean(dim=1, keepdim=True)
+        l1 = photometric_error(left, warped, alpha=0.85) - 0.85 * dssim
+        mean = photometric_error(left, warped, alpha=0.85, color_norm="mean") - 0.85 * dssim
+        torch.testing.assert_close(l1, torch.full_like(l1, 0.15 * 0.4))
+        torch.testing.assert_close(mean, torch.full_like(mean, 0.15 * 0.4 / 3))
+        with pytest.raises(ValueError, match="color_norm"):
+            photometric_error(left, warped, color_norm="max")
 
     def test_feature_mean_normalisation_is_scale_invariant(self) -> None:
         disp = torch.rand(1, 1, 6, 7) + 1

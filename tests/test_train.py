@@ -31,6 +31,7 @@ OLD_CPU_MAIN = {
     "photometric": True, "lr": 4.0e-4, "schedule": "onecycle", "pct_start": 0.05, "clip_grad": 1.0, "amp": "none",
     "device": "cpu", "workers": 1, "threads": 2, "shuffle_buffer": 32, "log_every": 10, "image_every": 0,
     "ckpt_every": 100, "keep_ckpts": 2, "tensorboard": False, "seed": 0,
+    "color_norm": "mean",  # pinned in the recipe since the default became the paper's L1 norm (issue 15)
 }
 RECIPES = sorted(Path(__file__).resolve().parents[1].glob("pipelines/recipes/*.yaml"))
 
@@ -283,6 +284,19 @@ class TestCli:
         assert TrainConfig.from_dict(printed) == TrainConfig.load(recipe, {"steps": 5, "out": tmp_path / "run",
                                                                            "alpha": 0.7, "photometric_iters": "all"},
                                                                   {"data": {"max_disp": 192}})
+
+    def test_color_norm_flag_and_runs_from_before_it_resume_with_the_channel_mean(self, tmp_path: Path) -> None:
+        from optstereo.train_resume import legacy_loss
+
+        result = CliRunner().invoke(train_main, ["--color-norm", "mean", "--print-config"])
+        assert result.exit_code == 0 and yaml.safe_load(result.output)["loss"]["color_norm"] == "mean"
+        assert TrainConfig().loss.color_norm == "l1"  # the paper's equations
+        flat = {"lr": 1e-4, "gamma": 0.8}  # a checkpoint's train_config from before sections and color_norm
+        assert TrainConfig.from_dict(legacy_loss(flat)).loss.color_norm == "mean"
+        nested = TrainConfig().to_dict()
+        del nested["loss"]["color_norm"]
+        assert TrainConfig.from_dict(legacy_loss(nested)).loss.color_norm == "mean"
+        assert legacy_loss(TrainConfig().to_dict())["loss"]["color_norm"] == "l1"  # a new run keeps its own
 
     def test_print_config_defaults_and_bad_key(self) -> None:
         result = CliRunner().invoke(train_main, ["--print-config"])
