@@ -25,6 +25,8 @@ import yaml
 from pvm_labeler.common.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
 from pvm_labeler.common.errors import ConfigError, PVMError
 from pvm_labeler.config import RECIPES, LabelerConfig, recipe_values
+from pvm_labeler.job.spec import DEFAULT_LABELER
+from pvm_labeler.packgt import PACK_GT_LABELER
 from pvm_labeler.parallel import BACKENDS
 from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
 
@@ -34,15 +36,18 @@ _DEFAULTS = LabelerConfig()
 _LABELER_FLAGS = {"k": "k", "kappa1": "kappa1", "kappa2": "kappa2", "max_disp": "max_disp",
                   "lr_threshold": "lr_threshold", "seed": "seed"}
 #: Job options that may come from --config YAML (same names as the flags, with underscores).
-_JOB_KEYS = ("recipe", "dataset", "root", "out", "split", "limit", "jobs", "backend", "scheduler", "shard_size",
-             "resume", "overwrite", "quiet", "compression", "numba_threads", "left", "right", "gt", "sceneflow_pass")
+_JOB_KEYS = ("recipe", "labels", "dataset", "root", "out", "split", "limit", "jobs", "backend", "scheduler",
+             "shard_size", "resume", "overwrite", "quiet", "compression", "numba_threads", "left", "right", "gt",
+             "sceneflow_pass")
 
 
 class _DefaultRunGroup(click.Group):
     """A group whose default command is ``run``, so ``pvm-label --dataset X`` works as the issue spells it."""
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        if not args or (args[0] not in self.commands and args[0] not in ("--help", "-h", "--version")):
+        if args and args[0] == "pack-gt":  # GT shards, no labeling pass: run with --labels none
+            args = ["run", "--labels", "none", *args[1:]]
+        elif not args or (args[0] not in self.commands and args[0] not in ("--help", "-h", "--version")):
             args = ["run", *args]
         return super().parse_args(ctx, args)
 
@@ -50,7 +55,8 @@ class _DefaultRunGroup(click.Group):
 @click.group(cls=_DefaultRunGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="pvstereo")
 def main() -> None:
-    """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`."""
+    """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`, `convert`;
+    `pack-gt` = `run --labels none` (images + GT in shards, no labeling pass, for --supervision gt)."""
 
 
 def _setup_logging(verbose: int) -> None:
@@ -106,6 +112,10 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
             options[key] = str(values[key])
     if values.get("sceneflow_pass") is not None:
         options["pass_"] = values["sceneflow_pass"]
+    label_fn = DEFAULT_LABELER
+    if values.get("labels") == "none":  # recorded in the config, so resume never mixes a GT pack with labels
+        label_fn = PACK_GT_LABELER
+        config = LabelerConfig.from_dict({**config.to_dict(), "extra": {**config.extra, "labels": "none"}})
     root = values.get("root")
     out = values.get("out") or Path("out/labels") / dataset
     return JobSpec(
@@ -125,6 +135,7 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
         quiet=values["quiet"],
         compression=values["compression"],
         numba_threads=values.get("numba_threads"),
+        label_fn=label_fn,
     )
 
 
@@ -141,6 +152,9 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
 @click.option("--recipe", type=click.Choice(sorted(RECIPES)), default="default", show_default=True,
               help="Starting point of the labeler config: 'paper' = the paper's PVM as written (finest-scale label, "
                    "binary votes on C1 and C2, LRDCC, nothing else); --config's labeler: and the flags override it.")
+@click.option("--labels", type=click.Choice(["pvm", "none"]), default="pvm", show_default=True,
+              help="none = no labeling pass: shards of images + GT only (every pair needs GT), for "
+                   "optstereo-train --supervision gt; `pvm-label pack-gt` is the same.")
 @click.option("--k", type=int, default=_DEFAULTS.k, show_default=True, help="Pyramid scales K (>= 2).")
 @click.option("--kappa1", type=float, default=_DEFAULTS.kappa1, show_default=True,
               help="Threshold on the std of disparity across scales, px (full resolution).")

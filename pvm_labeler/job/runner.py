@@ -11,6 +11,7 @@ from pvm_labeler.job.progress import PairProgress, progress_bar
 from pvm_labeler.job.spec import JobSpec, absolute_paths, preflight
 from pvm_labeler.job.summary import JobSummary, finish
 from pvm_labeler.job.worker import ShardOutcome, ShardTask, label_shard
+from pvm_labeler.packgt import PACK_GT_LABELER, require_gt
 from pvm_labeler.parallel import numba_threads_per_worker, run_tasks
 from pvm_labeler.shards import INDEX_NAME, TMP_SUFFIX, shard_name
 
@@ -38,6 +39,8 @@ def run(spec: JobSpec) -> JobSummary:
     refs = discover(spec.dataset, spec.root, spec.split, **spec.dataset_options)
     if spec.limit is not None:
         refs = refs[: spec.limit]
+    if spec.label_fn == PACK_GT_LABELER:
+        require_gt(refs)
     work = preflight(refs, spec.config)
     plan = plan_shards(refs, spec.shard_size)
     doc = job_doc(spec, plan)

@@ -1,0 +1,52 @@
+"""GT shards without a labeling pass: pvm-label pack-gt (= run --labels none) and training on them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from optstereo.data.stream import ShardStream
+from pvm_labeler.cli import main as pvm_main
+from pvm_labeler.common import io
+from pvm_labeler.shards import open_shard, read_index, read_sample
+
+
+def test_pack_gt_writes_images_and_gt_and_no_labels(tmp_path: Path) -> None:
+    out = tmp_path / "gt"
+    result = CliRunner().invoke(pvm_main, ["pack-gt", "--dataset", "sample", "--out", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    index = read_index(out)
+    assert index.config["extra"] == {"labels": "none"} and index.num_samples == 4
+    path, ids = index.shards[0]
+    with open_shard(path) as h5:
+        sample = read_sample(h5, ids[0])
+    assert sample.gt is not None and np.isfinite(sample.gt).any()
+    assert not np.isfinite(sample.label).any() and not np.isfinite(sample.label_right).any()
+    assert (sample.confidence == 0).all()
+    stream = ShardStream(out, supervision="gt", infinite=False, with_ids=True)
+    left, right, label, valid, frame_id = next(iter(stream))
+    assert valid.any() and label.shape[1:] == left.shape[1:]  # the GT reaches the trainer
+
+
+def test_pack_gt_needs_gt_for_every_pair_and_writes_nothing_otherwise(tmp_path: Path) -> None:
+    rig = tmp_path / "rig"
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        for side in ("left", "right"):
+            io.write_image(rig / side / f"{name}.png", rng.integers(0, 255, (48, 96, 3), dtype=np.uint8))
+    out = tmp_path / "gt"
+    result = CliRunner().invoke(pvm_main, ["pack-gt", "--dataset", "folder", "--root", str(rig), "--out", str(out),
+                                           "--quiet"])
+    assert result.exit_code != 0 and "2 of 2 pairs have none" in result.output and "a (" in result.output
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_gt_pack_is_never_resumed_as_labels(tmp_path: Path) -> None:
+    out = tmp_path / "d"
+    runner = CliRunner()
+    args = ["--dataset", "sample", "--out", str(out), "--quiet", "--limit", "1", "--k", "2"]
+    assert runner.invoke(pvm_main, ["pack-gt", *args]).exit_code == 0
+    again = runner.invoke(pvm_main, ["run", *args])  # a PVM run into the GT pack's directory
+    assert again.exit_code != 0 and "labels" in again.output
