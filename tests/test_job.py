@@ -145,6 +145,16 @@ class TestJobMechanics:
         summary = run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=new_kappa1), overwrite=True))
         assert summary.shards_written == 2 and read_index(out).config["kappa1"] == new_kappa1
 
+    def test_a_job_from_before_a_new_config_field_still_resumes(self, tmp_path: Path) -> None:
+        """job.json written before c2_scale existed: the field's default reproduces those labels, so no error."""
+        out = tmp_path / "a"
+        run(_spec(out))
+        doc = json.loads((out / "job.json").read_text())
+        del doc["config"]["c2_scale"]
+        (out / "job.json").write_text(json.dumps(doc))
+        summary = run(_spec(out))
+        assert summary.shards_written + summary.shards_resumed == 2 and verify(out) == []
+
     def test_other_compression_names_the_option(self, tmp_path: Path) -> None:
         # shards of an older default compression: the error says how to continue them, and that works
         out = tmp_path / "out"

@@ -17,6 +17,7 @@ import yaml
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.datasets import PairRef
 from pvm_labeler.common.errors import InputError, ShardError
+from pvm_labeler.config import LabelerConfig
 from pvm_labeler.job.spec import JobSpec
 from pvm_labeler.job.worker import ShardOutcome
 from pvm_labeler.shards import INDEX_NAME, TMP_SUFFIX, open_shard, shard_sample_ids, verify_shard
@@ -70,6 +71,9 @@ def _identity(doc: dict[str, Any]) -> dict[str, Any]:
     """
     identity = {k: v for k, v in doc.items() if k != "plan"}
     identity["dataset"] = {k: v for k, v in doc.get("dataset", {}).items() if k != "limit"}
+    if isinstance(doc.get("config"), dict):
+        # A field added since (e.g. c2_scale) takes its default, which reproduces the older labels exactly.
+        identity["config"] = {**LabelerConfig().to_dict(), **doc["config"]}
     return identity
 
 
