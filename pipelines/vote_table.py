@@ -24,7 +24,7 @@ def table(frames: list, cfg: LabelerConfig, cache_dir: Path | None) -> dict[str,
     """Pooled share (% of GT-valid pixels) and bad-3 (%) of every group of ``pvm_labeler.stages`` over ``frames``."""
     counts: dict[str, list[int]] = {}
     for frame in frames:
-        candidate, codes = label_from_scales(scale_stack(frame, cfg, cache_dir), cfg).stages
+        candidate, codes = label_from_scales(scale_stack(frame, cfg, cache_dir), cfg, with_stages=True).stages
         counts = add_counts(counts, count_stages(candidate, codes, frame.gt))
     return {"config": cfg.to_dict(), "frames": [f.frame_id for f in frames],
             "gt_valid_pixels": sum(n for n, _ in counts.values()), "rows": stage_rows(counts)}

@@ -290,8 +290,12 @@ def _upsample_into(values: np.ndarray, out: np.ndarray, interp: int, scale: floa
         np.multiply(out, np.float32(scale), out=out)
 
 
-def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediates: bool = False) -> LabelResult:
-    """Voting (both views) and LRDCC on precomputed scale maps; cheap, so kappa sweeps reuse one ScaleStack."""
+def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediates: bool = False,
+                      with_stages: bool = False) -> LabelResult:
+    """Voting (both views) and LRDCC on precomputed scale maps; cheap, so kappa sweeps reuse one ScaleStack.
+
+    ``with_stages`` also fills ``LabelResult.stages`` (one more vote pass: only worth it where GT will score it).
+    """
     cfg = _validated(cfg)
     if stack.disp_l.shape[0] != cfg.k:
         raise ConfigError(f"scale stack has {stack.disp_l.shape[0]} scales but cfg.k={cfg.k}")
@@ -311,10 +315,12 @@ def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediate
     t1 = time.perf_counter()
     label, label_right = lr_check(voted_l, voted_r, cfg.lr_threshold)
     confidence = np.where(np.isfinite(label), conf_l, np.float32(0.0)).astype(np.float32)
-    free = dataclasses.replace(cfg, kappa1=np.inf, kappa2=np.inf)  # the candidate: the vote with no rejection
-    candidate = vote(stack.disp_l, stack.conf_l, free, stack.factors)[0]
-    codes = stage_codes(candidate, c1_l, c2_l, conf_l, stack.full_res["range_l"], label, cfg.kappa1, cfg.kappa2,
-                        cfg.min_confidence, cfg.min_texture)
+    stages = None
+    if with_stages:
+        free = dataclasses.replace(cfg, kappa1=np.inf, kappa2=np.inf)  # the candidate: the vote with no rejection
+        candidate = vote(stack.disp_l, stack.conf_l, free, stack.factors)[0]
+        stages = (candidate, stage_codes(candidate, c1_l, c2_l, conf_l, stack.full_res["range_l"], label,
+                                         cfg.kappa1, cfg.kappa2, cfg.min_confidence, cfg.min_texture))
     t2 = time.perf_counter()
     timings = dict(stack.timings)
     timings.update(vote=t1 - t0, lrcheck=t2 - t1)
@@ -329,11 +335,12 @@ def label_from_scales(stack: ScaleStack, cfg: LabelerConfig, return_intermediate
             "voted": voted_l, "voted_right": voted_r,
         }
     return LabelResult(label=label, label_right=label_right, confidence=confidence, eps=stack.eps,
-                       factors=stack.factors, timings=timings, intermediates=intermediates, stages=(candidate, codes))
+                       factors=stack.factors, timings=timings, intermediates=intermediates, stages=stages)
 
 
 def label_pair(
-    left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str, return_intermediates: bool = False
+    left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, frame_id: str, return_intermediates: bool = False,
+    with_stages: bool = False,
 ) -> LabelResult:
     """PVM pseudo-label of one rectified stereo pair.
 
@@ -352,7 +359,7 @@ def label_pair(
     """
     t0 = time.perf_counter()
     stack = compute_scales(left, right, cfg, frame_id)
-    result = label_from_scales(stack, cfg, return_intermediates)
+    result = label_from_scales(stack, cfg, return_intermediates, with_stages)
     result.timings["total"] = time.perf_counter() - t0
     logger.debug("frame %s: %s", frame_id, {k: round(v, 4) for k, v in result.timings.items()})
     return result

@@ -44,7 +44,8 @@ def test_label_pair_reports_stages_consistent_with_its_label(rng: np.random.Gene
     from conftest import make_synthetic_pair
 
     left, right = make_synthetic_pair(rng, 64, 128, 5)
-    result = label_pair(left, right, LabelerConfig(k=3, max_disp=32), "f")
+    assert label_pair(left, right, LabelerConfig(k=3, max_disp=32), "f").stages is None  # off the hot path
+    result = label_pair(left, right, LabelerConfig(k=3, max_disp=32), "f", with_stages=True)
     candidate, codes = result.stages
     kept = codes == GROUPS.index("kept")
     np.testing.assert_array_equal(kept, np.isfinite(result.label))

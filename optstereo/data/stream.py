@@ -175,7 +175,9 @@ class ShardStream(IterableDataset):
     def count_unflippable(self) -> int:
         """Samples of this stream without a right-view label (``gt_right`` for "gt", ``label_right`` for "pvm"): the
         flip-swap can never apply to them. Reads group keys only (no arrays), closing the files again."""
-        key = "gt_right" if self.supervision == "gt" else "label_right"
+        if self.supervision == "pvm":
+            return 0  # label_right is a required array of the schema: every PVM sample can be flipped
+        key = "gt_right"
         missing = 0
         for path, ids in self.shards:
             with open_shard(path) as h5:

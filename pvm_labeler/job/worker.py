@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import inspect
 import json
 import logging
 import os
@@ -69,7 +70,10 @@ def _record_for(ref: PairRef, cfg: LabelerConfig, labeler: Callable[..., Any]) -
     """Load and label one pair; returns its shard record and its per-frame metrics (label fraction, seconds)."""
     sample = load_pair(ref)
     t0 = time.perf_counter()
-    result = labeler(sample.left, sample.right, cfg, ref.frame_id)
+    gt = sample.gt_noc if sample.gt_noc is not None else sample.gt  # the evaluator's GT rule
+    # The stage breakdown costs one more vote pass: only where GT will score it, and only for labelers that offer it.
+    extra = {"with_stages": True} if gt is not None and "with_stages" in inspect.signature(labeler).parameters else {}
+    result = labeler(sample.left, sample.right, cfg, ref.frame_id, **extra)
     seconds = time.perf_counter() - t0
     frame_metrics: dict[str, Any] = {
         "label_fraction": float(100.0 * np.isfinite(result.label).mean()),
@@ -86,7 +90,6 @@ def _record_for(ref: PairRef, cfg: LabelerConfig, labeler: Callable[..., Any]) -
     }
     if sample.max_disp is not None:
         attrs["dataset_max_disp"] = int(sample.max_disp)
-    gt = sample.gt_noc if sample.gt_noc is not None else sample.gt  # the evaluator's GT rule
     if gt is not None and getattr(result, "stages", None) is not None:
         attrs["stages"] = count_stages(*result.stages, gt)  # the vote table of `pvm-label report`
     record = ShardRecord(
