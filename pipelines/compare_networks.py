@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 from pathlib import Path
 from typing import Any
 
@@ -30,17 +28,12 @@ SETS = ("kitti15", "kitti12", "middlebury")
 def frame_ms(model: torch.nn.Module, repeats: int = 3) -> float:
     """Median ms of one test-mode forward at KITTI size (376x1248, the padded 375x1242), 2 threads."""
     from optstereo.inference import infer
+    from pipelines.bench_export import _medians
 
     rng = np.random.default_rng(0)
     left = rng.integers(0, 255, (375, 1242, 3), dtype=np.uint8)
     right = np.roll(left, -4, axis=1)
-    infer(model, left, right)  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        infer(model, left, right)
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * statistics.median(times)
+    return 1000.0 * _medians({"infer": lambda: infer(model, left, right)}, repeats)["infer"]
 
 
 def evaluate_run(run_dir: Path) -> dict[str, Any]:
