@@ -51,6 +51,9 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     """
     if fmt not in FORMATS:
         raise ValueError(f"export format must be one of {FORMATS}, got {fmt!r}")
+    reason = getattr(model, "not_exportable", None)
+    if reason:
+        raise ValueError(f"{type(model).__name__} cannot be exported: {reason}")
     model = model.cpu().eval()
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):

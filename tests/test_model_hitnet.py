@@ -16,7 +16,7 @@ from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fix
 
 from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, save_checkpoint
-from optstereo.cli import eval_main, predict_main, train_main
+from optstereo.cli import eval_main, export_main, predict_main, train_main
 from optstereo.inference import infer
 from optstereo.models import HITNet, build_from_config, build_model, list_models
 from optstereo.models.tiles import (
@@ -239,6 +239,23 @@ class TestCli:
                                                  "--limit", "1", "--out", str(tmp_path / "eval"), "--device", "cpu"])
             assert res.exit_code == 0, res.output
             assert "EPE" in res.output
+
+    def test_init_from_hitnet_and_export_refused(self, tmp_path: Path) -> None:
+        """--init takes the architecture from a HITNet checkpoint; optstereo-export refuses it with the reason."""
+        torch.manual_seed(0)
+        source = save_checkpoint(tmp_path / "hitnet.pt", model=build_model("hitnet", **TINY), step=5)
+        shards = make_shards(tmp_path / "shards", n=2, shard_size=2, height=32, width=72)
+        (tmp_path / "run.yaml").write_text("tensorboard: false\nimage_every: 0\n")
+        res = CliRunner().invoke(train_main, ["--labels", str(shards), "--out", str(tmp_path / "run"), "--init",
+                                              str(source), "--steps", "1", "--batch-size", "2", "--crop", "32x64",
+                                              "--workers", "0", "--config", str(tmp_path / "run.yaml"), "--quiet"])
+        assert res.exit_code == 0, res.output
+        model = load_model(tmp_path / "run")
+        assert isinstance(model, HITNet) and model.config.max_disp == 32
+        res = CliRunner().invoke(export_main, ["--checkpoint", str(tmp_path / "run"), "--out",
+                                               str(tmp_path / "h.onnx"), "--quiet"])
+        assert res.exit_code == 1 and "HITNet cannot be exported" in res.output, res.output
+        assert not (tmp_path / "h.onnx").exists()
 
 
 def _overfit(steps: int, disp: int = 7, lr: float = 2e-3) -> tuple[float, float]:

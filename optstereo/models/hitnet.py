@@ -178,6 +178,10 @@ class HITNet(nn.Module):
     """
 
     divisor: ClassVar[int] = TILE * FINEST_STRIDE  # what optstereo.padding.divisor_of reads
+    #: Why optstereo.export refuses this network: a traced graph would only be valid at the example's size.
+    not_exportable: ClassVar[str] = (
+        "HITNet's per-level cost volume clips its disparity range to the level's width (tiles.cost_volume), a Python "
+        "branch on the image size that tracing bakes in; export OptStereo, or run HITNet in torch")
 
     def __init__(self, *, features: UNetFeatures, inits: nn.ModuleList, steps: nn.ModuleList,
                  refine: PropagationStep, radius: int, iters: int = 2, config: ModelConfig | None = None) -> None:
