@@ -4,7 +4,8 @@ GT set of ../shared/data against dense SGM, export the weights.
     python -m pipelines.train_pretrained label       PVM labels of kitti_unlabelled (never a GT frame)
     python -m pipelines.train_pretrained train       the main run (pipelines/recipes/cpu_main.yaml), resumable
     python -m pipelines.train_pretrained branch      the ablation arms from the main run's checkpoint at analogy_start
-    python -m pipelines.train_pretrained finish      the arm without L_T continued to the full schedule (shipped)
+    python -m pipelines.train_pretrained finish      the arm without L_T continued to the full schedule (version 1)
+    python -m pipelines.train_pretrained continue    version 1 continued: --init, confidence-weighted L_P (CONTINUE)
     python -m pipelines.train_pretrained baselines   dense SGM (the labeler's matcher, holes filled along rows)
     python -m pipelines.train_pretrained eval RUN    a run (or 'pretrained') on every GT set -> results/pretrained/
     python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/ (this session:
@@ -33,7 +34,8 @@ import numpy as np
 
 BIN = Path(sys.executable).parent
 SHARED = Path("../shared/data")
-LABELS = Path("out/labels/kitti_unlabelled")
+LABELS = Path("out/labels/kitti_unlabelled")  # kappa2 = 0.6: the default when version 1 was trained
+LABELS_K03 = Path("out/labels/kitti_unlabelled_k03")  # today's defaults (kappa2 = 0.3 votes, docs/pvm.md)
 RUNS = Path("out/pretrained")
 RESULTS = Path("results/pretrained")
 RECIPE = Path("pipelines/recipes/cpu_main.yaml")
@@ -51,6 +53,13 @@ EVAL_SETS: tuple[tuple[str, str, str, int | None], ...] = (
 #: steps on the same schedule and data order; the main run's own checkpoint at the same step is the "with L_T" row.
 #: (A third arm, confidence-weighted L_P, was started too and stopped for lack of CPU time: four runs on 2 cores.)
 ARM_STEPS = 200
+#: Continuations, each a weights-only ``--init`` of the previous run with a new OneCycle schedule, the recipe's loss
+#: without L_T and with confidence-weighted L_P (RESULTS.md: better on every GT set at equal steps): (run, init run,
+#: labels, flags). Version 1 (1200 steps) was arm_no_lt; finetune_conf and long_conf followed (version 2 = long_conf).
+CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
+    ("finetune_conf", "arm_no_lt", LABELS, ["--steps", "550", "--lr", "1e-4", "--seed", "2"]),
+    ("long_conf", "finetune_conf", LABELS_K03, ["--steps", "1500", "--lr", "1e-4", "--seed", "3"]),
+)
 ARMS: dict[str, list[str]] = {
     "arm_no_lt": ["--lambda-t", "0"],
     "arm_lp_only": ["--lambda-t", "0", "--lambda-r", "0", "--lambda-s", "0"],
@@ -76,8 +85,9 @@ def _machine() -> dict[str, Any]:
 
 # -- steps ---------------------------------------------------------------------------------------------------------
 def step_label() -> None:
-    _run([BIN / "pvm-label", "run", "--dataset", "kitti_unlabelled", "--root", SHARED / "kitti_unlabelled",
-          "--out", LABELS, "--jobs", "2", "--quiet"])
+    for out, flags in ((LABELS, ["--kappa2", "0.6"]), (LABELS_K03, [])):
+        _run([BIN / "pvm-label", "run", "--dataset", "kitti_unlabelled", "--root", SHARED / "kitti_unlabelled",
+              "--out", out, "--jobs", "2", "--quiet", *flags])
 
 
 def train_command(run: str = "main") -> list[str]:
@@ -124,6 +134,25 @@ def step_finish() -> None:
     rd = RUNS / "arm_no_lt"
     shutil.copyfile(rd / f"ckpt-{cfg.loss.analogy_start + ARM_STEPS:07d}.pt", rd / "last.pt")
     _run([BIN / "optstereo-train", "--resume", rd, "--steps", str(cfg.optim.steps), "--threads", "2", "--quiet"])
+
+
+def continue_commands() -> dict[str, list[str]]:
+    """The command of each CONTINUE run: --init the previous run's exported weights, or --resume an interrupted one."""
+    cmds = {}
+    for run, init, labels, flags in CONTINUE:
+        if (RUNS / run / "last.pt").exists():
+            cmds[run] = [BIN / "optstereo-train", "--resume", RUNS / run, "--quiet"]
+        else:
+            cmds[run] = [BIN / "optstereo-train", "--config", RECIPE, "--init", RUNS / init / "model.safetensors",
+                         "--lambda-t", "0", "--conf-weight", "--labels", labels, "--out", RUNS / run, *flags, "--quiet"]
+    return cmds
+
+
+def step_continue() -> None:
+    """Run the CONTINUE stages in order, skipping finished ones (a summary.json) and resuming interrupted ones."""
+    for run, cmd in continue_commands().items():
+        if not (RUNS / run / "summary.json").exists():
+            _run(cmd)
 
 
 def step_baselines() -> dict[str, Any]:
@@ -232,7 +261,8 @@ def step_report() -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("step", choices=("label", "train", "branch", "finish", "baselines", "eval", "ship", "report"))
+    parser.add_argument("step", choices=("label", "train", "branch", "finish", "continue", "baselines", "eval", "ship",
+                                             "report"))
     parser.add_argument("run", nargs="?", default="arm_no_lt")
     parser.add_argument("--name", help="result name for eval (default: the run's name)")
     parser.add_argument("--iters", type=int, default=TEST_ITERS)
@@ -245,6 +275,8 @@ def main(argv: list[str] | None = None) -> None:
         step_branch()
     elif args.step == "finish":
         step_finish()
+    elif args.step == "continue":
+        step_continue()
     elif args.step == "baselines":
         step_baselines()
     elif args.step == "eval":

@@ -1,5 +1,6 @@
 """Report plumbing of pipelines/: a partial `make bench` keeps the other sections; the training-studies report
-reads runs whose (git-ignored) run dirs are gone from their committed JSONs."""
+reads runs whose (git-ignored) run dirs are gone from their committed JSONs; the shipped model's continuation
+stages chain, skip and resume."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from pipelines import bench
+from pipelines import train_pretrained as tp
 from pipelines import train_studies as ts
 from pipelines import train_studies_report as tsr
 
@@ -62,3 +64,21 @@ def test_feature_claim_uses_longest_evaluated_self_supervised_run() -> None:
     text = tsr.claim_text({"ms_d4_onecycle": {"bad3": 10.4}},
                          {"sgm_dense_nan_filled": {"bad3": 10.3}, "sgm_dense_nan_as_error": {"bad3": 10.56}})
     assert "**not met**" in text
+
+
+def test_continue_stages_chain_skip_and_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each CONTINUE run --inits the previous run's exported weights; a finished run is skipped, a cut one resumed."""
+    monkeypatch.setattr(tp, "RUNS", tmp_path)
+    ran: list[list[str]] = []
+    monkeypatch.setattr(tp, "_run", lambda cmd: ran.append([str(c) for c in cmd]))
+    first, second = tp.CONTINUE[0][0], tp.CONTINUE[1][0]
+    cmds = {run: [str(c) for c in cmd] for run, cmd in tp.continue_commands().items()}
+    init = cmds[second][cmds[second].index("--init") + 1]
+    assert init == str(tmp_path / first / "model.safetensors") and "--conf-weight" in cmds[second]
+    assert cmds[first][cmds[first].index("--init") + 1] == str(tmp_path / tp.CONTINUE[0][1] / "model.safetensors")
+    (tmp_path / first).mkdir()
+    (tmp_path / first / "summary.json").write_text("{}")
+    (tmp_path / second).mkdir()
+    (tmp_path / second / "last.pt").write_bytes(b"")
+    tp.step_continue()
+    assert ran == [[str(tp.BIN / "optstereo-train"), "--resume", str(tmp_path / second), "--quiet"]]
