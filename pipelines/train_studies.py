@@ -407,10 +407,13 @@ def step_report() -> None:
     for name, data in runs.items():
         if data.pop("live"):
             (RESULTS / f"{name}.json").write_text(json.dumps(data, indent=2, default=str))
+    # A baseline whose (git-ignored) eval dir is gone keeps its committed figures instead of becoming null.
+    committed_path = RESULTS / "baselines.json"
+    committed = json.loads(committed_path.read_text()) if committed_path.exists() else {}
     baselines = {}
     for key in ("pvm_labels", "sgm_dense_nan_filled", "sgm_dense_nan_as_error", "sgm_dense_valid_only"):
         path = eval_dir(key) / "summary.json"
-        baselines[key] = json.loads(path.read_text()) if path.exists() else None
+        baselines[key] = json.loads(path.read_text()) if path.exists() else committed.get(key)
     if baselines["sgm_dense_nan_as_error"] is not None:
         baselines["sgm_dense_nan_as_error"]["epe"] = None  # NaN pixels were set to -1e4 px: EPE is meaningless
     baselines["commands"] = {"pvm_labels": _rel(_show(labels_eval_command())),
@@ -420,7 +423,10 @@ def step_report() -> None:
     # plot drawn when they were live and draw the others beside it.
     complete = all(d.get("curve") for d in runs.values())
     plot_curves(runs, RESULTS / ("loss_curves.png" if complete else "loss_curves_new.png"))
-    plot_overview(RESULTS / "overview.png")
+    if (LABELS / "index.json").exists():
+        plot_overview(RESULTS / "overview.png")
+    else:  # the committed figure stays; redrawing it needs the labels and the runs' checkpoints
+        print(f"overview.png kept: no labels at {LABELS} (python -m pipelines.train_studies label)", flush=True)
     from pipelines.train_studies_report import render_markdown
 
     (Path("results") / "training.md").write_text(render_markdown(runs, baselines))

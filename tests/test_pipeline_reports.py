@@ -82,3 +82,24 @@ def test_continue_stages_chain_skip_and_resume(tmp_path: Path, monkeypatch: pyte
     (tmp_path / second / "last.pt").write_bytes(b"")
     tp.step_continue()
     assert ran == [[str(tp.BIN / "optstereo-train"), "--resume", str(tmp_path / second), "--quiet"]]
+
+
+def test_studies_report_keeps_committed_baselines(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A baseline whose eval dir is gone keeps its committed figures; the overview is kept without labels."""
+    monkeypatch.chdir(tmp_path)
+    results = tmp_path / "results" / "training"
+    results.mkdir(parents=True)
+    committed = {"pvm_labels": {"bad3": 1.02}, "sgm_dense_nan_filled": {"bad3": 10.3},
+                 "sgm_dense_nan_as_error": {"bad3": 12.0, "epe": None}, "sgm_dense_valid_only": None}
+    (results / "baselines.json").write_text(json.dumps(committed))
+    (results / "overview.png").write_bytes(b"committed figure")
+    monkeypatch.setattr(ts, "RESULTS", results)
+    monkeypatch.setattr(ts, "LABELS", tmp_path / "no_labels")
+    monkeypatch.setattr(ts, "load_runs", lambda: {})
+    monkeypatch.setattr(ts, "eval_dir", lambda key: tmp_path / "gone" / key)
+    monkeypatch.setattr(ts, "plot_curves", lambda runs, path: None)
+    monkeypatch.setattr(tsr, "render_markdown", lambda runs, baselines: json.dumps(baselines))
+    ts.step_report()
+    written = json.loads((results / "baselines.json").read_text())
+    assert {k: written[k] for k in committed} == committed
+    assert (results / "overview.png").read_bytes() == b"committed figure"
