@@ -60,6 +60,12 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("finetune_conf", "arm_no_lt", LABELS, ["--steps", "550", "--lr", "1e-4", "--seed", "2"]),
     ("long_conf", "finetune_conf", LABELS_K03, ["--steps", "1500", "--lr", "1e-4", "--seed", "3"]),
 )
+#: The report's lineage table: result name -> what that model is (``shipped`` is the file in optstereo/weights/).
+LINEAGE: tuple[tuple[str, str], ...] = (
+    ("shipped_v1", "version 1: the recipe without L_T, 1200 steps from scratch"),
+    ("finetune_conf", "+ 550 steps, confidence-weighted L_P, OneCycle peak 1e-4"),
+    ("shipped", "+ 1500 steps, confidence-weighted L_P, today's labels (kappa2 0.3): version 2, shipped"),
+)
 ARMS: dict[str, list[str]] = {
     "arm_no_lt": ["--lambda-t", "0"],
     "arm_lp_only": ["--lambda-t", "0", "--lambda-r", "0", "--lambda-s", "0"],
@@ -253,6 +259,14 @@ def step_report() -> str:
             d = docs[name]
             lines.append(f"| {what} (`{name}`) | {_cells(d['kitti15']['summary'])} | "
                          f"{d['kitti12']['summary']['bad3']:.2f} | {d['middlebury']['summary']['bad3']:.2f} |")
+    lines += ["", "| shipped model's lineage (each row continues the one above) | KITTI 2015 bad-3 % | D1-all % | AEPE px | "
+              "KITTI 2012 bad-3 % | Middlebury bad-3 % | FlyingThings3D bad-3 % |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, what in LINEAGE:
+        if name in docs:
+            d = docs[name]
+            lines.append(f"| {what} (`{name}`) | {_cells(d['kitti15']['summary'])} | "
+                         f"{d['kitti12']['summary']['bad3']:.2f} | {d['middlebury']['summary']['bad3']:.2f} | "
+                         f"{d['sceneflow']['summary']['bad3']:.2f} |")
     text = "\n".join(lines) + "\n"
     (RESULTS / "report.md").write_text(text)
     print(text)
