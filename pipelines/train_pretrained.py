@@ -8,9 +8,10 @@ GT set of ../shared/data against dense SGM, export the weights.
     python -m pipelines.train_pretrained continue    version 1 continued: --init, confidence-weighted L_P (CONTINUE)
     python -m pipelines.train_pretrained baselines   dense SGM (the labeler's matcher, holes filled along rows)
     python -m pipelines.train_pretrained eval RUN    a run (or 'pretrained') on every GT set -> results/pretrained/
-    python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/ (this session:
+    python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/ (version 1:
                                                       arm_no_lt: in the ablation L_T cost 1.5 points of KITTI 2015
-                                                      bad-3, so the shipped model is the recipe without it)
+                                                      bad-3, so the shipped model is the recipe without it;
+                                                      version 3: long_conf3, the last CONTINUE run)
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
 Every number goes to ``results/pretrained/<name>.json`` (committed) with the command, commit, CPU and seconds, so
@@ -55,16 +56,19 @@ EVAL_SETS: tuple[tuple[str, str, str, int | None], ...] = (
 ARM_STEPS = 200
 #: Continuations, each a weights-only ``--init`` of the previous run with a new OneCycle schedule, the recipe's loss
 #: without L_T and with confidence-weighted L_P (RESULTS.md: better on every GT set at equal steps): (run, init run,
-#: labels, flags). Version 1 (1200 steps) was arm_no_lt; finetune_conf and long_conf followed (version 2 = long_conf).
+#: labels, flags). Version 1 (1200 steps) was arm_no_lt; finetune_conf and long_conf followed (version 2 = long_conf),
+#: then long_conf3 (version 3). long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped.
 CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("finetune_conf", "arm_no_lt", LABELS, ["--steps", "550", "--lr", "1e-4", "--seed", "2"]),
     ("long_conf", "finetune_conf", LABELS_K03, ["--steps", "1500", "--lr", "1e-4", "--seed", "3"]),
+    ("long_conf3", "long_conf", LABELS_K03, ["--steps", "1800", "--lr", "1e-4", "--seed", "5"]),
 )
 #: The report's lineage table: result name -> what that model is (``shipped`` is the file in optstereo/weights/).
 LINEAGE: tuple[tuple[str, str], ...] = (
     ("shipped_v1", "version 1: the recipe without L_T, 1200 steps from scratch"),
     ("finetune_conf", "+ 550 steps, confidence-weighted L_P, OneCycle peak 1e-4"),
-    ("shipped", "+ 1500 steps, confidence-weighted L_P, today's labels (kappa2 0.3): version 2, shipped"),
+    ("long_conf", "+ 1500 steps, confidence-weighted L_P, today's labels (kappa2 0.3): version 2"),
+    ("shipped", "+ 1800 steps, the same loss, labels and peak: version 3, shipped"),
 )
 ARMS: dict[str, list[str]] = {
     "arm_no_lt": ["--lambda-t", "0"],

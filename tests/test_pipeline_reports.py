@@ -81,7 +81,12 @@ def test_continue_stages_chain_skip_and_resume(tmp_path: Path, monkeypatch: pyte
     (tmp_path / second).mkdir()
     (tmp_path / second / "last.pt").write_bytes(b"")
     tp.step_continue()
-    assert ran == [[str(tp.BIN / "optstereo-train"), "--resume", str(tmp_path / second), "--quiet"]]
+    assert ran[0] == [str(tp.BIN / "optstereo-train"), "--resume", str(tmp_path / second), "--quiet"]
+    # every later stage starts fresh from the stage before it, in order
+    later = [run for run, *_ in tp.CONTINUE[2:]]
+    assert [cmd[cmd.index("--out") + 1] for cmd in ran[1:]] == [str(tmp_path / run) for run in later]
+    assert [cmd[cmd.index("--init") + 1] for cmd in ran[1:]] == [
+        str(tmp_path / init / "model.safetensors") for _, init, *_ in tp.CONTINUE[2:]]
 
 
 def test_studies_report_keeps_committed_baselines(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
