@@ -263,8 +263,9 @@ def step_report() -> str:
             d = docs[name]
             lines.append(f"| {what} (`{name}`) | {_cells(d['kitti15']['summary'])} | "
                          f"{d['kitti12']['summary']['bad3']:.2f} | {d['middlebury']['summary']['bad3']:.2f} |")
-    lines += ["", "| shipped model's lineage (each row continues the one above) | KITTI 2015 bad-3 % | D1-all % | AEPE px | "
-              "KITTI 2012 bad-3 % | Middlebury bad-3 % | FlyingThings3D bad-3 % |", "|---|---:|---:|---:|---:|---:|---:|"]
+    lines += ["", "| shipped model's lineage (each row continues the one above) | KITTI 2015 bad-3 % | D1-all % | "
+              "AEPE px | KITTI 2012 bad-3 % | Middlebury bad-3 % | FlyingThings3D bad-3 % |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
     for name, what in LINEAGE:
         if name in docs:
             d = docs[name]
