@@ -13,8 +13,9 @@ over pixels per dataset:
   over its threshold (``pipelines.baselines``).
 * bad-3 of each curve interpolated at matched densities 30 / 50 / 70 %.
 
-Writes ``results/pvm_ablation.{json,md}``, ``results/pvm_ablation_<dataset>.png`` and assembles ``RESULTS.md``
-from that and ``results/training.md`` (studies 2-3, written by ``python -m pipelines.train_studies report``).
+Writes ``results/pvm_ablation.{json,md}``, ``results/pvm_ablation_<dataset>.png`` and rebuilds the generated blocks
+of ``RESULTS.md`` from that and ``results/training.md`` (studies 2-3, written by ``python -m pipelines.train_studies
+report``); the sections written by hand around them are kept.
 
 Usage: ``.venv/bin/python -m pipelines.results --shared ../shared/data --out results`` (about 5 min on 2 cores).
 """
@@ -33,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from pipelines.baselines import MATCHED_DENSITIES, CurvePoint, bad3_at_density, evaluate, score_curve
+from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import InputError
 from pvm_labeler.config import LabelerConfig
@@ -307,16 +309,35 @@ re-evaluated with `optstereo-eval`.
 """
 
 
+#: Generated blocks of RESULTS.md, each between a begin and an end marker; everything outside them (the sections
+#: written by hand about the shipped model, issue 15, ...) is kept as it is when the blocks are rebuilt.
+BEGIN = "<!-- generated: {} (pipelines/results.py rebuilds it; edits inside are overwritten) -->"
+END = "<!-- end generated: {} -->"
+
+
+def replace_block(text: str, name: str, body: str) -> str:
+    """``text`` with the block ``name`` set to ``body`` (appended at the end when the file has no such block yet)."""
+    begin, end = BEGIN.format(name), END.format(name)
+    block = f"{begin}\n{body.rstrip()}\n{end}\n"
+    i = text.find(begin)
+    if i < 0:
+        return text.rstrip("\n") + "\n\n" + block
+    j = text.find(end, i)
+    if j < 0:
+        raise ValueError(f"RESULTS.md: block {name!r} has no end marker {end!r}; fix the file by hand")
+    return text[:i] + block + text[j + len(end):].removeprefix("\n")
+
+
 def assemble(out: Path, study1: str) -> Path:
-    """RESULTS.md = header + study 1 + results/training.md (studies 2-3) if present."""
-    training = out / "training.md"
-    parts = [HEADER, study1]
-    if training.is_file():
-        parts.append(training.read_text())
-    else:
-        parts.append("## Studies 2-3\n\nNot yet produced: run `.venv/bin/python -m pipelines.train_studies all`.\n")
+    """Rebuild RESULTS.md's generated blocks: study 1 and results/training.md (studies 2-3); keep the rest."""
     path = out.parent / "RESULTS.md" if out.name == "results" else out / "RESULTS.md"
-    path.write_text("\n".join(parts))
+    text = path.read_text() if path.is_file() else HEADER
+    training = out / "training.md"
+    text = replace_block(text, "study 1", study1)
+    text = replace_block(text, "studies 2-3", training.read_text() if training.is_file() else
+                         "## Studies 2-3\n\nNot yet produced: run `.venv/bin/python -m pipelines.train_studies all`.\n")
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
     return path
 
 

@@ -79,7 +79,7 @@ def render_markdown(runs: dict[str, dict], base: dict) -> str:
         label_cmd=label_cmd, epochs=STEPS * 2 / 15, params=size["params"] / 1e6, gflop=size["train_gflop"],
         sgm_missing=100.0 - sgm_valid.get("density", math.nan),
         table1_text=table1_text(ev), claim_text=claim_text(ev, base), ablation_text=ablation_text(ev),
-        budget_text=budget_text(ev, base), onecycle_steps=ONECYCLE_STEPS,
+        budget_text=budget_text(ev, base, runs), onecycle_steps=ONECYCLE_STEPS,
         new_curves=("\nRuns of this session (the runs above were drawn when their logs were at hand):\n\n"
                     "![loss curves, new runs](results/training/loss_curves_new.png)\n"
                     if (RESULTS / "loss_curves_new.png").exists() else ""))
@@ -152,13 +152,19 @@ def ablation_text(ev: dict) -> str:
             "differences of a few points at this budget are within what a second seed could change (not measured).")
 
 
-def _trend(name: str) -> str:
+def _label_epes(name: str, runs: dict[str, dict]) -> list[float]:
+    """A run's training-label EPE records (every 10 steps): its live log, else the curve in its committed JSON."""
+    recs = [r["label_epe"] for r in _records(BY_NAME[name]) if "label_epe" in r]
+    return recs or [epe for _step, _lp, epe in runs.get(name, {}).get("curve") or []]
+
+
+def _trend(name: str, runs: dict[str, dict]) -> str:
     """How a run's training-label EPE moved over its last 100 steps (is it still falling?)."""
-    recs = _records(BY_NAME[name])
-    if len(recs) < 20:
+    epes = _label_epes(name, runs)
+    if len(epes) < 20:
         return ""
-    end = float(np.mean([r["label_epe"] for r in recs[-5:]]))
-    before = float(np.mean([r["label_epe"] for r in recs[-15:-10]]))
+    end = float(np.mean(epes[-5:]))
+    before = float(np.mean(epes[-15:-10]))
     return (f"The `{name}` run's EPE against its training labels went from {before:.2f} px (mean of the records "
             f"100 steps before the end) to {end:.2f} px (last 50 steps): "
             + ("still falling, i.e. the runs stop far from convergence." if end < 0.95 * before
@@ -166,7 +172,7 @@ def _trend(name: str) -> str:
                                     if "onecycle" in BY_NAME[name].extra else " at this learning rate.")))
 
 
-def budget_text(ev: dict, base: dict) -> str:
+def budget_text(ev: dict, base: dict, runs: dict[str, dict]) -> str:
     net_name, gt_name, steps = claim_pair(ev)
     net = _get(ev.get(net_name), "bad3")
     sgm = _get(base.get("sgm_dense_nan_filled"), "bad3")
@@ -178,7 +184,7 @@ def budget_text(ev: dict, base: dict) -> str:
         f"continued claim runs {LONG_STEPS * 2} ({LONG_STEPS} steps), the OneCycle claim run {ONECYCLE_STEPS * 2} "
         f"({ONECYCLE_STEPS} steps), with a network of reduced width.",
         f"The PVM labels themselves are clean (bad-3 {lab:.2f} % on the {lab_d:.1f} % of GT-valid pixels they "
-        f"cover), so the teacher signal is not the limit. {_trend(net_name)}",
+        f"cover), so the teacher signal is not the limit. {_trend(net_name, runs)}",
     ]
     if not math.isnan(net) and not math.isnan(sgm) and net >= sgm:
         parts.append(

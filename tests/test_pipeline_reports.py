@@ -55,6 +55,16 @@ def test_feature_studies_report_falls_back_to_committed_json(tmp_path: Path, mon
     assert (tmp_path / "curves.png").stat().st_size > 1000
 
 
+def test_studies_trend_from_committed_curve(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # With the run dir gone the label-EPE trend is read from the JSON's curve (step, L_P, label EPE), so a rebuilt
+    # results/training.md keeps the sentence. Hand-computed: records 0.70 before, 0.60 at the end -> still falling.
+    monkeypatch.setattr(ts, "OUT", tmp_path / "out")
+    curve = [[10 * (i + 1), 1.0, 0.70] for i in range(15)] + [[160 + 10 * i, 1.0, 0.60] for i in range(5)]
+    text = tsr._trend("ms_d4_onecycle", {"ms_d4_onecycle": {"curve": curve}})
+    assert "from 0.70 px" in text and "to 0.60 px" in text and "still falling" in text
+    assert tsr._trend("ms_d4_onecycle", {"ms_d4_onecycle": {"curve": curve[:10]}}) == ""  # too short to say
+
+
 def test_feature_claim_uses_longest_evaluated_self_supervised_run() -> None:
     assert tsr.claim_pair({"ms_d4_main": {}, "ms_d4_long": {}}) == ("ms_d4_long", "gt_long", ts.LONG_STEPS)
     assert tsr.claim_pair({"ms_d4_long": {}, "ms_d4_onecycle": {}})[0] == "ms_d4_onecycle"

@@ -50,3 +50,34 @@ def test_feature_pareto_hand_computed():
            {"density": 40.0, "bad3": float("nan")}, {"density": 5.0, "bad3": 0.1}]
     front = pareto(pts)
     assert [(p["density"], p["bad3"]) for p in front] == [(5.0, 0.1), (20.0, 0.5), (30.0, 2.0)]
+
+
+def test_assemble_keeps_hand_written_sections(tmp_path):
+    # RESULTS.md has hand-written sections (the shipped model, issue 15) beside the generated studies: rebuilding
+    # the studies must replace only their blocks, keep the rest byte for byte, and be idempotent.
+    from pipelines.results import BEGIN, END, assemble
+
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "training.md").write_text("## Training studies\n\nold table\n")
+    first = assemble(out, "## Study 1\n\nold study\n").read_text()
+    assert first.startswith("# Results") and "old study" in first and "old table" in first
+    hand = "## The shipped model (written by hand)\n\nKITTI 2015 bad-3 9.70 %\n\n"
+    path = tmp_path / "RESULTS.md"
+    path.write_text(first.replace(BEGIN.format("study 1"), hand + BEGIN.format("study 1")))
+    (out / "training.md").write_text("## Training studies\n\nnew table\n")
+    second = assemble(out, "## Study 1\n\nnew study\n").read_text()
+    assert hand in second
+    assert "new study" in second and "new table" in second
+    assert "old study" not in second and "old table" not in second
+    assert second.count(END.format("study 1")) == 1 and second.count(BEGIN.format("studies 2-3")) == 1
+    assert assemble(out, "## Study 1\n\nnew study\n").read_text() == second
+
+
+def test_assemble_refuses_a_block_without_end(tmp_path):
+    from pipelines.results import BEGIN, assemble
+
+    (tmp_path / "RESULTS.md").write_text(f"# Results\n\n{BEGIN.format('study 1')}\nhalf a block\n")
+    with pytest.raises(ValueError, match="no end marker"):
+        assemble(tmp_path, "## Study 1\n")
+    assert "half a block" in (tmp_path / "RESULTS.md").read_text()
