@@ -12,14 +12,16 @@ The exported graph is the test-mode network: N_s GRU iterations unrolled, the fi
 ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimiser of onnxscript 0.7 fails on this
 graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper.
 
-Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating): 0.77-0.84x
-over the runs so far on an AVX-512 Xeon. onnxruntime's profile: Conv + FusedConv 70 %, InstanceNorm 7.5 %, layout
-reorders 7.7 %, the lookup's gathers 1.4 %. Tried without a gain beyond the noise: a static shape, InstanceNorm
-decomposed into reductions, denormals-as-zero, no thread spinning, the EXTENDED optimisation level, the GRU's z and
-r convolutions split (fewer layout reorders), and int8 (QDQ, per-channel weights, MinMax calibration on unlabelled
-frames) of the 32 encoder convolutions (speed unchanged, +0.1-0.3 points of bad-3). The convolutions already run
-near this CPU's float32 rate (110 GMAC per 376x1248 frame, ~0.9 s of the 1.3 s: ~240 GFLOP/s of the two cores'
-~320-380 AVX-512 FMA peak), so a faster graph needs a smaller network, not a different runtime.
+Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
+0.77-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81).
+onnxruntime's profile: Conv + FusedConv 70 %, InstanceNorm 7.5 %, layout reorders 7.7 %, the lookup's gathers 1.4 %.
+Tried without a gain beyond the noise: a static shape, InstanceNorm decomposed into reductions, denormals-as-zero,
+no thread spinning, the EXTENDED optimisation level, the GRU's z and r convolutions split (fewer layout reorders),
+the parallel executor (the two encoder branches side by side, 2 inter-op threads with 1 or 2 intra-op threads each:
+1.46-1.54x torch, far slower), and int8 (QDQ, per-channel weights, MinMax calibration on unlabelled frames) of the
+32 encoder convolutions (speed unchanged, +0.1-0.3 points of bad-3). The convolutions already run near this CPU's
+float32 rate (110 GMAC per 376x1248 frame, ~0.9 s of the 1.3 s: ~240 GFLOP/s of the two cores' ~320-380 AVX-512 FMA
+peak), so a faster graph needs a smaller network, not a different runtime.
 """
 
 from __future__ import annotations
