@@ -126,12 +126,18 @@ def autocast_context(cfg: TrainConfig, device: torch.device) -> contextlib.Abstr
 
 # -- logging -------------------------------------------------------------------------------------------------------
 class RunLogger:
-    """JSONL metrics + optional TensorBoard, active on rank 0 only."""
+    """JSONL metrics + optional TensorBoard, active on rank 0 only.
 
-    def __init__(self, run_dir: Path, enabled: bool, tensorboard: bool) -> None:
+    ``resume_step``: a resumed run first drops the records logged after its checkpoint (a killed run logs up to
+    ``ckpt_every - 1`` steps past it), so the resumed steps are not in the file twice.
+    """
+
+    def __init__(self, run_dir: Path, enabled: bool, tensorboard: bool, resume_step: int | None = None) -> None:
         self.enabled = enabled
         self.path = Path(run_dir) / METRICS_FILE
         self.tb = None
+        if enabled and resume_step is not None:
+            trim_metrics(self.path, resume_step)
         if enabled and tensorboard:
             try:
                 from torch.utils.tensorboard import SummaryWriter
@@ -158,6 +164,32 @@ class RunLogger:
     def close(self) -> None:
         if self.tb is not None:
             self.tb.close()
+
+
+def trim_metrics(path: Path, last_step: int) -> int:
+    """Keep the records of ``path`` (JSONL) up to ``last_step``; returns how many were dropped.
+
+    A line cut short by a kill mid-write is dropped too. The file is replaced atomically.
+    """
+    if not path.exists():
+        return 0
+    kept, dropped = [], 0
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            dropped += 1
+            continue
+        if isinstance(record, dict) and record.get("step", 0) <= last_step:
+            kept.append(line)
+        else:
+            dropped += 1
+    if dropped:
+        tmp = path.with_suffix(".jsonl.tmp")
+        tmp.write_text("".join(line + "\n" for line in kept))
+        tmp.replace(path)
+        logger.info("%s: dropped %d record(s) logged after the checkpoint at step %d", path, dropped, last_step)
+    return dropped
 
 
 def disparity_images(left: torch.Tensor, pred: torch.Tensor, label: torch.Tensor, valid: torch.Tensor) -> dict:
@@ -368,7 +400,8 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
         logger.info("resuming %s at step %d of %d", run_dir, state.step, cfg.optim.steps)
     state.model = ddp.wrap_model(model, device, info)
     loss_fn = build_loss(cfg).to(device)
-    run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard)
+    run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
+                           resume_step=state.step if ckpt is not None else None)
     save = checkpoint_saver(run_dir, cfg, info)
     start_step, t0 = state.step, time.perf_counter()
     try:

@@ -187,6 +187,17 @@ class TestRun:
             torch.testing.assert_close(b.model_state[key], a.model_state[key], rtol=1e-5, atol=1e-6)
         assert resumed["param_checksum"] == pytest.approx(full["param_checksum"], rel=1e-6)
 
+    def test_resume_drops_records_logged_after_the_checkpoint(self, shards: Path, tmp_path: Path) -> None:
+        first = tiny_config(shards, tmp_path / "part")
+        _run_until(first, stop_at=2)
+        log = tmp_path / "part" / train.METRICS_FILE
+        # A kill after step 3 was logged, before its checkpoint, and a kill in the middle of a write.
+        with open(log, "a") as fh:
+            fh.write(json.dumps({"step": 3, "total": 1.0}) + "\n" + '{"step": 4, "tot')
+        train.main(config_for_resume(tmp_path / "part"), resume=True)
+        steps = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+        assert steps == [1, 2, 3, 4]
+
     def test_non_finite_loss_names_the_step(self, shards: Path, tmp_path: Path,
                                             monkeypatch: pytest.MonkeyPatch) -> None:
         real = train.build_loss
