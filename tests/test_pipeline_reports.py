@@ -8,6 +8,7 @@ import json
 import types
 from pathlib import Path
 
+import cv2
 import pytest
 
 from pipelines import bench
@@ -118,3 +119,24 @@ def test_studies_report_keeps_committed_baselines(tmp_path: Path, monkeypatch: p
     written = json.loads((results / "baselines.json").read_text())
     assert {k: written[k] for k in committed} == committed
     assert (results / "overview.png").read_bytes() == b"committed figure"
+
+
+def test_lineage_steps_add_up_and_extrapolation_is_hand_computed(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tp, "LINEAGE", (("a", "", 1000), ("gone", "", 500), ("b", "", 500), ("c", "", 2000)))
+    doc = lambda k15: {s: {"summary": {"bad3": k15 + i}} for i, (s, *_) in enumerate(tp.EVAL_SETS)}  # noqa: E731
+    points = tp.lineage_points({"a": doc(10.0), "b": doc(9.0), "c": doc(8.0)})
+    # "gone" has no evaluation but its 500 steps still count towards the rows after it
+    assert [(p[0], p[1], p[2]["kitti15"], p[2]["kitti12"]) for p in points] == [
+        (1000, "a", 10.0, 11.0), (2000, "b", 9.0, 10.0), (4000, "c", 8.0, 9.0)]
+    linear, loglinear = tp.steps_to_target(points, target=6.0)
+    # least squares over (1000, 10), (2000, 9), (4000, 8): slope -3000 / 4666666.67 per step; gap 2 points
+    assert linear == pytest.approx(2 * 4666666.667 / 3000, rel=1e-6)
+    # exactly 1 point per doubling: 2 more points = two more doublings of 4000 steps -> 16000, i.e. 12000 more
+    assert loglinear == pytest.approx(12000.0, rel=1e-9)
+    assert tp.steps_to_target(points, target=8.5) is None  # already below the target
+    sgm = {s: {"summary": {"bad3": 10.0}} for s, *_ in tp.EVAL_SETS}
+    tp.plot_lineage(points, sgm, tmp_path / "lineage.png")
+    image = cv2.imread(str(tmp_path / "lineage.png"))
+    assert image is not None and image.shape[0] > 300 and image.shape[1] > 600
+    assert "3,111 more steps" in tp.extrapolation_text(points, sgm_bad3=8.0)
