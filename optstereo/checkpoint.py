@@ -225,3 +225,47 @@ def build_model_from_checkpoint(
     except RuntimeError as exc:
         raise CheckpointError(f"weights in {ckpt.path} do not fit model {ckpt.model_name!r}: {exc}") from exc
     return model.to(device).eval()
+
+
+def average_checkpoints(paths: list[Path]) -> LoadedCheckpoint:
+    """The uniform average of the weights of several checkpoints of one model (a "model soup").
+
+    Every checkpoint must hold the same model name, config and state-dict keys/shapes (else a CheckpointError
+    naming what differs). Floating tensors are averaged in float64 and cast back to their dtype; other tensors
+    (integer counters) must be equal. Only meaningful for nearby weights (one run's end points, or a run and its
+    continuations) and for models without running statistics to re-estimate (OptStereo: instance norm only).
+    Returns a LoadedCheckpoint whose ``step`` is the largest of the inputs' steps.
+    """
+    if len(paths) < 2:
+        raise CheckpointError(f"averaging needs at least two checkpoints, got {len(paths)}")
+    ckpts = [load_checkpoint(p) for p in paths]
+    first = ckpts[0]
+    for other in ckpts[1:]:
+        _check_same_model(first, other)
+    state: dict[str, torch.Tensor] = {}
+    for key, ref in first.model_state.items():
+        values = [c.model_state[key] for c in ckpts]
+        if ref.is_floating_point():
+            state[key] = (sum(v.double() for v in values) / len(values)).to(ref.dtype)
+        elif all(torch.equal(ref, v) for v in values[1:]):
+            state[key] = ref.clone()
+        else:
+            raise CheckpointError(f"non-float tensor {key!r} differs between {first.path} and the others")
+    return LoadedCheckpoint(path=first.path, step=max(c.step for c in ckpts), model_name=first.model_name,
+                            model_config=dict(first.model_config), model_state=state)
+
+
+def _check_same_model(a: LoadedCheckpoint, b: LoadedCheckpoint) -> None:
+    """Raise a CheckpointError naming what differs between two checkpoints' models."""
+    if a.model_name != b.model_name:
+        raise CheckpointError(f"{a.path} holds {a.model_name!r}, {b.path} holds {b.model_name!r}")
+    diff = sorted(k for k in a.model_config.keys() | b.model_config.keys()
+                  if a.model_config.get(k) != b.model_config.get(k))
+    if diff:
+        raise CheckpointError(f"model config of {a.path} and {b.path} differs in {diff}")
+    missing = sorted(a.model_state.keys() ^ b.model_state.keys())
+    if missing:
+        raise CheckpointError(f"{a.path} and {b.path} have different weight keys: {missing[:5]}")
+    shapes = [k for k in a.model_state if a.model_state[k].shape != b.model_state[k].shape]
+    if shapes:
+        raise CheckpointError(f"{a.path} and {b.path} differ in the shapes of {shapes[:5]}")

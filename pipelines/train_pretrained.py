@@ -12,6 +12,7 @@ GT set of ../shared/data against dense SGM, export the weights.
                                                       arm_no_lt: in the ablation L_T cost 1.5 points of KITTI 2015
                                                       bad-3, so the shipped model is the recipe without it;
                                                       version 4: long_conf5, the last CONTINUE run)
+    python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
 Every number goes to ``results/pretrained/<name>.json`` (committed) with the command, commit, CPU and seconds, so
@@ -69,6 +70,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("long_conf6", "long_conf5", LABELS_K03, ["--steps", "1900", "--lr", "1e-4", "--seed", "8"]),
     ("long_conf7", "long_conf6", LABELS_K03, ["--steps", "1500", "--lr", "1e-4", "--seed", "9"]),
 )
+#: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
+SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
 #: The report's lineage table: (result name, what that model is, training steps of that row) (``shipped`` is the
 #: file in optstereo/weights/). Steps are batch-2 steps; each row continues the one above, so they add up.
 LINEAGE: tuple[tuple[str, str, int], ...] = (
@@ -235,6 +238,15 @@ def step_ship(run: str) -> None:
     print(f"wrote {WEIGHTS} ({WEIGHTS.stat().st_size / 1e6:.1f} MB, step {ckpt.step})")
 
 
+def step_soup(name: str) -> None:
+    """Write out/pretrained/NAME/model.safetensors: the uniform weight average of the runs SOUPS[NAME] lists."""
+    from optstereo.checkpoint import average_checkpoints, build_model_from_checkpoint, export_safetensors
+
+    soup = average_checkpoints([RUNS / run / "model.safetensors" for run in SOUPS[name]])
+    out = export_safetensors(RUNS / name / "model.safetensors", build_model_from_checkpoint(soup), step=soup.step)
+    print(f"wrote {out}: the mean of {', '.join(SOUPS[name])}")
+
+
 def _write(path: Path, doc: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=1, default=float))
@@ -363,7 +375,7 @@ def plot_lineage(points: list[tuple[int, str, dict[str, float]]], sgm: dict[str,
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("step", choices=("label", "train", "branch", "finish", "continue", "baselines", "eval", "ship",
-                                             "report"))
+                                             "soup", "report"))
     parser.add_argument("run", nargs="?", default="arm_no_lt")
     parser.add_argument("--name", help="result name for eval (default: the run's name)")
     parser.add_argument("--iters", type=int, default=TEST_ITERS)
@@ -384,6 +396,8 @@ def main(argv: list[str] | None = None) -> None:
         step_eval(args.run, args.name, args.iters)
     elif args.step == "ship":
         step_ship(args.run)
+    elif args.step == "soup":
+        step_soup(args.run)
     else:
         step_report()
 

@@ -11,6 +11,7 @@ from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
 
 from optstereo.checkpoint import (
     CheckpointError,
+    average_checkpoints,
     build_model_from_checkpoint,
     export_safetensors,
     load_checkpoint,
@@ -125,3 +126,41 @@ class TestSafety:
         path = save_checkpoint(tmp_path / "a.pt", model=tiny_model(), step=0)
         with pytest.raises(CheckpointError, match="do not fit"):
             build_model_from_checkpoint(path, feature_dim=32)
+
+
+class TestAverage:
+    def test_uniform_mean_of_every_tensor(self, tmp_path: Path) -> None:
+        paths = []
+        for seed in range(3):
+            paths.append(export_safetensors(tmp_path / f"m{seed}.safetensors", tiny_model(seed), step=10 * seed))
+        states = [load_checkpoint(p).model_state for p in paths]
+        soup = average_checkpoints(paths)
+        assert soup.step == 20 and soup.model_config == load_checkpoint(paths[0]).model_config
+        for key, value in soup.model_state.items():
+            if value.is_floating_point():
+                want = (states[0][key].double() + states[1][key].double() + states[2][key].double()) / 3
+                torch.testing.assert_close(value, want.float(), rtol=0, atol=1e-7)
+                assert value.dtype == states[0][key].dtype
+        # The averaged state is a loadable model of the same kind.
+        rebuilt = build_model_from_checkpoint(soup)
+        assert sum(p.numel() for p in rebuilt.parameters()) == sum(p.numel() for p in tiny_model().parameters())
+
+    def test_averaging_a_model_with_itself_is_the_identity(self, tmp_path: Path) -> None:
+        a = export_safetensors(tmp_path / "a.safetensors", tiny_model(4))
+        b = export_safetensors(tmp_path / "b.safetensors", tiny_model(4))
+        soup = average_checkpoints([a, b])
+        for key, value in load_checkpoint(a).model_state.items():
+            assert torch.equal(soup.model_state[key], value), key
+
+    def test_different_configs_are_named(self, tmp_path: Path) -> None:
+        a = export_safetensors(tmp_path / "a.safetensors", tiny_model())
+        torch.manual_seed(0)
+        other = build_model("optstereo", **{**TINY, "feature_dim": 24})
+        b = export_safetensors(tmp_path / "b.safetensors", other)
+        with pytest.raises(CheckpointError, match="feature_dim"):
+            average_checkpoints([a, b])
+
+    def test_one_checkpoint_is_refused(self, tmp_path: Path) -> None:
+        a = export_safetensors(tmp_path / "a.safetensors", tiny_model())
+        with pytest.raises(CheckpointError, match="at least two"):
+            average_checkpoints([a])
