@@ -1,0 +1,124 @@
+"""Where the shipped network's errors are, split by what PVM would have supervised there.
+
+For each KITTI 2015 GT frame, every GT-valid pixel falls in one region:
+
+    labelled          PVM gives this pixel a label (the labeler at its defaults, run on the frame itself; the frame
+                      never entered training: this only asks what kind of pixel it is)
+    unlabelled, noc   no PVM label, visible in both views (disp_noc valid)
+    unlabelled, occ   no PVM label, occluded in the right view (disp_occ valid, disp_noc not)
+
+and the table gives each region's share of the pixels, the bad-3 of the network, of dense SGM (the teacher's
+matcher, holes filled along the row) and of the PVM label, and the region's share of all the network's bad pixels.
+It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
+
+    .venv/bin/python -m pipelines.error_regions [--checkpoint pretrained ...]   -> results/error_regions/{json,md}
+
+Several checkpoints share one labelling and one SGM pass (a table each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
+
+RESULTS = Path("results/error_regions")
+REGIONS = ("labelled", "unlabelled, noc", "unlabelled, occ")
+BAD = 3.0  # px: the issue's bad-3
+
+
+def region_masks(label: npt.NDArray[np.float32], gt: npt.NDArray[np.float32],
+                 gt_noc: npt.NDArray[np.float32] | None) -> dict[str, npt.NDArray[np.bool_]]:
+    """Boolean (H, W) masks of REGIONS over the GT-valid pixels (NaN = no label / no GT); they partition them."""
+    valid = np.isfinite(gt)
+    labelled = valid & np.isfinite(label)
+    noc = np.isfinite(gt_noc) if gt_noc is not None else valid
+    return {"labelled": labelled, "unlabelled, noc": valid & ~labelled & noc,
+            "unlabelled, occ": valid & ~labelled & ~noc}
+
+
+def count_bad(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float32],
+              preds: dict[str, npt.NDArray[np.float32]]) -> dict[str, dict[str, int]]:
+    """Per region: its pixel count ``n`` and, per prediction, how many pixels err by more than BAD px (NaN = bad)."""
+    out: dict[str, dict[str, int]] = {}
+    for region, mask in masks.items():
+        row = {"n": int(mask.sum())}
+        for name, pred in preds.items():
+            err = np.abs(pred[mask] - gt[mask])
+            row[name] = int((~(err <= BAD)).sum())  # NaN compares False: a pixel without a value is bad
+        out[region] = row
+    return out
+
+
+def add_counts(total: dict[str, dict[str, int]], frame: dict[str, dict[str, int]]) -> None:
+    """Accumulate one frame's :func:`count_bad` into ``total`` (pixels pooled over frames)."""
+    for region, row in frame.items():
+        acc = total.setdefault(region, {})
+        for key, value in row.items():
+            acc[key] = acc.get(key, 0) + value
+
+
+def table(total: dict[str, dict[str, int]], network: str = "network") -> str:
+    """Markdown table of pooled counts: share %, bad-3 % per prediction, share % of the network's bad pixels.
+
+    ``network``: the key of the network's counts in ``total`` (the others: "n", "sgm", "label").
+    """
+    total = {region: {**row, "network": row[network]} for region, row in total.items()}
+    n_all = sum(row["n"] for row in total.values())
+    net_bad = sum(row["network"] for row in total.values())
+    lines = ["| region | share of GT pixels % | network bad-3 % | dense SGM bad-3 % | PVM label bad-3 % | "
+             "share of the network's bad pixels % |", "|---|---:|---:|---:|---:|---:|"]
+    for region in (*REGIONS, "all"):
+        row = total[region] if region != "all" else {k: sum(r[k] for r in total.values()) for k in ("n", "network",
+                                                                                                  "sgm", "label")}
+        n = max(row["n"], 1)
+        label = f"{100 * row['label'] / n:.2f}" if region == "labelled" else "-"
+        lines.append(f"| {region} | {100 * row['n'] / n_all:.1f} | {100 * row['network'] / n:.2f} | "
+                     f"{100 * row['sgm'] / n:.2f} | {label} | {100 * row['network'] / max(net_bad, 1):.1f} |")
+    return "\n".join(lines)
+
+
+def run(checkpoints: list[str]) -> dict[str, Any]:
+    """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown."""
+    from optstereo.api import load_model, predict
+    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
+    from pvm_labeler.common.datasets import discover, load_pair
+    from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.multiscale import label_pair
+
+    cfg, models = LabelerConfig(), {name: load_model(name) for name in checkpoints}
+    total: dict[str, dict[str, int]] = {}
+    frames = {}
+    for ref in discover("kitti15", SHARED / "kitti15"):
+        sample = load_pair(ref)
+        label = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
+        preds = {"sgm": fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, 192)[0]), "label": label,
+                 **{name: predict(net, sample.left, sample.right, iters=TEST_ITERS) for name, net in models.items()}}
+        counts = count_bad(region_masks(label, sample.gt, sample.gt_noc), sample.gt, preds)
+        frames[ref.frame_id] = counts
+        add_counts(total, counts)
+        print(f"{ref.frame_id}: {counts}", flush=True)
+    md = "\n\n".join(f"`{name}`:\n\n{table(total, name)}" for name in checkpoints)
+    doc = {"checkpoints": checkpoints, "iters": TEST_ITERS, "bad_px": BAD, "pooled": total, "frames": frames,
+           **_machine()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "kitti15.json").write_text(json.dumps(doc, indent=1))
+    (RESULTS / "kitti15.md").write_text(f"# Network errors by PVM region, KITTI 2015\n\n{md}\n")
+    print(md)
+    return doc
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", action="append", help="'pretrained' (default), a file or a RUN_DIR; repeatable")
+    run(parser.parse_args(argv).checkpoint or ["pretrained"])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,58 @@
+"""pipelines/error_regions.py: the region split and the pooled table, on hand-made maps with hand-computed counts."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipelines.error_regions import add_counts, count_bad, region_masks, table
+
+N = np.nan
+
+
+def maps() -> tuple[np.ndarray, ...]:
+    """A 2x4 frame: GT-valid everywhere but (1, 3); noc GT missing at (1, 2) (occluded); labels on row 0 only."""
+    gt = np.array([[10, 10, 10, 10], [20, 20, 20, N]], np.float32)
+    gt_noc = np.array([[10, 10, 10, 10], [20, 20, N, N]], np.float32)
+    label = np.array([[10, 11, 14, N], [N, N, N, 5]], np.float32)
+    return gt, gt_noc, label
+
+
+def test_regions_partition_the_gt_valid_pixels() -> None:
+    gt, gt_noc, label = maps()
+    masks = region_masks(label, gt, gt_noc)
+    assert masks["labelled"].tolist() == [[True, True, True, False], [False, False, False, False]]
+    assert masks["unlabelled, noc"].tolist() == [[False, False, False, True], [True, True, False, False]]
+    assert masks["unlabelled, occ"].tolist() == [[False] * 4, [False, False, True, False]]
+    assert sum(m.astype(int) for m in masks.values()).tolist() == np.isfinite(gt).astype(int).tolist()
+
+
+def test_without_noc_gt_nothing_is_occluded() -> None:
+    gt, _, label = maps()
+    assert not region_masks(label, gt, None)["unlabelled, occ"].any()
+
+
+def test_counts_and_table_by_hand() -> None:
+    gt, gt_noc, label = maps()
+    net = np.array([[10, 14, 10, 10], [20, 30, 24, 0]], np.float32)  # bad: (0,1) 4 px, (1,1) 10 px, (1,2) 4 px
+    sgm = np.array([[N, 10, 10, 10], [20, 20, 20, 20]], np.float32)  # bad: (0,0) no value
+    counts = count_bad(region_masks(label, gt, gt_noc), gt, {"network": net, "sgm": sgm, "label": label})
+    assert counts == {"labelled": {"n": 3, "network": 1, "sgm": 1, "label": 1},  # label 14 vs 10 is bad
+                      "unlabelled, noc": {"n": 3, "network": 1, "sgm": 0, "label": 3},
+                      "unlabelled, occ": {"n": 1, "network": 1, "sgm": 0, "label": 1}}
+    total: dict = {}
+    add_counts(total, counts)
+    add_counts(total, counts)
+    assert total["labelled"] == {"n": 6, "network": 2, "sgm": 2, "label": 2}
+    rows = table(total).splitlines()
+    # labelled: 6 of 14 pixels = 42.9 %, network 2/6 = 33.33 %, SGM 33.33 %, label 33.33 %, 2 of the 6 bad = 33.3 %
+    assert rows[2] == "| labelled | 42.9 | 33.33 | 33.33 | 33.33 | 33.3 |"
+    assert rows[4] == "| unlabelled, occ | 14.3 | 100.00 | 0.00 | - | 33.3 |"
+    assert rows[5] == "| all | 100.0 | 42.86 | 14.29 | - | 100.0 |"
+
+
+def test_table_reads_the_named_network() -> None:
+    gt, gt_noc, label = maps()
+    net = np.array([[10, 14, 10, 10], [20, 30, 24, 0]], np.float32)
+    counts = count_bad(region_masks(label, gt, gt_noc), gt, {"v1": net, "v2": gt, "sgm": gt, "label": label})
+    assert table(counts, "v2").splitlines()[5] == "| all | 100.0 | 0.00 | 0.00 | - | 0.0 |"
+    assert table(counts, "v1").splitlines()[5] == "| all | 100.0 | 42.86 | 0.00 | - | 100.0 |"
