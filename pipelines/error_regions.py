@@ -2,10 +2,13 @@
 
 For each KITTI 2015 GT frame, every GT-valid pixel falls in one region:
 
-    labelled          PVM gives this pixel a label (the labeler at its defaults, run on the frame itself; the frame
-                      never entered training: this only asks what kind of pixel it is)
-    unlabelled, noc   no PVM label, visible in both views (disp_noc valid)
-    unlabelled, occ   no PVM label, occluded in the right view (disp_occ valid, disp_noc not)
+    labelled                PVM gives this pixel a label (the labeler at its defaults, run on the frame itself; the
+                            frame never entered training: this only asks what kind of pixel it is)
+    unlabelled, noc, <= 3   no PVM label, visible in both views (disp_noc valid), at most 3 px (Euclidean) from the
+                            nearest labelled pixel: the seams between labels, edges
+    unlabelled, noc, 3-10   the same, 3-10 px from a label
+    unlabelled, noc, > 10   the same, farther: the inside of large holes (textureless, reflective, transparent)
+    unlabelled, occ         no PVM label, occluded in the right view (disp_occ valid, disp_noc not)
 
 and the table gives each region's share of the pixels, the bad-3 of the network, of dense SGM (the teacher's
 matcher, holes filled along the row) and of the PVM label, and the region's share of all the network's bad pixels.
@@ -29,18 +32,30 @@ import numpy.typing as npt
 from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
 
 RESULTS = Path("results/error_regions")
-REGIONS = ("labelled", "unlabelled, noc", "unlabelled, occ")
+#: Distance bands (px from the nearest labelled pixel) of the unlabelled visible pixels: (name, low, high].
+BANDS = (("unlabelled, noc, <= 3", 0.0, 3.0), ("unlabelled, noc, 3-10", 3.0, 10.0),
+         ("unlabelled, noc, > 10", 10.0, np.inf))
+REGIONS = ("labelled", *(band[0] for band in BANDS), "unlabelled, occ")
 BAD = 3.0  # px: the issue's bad-3
 
 
 def region_masks(label: npt.NDArray[np.float32], gt: npt.NDArray[np.float32],
                  gt_noc: npt.NDArray[np.float32] | None) -> dict[str, npt.NDArray[np.bool_]]:
     """Boolean (H, W) masks of REGIONS over the GT-valid pixels (NaN = no label / no GT); they partition them."""
+    import cv2
+
     valid = np.isfinite(gt)
-    labelled = valid & np.isfinite(label)
+    has_label = np.isfinite(label)
+    labelled = valid & has_label
     noc = np.isfinite(gt_noc) if gt_noc is not None else valid
-    return {"labelled": labelled, "unlabelled, noc": valid & ~labelled & noc,
-            "unlabelled, occ": valid & ~labelled & ~noc}
+    unlabelled_noc = valid & ~has_label & noc
+    # Exact Euclidean distance of every pixel to the nearest labelled one (labelled pixels: 0).
+    dist = cv2.distanceTransform((~has_label).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    masks = {"labelled": labelled}
+    for name, low, high in BANDS:
+        masks[name] = unlabelled_noc & (dist > low) & (dist <= high)
+    masks["unlabelled, occ"] = valid & ~has_label & ~noc
+    return masks
 
 
 def count_bad(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float32],

@@ -21,9 +21,21 @@ def test_regions_partition_the_gt_valid_pixels() -> None:
     gt, gt_noc, label = maps()
     masks = region_masks(label, gt, gt_noc)
     assert masks["labelled"].tolist() == [[True, True, True, False], [False, False, False, False]]
-    assert masks["unlabelled, noc"].tolist() == [[False, False, False, True], [True, True, False, False]]
+    assert masks["unlabelled, noc, <= 3"].tolist() == [[False, False, False, True], [True, True, False, False]]
+    assert not masks["unlabelled, noc, 3-10"].any() and not masks["unlabelled, noc, > 10"].any()
     assert masks["unlabelled, occ"].tolist() == [[False] * 4, [False, False, True, False]]
     assert sum(m.astype(int) for m in masks.values()).tolist() == np.isfinite(gt).astype(int).tolist()
+
+
+def test_distance_bands() -> None:
+    """One row, a label at column 0: column x is x px from it (columns 1-3, 4-10, 11-15 fall in the three bands)."""
+    gt = np.full((1, 16), 5, np.float32)
+    label = np.full((1, 16), N, np.float32)
+    label[0, 0] = 5
+    masks = region_masks(label, gt, gt)
+    cols = {name: np.flatnonzero(mask[0]).tolist() for name, mask in masks.items()}
+    assert cols == {"labelled": [0], "unlabelled, noc, <= 3": [1, 2, 3], "unlabelled, noc, 3-10": list(range(4, 11)),
+                    "unlabelled, noc, > 10": list(range(11, 16)), "unlabelled, occ": []}
 
 
 def test_without_noc_gt_nothing_is_occluded() -> None:
@@ -37,7 +49,9 @@ def test_counts_and_table_by_hand() -> None:
     sgm = np.array([[N, 10, 10, 10], [20, 20, 20, 20]], np.float32)  # bad: (0,0) no value
     counts = count_bad(region_masks(label, gt, gt_noc), gt, {"network": net, "sgm": sgm, "label": label})
     assert counts == {"labelled": {"n": 3, "network": 1, "sgm": 1, "label": 1},  # label 14 vs 10 is bad
-                      "unlabelled, noc": {"n": 3, "network": 1, "sgm": 0, "label": 3},
+                      "unlabelled, noc, <= 3": {"n": 3, "network": 1, "sgm": 0, "label": 3},
+                      "unlabelled, noc, 3-10": {"n": 0, "network": 0, "sgm": 0, "label": 0},
+                      "unlabelled, noc, > 10": {"n": 0, "network": 0, "sgm": 0, "label": 0},
                       "unlabelled, occ": {"n": 1, "network": 1, "sgm": 0, "label": 1}}
     total: dict = {}
     add_counts(total, counts)
@@ -46,13 +60,14 @@ def test_counts_and_table_by_hand() -> None:
     rows = table(total).splitlines()
     # labelled: 6 of 14 pixels = 42.9 %, network 2/6 = 33.33 %, SGM 33.33 %, label 33.33 %, 2 of the 6 bad = 33.3 %
     assert rows[2] == "| labelled | 42.9 | 33.33 | 33.33 | 33.33 | 33.3 |"
-    assert rows[4] == "| unlabelled, occ | 14.3 | 100.00 | 0.00 | - | 33.3 |"
-    assert rows[5] == "| all | 100.0 | 42.86 | 14.29 | - | 100.0 |"
+    assert rows[4] == "| unlabelled, noc, 3-10 | 0.0 | 0.00 | 0.00 | - | 0.0 |"  # empty: no division by zero
+    assert rows[6] == "| unlabelled, occ | 14.3 | 100.00 | 0.00 | - | 33.3 |"
+    assert rows[7] == "| all | 100.0 | 42.86 | 14.29 | - | 100.0 |"
 
 
 def test_table_reads_the_named_network() -> None:
     gt, gt_noc, label = maps()
     net = np.array([[10, 14, 10, 10], [20, 30, 24, 0]], np.float32)
     counts = count_bad(region_masks(label, gt, gt_noc), gt, {"v1": net, "v2": gt, "sgm": gt, "label": label})
-    assert table(counts, "v2").splitlines()[5] == "| all | 100.0 | 0.00 | 0.00 | - | 0.0 |"
-    assert table(counts, "v1").splitlines()[5] == "| all | 100.0 | 42.86 | 0.00 | - | 100.0 |"
+    assert table(counts, "v2").splitlines()[-1] == "| all | 100.0 | 0.00 | 0.00 | - | 0.0 |"
+    assert table(counts, "v1").splitlines()[-1] == "| all | 100.0 | 42.86 | 0.00 | - | 100.0 |"
