@@ -4,7 +4,8 @@ Both run the same weights (``--checkpoint pretrained``) on KITTI 2015 frame 0000
 with 2 threads each, in alternation (so both see the same load), median of ``REPEATS`` after a warm-up: torch
 ``inference_mode`` (the ``optstereo-predict`` path) and an onnxruntime CPU session of ``optstereo-export --format
 onnx`` (the default batch-1 graph). The ratio onnxruntime / torch is the figure to compare (target <= 0.8 on this
-CPU); the outputs' difference too.
+CPU); the outputs' difference too. Each repeat also gives a paired ratio (that repeat's two times, run back to back):
+their spread shows how much of the ratio is the VM's noise.
 """
 
 from __future__ import annotations
@@ -27,6 +28,19 @@ TARGET = 0.8
 
 def _medians(fns: dict[str, Callable[[], Any]], repeats: int = REPEATS) -> dict[str, float]:
     """Median seconds of each function, run in alternation (one warm-up each) so both see the same machine load."""
+    return {name: statistics.median(values) for name, values in _timings(fns, repeats).items()}
+
+
+def paired_ratios(num: list[float], den: list[float]) -> dict[str, float]:
+    """Min, median and max of the per-repeat ratios num[i] / den[i] (two timings taken back to back)."""
+    if len(num) != len(den) or not num:
+        raise ValueError(f"need two equally long, non-empty timing lists, got {len(num)} and {len(den)}")
+    ratios = sorted(a / b for a, b in zip(num, den, strict=True))
+    return {"min": ratios[0], "median": statistics.median(ratios), "max": ratios[-1]}
+
+
+def _timings(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, list[float]]:
+    """Seconds of each call of each function, run in alternation after one warm-up each."""
     times: dict[str, list[float]] = {name: [] for name in fns}
     for fn in fns.values():
         fn()
@@ -35,7 +49,7 @@ def _medians(fns: dict[str, Callable[[], Any]], repeats: int = REPEATS) -> dict[
             t0 = time.perf_counter()
             fn()
             times[name].append(time.perf_counter() - t0)
-    return {name: statistics.median(values) for name, values in times.items()}
+    return times
 
 
 def run(shared: Path) -> dict[str, Any]:
@@ -53,12 +67,14 @@ def run(shared: Path) -> dict[str, Any]:
         onnx_file = export(model, Path(tmp) / "pretrained.onnx")
         export_s = time.perf_counter() - t0
         session = onnx_session(onnx_file, threads=THREADS)
-        medians = _medians({"torch": lambda: infer(model, left, right),
-                            "onnxruntime": lambda: infer_onnx(session, left, right)})
-        torch_s, ort_s = medians["torch"], medians["onnxruntime"]
+        times = _timings({"torch": lambda: infer(model, left, right),
+                          "onnxruntime": lambda: infer_onnx(session, left, right)}, REPEATS)
+        torch_s, ort_s = statistics.median(times["torch"]), statistics.median(times["onnxruntime"])
+        spread = paired_ratios(times["onnxruntime"], times["torch"])
         diff = np.abs(infer_onnx(session, left, right) - infer(model, left, right))
     results = {"threads": THREADS, "repeats": REPEATS, "frame": "kitti15 000000_10 (375x1242)",
                "iters": model.iters, "torch_s": torch_s, "onnxruntime_s": ort_s, "ratio": ort_s / torch_s,
+               "paired_ratio": spread,
                "export_s": export_s, "mean_abs_diff_px": float(diff.mean()), "max_abs_diff_px": float(diff.max()),
                "load_avg": os.getloadavg()[0]}
     verdict = "met" if results["ratio"] <= TARGET else "not met"
@@ -72,6 +88,7 @@ def run(shared: Path) -> dict[str, Any]:
         f"| onnxruntime CPU (opset 18) | {ort_s:.3f} | **{results['ratio']:.2f}** (target <= {TARGET}: {verdict}) |",
         "",
         f"Outputs differ by {results['mean_abs_diff_px']:.4f} px on average, {results['max_abs_diff_px']:.4f} px at "
-        f"most; the export took {export_s:.0f} s; load average {results['load_avg']:.1f}.",
+        f"most; the export took {export_s:.0f} s; load average {results['load_avg']:.1f}. Paired ratios per repeat "
+        f"(the two back to back): {spread['min']:.2f} to {spread['max']:.2f}, median {spread['median']:.2f}.",
     ])
     return {"title": "Export (torch vs onnxruntime)", "results": results, "markdown": markdown}

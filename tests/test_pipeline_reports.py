@@ -140,3 +140,17 @@ def test_lineage_steps_add_up_and_extrapolation_is_hand_computed(tmp_path: Path,
     image = cv2.imread(str(tmp_path / "lineage.png"))
     assert image is not None and image.shape[0] > 300 and image.shape[1] > 600
     assert "3,111 more steps" in tp.extrapolation_text(points, sgm_bad3=8.0)
+
+
+def test_bench_export_paired_ratios_by_hand() -> None:
+    from pipelines.bench_export import _timings, paired_ratios
+
+    # ratios 0.8/1.0, 1.2/1.5, 0.9/1.0 = 0.8, 0.8, 0.9 -> min 0.8, median 0.8, max 0.9
+    spread = paired_ratios([0.8, 1.2, 0.9], [1.0, 1.5, 1.0])
+    assert spread == pytest.approx({"min": 0.8, "median": 0.8, "max": 0.9})
+    with pytest.raises(ValueError, match="equally long"):
+        paired_ratios([1.0], [1.0, 2.0])
+    calls: list[str] = []
+    times = _timings({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}, repeats=2)
+    assert calls == ["a", "b", "a", "b", "a", "b"]  # one warm-up each, then alternating
+    assert [len(v) for v in times.values()] == [2, 2]
