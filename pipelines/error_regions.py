@@ -14,7 +14,8 @@ and the table gives each region's share of the pixels, the bad-3 of the network,
 matcher, holes filled along the row) and of the PVM label, and the region's share of all the network's bad pixels.
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
-    .venv/bin/python -m pipelines.error_regions [--checkpoint pretrained ...]   -> results/error_regions/{json,md}
+    .venv/bin/python -m pipelines.error_regions [--checkpoint pretrained ...] [--name kitti15]
+                                              -> results/error_regions/NAME.{json,md}
 
 Several checkpoints share one labelling and one SGM pass (a table each).
 """
@@ -99,7 +100,7 @@ def table(total: dict[str, dict[str, int]], network: str = "network") -> str:
     return "\n".join(lines)
 
 
-def run(checkpoints: list[str]) -> dict[str, Any]:
+def run(checkpoints: list[str], name: str = "kitti15") -> dict[str, Any]:
     """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown."""
     from optstereo.api import load_model, predict
     from pipelines.dense_sgm import fill_rows_nearest, sgm_left
@@ -123,8 +124,8 @@ def run(checkpoints: list[str]) -> dict[str, Any]:
     doc = {"checkpoints": checkpoints, "iters": TEST_ITERS, "bad_px": BAD, "pooled": total, "frames": frames,
            **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "kitti15.json").write_text(json.dumps(doc, indent=1))
-    (RESULTS / "kitti15.md").write_text(f"# Network errors by PVM region, KITTI 2015\n\n{md}\n")
+    (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))
+    (RESULTS / f"{name}.md").write_text(f"# Network errors by PVM region, KITTI 2015\n\n{md}\n")
     print(md)
     return doc
 
@@ -132,7 +133,9 @@ def run(checkpoints: list[str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", action="append", help="'pretrained' (default), a file or a RUN_DIR; repeatable")
-    run(parser.parse_args(argv).checkpoint or ["pretrained"])
+    parser.add_argument("--name", default="kitti15", help="report name: results/error_regions/NAME.{json,md}")
+    args = parser.parse_args(argv)
+    run(args.checkpoint or ["pretrained"], args.name)
 
 
 if __name__ == "__main__":
