@@ -30,14 +30,15 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
+from pipelines.train_pretrained import EVAL_SETS, SHARED, TEST_ITERS, _machine
+from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/error_regions")
 #: Distance bands (px from the nearest labelled pixel) of the unlabelled visible pixels: (name, low, high].
 BANDS = (("unlabelled, noc, <= 3", 0.0, 3.0), ("unlabelled, noc, 3-10", 3.0, 10.0),
          ("unlabelled, noc, > 10", 10.0, np.inf))
 REGIONS = ("labelled", *(band[0] for band in BANDS), "unlabelled, occ")
-BAD = 3.0  # px: the issue's bad-3
+KITTI15_MAX_DISP = next(md for name, _, _, md in EVAL_SETS if name == "kitti15")  # SGM search range
 
 
 def region_masks(label: npt.NDArray[np.float32], gt: npt.NDArray[np.float32],
@@ -61,13 +62,15 @@ def region_masks(label: npt.NDArray[np.float32], gt: npt.NDArray[np.float32],
 
 def count_bad(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float32],
               preds: dict[str, npt.NDArray[np.float32]]) -> dict[str, dict[str, int]]:
-    """Per region: its pixel count ``n`` and, per prediction, how many pixels err by more than BAD px (NaN = bad)."""
+    """Per region: its pixel count ``n`` and, per prediction, its bad-3 pixels (the project's ruler, err > 3 px)
+    plus the pixels it has no value for: a hole counts as an error here, not as uncovered."""
     out: dict[str, dict[str, int]] = {}
     for region, mask in masks.items():
         row = {"n": int(mask.sum())}
         for name, pred in preds.items():
-            err = np.abs(pred[mask] - gt[mask])
-            row[name] = int((~(err <= BAD)).sum())  # NaN compares False: a pixel without a value is bad
+            acc = MetricAccumulator()
+            acc.update(pred, gt, valid=mask)
+            row[name] = acc.n_bad3 + acc.n_valid - acc.n_covered
         out[region] = row
     return out
 
@@ -108,20 +111,21 @@ def run(checkpoints: list[str], name: str = "kitti15") -> dict[str, Any]:
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.multiscale import label_pair
 
-    cfg, models = LabelerConfig(), {name: load_model(name) for name in checkpoints}
+    cfg, models = LabelerConfig(), {spec: load_model(spec) for spec in checkpoints}
     total: dict[str, dict[str, int]] = {}
     frames = {}
     for ref in discover("kitti15", SHARED / "kitti15"):
         sample = load_pair(ref)
         label = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
-        preds = {"sgm": fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, 192)[0]), "label": label,
-                 **{name: predict(net, sample.left, sample.right, iters=TEST_ITERS) for name, net in models.items()}}
+        sgm = fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, KITTI15_MAX_DISP)[0])
+        preds = {"sgm": sgm, "label": label,
+                 **{spec: predict(net, sample.left, sample.right, iters=TEST_ITERS) for spec, net in models.items()}}
         counts = count_bad(region_masks(label, sample.gt, sample.gt_noc), sample.gt, preds)
         frames[ref.frame_id] = counts
         add_counts(total, counts)
         print(f"{ref.frame_id}: {counts}", flush=True)
-    md = "\n\n".join(f"`{name}`:\n\n{table(total, name)}" for name in checkpoints)
-    doc = {"checkpoints": checkpoints, "iters": TEST_ITERS, "bad_px": BAD, "pooled": total, "frames": frames,
+    md = "\n\n".join(f"`{spec}`:\n\n{table(total, spec)}" for spec in checkpoints)
+    doc = {"checkpoints": checkpoints, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
            **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))
