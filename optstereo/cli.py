@@ -17,7 +17,7 @@ import click
 import yaml
 
 from optstereo.checkpoint import CheckpointError, LoadedCheckpoint, load_checkpoint
-from optstereo.config import COLOR_NORMS, PHOTOMETRIC_ITERS, SMOOTHNESS_NORMS
+from optstereo.config import COLOR_NORMS, PHOTOMETRIC_ITERS, SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS
 from optstereo.train_config import AMP_MODES, DEVICES, SCHEDULES, SUPERVISIONS, TrainConfig, read_yaml
 from pvm_labeler.common.errors import ConfigError, PVMError
 
@@ -137,6 +137,9 @@ def _device_option(fn):
               help=f"L_R and L_S on the last prediction or on all N_s. [default: {_D.loss.photometric_iters}]")
 @click.option("--smoothness-norm", type=click.Choice(SMOOTHNESS_NORMS),
               help=f"L_S on D (none, the paper) or D / mean(D). [default: {_D.loss.smoothness_norm}]")
+@click.option("--smoothness-order", type=click.IntRange(min(SMOOTHNESS_ORDERS), max(SMOOTHNESS_ORDERS)),
+              help="L_S on first differences of D (1, the paper) or second (2, zero on planes). "
+                   f"[default: {_D.loss.smoothness_order}]")
 @click.option("--color-norm", type=click.Choice(COLOR_NORMS),
               help="Colour channels in L_R's L1 term and L_S's edge weights: l1 norm (the paper) or mean (runs "
                    f"before issue 15). [default: {_D.loss.color_norm}]")

@@ -26,6 +26,7 @@ __all__ = [
 
 PHOTOMETRIC_ITERS = ("last", "all")
 SMOOTHNESS_NORMS = ("none", "mean")
+SMOOTHNESS_ORDERS = (1, 2)
 COLOR_NORMS = ("l1", "mean")
 SUPERVISIONS = ("pvm", "gt")
 SCHEDULES = ("constant", "onecycle")
@@ -36,6 +37,7 @@ FLAT_KEYS: dict[str, str] = {
     "model": "model.name", "iters": "model.iters",
     "gamma": "loss.gamma", "lambda_r": "loss.lambda_r", "lambda_s": "loss.lambda_s", "alpha": "loss.alpha",
     "photometric_iters": "loss.photometric_iters", "smoothness_norm": "loss.smoothness_norm",
+    "smoothness_order": "loss.smoothness_order",
     "color_norm": "loss.color_norm",
     "conf_weight": "loss.conf_weight", "lambda_t": "loss.lambda_t", "analogy": "loss.analogy",
     "analogy_start": "loss.analogy_start", "analogy_every": "loss.analogy_every",
@@ -113,6 +115,8 @@ class LossConfig(_Section):
             every iteration with the same gamma weights as L_P.
         smoothness_norm: "none" follows the paper's eq. (on D itself); "mean" divides D by its per-image
             mean first (Monodepth2's scale-invariant variant).
+        smoothness_order: 1 = the paper's first differences of D (pull toward fronto-parallel); 2 = second
+            differences (zero on any plane: a planar prior for slanted surfaces).
         color_norm: how colour channels combine in the L1 term of L_R and in L_S's edge weights: "l1" = the L1
             norm over channels, as the paper's equations write it; "mean" = the channel mean (1/3 of it), which every
             run before issue 15 used, the shipped model included (a checkpoint without this key resumes with it).
@@ -132,6 +136,7 @@ class LossConfig(_Section):
     alpha: float = 0.85
     photometric_iters: str = "last"
     smoothness_norm: str = "none"
+    smoothness_order: int = 1
     color_norm: str = "l1"
     conf_weight: bool = False
     lambda_t: float = 0.0
@@ -150,6 +155,8 @@ class LossConfig(_Section):
              f"--photometric-iters must be one of {PHOTOMETRIC_ITERS}, got {self.photometric_iters!r}"),
             (self.smoothness_norm in SMOOTHNESS_NORMS,
              f"--smoothness-norm must be one of {SMOOTHNESS_NORMS}, got {self.smoothness_norm!r}"),
+            (self.smoothness_order in SMOOTHNESS_ORDERS,
+             f"--smoothness-order must be one of {SMOOTHNESS_ORDERS}, got {self.smoothness_order!r}"),
             (self.color_norm in COLOR_NORMS, f"--color-norm must be one of {COLOR_NORMS}, got {self.color_norm!r}"),
             (self.lambda_t >= 0, f"--lambda-t must be >= 0, got {self.lambda_t}"),
             (self.analogy_start >= 0, f"--analogy-start must be >= 0, got {self.analogy_start}"),

@@ -15,10 +15,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.config import LossConfig
+from optstereo.config import SMOOTHNESS_ORDERS, LossConfig
 
 # the LossConfig fields this module reads; the others (conf_weight, lambda_t, analogy*) are the trainer's
-TERM_FIELDS = ("gamma", "lambda_r", "lambda_s", "alpha", "photometric_iters", "smoothness_norm", "color_norm")
+TERM_FIELDS = (
+    "gamma", "lambda_r", "lambda_s", "alpha", "photometric_iters", "smoothness_norm", "smoothness_order", "color_norm",
+)
 SSIM_C1 = 0.01**2  # SSIM stabilisers for images in [0, 1] (Wang et al. 2004; Monodepth)
 SSIM_C2 = 0.03**2
 
@@ -177,30 +179,44 @@ def reconstruction_loss(
 
 
 def smoothness_loss(disp: torch.Tensor, image: torch.Tensor, normalize: str = "none",
-                    color_norm: str = "l1") -> torch.Tensor:
-    """L_S, edge-aware smoothness: mean |dx D| exp(-||dx I_l||) + mean |dy D| exp(-||dy I_l||).
+                    color_norm: str = "l1", order: int = 1) -> torch.Tensor:
+    """L_S, edge-aware smoothness of ``order`` 1 (the paper) or 2 (a planar prior).
+
+    order 1: mean |dx D| exp(-||dx I_l||) + mean |dy D| exp(-||dy I_l||).
+    order 2: mean |dxx D| exp(-max(||dx I_l||) of the two differences dxx spans) + the same along y;
+        dxx D(x) = D(x+1) - 2 D(x) + D(x-1), zero on any plane, so slanted surfaces cost nothing.
 
     Args:
         disp: (B, 1, H, W) float disparity.
         image: (B, 3, H, W) float in [0, 255]; gradients are taken on image / 255.
         normalize: "none" = the paper's eq. on D itself; "mean" = D / mean(D) per image (Monodepth2).
         color_norm: ||dI|| = the L1 norm over channels ("l1", the paper) or their mean ("mean").
+        order: 1 or 2, the order of the disparity differences.
 
     Returns:
         Scalar float32 tensor.
     """
     if normalize not in ("none", "mean"):
         raise ValueError(f"normalize must be 'none' or 'mean', got {normalize!r}")
+    if order not in SMOOTHNESS_ORDERS:
+        raise ValueError(f"order must be one of {SMOOTHNESS_ORDERS}, got {order!r}")
     with torch.autocast(device_type=disp.device.type, enabled=False):
         d = disp.float()
         if normalize == "mean":
             d = d / (d.mean(dim=(2, 3), keepdim=True).abs() + 1e-7)
         img = image.float() / 255.0
-        dx_d = (d[..., :, 1:] - d[..., :, :-1]).abs()
-        dy_d = (d[..., 1:, :] - d[..., :-1, :]).abs()
-        dx_i = _combine_channels((img[..., :, 1:] - img[..., :, :-1]).abs(), color_norm)
-        dy_i = _combine_channels((img[..., 1:, :] - img[..., :-1, :]).abs(), color_norm)
-        return (dx_d * torch.exp(-dx_i)).mean() + (dy_d * torch.exp(-dy_i)).mean()
+        total = torch.zeros((), device=d.device)
+        for dim in (-1, -2):  # x, then y
+            d_d = torch.diff(d, dim=dim)
+            edge = _combine_channels(torch.diff(img, dim=dim).abs(), color_norm)
+            if order == 2:
+                # a second difference straddles two first differences; either one being an edge excuses it
+                d_d = torch.diff(d_d, dim=dim)
+                n = edge.shape[dim] - 1
+                edge = torch.maximum(edge.narrow(dim, 0, n), edge.narrow(dim, 1, n))
+            if d_d.numel():  # an image too small for this order along this axis adds nothing (not NaN)
+                total = total + (d_d.abs() * torch.exp(-edge)).mean()
+        return total
 
 
 class PVStereoLoss(nn.Module):
@@ -226,6 +242,7 @@ class PVStereoLoss(nn.Module):
         photometric_iters: str = "last",
         smoothness_norm: str = "none",
         color_norm: str = "l1",
+        smoothness_order: int = 1,
     ) -> None:
         super().__init__()
         if lambda_r is None or lambda_s is None:
@@ -237,6 +254,7 @@ class PVStereoLoss(nn.Module):
             alpha=alpha,
             photometric_iters=photometric_iters,
             smoothness_norm=smoothness_norm,
+            smoothness_order=smoothness_order,
             color_norm=color_norm,
         )
 
@@ -270,7 +288,8 @@ class PVStereoLoss(nn.Module):
             if cfg.lambda_r > 0:
                 loss_r = loss_r + w * reconstruction_loss(left, right, pred, cfg.alpha, cfg.color_norm)
             if cfg.lambda_s > 0:
-                loss_s = loss_s + w * smoothness_loss(pred, left, cfg.smoothness_norm, cfg.color_norm)
+                loss_s = loss_s + w * smoothness_loss(pred, left, cfg.smoothness_norm, cfg.color_norm,
+                                                       cfg.smoothness_order)
         total = loss_p + cfg.lambda_r * loss_r + cfg.lambda_s * loss_s
         terms = {
             "L_P": loss_p.detach(),

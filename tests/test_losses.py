@@ -204,9 +204,41 @@ class TestSmoothness:
         torch.testing.assert_close(a, b)
         torch.testing.assert_close(smoothness_loss(3 * disp, image), 3 * smoothness_loss(disp, image))
 
+    def test_feature_second_order_hand_computed(self) -> None:
+        disp = torch.tensor([[[[0.0, 1.0, 3.0, 3.0], [0.0, 1.0, 3.0, 3.0]]]])
+        image = torch.zeros(1, 3, 2, 4)
+        image[..., 3] = 255.0  # an intensity edge between columns 2 and 3
+        # dxx D = 3 - 2 + 0 = 1 at column 1 (spans steps 0-1 and 1-2: no edge, weight 1) and 3 - 6 + 1 = -2 at
+        # column 2 (spans step 2-3, the edge: weight exp(-3)); dyy D has no entries (2 rows), so it adds nothing.
+        want = (1.0 + 2.0 * np.exp(-3.0)) / 2
+        assert abs(smoothness_loss(disp, image, order=2).item() - want) < 1e-6
+
+    def test_feature_second_order_is_zero_on_planes(self, rng: np.random.Generator) -> None:
+        yy, xx = torch.meshgrid(torch.arange(9.0), torch.arange(13.0), indexing="ij")
+        plane = (20 + 0.7 * xx - 0.4 * yy)[None, None]
+        image = torch.from_numpy(rng.uniform(0, 255, (1, 3, 9, 13))).float()
+        assert smoothness_loss(plane, image, order=2).item() < 1e-5
+        assert smoothness_loss(plane, image, order=1).item() > 0.1  # the paper's L_S penalises every slant
+
+    def test_feature_second_order_matches_numpy_reference(self, rng: np.random.Generator) -> None:
+        disp = rng.uniform(0, 50, (2, 1, 6, 7))
+        image = rng.uniform(0, 255, (2, 3, 6, 7))
+        img = image / 255.0
+        total = 0.0
+        for axis in (3, 2):
+            grad = np.abs(np.diff(img, axis=axis)).sum(axis=1, keepdims=True)
+            second = np.diff(disp, n=2, axis=axis)
+            n = grad.shape[axis] - 1
+            weight = np.exp(-np.maximum(grad.take(range(n), axis=axis), grad.take(range(1, n + 1), axis=axis)))
+            total += (np.abs(second) * weight).mean()
+        got = smoothness_loss(torch.from_numpy(disp).float(), torch.from_numpy(image).float(), order=2)
+        assert abs(got.item() - total) < 1e-4 * total
+
     def test_exception(self) -> None:
         with pytest.raises(ValueError, match="normalize must be"):
             smoothness_loss(torch.zeros(1, 1, 2, 2), torch.zeros(1, 3, 2, 2), normalize="max")
+        with pytest.raises(ValueError, match="order must be one of"):
+            smoothness_loss(torch.zeros(1, 1, 2, 2), torch.zeros(1, 3, 2, 2), order=3)
 
 
 class TestPVStereoLoss:
@@ -227,6 +259,11 @@ class TestPVStereoLoss:
         torch.testing.assert_close(terms["L_S"], smoothness_loss(preds[-1], lt))
         torch.testing.assert_close(total, terms["L_P"] + 0.1 * terms["L_R"] + 0.1 * terms["L_S"])
         assert total.requires_grad and not terms["total"].requires_grad
+
+    def test_feature_second_order_term(self, rng: np.random.Generator) -> None:
+        preds, lt, rt, label, valid = self._inputs(rng)
+        _, terms = PVStereoLoss(smoothness_order=2)(preds, lt, rt, label, valid)
+        torch.testing.assert_close(terms["L_S"], smoothness_loss(preds[-1], lt, order=2))
 
     def test_feature_supervised_mode(self, rng: np.random.Generator) -> None:
         preds, lt, rt, label, valid = self._inputs(rng)
@@ -254,6 +291,7 @@ class TestPVStereoLoss:
             ({"alpha": 2.0}, "alpha must be in"),
             ({"photometric_iters": "first"}, "--photometric-iters must be one of"),
             ({"smoothness_norm": "max"}, "--smoothness-norm must be one of"),
+            ({"smoothness_order": 3}, "--smoothness-order must be one of"),
         ],
     )
     def test_exception(self, kwargs: dict, match: str) -> None:

@@ -48,7 +48,8 @@ def flatten(nested: dict) -> dict:
     out = {k: v for k, v in nested.items() if not isinstance(v, dict)}
     for flat, place in FLAT_KEYS.items():
         section, key = place.split(".")
-        if flat not in ("alpha", "photometric_iters", "smoothness_norm"):  # knobs the flat config never had
+        # knobs the flat config never had
+        if flat not in ("alpha", "photometric_iters", "smoothness_norm", "smoothness_order"):
             out[flat] = nested[section][key]
     out["model_overrides"] = {k: v for k, v in nested["model"].items() if k not in ("name", "iters")}
     return out
