@@ -14,8 +14,10 @@ and the table gives each region's share of the pixels, the bad-3 of the network,
 matcher, holes filled along the row) and of the PVM label, and the region's share of all the network's bad pixels.
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
-    .venv/bin/python -m pipelines.error_regions [--checkpoint pretrained ...] [--name kitti15]
+    .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--name kitti15]
                                               -> results/error_regions/NAME.{json,md}
+
+LABEL (e.g. ``v5=out/pretrained/long_conf7``) names a checkpoint's table; without one the table is named by its path.
 
 Several checkpoints share one labelling and one SGM pass (a table each).
 """
@@ -103,6 +105,16 @@ def table(total: dict[str, dict[str, int]], network: str = "network") -> str:
     return "\n".join(lines)
 
 
+def parse_checkpoint(arg: str) -> tuple[str, str]:
+    """``"LABEL=SPEC"`` or ``"SPEC"`` -> (label, spec); the label defaults to the spec itself."""
+    label, sep, spec = arg.partition("=")
+    if not sep:
+        return arg, arg
+    if not label or not spec:
+        raise ValueError(f"--checkpoint {arg!r}: expected LABEL=CHECKPOINT or CHECKPOINT")
+    return label, spec
+
+
 def run(checkpoints: list[str], name: str = "kitti15") -> dict[str, Any]:
     """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown."""
     from optstereo.api import load_model, predict
@@ -111,7 +123,8 @@ def run(checkpoints: list[str], name: str = "kitti15") -> dict[str, Any]:
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.multiscale import label_pair
 
-    cfg, models = LabelerConfig(), {spec: load_model(spec) for spec in checkpoints}
+    labelled = dict(parse_checkpoint(arg) for arg in checkpoints)  # label -> spec, in order
+    cfg, models = LabelerConfig(), {label: load_model(spec) for label, spec in labelled.items()}
     total: dict[str, dict[str, int]] = {}
     frames = {}
     for ref in discover("kitti15", SHARED / "kitti15"):
@@ -119,13 +132,13 @@ def run(checkpoints: list[str], name: str = "kitti15") -> dict[str, Any]:
         label = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
         sgm = fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, KITTI15_MAX_DISP)[0])
         preds = {"sgm": sgm, "label": label,
-                 **{spec: predict(net, sample.left, sample.right, iters=TEST_ITERS) for spec, net in models.items()}}
+                 **{label: predict(net, sample.left, sample.right, iters=TEST_ITERS) for label, net in models.items()}}
         counts = count_bad(region_masks(label, sample.gt, sample.gt_noc), sample.gt, preds)
         frames[ref.frame_id] = counts
         add_counts(total, counts)
         print(f"{ref.frame_id}: {counts}", flush=True)
-    md = "\n\n".join(f"`{spec}`:\n\n{table(total, spec)}" for spec in checkpoints)
-    doc = {"checkpoints": checkpoints, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
+    md = "\n\n".join(f"{_heading(label, spec)}:\n\n{table(total, label)}" for label, spec in labelled.items())
+    doc = {"checkpoints": labelled, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
            **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))
@@ -134,9 +147,14 @@ def run(checkpoints: list[str], name: str = "kitti15") -> dict[str, Any]:
     return doc
 
 
+def _heading(label: str, spec: str) -> str:
+    return f"`{spec}`" if label == spec else f"{label} (`{spec}`)"
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", action="append", help="'pretrained' (default), a file or a RUN_DIR; repeatable")
+    parser.add_argument("--checkpoint", action="append",
+                        help="[LABEL=]CHECKPOINT: 'pretrained' (default), a file or a RUN_DIR; repeatable")
     parser.add_argument("--name", default="kitti15", help="report name: results/error_regions/NAME.{json,md}")
     args = parser.parse_args(argv)
     run(args.checkpoint or ["pretrained"], args.name)

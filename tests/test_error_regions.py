@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from pipelines.error_regions import add_counts, count_bad, region_masks, table
+from pipelines.error_regions import add_counts, count_bad, parse_checkpoint, region_masks, table
 
 N = np.nan
 
@@ -71,3 +72,11 @@ def test_table_reads_the_named_network() -> None:
     counts = count_bad(region_masks(label, gt, gt_noc), gt, {"v1": net, "v2": gt, "sgm": gt, "label": label})
     assert table(counts, "v2").splitlines()[-1] == "| all | 100.0 | 0.00 | 0.00 | - | 0.0 |"
     assert table(counts, "v1").splitlines()[-1] == "| all | 100.0 | 42.86 | 0.00 | - | 100.0 |"
+
+
+def test_checkpoint_labels() -> None:
+    assert parse_checkpoint("pretrained") == ("pretrained", "pretrained")
+    assert parse_checkpoint("v5=out/pretrained/long_conf7") == ("v5", "out/pretrained/long_conf7")
+    for bad in ("=out/run", "v5="):
+        with pytest.raises(ValueError, match="LABEL=CHECKPOINT"):
+            parse_checkpoint(bad)
