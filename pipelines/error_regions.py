@@ -14,12 +14,14 @@ and the table gives each region's share of the pixels, the bad-3 of the network,
 matcher, holes filled along the row) and of the PVM label, and the region's share of all the network's bad pixels.
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
-    .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--name kitti15]
+    .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--name kitti15] [--photometric]
                                               -> results/error_regions/NAME.{json,md}
 
 LABEL (e.g. ``v5=out/pretrained/long_conf7``) names a checkpoint's table; without one the table is named by its path.
 
-Several checkpoints share one labelling and one SGM pass (a table each).
+Several checkpoints share one labelling and one SGM pass (a table each). ``--photometric`` adds a second table per
+network: of its bad-3 pixels in each region, the share where the photometric error of L_R (the only loss a hole
+pixel gets besides L_S) is lower at the wrong prediction than at the GT disparity: there L_R rewards the error.
 """
 
 from __future__ import annotations
@@ -77,6 +79,46 @@ def count_bad(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float3
     return out
 
 
+def photo_errors(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+                 disp: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """(H, W) per-pixel photometric error of L_R (0.85 SSIM + 0.15 L1) of ``disp``; NaN where the warp leaves the
+    image or ``disp`` is NaN."""
+    import torch
+
+    from optstereo.losses import photometric_error, warp_right_to_left
+
+    def tensor(img: npt.NDArray[np.uint8]) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float() / 255.0
+
+    d = torch.from_numpy(np.nan_to_num(disp, nan=0.0).astype(np.float32))[None, None]
+    with torch.no_grad():
+        warped, valid = warp_right_to_left(tensor(right), d)
+        err = photometric_error(tensor(left), warped)[0, 0].numpy()
+    return np.where(valid[0, 0].numpy() & np.isfinite(disp), err, np.nan).astype(np.float32)
+
+
+def count_photo_preference(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float32],
+                           pred: npt.NDArray[np.float32], err_pred: npt.NDArray[np.float32],
+                           err_gt: npt.NDArray[np.float32]) -> dict[str, dict[str, int]]:
+    """Per region, of the prediction's bad-3 pixels: ``bad`` (both photometric errors defined) and ``prefers_pred``,
+    those where the photometric error of the wrong prediction is LOWER than that of the GT disparity, i.e. where
+    L_R pulls toward the error rather than away from it."""
+    bad = (np.abs(pred - gt) > 3) & np.isfinite(err_pred) & np.isfinite(err_gt)
+    prefers = bad & (err_pred < err_gt)
+    return {region: {"bad": int((bad & mask).sum()), "prefers_pred": int((prefers & mask).sum())}
+            for region, mask in masks.items()}
+
+
+def photo_table(total: dict[str, dict[str, int]]) -> str:
+    """Markdown: per region, the share of the network's bad pixels where L_R prefers the wrong disparity."""
+    lines = ["| region | network bad-3 pixels | of them, L_R lower at the prediction than at GT % |", "|---|---:|---:|"]
+    for region in REGIONS:
+        row = total[region]
+        share = f"{100 * row['prefers_pred'] / row['bad']:.1f}" if row["bad"] else "-"
+        lines.append(f"| {region} | {row['bad']} | {share} |")
+    return "\n".join(lines)
+
+
 def add_counts(total: dict[str, dict[str, int]], frame: dict[str, dict[str, int]]) -> None:
     """Accumulate one frame's :func:`count_bad` into ``total`` (pixels pooled over frames)."""
     for region, row in frame.items():
@@ -115,31 +157,43 @@ def parse_checkpoint(arg: str) -> tuple[str, str]:
     return label, spec
 
 
-def run(checkpoints: list[str], name: str = "kitti15") -> dict[str, Any]:
-    """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown."""
+def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False) -> dict[str, Any]:
+    """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown.
+
+    ``photometric`` adds, per network, :func:`count_photo_preference` pooled over the frames.
+    """
     from optstereo.api import load_model, predict
     from pipelines.dense_sgm import fill_rows_nearest, sgm_left
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.multiscale import label_pair
 
-    labelled = dict(parse_checkpoint(arg) for arg in checkpoints)  # label -> spec, in order
-    cfg, models = LabelerConfig(), {label: load_model(spec) for label, spec in labelled.items()}
+    named = dict(parse_checkpoint(arg) for arg in checkpoints)  # table name -> checkpoint spec, in order
+    cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in named.items()}
     total: dict[str, dict[str, int]] = {}
+    photo: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     frames = {}
     for ref in discover("kitti15", SHARED / "kitti15"):
         sample = load_pair(ref)
-        label = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
+        pvm = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
         sgm = fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, KITTI15_MAX_DISP)[0])
-        preds = {"sgm": sgm, "label": label,
-                 **{label: predict(net, sample.left, sample.right, iters=TEST_ITERS) for label, net in models.items()}}
-        counts = count_bad(region_masks(label, sample.gt, sample.gt_noc), sample.gt, preds)
+        nets = {tag: predict(net, sample.left, sample.right, iters=TEST_ITERS) for tag, net in models.items()}
+        masks = region_masks(pvm, sample.gt, sample.gt_noc)
+        counts = count_bad(masks, sample.gt, {"sgm": sgm, "label": pvm, **nets})
         frames[ref.frame_id] = counts
         add_counts(total, counts)
+        if photometric:
+            err_gt = photo_errors(sample.left, sample.right, sample.gt)
+            for tag, pred in nets.items():
+                err = photo_errors(sample.left, sample.right, pred)
+                add_counts(photo[tag], count_photo_preference(masks, sample.gt, pred, err, err_gt))
         print(f"{ref.frame_id}: {counts}", flush=True)
-    md = "\n\n".join(f"{_heading(label, spec)}:\n\n{table(total, label)}" for label, spec in labelled.items())
-    doc = {"checkpoints": labelled, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
-           **_machine()}
+    md = "\n\n".join(f"{_heading(tag, spec)}:\n\n{table(total, tag)}" for tag, spec in named.items())
+    if photometric:
+        md += "\n\n## Does L_R prefer the network's errors? (photometric error at the prediction vs at GT)\n\n"
+        md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{photo_table(photo[tag])}" for tag, spec in named.items())
+    doc = {"checkpoints": named, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
+           **({"photometric": photo} if photometric else {}), **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))
     (RESULTS / f"{name}.md").write_text(f"# Network errors by PVM region, KITTI 2015\n\n{md}\n")
@@ -156,8 +210,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--checkpoint", action="append",
                         help="[LABEL=]CHECKPOINT: 'pretrained' (default), a file or a RUN_DIR; repeatable")
     parser.add_argument("--name", default="kitti15", help="report name: results/error_regions/NAME.{json,md}")
+    parser.add_argument("--photometric", action="store_true",
+                        help="also count, per region, the bad pixels whose photometric error is lower than GT's")
     args = parser.parse_args(argv)
-    run(args.checkpoint or ["pretrained"], args.name)
+    run(args.checkpoint or ["pretrained"], args.name, args.photometric)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipelines.error_regions import add_counts, count_bad, parse_checkpoint, region_masks, table
+from pipelines.error_regions import (
+    add_counts,
+    count_bad,
+    count_photo_preference,
+    parse_checkpoint,
+    photo_errors,
+    region_masks,
+    table,
+)
 
 N = np.nan
 
@@ -80,3 +88,32 @@ def test_checkpoint_labels() -> None:
     for bad in ("=out/run", "v5="):
         with pytest.raises(ValueError, match="LABEL=CHECKPOINT"):
             parse_checkpoint(bad)
+
+
+def shifted_pair(shift: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """A textured 24x48 pair with left(x) = right(x - shift): the true disparity is ``shift`` everywhere."""
+    rng = np.random.default_rng(0)
+    scene = rng.integers(0, 256, (24, 48 + shift, 3), dtype=np.uint8)
+    return scene[:, :48].copy(), scene[:, shift:].copy()  # right(x - shift) = scene(x) = left(x)
+
+
+def test_photo_errors_are_lowest_at_the_true_disparity() -> None:
+    left, right = shifted_pair(4)
+    true = photo_errors(left, right, np.full((24, 48), 4, np.float32))
+    wrong = photo_errors(left, right, np.full((24, 48), 9, np.float32))
+    assert np.isnan(true[:, :4]).all() and np.isnan(wrong[:, :9]).all()  # the warp leaves the image there
+    inner = (slice(2, -2), slice(11, -2))  # away from SSIM's border and both warps' invalid columns
+    assert np.nanmax(true[inner]) < 1e-3 < np.nanmin(wrong[inner])
+    hole = np.full((24, 48), 4, np.float32)
+    hole[5, 20] = np.nan
+    assert np.isnan(photo_errors(left, right, hole)[5, 20])
+
+
+def test_count_photo_preference_hand_computed() -> None:
+    gt = np.array([[10, 10, 10, 10]], np.float32)
+    pred = np.array([[10, 20, 20, 20]], np.float32)  # bad at columns 1-3
+    err_pred = np.array([[0.1, 0.1, 0.5, N]], np.float32)  # column 3: no photometric error, not counted
+    err_gt = np.array([[0.2, 0.3, 0.2, 0.2]], np.float32)
+    masks = {"a": np.array([[True, True, False, False]]), "b": np.array([[False, False, True, True]])}
+    got = count_photo_preference(masks, gt, pred, err_pred, err_gt)
+    assert got == {"a": {"bad": 1, "prefers_pred": 1}, "b": {"bad": 1, "prefers_pred": 0}}
