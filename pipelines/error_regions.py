@@ -183,9 +183,11 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
         frames[ref.frame_id] = counts
         add_counts(total, counts)
         if photometric:
-            err_gt = photo_errors(sample.left, sample.right, sample.gt)
             for tag, pred in nets.items():
                 err = photo_errors(sample.left, sample.right, pred)
+                # GT is semi-dense; SSIM's 3x3 window needs its neighbours warped too: they take the prediction
+                # where GT has none, so GT is not charged for its own holes.
+                err_gt = photo_errors(sample.left, sample.right, np.where(np.isfinite(sample.gt), sample.gt, pred))
                 add_counts(photo[tag], count_photo_preference(masks, sample.gt, pred, err, err_gt))
         print(f"{ref.frame_id}: {counts}", flush=True)
     md = "\n\n".join(f"{_heading(tag, spec)}:\n\n{table(total, tag)}" for tag, spec in named.items())
