@@ -15,6 +15,7 @@ matcher, holes filled along the row) and of the PVM label, and the region's shar
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
     .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--name kitti15] [--photometric]
+                                              [--lr-check]
                                               -> results/error_regions/NAME.{json,md}
 
 LABEL (e.g. ``v5=out/pretrained/long_conf7``) names a checkpoint's table; without one the table is named by its path.
@@ -22,6 +23,8 @@ LABEL (e.g. ``v5=out/pretrained/long_conf7``) names a checkpoint's table; withou
 Several checkpoints share one labelling and one SGM pass (a table each). ``--photometric`` adds a second table per
 network: of its bad-3 pixels in each region, the share where the photometric error of L_R (the only loss a hole
 pixel gets besides L_S) is lower at the wrong prediction than at the GT disparity: there L_R rewards the error.
+``--lr-check`` adds a third: the share of each region where the network agrees with its own right-view prediction
+(1 px LRDCC), and bad-3 of those pixels against the rest: how clean an L_T target kept by that test would be.
 """
 
 from __future__ import annotations
@@ -119,6 +122,44 @@ def photo_table(total: dict[str, dict[str, int]]) -> str:
     return "\n".join(lines)
 
 
+def count_reliability(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float32],
+                      pred: npt.NDArray[np.float32], reliable: npt.NDArray[np.bool_]) -> dict[str, dict[str, int]]:
+    """Per region: pixels ``n``, those passing a reliability test (``reliable``: what an L_T target would keep) and
+    the bad-3 pixels among the reliable (``bad_reliable``) and the rest (``bad_unreliable``)."""
+    bad = ~(np.abs(pred - gt) <= 3)  # NaN prediction = bad, as in count_bad
+    return {region: {"n": int(mask.sum()), "reliable": int((mask & reliable).sum()),
+                     "bad_reliable": int((mask & reliable & bad).sum()),
+                     "bad_unreliable": int((mask & ~reliable & bad).sum())} for region, mask in masks.items()}
+
+
+def reliability_table(total: dict[str, dict[str, int]]) -> str:
+    """Markdown: per region, the share kept by the LR check and bad-3 among kept / rejected pixels."""
+    lines = ["| region | LR-consistent % | bad-3 of the consistent % | bad-3 of the rest % |", "|---|---:|---:|---:|"]
+    for region in REGIONS:
+        row = total[region]
+        rest = row["n"] - row["reliable"]
+        lines.append(f"| {region} | {_pct(row['reliable'], row['n'])} | {_pct(row['bad_reliable'], row['reliable'])} "
+                     f"| {_pct(row['bad_unreliable'], rest)} |")
+    return "\n".join(lines)
+
+
+def _pct(part: int, whole: int) -> str:
+    return f"{100 * part / whole:.1f}" if whole else "-"
+
+
+def lr_consistent(net: Any, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+                  pred: npt.NDArray[np.float32], threshold: float = 1.0) -> npt.NDArray[np.bool_]:
+    """(H, W) bool: the network's left disparity agrees within ``threshold`` px with its own right-view disparity
+    (the flip-swapped pair's prediction, mirrored back), by the labeler's LRDCC."""
+    from optstereo.api import predict
+    from optstereo.augment import flip_swap
+    from pvm_labeler.voting import lr_check
+
+    flipped_left, flipped_right, _, _ = flip_swap(left, right, None, None)
+    disp_r = np.ascontiguousarray(predict(net, flipped_left, flipped_right, iters=TEST_ITERS)[:, ::-1])
+    return np.isfinite(lr_check(pred, disp_r, threshold)[0])
+
+
 def add_counts(total: dict[str, dict[str, int]], frame: dict[str, dict[str, int]]) -> None:
     """Accumulate one frame's :func:`count_bad` into ``total`` (pixels pooled over frames)."""
     for region, row in frame.items():
@@ -157,10 +198,12 @@ def parse_checkpoint(arg: str) -> tuple[str, str]:
     return label, spec
 
 
-def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False) -> dict[str, Any]:
+def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False,
+        lr: bool = False) -> dict[str, Any]:
     """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown.
 
-    ``photometric`` adds, per network, :func:`count_photo_preference` pooled over the frames.
+    ``photometric`` adds, per network, :func:`count_photo_preference` pooled over the frames; ``lr`` adds
+    :func:`count_reliability` of the network's own LR check (one more prediction per frame).
     """
     from optstereo.api import load_model, predict
     from pipelines.dense_sgm import fill_rows_nearest, sgm_left
@@ -172,6 +215,7 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
     cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in named.items()}
     total: dict[str, dict[str, int]] = {}
     photo: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
+    reliability: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     frames = {}
     for ref in discover("kitti15", SHARED / "kitti15"):
         sample = load_pair(ref)
@@ -189,13 +233,22 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
                 # where GT has none, so GT is not charged for its own holes.
                 err_gt = photo_errors(sample.left, sample.right, np.where(np.isfinite(sample.gt), sample.gt, pred))
                 add_counts(photo[tag], count_photo_preference(masks, sample.gt, pred, err, err_gt))
+        if lr:
+            for tag, pred in nets.items():
+                consistent = lr_consistent(models[tag], sample.left, sample.right, pred)
+                add_counts(reliability[tag], count_reliability(masks, sample.gt, pred, consistent))
         print(f"{ref.frame_id}: {counts}", flush=True)
     md = "\n\n".join(f"{_heading(tag, spec)}:\n\n{table(total, tag)}" for tag, spec in named.items())
     if photometric:
         md += "\n\n## Does L_R prefer the network's errors? (photometric error at the prediction vs at GT)\n\n"
         md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{photo_table(photo[tag])}" for tag, spec in named.items())
+    if lr:
+        md += "\n\n## How reliable is the network's own LR-consistent prediction? (a candidate L_T target)\n\n"
+        md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{reliability_table(reliability[tag])}"
+                            for tag, spec in named.items())
     doc = {"checkpoints": named, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
-           **({"photometric": photo} if photometric else {}), **_machine()}
+           **({"photometric": photo} if photometric else {}), **({"lr_check": reliability} if lr else {}),
+           **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))
     (RESULTS / f"{name}.md").write_text(f"# Network errors by PVM region, KITTI 2015\n\n{md}\n")
@@ -214,8 +267,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--name", default="kitti15", help="report name: results/error_regions/NAME.{json,md}")
     parser.add_argument("--photometric", action="store_true",
                         help="also count, per region, the bad pixels whose photometric error is lower than GT's")
+    parser.add_argument("--lr-check", action="store_true",
+                        help="also count how many pixels pass the network's own LR check and their bad-3")
     args = parser.parse_args(argv)
-    run(args.checkpoint or ["pretrained"], args.name, args.photometric)
+    run(args.checkpoint or ["pretrained"], args.name, args.photometric, args.lr_check)
 
 
 if __name__ == "__main__":

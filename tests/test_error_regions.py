@@ -6,12 +6,16 @@ import numpy as np
 import pytest
 
 from pipelines.error_regions import (
+    REGIONS,
     add_counts,
     count_bad,
     count_photo_preference,
+    count_reliability,
+    lr_consistent,
     parse_checkpoint,
     photo_errors,
     region_masks,
+    reliability_table,
     table,
 )
 
@@ -117,3 +121,41 @@ def test_count_photo_preference_hand_computed() -> None:
     masks = {"a": np.array([[True, True, False, False]]), "b": np.array([[False, False, True, True]])}
     got = count_photo_preference(masks, gt, pred, err_pred, err_gt)
     assert got == {"a": {"bad": 1, "prefers_pred": 1}, "b": {"bad": 1, "prefers_pred": 0}}
+
+
+def test_count_reliability_hand_computed() -> None:
+    gt = np.array([[10, 10, 10, 10, 10]], np.float32)
+    pred = np.array([[10, 20, 10, 20, N]], np.float32)  # bad at 1, 3 and 4 (no prediction)
+    reliable = np.array([[True, True, False, False, False]])
+    masks = {"a": np.array([[True, True, True, True, True]])}
+    assert count_reliability(masks, gt, pred, reliable) == {
+        "a": {"n": 5, "reliable": 2, "bad_reliable": 1, "bad_unreliable": 2}}
+    rows = {region: {"n": 0, "reliable": 0, "bad_reliable": 0, "bad_unreliable": 0} for region in REGIONS}
+    rows["labelled"] = {"n": 5, "reliable": 2, "bad_reliable": 1, "bad_unreliable": 2}
+    assert "| labelled | 40.0 | 50.0 | 66.7 |" in reliability_table(rows)
+
+
+def test_lr_consistent_mirrors_the_right_view(monkeypatch: pytest.MonkeyPatch) -> None:
+    import optstereo.api
+
+    left, right = shifted_pair(4)
+    calls = []
+
+    def fake_predict(net: object, a: np.ndarray, b: np.ndarray, iters: int) -> np.ndarray:
+        calls.append((a, b))
+        out = np.full(a.shape[:2], 4, np.float32)
+        out[:, -1] = 50  # the flipped pair's last column is the right view's first: mirrored back, column 0
+        return out
+
+    monkeypatch.setattr(optstereo.api, "predict", fake_predict)
+    pred = np.full((24, 48), 4, np.float32)
+    pred[3, 20] = 9  # disagrees with the right view (4) at column 11
+    pred[5, 30] = 30  # looks up right column 0, where the right view says 50
+    got = lr_consistent(object(), left, right, pred)
+    np.testing.assert_array_equal(calls[0][0], right[:, ::-1])  # the flip-swapped pair: mirrored right is the new left
+    np.testing.assert_array_equal(calls[0][1], left[:, ::-1])
+    want = np.ones((24, 48), bool)
+    want[:, :4] = False  # x - 4 < 0: the match is outside the right image
+    want[:, 4] = False  # x - 4 = 0: right column 0, disparity 50 there
+    want[3, 20] = want[5, 30] = False
+    np.testing.assert_array_equal(got, want)
