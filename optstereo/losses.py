@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.config import SMOOTHNESS_ORDERS, LossConfig
+from optstereo.config import SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS, LossConfig
 
 # the LossConfig fields this module reads; the others (conf_weight, lambda_t, analogy*) are the trainer's
 TERM_FIELDS = (
@@ -196,8 +196,8 @@ def smoothness_loss(disp: torch.Tensor, image: torch.Tensor, normalize: str = "n
     Returns:
         Scalar float32 tensor.
     """
-    if normalize not in ("none", "mean"):
-        raise ValueError(f"normalize must be 'none' or 'mean', got {normalize!r}")
+    if normalize not in SMOOTHNESS_NORMS:
+        raise ValueError(f"normalize must be one of {SMOOTHNESS_NORMS}, got {normalize!r}")
     if order not in SMOOTHNESS_ORDERS:
         raise ValueError(f"order must be one of {SMOOTHNESS_ORDERS}, got {order!r}")
     with torch.autocast(device_type=disp.device.type, enabled=False):

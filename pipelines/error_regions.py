@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipelines.train_pretrained import EVAL_SETS, SHARED, TEST_ITERS, _machine
+from pipelines.train_pretrained import EVAL_SETS, RECIPE, SHARED, TEST_ITERS, _machine
 from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/error_regions")
@@ -46,6 +46,18 @@ BANDS = (("unlabelled, noc, <= 3", 0.0, 3.0), ("unlabelled, noc, 3-10", 3.0, 10.
          ("unlabelled, noc, > 10", 10.0, np.inf))
 REGIONS = ("labelled", *(band[0] for band in BANDS), "unlabelled, occ")
 KITTI15_MAX_DISP = next(md for name, _, _, md in EVAL_SETS if name == "kitti15")  # SGM search range
+
+
+def bad3(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_]:
+    """(H, W) bool, per pixel, what :func:`count_bad` counts: err > 3 px, and a NaN prediction counts as bad."""
+    return ~(np.abs(pred - gt) <= 3)
+
+
+def recipe_color_norm() -> str:
+    """How L_R combined colour channels in the shipped model's training (the recipe's ``loss.color_norm``)."""
+    import yaml
+
+    return yaml.safe_load(RECIPE.read_text())["loss"]["color_norm"]
 
 
 def region_masks(label: npt.NDArray[np.float32], gt: npt.NDArray[np.float32],
@@ -82,10 +94,10 @@ def count_bad(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float3
     return out
 
 
-def photo_errors(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-                 disp: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-    """(H, W) per-pixel photometric error of L_R (0.85 SSIM + 0.15 L1) of ``disp``; NaN where the warp leaves the
-    image or ``disp`` is NaN."""
+def photo_errors(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], disp: npt.NDArray[np.float32],
+                 color_norm: str = "l1") -> npt.NDArray[np.float32]:
+    """(H, W) per-pixel photometric error of L_R (0.85 SSIM + 0.15 L1, channels combined by ``color_norm``) of
+    ``disp``; NaN where the warp leaves the image or ``disp`` is NaN."""
     import torch
 
     from optstereo.losses import photometric_error, warp_right_to_left
@@ -96,7 +108,7 @@ def photo_errors(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
     d = torch.from_numpy(np.nan_to_num(disp, nan=0.0).astype(np.float32))[None, None]
     with torch.no_grad():
         warped, valid = warp_right_to_left(tensor(right), d)
-        err = photometric_error(tensor(left), warped)[0, 0].numpy()
+        err = photometric_error(tensor(left), warped, color_norm=color_norm)[0, 0].numpy()
     return np.where(valid[0, 0].numpy() & np.isfinite(disp), err, np.nan).astype(np.float32)
 
 
@@ -106,7 +118,7 @@ def count_photo_preference(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDAr
     """Per region, of the prediction's bad-3 pixels: ``bad`` (both photometric errors defined) and ``prefers_pred``,
     those where the photometric error of the wrong prediction is LOWER than that of the GT disparity, i.e. where
     L_R pulls toward the error rather than away from it."""
-    bad = (np.abs(pred - gt) > 3) & np.isfinite(err_pred) & np.isfinite(err_gt)
+    bad = bad3(pred, gt) & np.isfinite(err_pred) & np.isfinite(err_gt)
     prefers = bad & (err_pred < err_gt)
     return {region: {"bad": int((bad & mask).sum()), "prefers_pred": int((prefers & mask).sum())}
             for region, mask in masks.items()}
@@ -126,7 +138,7 @@ def count_reliability(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[n
                       pred: npt.NDArray[np.float32], reliable: npt.NDArray[np.bool_]) -> dict[str, dict[str, int]]:
     """Per region: pixels ``n``, those passing a reliability test (``reliable``: what an L_T target would keep) and
     the bad-3 pixels among the reliable (``bad_reliable``) and the rest (``bad_unreliable``)."""
-    bad = ~(np.abs(pred - gt) <= 3)  # NaN prediction = bad, as in count_bad
+    bad = bad3(pred, gt)
     return {region: {"n": int(mask.sum()), "reliable": int((mask & reliable).sum()),
                      "bad_reliable": int((mask & reliable & bad).sum()),
                      "bad_unreliable": int((mask & ~reliable & bad).sum())} for region, mask in masks.items()}
@@ -213,6 +225,7 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
 
     named = dict(parse_checkpoint(arg) for arg in checkpoints)  # table name -> checkpoint spec, in order
     cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in named.items()}
+    color_norm = recipe_color_norm()  # L_R as the shipped model was trained with it
     total: dict[str, dict[str, int]] = {}
     photo: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     reliability: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
@@ -228,10 +241,11 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
         add_counts(total, counts)
         if photometric:
             for tag, pred in nets.items():
-                err = photo_errors(sample.left, sample.right, pred)
+                err = photo_errors(sample.left, sample.right, pred, color_norm)
                 # GT is semi-dense; SSIM's 3x3 window needs its neighbours warped too: they take the prediction
                 # where GT has none, so GT is not charged for its own holes.
-                err_gt = photo_errors(sample.left, sample.right, np.where(np.isfinite(sample.gt), sample.gt, pred))
+                filled_gt = np.where(np.isfinite(sample.gt), sample.gt, pred)
+                err_gt = photo_errors(sample.left, sample.right, filled_gt, color_norm)
                 add_counts(photo[tag], count_photo_preference(masks, sample.gt, pred, err, err_gt))
         if lr:
             for tag, pred in nets.items():
@@ -247,7 +261,8 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
         md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{reliability_table(reliability[tag])}"
                             for tag, spec in named.items())
     doc = {"checkpoints": named, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
-           **({"photometric": photo} if photometric else {}), **({"lr_check": reliability} if lr else {}),
+           **({"photometric": photo, "photometric_color_norm": color_norm} if photometric else {}),
+           **({"lr_check": reliability} if lr else {}),
            **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))

@@ -8,6 +8,7 @@ import pytest
 from pipelines.error_regions import (
     REGIONS,
     add_counts,
+    bad3,
     count_bad,
     count_photo_preference,
     count_reliability,
@@ -159,3 +160,16 @@ def test_lr_consistent_mirrors_the_right_view(monkeypatch: pytest.MonkeyPatch) -
     want[:, 4] = False  # x - 4 = 0: right column 0, disparity 50 there
     want[3, 20] = want[5, 30] = False
     np.testing.assert_array_equal(got, want)
+
+
+def test_bad3_mask_is_the_ruler_of_count_bad() -> None:
+    rng = np.random.default_rng(3)
+    gt = rng.uniform(0, 60, (20, 30)).astype(np.float32)
+    gt[rng.random(gt.shape) < 0.2] = N
+    pred = (gt + rng.normal(0, 4, gt.shape)).astype(np.float32)
+    pred[rng.random(gt.shape) < 0.1] = N  # holes count as bad in both
+    masks = {"a": rng.random(gt.shape) < 0.5, "b": np.ones(gt.shape, bool)}
+    masks = {k: m & np.isfinite(gt) for k, m in masks.items()}
+    counts = count_bad(masks, gt, {"net": pred})
+    for region, mask in masks.items():
+        assert int((bad3(pred, gt) & mask).sum()) == counts[region]["net"]
