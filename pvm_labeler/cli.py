@@ -7,6 +7,7 @@ Forms::
     pvm-label run --config labels.yaml --print-config                          # the resolved YAML; labels nothing
     pvm-label verify DIR                                                       # schema, counts, readability
     pvm-label report DIR [DIR ...] --out REPORT_DIR                            # label quality vs GT + pictures
+    pvm-label densify DIR OUT                                                  # holes filled by superpixel planes
 
 Exit codes: 0 ok; 1 runtime failure (bad data, some pairs failed, broken shards); 2 bad usage (unknown option
 values, missing --root directory, out-of-range numbers such as --k 1 or a negative kappa).
@@ -55,7 +56,7 @@ class _DefaultRunGroup(click.Group):
 @click.group(cls=_DefaultRunGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="pvstereo")
 def main() -> None:
-    """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`, `convert`;
+    """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`, `convert`, `densify`;
     `pack-gt` = `run --labels none` (images + GT in shards, no labeling pass, for --supervision gt)."""
 
 
@@ -247,6 +248,27 @@ def convert_cmd(shard_dir: Path, out: Path, compression: str) -> None:
     except PVMError as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {read_index(out).num_samples} samples into {out} ({compression})")
+
+
+@main.command("densify")
+@click.argument("shard_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--region-size", type=click.IntRange(min=4), default=40, show_default=True,
+              help="SLIC superpixel size (px).")
+@click.option("--max-rms", type=click.FloatRange(min=0, min_open=True), default=0.6, show_default=True,
+              help="Largest RMS residual (px) of a superpixel's plane fit that may fill its holes.")
+@click.option("--fill-confidence", type=click.FloatRange(0, 1, min_open=True), default=0.5, show_default=True,
+              help="Confidence of the filled pixels (their weight in a confidence-weighted L_P).")
+def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fill_confidence: float) -> None:
+    """Rewrite SHARD_DIR into OUT with each view's label holes filled by one plane per superpixel."""
+    from pvm_labeler.densify import densify
+    from pvm_labeler.shards import read_index
+
+    try:
+        densify(shard_dir, out, region_size, max_rms, fill_confidence)
+    except PVMError as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(f"wrote {read_index(out).num_samples} densified samples into {out}")
 
 
 @main.command("report")

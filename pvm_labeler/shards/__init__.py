@@ -31,7 +31,7 @@ Making a tiny shard directory in tests (no labeler needed)::
     write_shard_dir(tmp_path / "shards", [rec, ...], config={"k": 2}, shard_size=2)
 """
 
-from pvm_labeler.shards.convert import convert
+from pvm_labeler.shards.convert import convert, rewrite
 from pvm_labeler.shards.reader import open_shard, read_index, read_sample, shard_sample_ids
 from pvm_labeler.shards.schema import (
     BLOSC_HINT,
@@ -55,5 +55,5 @@ from pvm_labeler.shards.writer import ShardWriter, write_index, write_shard_dir
 
 __all__ = ["BLOSC_HINT", "COMPRESSIONS", "DEFAULT_COMPRESSION", "INDEX_NAME", "OPTIONAL", "REQUIRED", "SCHEMA_NAME",
            "SCHEMA_VERSION", "SHARD_PATTERN", "TMP_SUFFIX", "ShardIndex", "ShardRecord", "ShardSample", "ShardWriter",
-           "convert", "hdf5plugin", "open_shard", "read_index", "read_sample", "shard_name", "shard_sample_ids",
-           "verify", "verify_shard", "write_index", "write_shard_dir"]
+           "convert", "hdf5plugin", "open_shard", "read_index", "read_sample", "rewrite", "shard_name",
+           "shard_sample_ids", "verify", "verify_shard", "write_index", "write_shard_dir"]

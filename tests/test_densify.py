@@ -1,0 +1,127 @@
+"""pvm_labeler/densify.py: the plane fill on hand-made maps, and `pvm-label densify` on a shard directory."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from pvm_labeler.cli import main as pvm_main
+from pvm_labeler.densify import densify, densify_view, fill_planes, plane_fill
+from pvm_labeler.shards import ShardRecord, open_shard, read_index, read_sample, verify, write_shard_dir
+
+N = np.nan
+
+
+def slanted(h: int = 12, w: int = 16) -> np.ndarray:
+    ys, xs = np.mgrid[0:h, 0:w]
+    return (20 + 0.5 * xs - 0.25 * ys).astype(np.float32)
+
+
+def test_fill_planes_recovers_a_slanted_plane_in_the_holes_only() -> None:
+    plane = slanted()
+    label = plane.copy()
+    label[3:8, 4:12] = N  # a hole inside one segment
+    out = fill_planes(np.zeros(plane.shape, np.int32), label, max_rms=0.1)
+    hole = np.isnan(label)
+    np.testing.assert_allclose(out[hole], plane[hole], atol=1e-4)
+    assert np.isnan(out[~hole]).all()  # labelled pixels are not part of what is added
+
+
+def test_fill_planes_rejects_poor_fits_and_sparse_segments() -> None:
+    plane = slanted()
+    rng = np.random.default_rng(0)
+    label = plane + rng.normal(0, 2.0, plane.shape).astype(np.float32)  # RMS ~2 px: not a plane
+    label[:, 1:8:2] = N  # segment 0 (columns 0-7): half labelled
+    segments = np.zeros(plane.shape, np.int32)
+    segments[:, 8:] = 1
+    label[:, 8:] = N
+    label[0, 8:13] = plane[0, 8:13]  # segment 1: 5 labels out of 96, under MIN_LABELS and MIN_RATIO
+    out = fill_planes(segments, label, max_rms=0.5)
+    assert np.isnan(out).all()
+    # The same noisy segment 0 is filled once the RMS bound allows it.
+    assert np.isfinite(fill_planes(segments, label, max_rms=5.0)[:, :8][np.isnan(label[:, :8])]).all()
+
+
+def test_fill_planes_fits_each_segment_separately() -> None:
+    """Two segments on two different planes: each hole takes its own segment's plane."""
+    left, right = slanted(), np.full((12, 16), 7.0, np.float32)
+    segments = np.zeros((12, 16), np.int32)
+    segments[:, 8:] = 3
+    truth = np.where(segments == 0, left, right)
+    label = truth.copy()
+    label[5, 2] = label[6, 12] = N
+    out = fill_planes(segments, label, max_rms=0.1)
+    np.testing.assert_allclose([out[5, 2], out[6, 12]], [left[5, 2], 7.0], atol=1e-4)
+
+
+def test_plane_fill_on_an_image() -> None:
+    """SLIC runs on an RGB image; a constant-disparity label with one hole fills it with the constant."""
+    rng = np.random.default_rng(1)
+    image = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    label = np.full((24, 32), 9.0, np.float32)
+    label[10, 10] = N
+    out = plane_fill(image, label, region_size=8, max_rms=0.1)
+    assert out[10, 10] == pytest.approx(9.0, abs=1e-4) and np.isfinite(out).sum() == 1
+
+
+def test_densify_view_drops_fills_at_or_below_zero() -> None:
+    """A plane falling through 0 px (toward the horizon): only its positive fills are kept, at fill_confidence."""
+    image = np.full((16, 32, 3), 128, np.uint8)
+    truth = (np.arange(32, dtype=np.float32) - 8)[None].repeat(16, 0)  # -8 .. 23 px along x
+    label = np.where(truth > 0.5, truth, N).astype(np.float32)
+    label[4:12, 20:24] = N  # an inner hole, on positive disparities
+    conf = np.where(np.isfinite(label), 0.9, 0).astype(np.float32)
+    dense, new_conf, n = densify_view(image, label, conf, region_size=16, max_rms=0.1, fill_confidence=0.5)
+    np.testing.assert_allclose(dense[4:12, 20:24], truth[4:12, 20:24], atol=1e-3)
+    assert np.isnan(dense[truth <= 0]).all() and n == int((np.isfinite(dense) & np.isnan(label)).sum())
+    assert (new_conf[4:12, 20:24] == 0.5).all() and (new_conf[np.isfinite(label)] == np.float32(0.9)).all()
+
+
+def _record(frame_id: str, hole: tuple[slice, slice]) -> tuple[ShardRecord, np.ndarray]:
+    h, w = 32, 48
+    ys, xs = np.mgrid[0:h, 0:w]
+    plane = (30 + 0.2 * xs + 0.1 * ys).astype(np.float32)
+    label = plane.copy()
+    label[hole] = N
+    img = np.full((h, w, 3), 100, np.uint8)
+    conf = np.where(np.isfinite(label), 0.8, 0).astype(np.float16)
+    return ShardRecord(frame_id=frame_id, left=img, right=img.copy(), label=label, label_right=label.copy(),
+                       confidence=conf, gt=plane), plane
+
+
+def test_densify_rewrites_a_shard_directory(tmp_path: Path) -> None:
+    hole = (slice(10, 14), slice(20, 26))
+    records, planes = zip(*(_record(f"f{i}", hole) for i in range(3)), strict=True)
+    src = write_shard_dir(tmp_path / "src", records, {"k": 6}, shard_size=2)
+    result = CliRunner().invoke(pvm_main, ["densify", str(src), str(tmp_path / "dense"), "--region-size", "8",
+                                           "--max-rms", "0.1", "--fill-confidence", "0.25"])
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "dense"
+    assert verify(out) == []
+    index = read_index(out)
+    assert index.config == {"k": 6} and index.raw["densify"]["fill_confidence"] == 0.25
+    assert index.raw["densified_from"] == str(src)
+    for (path, ids), ((src_path, _)) in zip(index.shards, read_index(src).shards, strict=True):
+        with open_shard(path) as h5, open_shard(src_path) as h5_src:
+            for fid in ids:
+                new, old = read_sample(h5, fid), read_sample(h5_src, fid)
+                plane = planes[int(fid[1:])]
+                for label in (new.label, new.label_right):
+                    np.testing.assert_allclose(label[hole], plane[hole], atol=1e-3)
+                    np.testing.assert_array_equal(label[np.isfinite(old.label)], old.label[np.isfinite(old.label)])
+                assert (new.confidence[hole] == 0.25).all()
+                np.testing.assert_array_equal(new.confidence[np.isfinite(old.label)],
+                                              old.confidence[np.isfinite(old.label)])
+                np.testing.assert_array_equal(new.left, old.left)
+                np.testing.assert_array_equal(new.gt, old.gt)
+                assert new.attrs["densify_filled_left"] == new.attrs["densify_filled_right"] == 24
+
+
+def test_densify_checks_its_arguments(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="fill_confidence"):
+        densify(tmp_path, tmp_path / "out", fill_confidence=0)
+    bad = CliRunner().invoke(pvm_main, ["densify", str(tmp_path), str(tmp_path / "o"), "--max-rms", "0"])
+    assert bad.exit_code == 2 and "max-rms" in bad.output
