@@ -244,7 +244,7 @@ def convert_cmd(shard_dir: Path, out: Path, compression: str) -> None:
     from pvm_labeler.shards import convert, read_index
 
     try:
-        convert(shard_dir, out, compression)
+        convert(shard_dir, out, compression, progress=True)
     except PVMError as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {read_index(out).num_samples} samples into {out} ({compression})")
@@ -265,7 +265,7 @@ def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fi
     from pvm_labeler.shards import read_index
 
     try:
-        densify(shard_dir, out, region_size, max_rms, fill_confidence)
+        densify(shard_dir, out, region_size, max_rms, fill_confidence, progress=True)
     except PVMError as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {read_index(out).num_samples} densified samples into {out}")

@@ -78,8 +78,9 @@ def densify_view(image: npt.NDArray[np.uint8], label: npt.NDArray[np.float32], c
 
 
 def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, max_rms: float = MAX_RMS,
-            fill_confidence: float = FILL_CONFIDENCE) -> Path:
-    """Rewrite the shard directory ``src`` into ``out`` with both views' labels densified by :func:`plane_fill`.
+            fill_confidence: float = FILL_CONFIDENCE, progress: bool = False) -> Path:
+    """Rewrite the shard directory ``src`` into ``out`` with both views' labels densified by :func:`plane_fill`
+    (``progress``: a bar over the pairs on a terminal).
 
     Raises:
         ValueError: ``region_size`` < 4, ``max_rms`` <= 0 or ``fill_confidence`` outside (0, 1].
@@ -101,4 +102,5 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
 
     settings = {"method": "planes", "region_size": region_size, "max_rms": max_rms, "min_labels": MIN_LABELS,
                 "min_ratio": MIN_RATIO, "fill_confidence": fill_confidence}
-    return rewrite(src, out, transform=transform, extra={"densified_from": str(src), "densify": settings})
+    return rewrite(src, out, transform=transform, extra={"densified_from": str(src), "densify": settings},
+                   progress=progress)
