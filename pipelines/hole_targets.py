@@ -16,6 +16,11 @@ gives the share of pixels a candidate covers, its bad-3 there, and the network's
 
     .venv/bin/python -m pipelines.hole_targets [--checkpoint pretrained] [--name hole_targets]
                                              -> results/error_regions/NAME.{json,md}
+    .venv/bin/python -m pipelines.hole_targets --picture 000010_10
+                                             -> results/error_regions/densify_000010_10.jpg
+
+The picture stacks, for one frame: the left image, PVM's label, the label plus ``pvm-label densify``'s plane fills,
+and the fills' KITTI error map against GT (blue right ... red wrong; black: no fill or no GT).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -127,12 +133,43 @@ def run(checkpoint: str = "pretrained", name: str = "hole_targets") -> dict[str,
     return doc
 
 
+def picture(frame_id: str, out_dir: Path = RESULTS) -> Path:
+    """Write ``densify_<frame_id>.jpg`` (see the module docstring) for one KITTI 2015 GT frame; returns its path."""
+    import cv2
+
+    from pvm_labeler.common.datasets import discover, load_pair
+    from pvm_labeler.common.viz import colorize_disparity, error_map
+    from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.densify import densify_view
+    from pvm_labeler.multiscale import label_pair
+
+    refs = {ref.frame_id: ref for ref in discover("kitti15", SHARED / "kitti15")}
+    if frame_id not in refs:
+        raise ValueError(f"--picture {frame_id!r}: not a KITTI 2015 GT frame; known: {sorted(refs)}")
+    sample = load_pair(refs[frame_id])
+    label = label_pair(sample.left, sample.right, LabelerConfig(), frame_id).label
+    dense, _, _ = densify_view(sample.left, label, np.isfinite(label).astype(np.float32), 40, 0.6, 0.5)
+    fills = np.where(np.isfinite(label), np.nan, dense)
+    vmax = float(np.nanmax(sample.gt))
+    rows = [sample.left, colorize_disparity(label, vmax), colorize_disparity(dense, vmax),
+            error_map(fills, np.where(np.isfinite(fills), sample.gt, np.nan), dilate=1)]
+    path = Path(out_dir) / f"densify_{frame_id}.jpg"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return path
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default="pretrained", help="'pretrained' (default), a file or a RUN_DIR")
     parser.add_argument("--name", default="hole_targets", help="report name: results/error_regions/NAME.{json,md}")
+    parser.add_argument("--picture", metavar="FRAME", help="only draw densify_FRAME.jpg for this KITTI 2015 frame")
     args = parser.parse_args(argv)
-    run(args.checkpoint, args.name)
+    if args.picture:
+        print(picture(args.picture))
+    else:
+        run(args.checkpoint, args.name)
 
 
 if __name__ == "__main__":

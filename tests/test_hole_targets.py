@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipelines.error_regions import REGIONS
 from pipelines.hole_targets import count_targets, scale_predictions, targets_table
@@ -38,3 +39,10 @@ def test_count_targets_and_table_by_hand() -> None:
     md = targets_table(counts)
     assert "| labelled | 50.0 | 0.0 | 100.0 |" in md and "| unlabelled, noc, > 10 | 100.0 | 100.0 | 50.0 |" in md
     assert "| unlabelled, occ | - | - | - |" in md
+
+
+def test_picture_names_an_unknown_frame(shared_data, tmp_path) -> None:
+    from pipelines.hole_targets import picture
+
+    with pytest.raises(ValueError, match="not a KITTI 2015 GT frame.*000000_10"):
+        picture("nope_10", tmp_path)
