@@ -10,7 +10,15 @@ from click.testing import CliRunner
 
 from pvm_labeler.cli import main as pvm_main
 from pvm_labeler.densify import densify, densify_view, fill_planes, plane_fill
-from pvm_labeler.shards import ShardRecord, open_shard, read_index, read_sample, verify, write_shard_dir
+from pvm_labeler.shards import (
+    ShardRecord,
+    open_shard,
+    read_index,
+    read_sample,
+    shard_sample_ids,
+    verify,
+    write_shard_dir,
+)
 
 N = np.nan
 
@@ -125,3 +133,60 @@ def test_densify_checks_its_arguments(tmp_path: Path) -> None:
         densify(tmp_path, tmp_path / "out", fill_confidence=0)
     bad = CliRunner().invoke(pvm_main, ["densify", str(tmp_path), str(tmp_path / "o"), "--max-rms", "0"])
     assert bad.exit_code == 2 and "max-rms" in bad.output
+
+
+def _interrupted(monkeypatch: pytest.MonkeyPatch, src: Path, out: Path, fail_at: int, **kwargs: float) -> None:
+    """Run densify with the view densifier failing at its ``fail_at``-th call (an interruption)."""
+    import pvm_labeler.densify as module
+
+    real, calls = module.densify_view, []
+
+    def failing(*args: object) -> object:
+        calls.append(1)
+        if len(calls) == fail_at:
+            raise RuntimeError("interrupted")
+        return real(*args)
+
+    monkeypatch.setattr(module, "densify_view", failing)
+    with pytest.raises(RuntimeError, match="interrupted"):
+        densify(src, out, **kwargs)
+    monkeypatch.setattr(module, "densify_view", real)
+
+
+def _count_calls(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    import pvm_labeler.densify as module
+
+    real, calls = module.densify_view, []
+
+    def counting(*args: object) -> object:
+        calls.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(module, "densify_view", counting)
+    return calls
+
+
+def test_an_interrupted_densify_resumes_only_the_same_settings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from pvm_labeler.common.errors import ShardError
+
+    hole = (slice(10, 14), slice(20, 26))
+    records = [_record(f"f{i}", hole)[0] for i in range(3)]
+    src = write_shard_dir(tmp_path / "src", records, {"k": 6}, shard_size=2)  # shards: [f0, f1], [f2]
+    out, settings = tmp_path / "dense", {"region_size": 8, "max_rms": 0.1}
+    _interrupted(monkeypatch, src, out, fail_at=5, **settings)  # 2 calls per pair: dies on f2
+    with pytest.raises(ShardError):
+        read_index(out)  # never looks complete
+    assert (out / "shard-00000.h5").exists() and not (out / "shard-00001.h5").exists()
+    calls = _count_calls(monkeypatch)
+    densify(src, out, **settings)
+    assert len(calls) == 2 and verify(out) == []  # only f2 was densified again
+    clean = densify(src, tmp_path / "clean", **settings)
+    for name in ("shard-00000.h5", "shard-00001.h5"):
+        with open_shard(out / name) as a, open_shard(clean / name) as b:
+            for fid in shard_sample_ids(a):
+                np.testing.assert_array_equal(read_sample(a, fid).label, read_sample(b, fid).label)
+    # Interrupted again, then re-run with another setting: everything is redone.
+    _interrupted(monkeypatch, src, tmp_path / "dense2", fail_at=5, **settings)
+    calls = _count_calls(monkeypatch)
+    densify(src, tmp_path / "dense2", region_size=8, max_rms=0.2)
+    assert len(calls) == 6 and read_index(tmp_path / "dense2").raw["densify"]["max_rms"] == 0.2
