@@ -36,7 +36,7 @@ import numpy.typing as npt
 
 from pipelines.error_regions import REGIONS, RESULTS, add_counts, bad3, lr_consistent, region_masks
 from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
-from pvm_labeler.densify import MIN_LABELS, MIN_RATIO, plane_fill
+from pvm_labeler.densify import FILL_CONFIDENCE, MAX_RMS, MIN_LABELS, MIN_RATIO, REGION_SIZE, densify_view
 
 SCALES = (1.0, 0.8, 0.64)
 STD_TAUS = (0.25, 1.0)
@@ -62,6 +62,14 @@ def scale_predictions(predict_fn: Predictor, left: npt.NDArray[np.uint8], right:
         disp = predict_fn(*small)
         out.append(cv2.resize(disp, (w, h), interpolation=cv2.INTER_LINEAR) * np.float32(w / ws))
     return np.stack(out).astype(np.float32)
+
+
+def plane_fills(image: npt.NDArray[np.uint8], label: npt.NDArray[np.float32], region_size: int = REGION_SIZE,
+                max_rms: float = MAX_RMS) -> npt.NDArray[np.float32]:
+    """(H, W) float32: exactly the pixels ``pvm-label densify`` would add to ``label`` (NaN elsewhere)."""
+    dense, _, _ = densify_view(image, label, np.isfinite(label).astype(np.float32), region_size, max_rms,
+                               FILL_CONFIDENCE)
+    return np.where(np.isfinite(label), np.nan, dense).astype(np.float32)
 
 
 def count_targets(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float32],
@@ -99,7 +107,7 @@ def candidates(predict_fn: Predictor, net: Any, left: npt.NDArray[np.uint8], rig
     for tau in STD_TAUS:
         out[f"lr+scales<{tau}"] = np.where(consistent & (spread < tau), pred, np.nan)
     for size, rms in PLANE_CONFIGS:
-        out[f"planes{size}/{rms}"] = plane_fill(left, label, size, rms)
+        out[f"planes{size}/{rms}"] = plane_fills(left, label, size, rms)
     return pred, {name: target.astype(np.float32) for name, target in out.items()}
 
 
@@ -140,7 +148,6 @@ def picture(frame_id: str, out_dir: Path = RESULTS) -> Path:
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.common.viz import colorize_disparity, error_map
     from pvm_labeler.config import LabelerConfig
-    from pvm_labeler.densify import densify_view
     from pvm_labeler.multiscale import label_pair
 
     refs = {ref.frame_id: ref for ref in discover("kitti15", SHARED / "kitti15")}
@@ -148,8 +155,8 @@ def picture(frame_id: str, out_dir: Path = RESULTS) -> Path:
         raise ValueError(f"--picture {frame_id!r}: not a KITTI 2015 GT frame; known: {sorted(refs)}")
     sample = load_pair(refs[frame_id])
     label = label_pair(sample.left, sample.right, LabelerConfig(), frame_id).label
-    dense, _, _ = densify_view(sample.left, label, np.isfinite(label).astype(np.float32), 40, 0.6, 0.5)
-    fills = np.where(np.isfinite(label), np.nan, dense)
+    fills = plane_fills(sample.left, label)
+    dense = np.where(np.isfinite(label), label, fills)
     vmax = float(np.nanmax(sample.gt))
     rows = [sample.left, colorize_disparity(label, vmax), colorize_disparity(dense, vmax),
             error_map(fills, np.where(np.isfinite(fills), sample.gt, np.nan), dilate=1)]

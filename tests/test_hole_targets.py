@@ -46,3 +46,16 @@ def test_picture_names_an_unknown_frame(shared_data, tmp_path) -> None:
 
     with pytest.raises(ValueError, match="not a KITTI 2015 GT frame.*000000_10"):
         picture("nope_10", tmp_path)
+
+
+def test_plane_fills_are_what_densify_adds() -> None:
+    """A constant image and a plane label with a hole: the fills are the hole's plane values, NaN elsewhere."""
+    from pipelines.hole_targets import plane_fills
+
+    ys, xs = np.mgrid[0:24, 0:32]
+    plane = (12 + 0.3 * xs - 0.1 * ys).astype(np.float32)
+    label = plane.copy()
+    label[8:12, 10:14] = np.nan
+    fills = plane_fills(np.full((24, 32, 3), 90, np.uint8), label, region_size=8, max_rms=0.1)
+    np.testing.assert_allclose(fills[8:12, 10:14], plane[8:12, 10:14], atol=1e-3)
+    assert np.isfinite(fills).sum() == 16
