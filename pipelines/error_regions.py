@@ -150,12 +150,13 @@ def reliability_table(total: dict[str, dict[str, int]]) -> str:
     for region in REGIONS:
         row = total[region]
         rest = row["n"] - row["reliable"]
-        lines.append(f"| {region} | {_pct(row['reliable'], row['n'])} | {_pct(row['bad_reliable'], row['reliable'])} "
-                     f"| {_pct(row['bad_unreliable'], rest)} |")
+        lines.append(f"| {region} | {pct(row['reliable'], row['n'])} | {pct(row['bad_reliable'], row['reliable'])} "
+                     f"| {pct(row['bad_unreliable'], rest)} |")
     return "\n".join(lines)
 
 
-def _pct(part: int, whole: int) -> str:
+def pct(part: int, whole: int) -> str:
+    """``part / whole`` in % with one decimal, '-' for an empty whole (a region no frame has)."""
     return f"{100 * part / whole:.1f}" if whole else "-"
 
 

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipelines.error_regions import REGIONS, RESULTS, add_counts, bad3, lr_consistent, region_masks
+from pipelines.error_regions import REGIONS, RESULTS, add_counts, bad3, lr_consistent, pct, region_masks
 from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
 from pvm_labeler.densify import FILL_CONFIDENCE, MAX_RMS, MIN_LABELS, MIN_RATIO, REGION_SIZE, densify_view
 
@@ -85,9 +85,6 @@ def count_targets(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.fl
 
 def targets_table(total: dict[str, dict[str, int]]) -> str:
     """Markdown: per region, coverage %, the target's bad-3 % and the network's bad-3 % on the covered pixels."""
-    def pct(part: int, whole: int) -> str:
-        return f"{100 * part / whole:.1f}" if whole else "-"
-
     lines = ["| region | covered % | target bad-3 % | network bad-3 %, same pixels |", "|---|---:|---:|---:|"]
     for region in REGIONS:
         row = total[region]

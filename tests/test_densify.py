@@ -185,6 +185,10 @@ def test_an_interrupted_densify_resumes_only_the_same_settings(tmp_path: Path, m
         with open_shard(out / name) as a, open_shard(clean / name) as b:
             for fid in shard_sample_ids(a):
                 np.testing.assert_array_equal(read_sample(a, fid).label, read_sample(b, fid).label)
+    # A new rewrite into the finished OUT, interrupted: the old index must not make it look complete.
+    _interrupted(monkeypatch, src, out, fail_at=1, region_size=8, max_rms=0.3)
+    with pytest.raises(ShardError):
+        read_index(out)
     # Interrupted again, then re-run with another setting: everything is redone.
     _interrupted(monkeypatch, src, tmp_path / "dense2", fail_at=5, **settings)
     calls = _count_calls(monkeypatch)

@@ -12,7 +12,14 @@ import numpy as np
 from pvm_labeler.common.atomic import atomic_write_bytes
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards.reader import open_shard, read_index, read_sample, shard_sample_ids
-from pvm_labeler.shards.schema import DEFAULT_COMPRESSION, OPTIONAL, REQUIRED, ShardRecord, ShardSample
+from pvm_labeler.shards.schema import (
+    DEFAULT_COMPRESSION,
+    INDEX_NAME,
+    OPTIONAL,
+    REQUIRED,
+    ShardRecord,
+    ShardSample,
+)
 from pvm_labeler.shards.writer import ShardWriter, write_index
 
 #: A sample -> the arrays (by schema name) and attributes to replace in its copy.
@@ -55,6 +62,8 @@ def rewrite(src: Path | str, out: Path | str, compression: str = DEFAULT_COMPRES
     index = read_index(src)
     out.mkdir(parents=True, exist_ok=True)
     resuming = _claim(out, {"src": str(src.resolve()), "compression": compression, "extra": extra or {}})
+    # An index left by an earlier complete rewrite into OUT must not make this unfinished one look complete.
+    (out / INDEX_NAME).unlink(missing_ok=True)
     bar = tqdm(total=index.num_samples, unit="pair", desc=f"rewrite {src.name}", file=sys.stderr,
                disable=not (progress and sys.stderr.isatty()), dynamic_ncols=True)
     for path, ids in index.shards:
