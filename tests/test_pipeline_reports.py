@@ -96,8 +96,11 @@ def test_continue_stages_chain_skip_and_resume(tmp_path: Path, monkeypatch: pyte
     # every later stage starts fresh from the stage before it, in order
     later = [run for run, *_ in tp.CONTINUE[2:]]
     assert [cmd[cmd.index("--out") + 1] for cmd in ran[1:]] == [str(tmp_path / run) for run in later]
+    # "pretrained" starts from the shipped file (the run before it is gone), every other init from a run's export
     assert [cmd[cmd.index("--init") + 1] for cmd in ran[1:]] == [
-        str(tmp_path / init / "model.safetensors") for _, init, *_ in tp.CONTINUE[2:]]
+        str(tp.WEIGHTS if init == "pretrained" else tmp_path / init / "model.safetensors")
+        for _, init, *_ in tp.CONTINUE[2:]]
+    assert any(init == "pretrained" for _, init, *_ in tp.CONTINUE)
 
 
 def test_studies_report_keeps_committed_baselines(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
