@@ -206,6 +206,29 @@ def paste_occluders(
     return new_right, pasted & (new_right != right).any(dim=1, keepdim=True)
 
 
+def occlude_right(
+    left: torch.Tensor, right: torch.Tensor, p: float, cfg: AnalogyConfig, gen: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Occluders pasted into the RIGHT view of each sample with probability ``p`` (training input only).
+
+    The L_T occluders (``paste_occluders``: 1..max_patches rectangles of patch_frac size, cut from another sample's
+    left view) without a second forward pass: the left label of an occluded pixel is still its true disparity, so the
+    PVM label supervises it (L_P), while the photometric terms keep seeing the clean pair.
+
+    Args:
+        left, right: (B, 3, H, W) float [0, 255].
+        p: probability per sample in [0, 1].
+
+    Returns:
+        (right (B, 3, H, W), pasted (B, 1, H, W) bool: True where a chosen sample's pixel changed).
+    """
+    with torch.no_grad():
+        source = torch.roll(left, shifts=1, dims=0) if left.shape[0] > 1 else torch.flip(left, dims=(-1,))
+        pasted_right, pasted = paste_occluders(right, source, cfg, gen)
+        chosen = (torch.rand(right.shape[0], generator=gen) < p).view(-1, 1, 1, 1).to(right.device)
+        return torch.where(chosen, pasted_right, right), pasted & chosen
+
+
 def _gaussian_blur(images: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     """Separable Gaussian blur with a per-sample sigma (B,), 5-tap kernel; sigma 0 leaves the image unchanged."""
     taps = torch.arange(-2, 3, device=images.device, dtype=torch.float32)

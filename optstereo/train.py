@@ -154,6 +154,22 @@ def _forward(state: TrainState, cfg: TrainConfig, device: torch.device, left: to
     return [p.float() for p in preds]
 
 
+def _step_generator(cfg: TrainConfig, step: int, stream: int = 0) -> torch.Generator:
+    """CPU generator seeded by (seed, step, stream), so a resumed run repeats each step's random draws."""
+    return torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + stream * 1_000_000_007)
+
+
+def network_right(state: TrainState, cfg: TrainConfig, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+    """The right view the network sees: ``right``, with pasted occluders when data.occlude_p > 0."""
+    if cfg.data.occlude_p <= 0:
+        return right
+    from optstereo.analogy import occlude_right
+
+    occluded, _ = occlude_right(left, right, cfg.data.occlude_p, cfg.analogy_config(),
+                                _step_generator(cfg, state.step, stream=1))
+    return occluded
+
+
 def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor, right: torch.Tensor,
                  disp0: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """lambda_t-weighted L_T of one batch (optstereo.analogy) and its logs; zero before loss.analogy_start.
@@ -165,8 +181,7 @@ def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left
         return zero, {"L_T": zero, "T_valid": zero}
     from optstereo.analogy import analogy_loss, transform_batch
 
-    gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + state.step)
-    sample = transform_batch(left, right, disp0, cfg.analogy_config(), gen)
+    sample = transform_batch(left, right, disp0, cfg.analogy_config(), _step_generator(cfg, state.step))
     preds_t = _forward(state, cfg, device, sample.left, sample.right)
     loss_t = analogy_loss(preds_t, sample, loss.gamma)
     return loss.lambda_t * loss_t, {"L_T": loss_t.detach(), "T_valid": sample.valid.float().mean()}
@@ -177,8 +192,8 @@ def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainCo
     left, right, label, valid = (t.to(device, non_blocking=True) for t in batch[:4])
     weight = batch[4].to(device, non_blocking=True) if cfg.loss.conf_weight else None
     state.model.train()
-    preds = _forward(state, cfg, device, left, right)
-    total, terms = loss_fn(preds, left, right, label, valid, weight)
+    preds = _forward(state, cfg, device, left, network_right(state, cfg, left, right))
+    total, terms = loss_fn(preds, left, right, label, valid, weight)  # L_R / L_S on the clean pair
     weighted_t, terms_t = analogy_term(state, cfg, device, left, right, preds[-1])
     total = total + weighted_t
     terms = {**terms, **terms_t, "total": total.detach()}

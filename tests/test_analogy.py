@@ -17,6 +17,7 @@ from optstereo.analogy import (
     SpatialParams,
     analogy_loss,
     apply_spatial,
+    occlude_right,
     occlusion_mask,
     paste_occluders,
     reliable_mask,
@@ -125,3 +126,56 @@ def test_training_step_with_lambda_t(tmp_path: Path) -> None:
     assert [r["L_T"] == 0.0 for r in logs] == [True, True, False, False]  # off before analogy_start
     last = logs[-1]
     assert last["total"] > last["L_P"] + 0.1 * (last["L_R"] + last["L_S"])
+
+
+def test_occlude_right_probability_and_pixels() -> None:
+    """p = 0 changes nothing; p = 1 pastes into every sample and only the pasted pixels differ; p = 0.5 picks some."""
+    gen = torch.Generator().manual_seed(3)
+    left, right = (torch.rand(16, 3, 24, 48, generator=gen) * 255 for _ in range(2))
+    cfg = AnalogyConfig()
+    same, none = occlude_right(left, right, 0.0, cfg, torch.Generator().manual_seed(0))
+    assert torch.equal(same, right) and not none.any()
+    every, pasted = occlude_right(left, right, 1.0, cfg, torch.Generator().manual_seed(0))
+    assert torch.equal((every != right).any(dim=1, keepdim=True), pasted) and pasted.any(dim=(1, 2, 3)).all()
+    some, chosen = occlude_right(left, right, 0.5, cfg, torch.Generator().manual_seed(0))
+    hit = chosen.any(dim=(1, 2, 3))
+    assert 0 < int(hit.sum()) < 16
+    assert torch.equal(some[~hit], right[~hit]) and torch.equal(some[hit], every[hit])  # same draws, same patches
+    again, _ = occlude_right(left, right, 0.5, cfg, torch.Generator().manual_seed(0))
+    assert torch.equal(again, some)
+
+
+def test_training_step_occludes_only_the_network_input(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With occlude_p the network sees pasted occluders; the loss (L_P labels, L_R/L_S images) sees the clean pair."""
+    shards = make_shards(tmp_path / "shards", n=2, shard_size=2, height=32, width=72)
+    cfg = tiny_config(shards, tmp_path / "run", occlude_p=1.0)
+    seen: dict[str, torch.Tensor] = {}
+    forward = train._forward
+
+    def spy_forward(state, cfg, device, left, right):  # noqa: ANN001, ANN202
+        seen["net_right"] = right.clone()
+        return forward(state, cfg, device, left, right)
+
+    monkeypatch.setattr(train, "_forward", spy_forward)
+    model = train.build_model(cfg)
+    optimizer, scheduler = train.build_optimizer(model, cfg)
+    state = train.TrainState(model, optimizer, scheduler, torch.amp.GradScaler("cpu", enabled=False))
+    loss = train.build_loss(cfg)
+
+    class SpyLoss(torch.nn.Module):
+        def forward(self, preds, left, right, *rest):  # noqa: ANN001, ANN202
+            seen["loss_right"] = right.clone()
+            return loss(preds, left, right, *rest)
+
+    gen = torch.Generator().manual_seed(0)
+    left, right = (torch.rand(2, 3, 32, 64, generator=gen) * 255 for _ in range(2))
+    label = torch.full((2, 1, 32, 64), 3.0)
+    batch = (left, right, label, torch.ones_like(label, dtype=torch.bool))
+    train.train_step(state, batch, SpyLoss(), cfg, torch.device("cpu"))
+    assert torch.equal(seen["loss_right"], right)
+    changed = (seen["net_right"] != right).any(dim=1)
+    assert changed.any(dim=(1, 2)).all() and changed.float().mean() < 0.5
+    off = tiny_config(shards, tmp_path / "off")
+    assert torch.equal(train.network_right(state, off, left, right), right)
+    with pytest.raises(ValueError, match="occlude-p"):
+        tiny_config(shards, tmp_path / "bad", occlude_p=1.5)
