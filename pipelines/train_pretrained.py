@@ -42,6 +42,8 @@ RUNS = Path("out/pretrained")
 RESULTS = Path("results/pretrained")
 RECIPE = Path("pipelines/recipes/cpu_main.yaml")
 WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
+#: Committed weights of the lineage's unshipped head, so that a later session (a fresh checkout) can continue it.
+HEADS = RESULTS / "weights"
 TEST_ITERS = 8  # the run trains with N_s = 4; RAFT-style refinement keeps improving with more test iterations
 
 #: (name, reader, root under SHARED, SGM search range or None = 64 / the scene's calib ndisp)
@@ -171,6 +173,16 @@ def step_finish() -> None:
     _run([BIN / "optstereo-train", "--resume", rd, "--steps", str(cfg.optim.steps), "--threads", "2", "--quiet"])
 
 
+def init_weights(init: str) -> Path:
+    """The weights a CONTINUE run starts from: the shipped file ("pretrained"), the init run's export under RUNS, or,
+    when that run's directory is gone (out/ is not committed), its committed copy in HEADS."""
+    if init == "pretrained":
+        return WEIGHTS
+    export = RUNS / init / "model.safetensors"
+    head = HEADS / f"{init}.safetensors"
+    return head if not export.exists() and head.exists() else export
+
+
 def continue_commands() -> dict[str, list[str]]:
     """The command of each CONTINUE run: --init the previous run's exported weights, or --resume an interrupted one."""
     cmds = {}
@@ -178,8 +190,7 @@ def continue_commands() -> dict[str, list[str]]:
         if (RUNS / run / "last.pt").exists():
             cmds[run] = [BIN / "optstereo-train", "--resume", RUNS / run, "--quiet"]
         else:
-            weights = WEIGHTS if init == "pretrained" else RUNS / init / "model.safetensors"
-            cmds[run] = [BIN / "optstereo-train", "--config", RECIPE, "--init", weights,
+            cmds[run] = [BIN / "optstereo-train", "--config", RECIPE, "--init", init_weights(init),
                          "--lambda-t", "0", "--conf-weight", "--labels", labels, "--out", RUNS / run, *flags, "--quiet"]
     return cmds
 

@@ -103,6 +103,22 @@ def test_continue_stages_chain_skip_and_resume(tmp_path: Path, monkeypatch: pyte
     assert any(init == "pretrained" for _, init, *_ in tp.CONTINUE)
 
 
+
+def test_init_weights_falls_back_to_the_committed_head(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run's own export wins; without its directory, the committed head; neither: the export path (made earlier)."""
+    monkeypatch.setattr(tp, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(tp, "HEADS", tmp_path / "heads")
+    assert tp.init_weights("pretrained") == tp.WEIGHTS
+    export, head = tmp_path / "runs" / "a" / "model.safetensors", tmp_path / "heads" / "a.safetensors"
+    assert tp.init_weights("a") == export
+    head.parent.mkdir()
+    head.write_bytes(b"")
+    assert tp.init_weights("a") == head
+    export.parent.mkdir(parents=True)
+    export.write_bytes(b"")
+    assert tp.init_weights("a") == export
+
+
 def test_studies_report_keeps_committed_baselines(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A baseline whose eval dir is gone keeps its committed figures; the overview is kept without labels."""
     monkeypatch.chdir(tmp_path)
