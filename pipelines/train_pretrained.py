@@ -81,19 +81,22 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
-#: The report's lineage table: (result name, what that model is, training steps of that row) (``shipped`` is the
-#: file in optstereo/weights/). Steps are batch-2 steps; each row continues the one above, so they add up.
-LINEAGE: tuple[tuple[str, str, int], ...] = (
-    ("shipped_v1", "version 1: the recipe without L_T, 1200 steps from scratch", 1200),
-    ("finetune_conf", "+ 550 steps, confidence-weighted L_P, OneCycle peak 1e-4", 550),
-    ("long_conf", "+ 1500 steps, confidence-weighted L_P, today's labels (kappa2 0.3): version 2", 1500),
-    ("long_conf3", "+ 1800 steps, the same loss, labels and peak: version 3", 1800),
-    ("long_conf4", "+ 1300 steps, the same (measured, not shipped: 0.199 points short of its rule)", 1300),
-    ("long_conf5", "+ 1900 steps, the same: version 4", 1900),
-    ("long_conf6", "+ 1900 steps, the same (measured, not shipped: 0.14 points short of its rule)", 1900),
-    ("shipped", "+ 1500 steps, the same: version 5, shipped (long_conf7)", 1500),
-    ("long_conf8", "+ 1900 steps, the same (measured, not shipped: 0.10 points short of its rule)", 1900),
-    ("long_conf9", "+ 1900 steps, the same (measured, not shipped: 0.02 points short of its rule)", 1900),
+#: The report's lineage table: (result name, what that model is, training steps of that row, the row it continues:
+#: "" = the row above) (``shipped`` is the file in optstereo/weights/). Steps are batch-2 steps and add up along
+#: the rows each continues; long_conf8 and long_conf9 are a side branch of version 5, version 6 continues version 5.
+LINEAGE: tuple[tuple[str, str, int, str], ...] = (
+    ("shipped_v1", "version 1: the recipe without L_T, 1200 steps from scratch", 1200, ""),
+    ("finetune_conf", "+ 550 steps, confidence-weighted L_P, OneCycle peak 1e-4", 550, ""),
+    ("long_conf", "+ 1500 steps, confidence-weighted L_P, today's labels (kappa2 0.3): version 2", 1500, ""),
+    ("long_conf3", "+ 1800 steps, the same loss, labels and peak: version 3", 1800, ""),
+    ("long_conf4", "+ 1300 steps, the same (measured, not shipped: 0.199 points short of its rule)", 1300, ""),
+    ("long_conf5", "+ 1900 steps, the same: version 4", 1900, ""),
+    ("long_conf6", "+ 1900 steps, the same (measured, not shipped: 0.14 points short of its rule)", 1900, ""),
+    ("long_conf7", "+ 1500 steps, the same: version 5", 1500, ""),
+    ("long_conf8", "+ 1900 steps, the same (measured, not shipped: 0.10 points short of its rule)", 1900, ""),
+    ("long_conf9", "+ 1900 steps, the same (measured, not shipped: 0.02 points short of its rule)", 1900, ""),
+    ("shipped", "version 5 + 6000 steps in bf16 autocast, one OneCycle: version 6, shipped (long_bf16)", 6000,
+     "long_conf7"),
 )
 #: Issue 14's target: KITTI 2015 bad-3 <= 0.75 x dense SGM's.
 TARGET_RATIO = 0.75
@@ -309,10 +312,11 @@ def step_report() -> str:
             d = docs[name]
             lines.append(f"| {what} (`{name}`) | {_cells(d['kitti15']['summary'])} | "
                          f"{d['kitti12']['summary']['bad3']:.2f} | {d['middlebury']['summary']['bad3']:.2f} |")
-    lines += ["", "| shipped model's lineage (each row continues the one above) | KITTI 2015 bad-3 % | D1-all % | "
-              "AEPE px | KITTI 2012 bad-3 % | Middlebury bad-3 % | FlyingThings3D bad-3 % |",
+    lines += ["", "| shipped model's lineage (each row continues the one above unless it names another) | "
+              "KITTI 2015 bad-3 % | D1-all % | AEPE px | KITTI 2012 bad-3 % | Middlebury bad-3 % | "
+              "FlyingThings3D bad-3 % |",
               "|---|---:|---:|---:|---:|---:|---:|"]
-    for name, what, _ in LINEAGE:
+    for name, what, *_ in LINEAGE:
         if name in docs:
             d = docs[name]
             lines.append(f"| {what} (`{name}`) | {_cells(d['kitti15']['summary'])} | "
@@ -328,17 +332,35 @@ def step_report() -> str:
     return text
 
 
-def lineage_points(docs: dict[str, dict[str, Any]]) -> list[tuple[int, str, dict[str, float]]]:
-    """(cumulative training steps, name, {GT set: bad-3 %}) of each evaluated LINEAGE row, in order."""
-    points, steps = [], 0
-    for name, _, row_steps in LINEAGE:
-        steps += row_steps
+def lineage_points(docs: dict[str, dict[str, Any]]) -> list[tuple[int, str, dict[str, float], str | None]]:
+    """(cumulative training steps, name, {GT set: bad-3 %}, nearest evaluated ancestor or None) of each evaluated
+    LINEAGE row, in order. A row's steps add to those of the row it continues (evaluated or not)."""
+    total: dict[str, int] = {}
+    parent_of: dict[str, str | None] = {}
+    points, previous = [], None
+    for name, _, row_steps, parent in LINEAGE:
+        parent_of[name] = parent or previous
+        total[name] = total.get(parent_of[name] or "", 0) + row_steps
+        previous = name
         if name in docs:
-            points.append((steps, name, {s: float(docs[name][s]["summary"]["bad3"]) for s, *_ in EVAL_SETS}))
+            ancestor = parent_of[name]
+            while ancestor is not None and ancestor not in docs:
+                ancestor = parent_of[ancestor]
+            points.append((total[name], name, {s: float(docs[name][s]["summary"]["bad3"]) for s, *_ in EVAL_SETS},
+                           ancestor))
     return points
 
 
-def steps_to_target(points: list[tuple[int, str, dict[str, float]]], target: float,
+def main_path(points: list[tuple[int, str, dict[str, float], str | None]]) -> list:
+    """The points from the first row to the last one along its ancestors (side branches left out)."""
+    by_name = {p[1]: p for p in points}
+    path = [points[-1]] if points else []
+    while path and path[-1][3] is not None:
+        path.append(by_name[path[-1][3]])
+    return path[::-1]
+
+
+def steps_to_target(points: list[tuple[int, str, dict[str, float], str | None]], target: float,
                     last: int = 3) -> tuple[float, float] | None:
     """More steps to reach ``target`` KITTI 2015 bad-3 if the last ``last`` rows' trend held: (linear, log-linear).
 
@@ -357,9 +379,10 @@ def steps_to_target(points: list[tuple[int, str, dict[str, float]]], target: flo
     return float(gap / -lin), float(steps[-1] * (np.exp(gap / -log) - 1.0))
 
 
-def extrapolation_text(points: list[tuple[int, str, dict[str, float]]], sgm_bad3: float) -> str:
+def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None]], sgm_bad3: float) -> str:
+    """The plot's caption and the steps to the target along the shipped model's own ancestors."""
     target = TARGET_RATIO * sgm_bad3
-    more = steps_to_target(points, target)
+    more = steps_to_target(main_path(points), target)
     head = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM and "
             f"the target {target:.2f} % dashed).")
     if more is None:
@@ -370,23 +393,28 @@ def extrapolation_text(points: list[tuple[int, str, dict[str, float]]], sgm_bad3
             f"lower bound.")
 
 
-def plot_lineage(points: list[tuple[int, str, dict[str, float]]], sgm: dict[str, Any], path: Path) -> None:
-    """bad-3 of each lineage row against cumulative steps, one colour per GT set, dense SGM dashed in its colour."""
+def plot_lineage(points: list[tuple[int, str, dict[str, float], str | None]], sgm: dict[str, Any], path: Path) -> None:
+    """bad-3 of each lineage row against cumulative steps, one colour per GT set, each point joined to the row it
+    continues (side branches too), dense SGM dashed in its colour."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(9.5, 4.2))
-    steps = [p[0] for p in points]
+    by_name = {p[1]: p for p in points}
     for (set_name, *_), colour in zip(EVAL_SETS[:3], ("tab:blue", "tab:orange", "tab:green"), strict=True):
-        ax.plot(steps, [p[2][set_name] for p in points], "o-", color=colour, label=f"{set_name} network")
+        ax.plot([p[0] for p in points], [p[2][set_name] for p in points], "o", color=colour,
+                label=f"{set_name} network")
+        for steps, _, bad3, parent in points:
+            if parent is not None:
+                ax.plot([by_name[parent][0], steps], [by_name[parent][2][set_name], bad3[set_name]], "-", color=colour)
         ax.axhline(sgm[set_name]["summary"]["bad3"], color=colour, ls="--", lw=1, label=f"{set_name} dense SGM")
     ax.axhline(TARGET_RATIO * sgm["kitti15"]["summary"]["bad3"], color="black", ls=":", lw=1.2,
                label=f"target kitti15 ({TARGET_RATIO} x SGM)")
     ax.set_xlabel("cumulative training steps (batch 2)")
     ax.set_ylabel("bad-3 % (dense, every GT-valid pixel)")
-    ax.set_title("shipped model's lineage: each point continues the one before")
+    ax.set_title("shipped model's lineage: each point continues the one it is joined to")
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))  # outside: the curves cross the axes
     ax.grid(alpha=0.3)
     fig.tight_layout()

@@ -142,12 +142,14 @@ def test_studies_report_keeps_committed_baselines(tmp_path: Path, monkeypatch: p
 
 def test_lineage_steps_add_up_and_extrapolation_is_hand_computed(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(tp, "LINEAGE", (("a", "", 1000), ("gone", "", 500), ("b", "", 500), ("c", "", 2000)))
+    monkeypatch.setattr(tp, "LINEAGE", (("a", "", 1000, ""), ("gone", "", 500, ""), ("b", "", 500, ""),
+                                        ("c", "", 2000, "")))
     doc = lambda k15: {s: {"summary": {"bad3": k15 + i}} for i, (s, *_) in enumerate(tp.EVAL_SETS)}  # noqa: E731
     points = tp.lineage_points({"a": doc(10.0), "b": doc(9.0), "c": doc(8.0)})
     # "gone" has no evaluation but its 500 steps still count towards the rows after it
-    assert [(p[0], p[1], p[2]["kitti15"], p[2]["kitti12"]) for p in points] == [
-        (1000, "a", 10.0, 11.0), (2000, "b", 9.0, 10.0), (4000, "c", 8.0, 9.0)]
+    assert [(p[0], p[1], p[2]["kitti15"], p[2]["kitti12"], p[3]) for p in points] == [
+        (1000, "a", 10.0, 11.0, None), (2000, "b", 9.0, 10.0, "a"), (4000, "c", 8.0, 9.0, "b")]
+    assert tp.main_path(points) == points
     linear, loglinear = tp.steps_to_target(points, target=6.0)
     # least squares over (1000, 10), (2000, 9), (4000, 8): slope -3000 / 4666666.67 per step; gap 2 points
     assert linear == pytest.approx(2 * 4666666.667 / 3000, rel=1e-6)
@@ -159,6 +161,22 @@ def test_lineage_steps_add_up_and_extrapolation_is_hand_computed(tmp_path: Path,
     image = cv2.imread(str(tmp_path / "lineage.png"))
     assert image is not None and image.shape[0] > 300 and image.shape[1] > 600
     assert "3,111 more steps" in tp.extrapolation_text(points, sgm_bad3=8.0)
+
+
+def test_lineage_side_branch_is_left_out_of_the_main_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A row naming its parent adds its steps to that parent's; the extrapolation follows the last row's ancestors."""
+    monkeypatch.setattr(tp, "LINEAGE", (("a", "", 1000, ""), ("b", "", 1000, ""), ("side", "", 9000, ""),
+                                        ("c", "", 2000, "b")))
+    doc = lambda k15: {s: {"summary": {"bad3": k15}} for s, *_ in tp.EVAL_SETS}  # noqa: E731
+    points = tp.lineage_points({"a": doc(10.0), "b": doc(9.0), "side": doc(1.0), "c": doc(8.0)})
+    assert [(p[0], p[1], p[3]) for p in points] == [(1000, "a", None), (2000, "b", "a"), (11000, "side", "b"),
+                                                  (4000, "c", "b")]
+    assert [p[1] for p in tp.main_path(points)] == ["a", "b", "c"]
+    # along a -> b -> c: 1 point per doubling, 2 more points to 6 % -> 16000 steps, 12000 more (the side row ignored)
+    assert "12,000 at the log-linear rate" in tp.extrapolation_text(points, sgm_bad3=8.0)
+    sgm = {s: {"summary": {"bad3": 10.0}} for s, *_ in tp.EVAL_SETS}
+    tp.plot_lineage(points, sgm, tmp_path / "lineage.png")
+    assert cv2.imread(str(tmp_path / "lineage.png")) is not None
 
 
 def test_bench_export_paired_ratios_by_hand() -> None:
