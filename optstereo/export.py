@@ -15,8 +15,8 @@ graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.t
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
 later 0.81 with 9 repeats, whose paired per-repeat ratios spread from 0.75 to 0.97: the target sits inside the noise).
-On a quiet AMD EPYC with AVX-512 and AVX512-BF16 (2026-11-25): 0.67, paired 0.47-0.71 (torch 0.93 s, onnxruntime
-0.62 s).
+On AMD EPYCs with AVX-512 and AVX512-BF16: 0.67 on a quiet one (paired 0.47-0.71; torch 0.93 s, onnxruntime
+0.62 s), then 0.80 and 0.77 on a slower one the next day (torch 1.68 / 1.60 s; paired 0.64-0.81 and 0.72-0.80).
 onnxruntime's profile: Conv + FusedConv 70 %, InstanceNorm 7.5 %, layout reorders 7.7 %, the lookup's gathers 1.4 %.
 Tried without a gain beyond the noise: a static shape, InstanceNorm decomposed into reductions, denormals-as-zero,
 no thread spinning, the EXTENDED optimisation level, the GRU's z and r convolutions split (fewer layout reorders),
