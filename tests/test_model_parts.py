@@ -188,3 +188,78 @@ class TestSmallBlocks:
         out = ups(low, torch.randn(1, 4, 3, 4), torch.zeros(1, 3, 24, 32))
         assert out.shape == (1, 1, 24, 32)
         torch.testing.assert_close(out[..., 8:16, 8:24], torch.full((1, 1, 8, 16), 16.0))
+
+
+def _naive_instance_norm(x: np.ndarray, eps: float = 1e-5) -> np.ndarray:
+    mean = x.mean(axis=(2, 3), keepdims=True)
+    var = ((x - mean) ** 2).mean(axis=(2, 3), keepdims=True)
+    return (x - mean) / np.sqrt(var + eps)
+
+
+class TestChannelsLast:
+    """The channels-last path of the encoder and upsampler (bf16 on CPU) computes what the NCHW path computes."""
+
+    def test_instance_norm_fast_path_matches_reference_and_grads(self) -> None:
+        torch.manual_seed(3)
+        x = (torch.randn(1, 5, 7, 9, dtype=torch.float64) * 3 + 1).contiguous(memory_format=torch.channels_last)
+        x.requires_grad_(True)
+        norm = make_norm("instance", 5)
+        y = norm(x)
+        assert y.is_contiguous(memory_format=torch.channels_last) and not y.is_contiguous()  # the fast path ran
+        np.testing.assert_allclose(y.detach().numpy(), _naive_instance_norm(x.detach().numpy()), atol=1e-12)
+        weights = torch.randn(1, 5, 7, 9, dtype=torch.float64)
+        (y * weights).sum().backward()
+        x_ref = x.detach().contiguous().requires_grad_(True)
+        (torch.nn.InstanceNorm2d(5)(x_ref) * weights).sum().backward()
+        torch.testing.assert_close(x.grad, x_ref.grad, rtol=1e-10, atol=1e-12)
+
+    def test_instance_norm_other_inputs_take_the_standard_path(self) -> None:
+        torch.manual_seed(4)
+        x = torch.randn(2, 3, 4, 6).contiguous(memory_format=torch.channels_last)  # B = 2: statistics per image
+        ref = _naive_instance_norm(x.numpy().astype(np.float64))
+        np.testing.assert_allclose(make_norm("instance", 3)(x).numpy(), ref, atol=1e-5)
+        y = make_norm("instance", 3)(torch.randn(1, 3, 4, 6))  # NCHW stays NCHW
+        assert y.is_contiguous()
+
+    @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace: what export=torchscript uses
+    def test_use_channels_last_only_in_eager_cpu_reduced_precision(self) -> None:
+        from optstereo.models.layers import use_channels_last
+
+        x = torch.zeros(1, 3, 8, 8)
+        assert use_channels_last(x) and not use_channels_last(x, reduced_precision_only=True)
+        assert use_channels_last(x.bfloat16(), reduced_precision_only=True)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            assert use_channels_last(x, reduced_precision_only=True)
+        assert not use_channels_last(torch.zeros(3, 8, 8))
+        seen = []
+        torch.jit.trace(lambda t: (seen.append(use_channels_last(t)), t * 2)[1], (x,), check_trace=False)
+        assert seen == [False]
+
+    def test_encoder_bf16_channels_last_close_to_nchw_and_returns_nchw(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        import optstereo.models.extractor as extractor
+
+        torch.manual_seed(5)
+        enc = FeatureEncoder(output_dim=16, widths=(8, 12, 16)).eval()
+        x = torch.rand(1, 3, 32, 48) * 2 - 1
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+            fast = enc(x).float()
+            monkeypatch.setattr(extractor, "use_channels_last", lambda t, **kw: False)
+            slow = enc(x).float()
+            exact = torch.autocast("cpu", enabled=False)
+        with torch.no_grad(), exact:
+            ref = enc(x)
+        assert fast.is_contiguous() and fast.shape == (1, 16, 4, 6)
+        # the two bf16 paths differ by bf16 rounding only: no further from each other than bf16 is from float32
+        assert float((fast - slow).abs().max()) <= 2 * float((slow - ref).abs().max()) + 1e-6
+        assert float((fast - ref).abs().mean()) < 0.05 * float(ref.abs().mean())
+
+    def test_upsampler_channels_last_same_values(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        import optstereo.models.upsample as upsample
+
+        torch.manual_seed(6)
+        up = ConvUpsampler(width=8).double()
+        disp, image = torch.rand(1, 1, 4, 6, dtype=torch.float64) * 3, torch.rand(1, 3, 32, 48, dtype=torch.float64)
+        fast = up(disp, None, image)
+        monkeypatch.setattr(upsample, "use_channels_last", lambda t, **kw: False)
+        torch.testing.assert_close(fast, up(disp, None, image), rtol=1e-12, atol=1e-12)
+        assert fast.is_contiguous()

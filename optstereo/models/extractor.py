@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from optstereo.models.layers import ResidualBlock, make_norm
+from optstereo.models.layers import ResidualBlock, make_norm, use_channels_last
 
 
 class FeatureEncoder(nn.Module):
@@ -41,6 +41,13 @@ class FeatureEncoder(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if use_channels_last(x, reduced_precision_only=True):
+            # oneDNN convolves bf16 in NHWC on CPU; an NCHW tensor between layers costs two layout copies per conv
+            # (docs/optstereo.md, "Channels-last encoder"). Same values; the output goes back to NCHW.
+            return self._forward(x.contiguous(memory_format=torch.channels_last)).contiguous()
+        return self._forward(x)
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.stem(x)
         x = self.layer1(x)
         x = self.layer2(x)

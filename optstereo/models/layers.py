@@ -3,7 +3,43 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
+
+
+class InstanceNorm2d(nn.InstanceNorm2d):
+    """``nn.InstanceNorm2d`` that keeps a channels-last image channels-last (the same state dict: none).
+
+    For one image (B = 1) without affine parameters or running statistics, instance norm IS batch norm in training
+    mode, and batch norm has channels-last kernels, while ``F.instance_norm`` first copies its input to NCHW. On
+    CPUs whose oneDNN runs bf16 convolutions in NHWC (AMX), that copy and the one back to NHWC in the next
+    convolution took ~30 % of a training step (docs/optstereo.md, "Channels-last encoder"). Every other input
+    takes ``nn.InstanceNorm2d``'s path.
+
+    Shapes: (B, C, H, W) -> (B, C, H, W), the input's memory format kept on the fast path.
+    """
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if (x.dim() == 4 and x.shape[0] == 1 and not self.affine and not self.track_running_stats
+                and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()):
+            return F.batch_norm(x, None, None, None, None, True, 0.0, self.eps)
+        return super().forward(x)
+
+
+def use_channels_last(x: torch.Tensor, *, reduced_precision_only: bool = False) -> bool:
+    """Whether a CPU module should run ``x`` channels-last: eager CPU only (never while exporting or tracing).
+
+    ``reduced_precision_only``: only under CPU autocast or for a bf16/fp16 ``x``. The encoder asks for it because
+    torch's channels-last batch-norm backward is less exact in float32 (gradients ~1 % off a float64 reference on a
+    tiny model, against 1e-5 for the NCHW path), which bf16 (~30 % off there) swamps but float32 should not get.
+    """
+    if x.device.type != "cpu" or x.dim() != 4 or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+        return False
+    if torch.compiler.is_compiling():
+        return False
+    if reduced_precision_only:
+        return torch.is_autocast_enabled("cpu") or x.dtype in (torch.bfloat16, torch.float16)
+    return True
 
 
 def make_norm(kind: str, channels: int) -> nn.Module:
@@ -15,7 +51,7 @@ def make_norm(kind: str, channels: int) -> nn.Module:
         channels: number of channels.
     """
     if kind == "instance":
-        return nn.InstanceNorm2d(channels)
+        return InstanceNorm2d(channels)
     if kind == "batch":
         return nn.BatchNorm2d(channels)
     if kind == "group":

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.models.layers import conv3x3
+from optstereo.models.layers import conv3x3, use_channels_last
 
 
 def upsample_disp(disp: torch.Tensor, factor: int = 8) -> torch.Tensor:
@@ -40,7 +40,9 @@ class ConvUpsampler(nn.Module):
     def forward(self, disp_low: torch.Tensor, hidden: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
         up = upsample_disp(disp_low, self.factor)
         x = torch.cat([up / self.factor, image.to(up.dtype)], dim=1).to(self.conv1.weight.dtype)
-        return up + self.conv2(self.relu(self.conv1(x))).float()
+        if use_channels_last(x):  # oneDNN convolves NHWC on CPU: no layout copy of the wide full-resolution layer
+            x = x.contiguous(memory_format=torch.channels_last)
+        return up + self.conv2(self.relu(self.conv1(x))).float().contiguous()
 
 
 class ConvexUpsampler(nn.Module):
