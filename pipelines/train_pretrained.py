@@ -80,6 +80,7 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("long_conf9", "long_conf8", LABELS_K03, ["--steps", "1900", "--lr", "1e-4", "--seed", "12"]),
     ("long_bf16", "pretrained", LABELS_K03, ["--steps", "6000", "--lr", "1e-4", "--seed", "14", "--amp", "bf16"]),
     ("long_bf16c", "pretrained", LABELS_K03, ["--steps", "5000", "--lr", "1e-4", "--seed", "16", "--amp", "bf16"]),
+    ("long_bf16d", "long_bf16c", LABELS_K03, ["--steps", "3000", "--lr", "1e-4", "--seed", "17", "--amp", "bf16"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
