@@ -222,14 +222,16 @@ class TestChannelsLast:
         assert y.is_contiguous()
 
     @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace: what export=torchscript uses
-    def test_use_channels_last_only_in_eager_cpu_reduced_precision(self) -> None:
+    def test_use_channels_last_only_in_eager_cpu_and_not_for_float32_grad(self) -> None:
         from optstereo.models.layers import use_channels_last
 
         x = torch.zeros(1, 3, 8, 8)
-        assert use_channels_last(x) and not use_channels_last(x, reduced_precision_only=True)
-        assert use_channels_last(x.bfloat16(), reduced_precision_only=True)
+        assert use_channels_last(x) and not use_channels_last(x, exact_float32_grad=True)
+        assert use_channels_last(x.bfloat16(), exact_float32_grad=True)
         with torch.autocast("cpu", dtype=torch.bfloat16):
-            assert use_channels_last(x, reduced_precision_only=True)
+            assert use_channels_last(x, exact_float32_grad=True)
+        with torch.no_grad():  # no backward: the channels-last forward is as exact as NCHW
+            assert use_channels_last(x, exact_float32_grad=True)
         assert not use_channels_last(torch.zeros(3, 8, 8))
         seen = []
         torch.jit.trace(lambda t: (seen.append(use_channels_last(t)), t * 2)[1], (x,), check_trace=False)
@@ -252,6 +254,19 @@ class TestChannelsLast:
         # the two bf16 paths differ by bf16 rounding only: no further from each other than bf16 is from float32
         assert float((fast - slow).abs().max()) <= 2 * float((slow - ref).abs().max()) + 1e-6
         assert float((fast - ref).abs().mean()) < 0.05 * float(ref.abs().mean())
+
+    def test_encoder_float32_inference_channels_last_same_values(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        import optstereo.models.extractor as extractor
+
+        torch.manual_seed(7)
+        enc = FeatureEncoder(output_dim=16, widths=(8, 12, 16)).eval()
+        x = torch.rand(1, 3, 32, 48) * 2 - 1
+        with torch.no_grad():
+            fast = enc(x)
+            monkeypatch.setattr(extractor, "use_channels_last", lambda t, **kw: False)
+            slow = enc(x)
+        assert fast.is_contiguous()
+        torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)
 
     def test_upsampler_channels_last_same_values(self, monkeypatch: pytest.MonkeyPatch) -> None:
         import optstereo.models.upsample as upsample

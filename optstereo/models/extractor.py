@@ -41,8 +41,8 @@ class FeatureEncoder(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if use_channels_last(x, reduced_precision_only=True):
-            # oneDNN convolves bf16 in NHWC on CPU; an NCHW tensor between layers costs two layout copies per conv
+        if use_channels_last(x, exact_float32_grad=True):
+            # oneDNN convolves NHWC on CPU; an NCHW tensor between layers costs two layout copies per bf16 conv
             # (docs/optstereo.md, "Channels-last encoder"). Same values; the output goes back to NCHW.
             return self._forward(x.contiguous(memory_format=torch.channels_last)).contiguous()
         return self._forward(x)

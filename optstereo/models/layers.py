@@ -26,18 +26,19 @@ class InstanceNorm2d(nn.InstanceNorm2d):
         return super().forward(x)
 
 
-def use_channels_last(x: torch.Tensor, *, reduced_precision_only: bool = False) -> bool:
+def use_channels_last(x: torch.Tensor, *, exact_float32_grad: bool = False) -> bool:
     """Whether a CPU module should run ``x`` channels-last: eager CPU only (never while exporting or tracing).
 
-    ``reduced_precision_only``: only under CPU autocast or for a bf16/fp16 ``x``. The encoder asks for it because
-    torch's channels-last batch-norm backward is less exact in float32 (gradients ~1 % off a float64 reference on a
-    tiny model, against 1e-5 for the NCHW path), which bf16 (~30 % off there) swamps but float32 should not get.
+    ``exact_float32_grad``: not for a full-precision forward in grad mode (no CPU autocast). The encoder asks for it
+    because torch's channels-last batch-norm backward is less exact in float32 (gradients ~1 % off a float64
+    reference on a tiny model, against 1e-5 for the NCHW path), which bf16 (~30 % off there) swamps but float32
+    training should not get. Inference (no grad) and bf16 training take the channels-last path.
     """
     if x.device.type != "cpu" or x.dim() != 4 or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
         return False
     if torch.compiler.is_compiling():
         return False
-    if reduced_precision_only:
+    if exact_float32_grad and torch.is_grad_enabled():
         return torch.is_autocast_enabled("cpu") or x.dtype in (torch.bfloat16, torch.float16)
     return True
 
