@@ -80,6 +80,7 @@ def test_feature_claim_uses_longest_evaluated_self_supervised_run() -> None:
 def test_continue_stages_chain_skip_and_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Each CONTINUE run --inits the previous run's exported weights; a finished run is skipped, a cut one resumed."""
     monkeypatch.setattr(tp, "RUNS", tmp_path)
+    monkeypatch.setattr(tp, "HEADS", tmp_path / "no_heads")  # committed heads: test_init_weights_falls_back_...
     ran: list[list[str]] = []
     monkeypatch.setattr(tp, "_run", lambda cmd: ran.append([str(c) for c in cmd]))
     first, second = tp.CONTINUE[0][0], tp.CONTINUE[1][0]
