@@ -17,6 +17,8 @@ Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI fram
 later 0.81 with 9 repeats, whose paired per-repeat ratios spread from 0.75 to 0.97: the target sits inside the noise).
 On AMD EPYCs with AVX-512 and AVX512-BF16: 0.67 on a quiet one (paired 0.47-0.71; torch 0.93 s, onnxruntime
 0.62 s), then 0.80 and 0.77 on a slower one the next day (torch 1.68 / 1.60 s; paired 0.64-0.81 and 0.72-0.80).
+On an Intel Xeon with AMX, once torch's float32 inference ran the encoder channels-last (0.86x, docs/optstereo.md):
+0.94 (torch 1.18 s, onnxruntime 1.11 s, 5 repeats, paired 0.69-1.03; 2026-11-25): a faster torch moves the target.
 onnxruntime's profile: Conv + FusedConv 70 %, InstanceNorm 7.5 %, layout reorders 7.7 %, the lookup's gathers 1.4 %.
 Tried without a gain beyond the noise: a static shape, InstanceNorm decomposed into reductions, denormals-as-zero,
 no thread spinning, the EXTENDED optimisation level, the GRU's z and r convolutions split (fewer layout reorders),
