@@ -34,9 +34,9 @@ def use_channels_last(x: torch.Tensor, *, exact_float32_grad: bool = False) -> b
     reference on a tiny model, against 1e-5 for the NCHW path), which bf16 (~30 % off there) swamps but float32
     training should not get. Inference (no grad) and bf16 training take the channels-last path.
     """
-    if x.device.type != "cpu" or x.dim() != 4 or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+    if x.device.type != "cpu" or x.dim() != 4:
         return False
-    if torch.compiler.is_compiling():
+    if torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling():
         return False
     if exact_float32_grad and torch.is_grad_enabled():
         return torch.is_autocast_enabled("cpu") or x.dtype in (torch.bfloat16, torch.float16)

@@ -42,7 +42,7 @@ class ConvUpsampler(nn.Module):
         x = torch.cat([up / self.factor, image.to(up.dtype)], dim=1).to(self.conv1.weight.dtype)
         if use_channels_last(x):  # oneDNN convolves NHWC on CPU: no layout copy of the wide full-resolution layer
             x = x.contiguous(memory_format=torch.channels_last)
-        return up + self.conv2(self.relu(self.conv1(x))).float().contiguous()
+        return up + self.conv2(self.relu(self.conv1(x))).float()  # one channel: channels-last is contiguous
 
 
 class ConvexUpsampler(nn.Module):
