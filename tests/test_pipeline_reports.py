@@ -192,3 +192,28 @@ def test_bench_export_paired_ratios_by_hand() -> None:
     times = _timings({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}, repeats=2)
     assert calls == ["a", "b", "a", "b", "a", "b"]  # one warm-up each, then alternating
     assert [len(v) for v in times.values()] == [2, 2]
+
+
+@pytest.mark.parametrize(("native", "choice", "expected"), [(True, "auto", "bf16"), (False, "auto", "none"),
+                                                            (True, "none", "none"), (False, "bf16", "bf16")])
+def test_demo_trains_in_bf16_only_where_the_cpu_has_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                       native: bool, choice: str, expected: str) -> None:
+    from optstereo import inference
+    from pipelines import demo
+
+    class Stop(Exception):
+        pass
+
+    commands: list[list[str]] = []
+
+    def fake_run(cmd: list[str], log: Path) -> None:
+        commands.append(cmd)
+        if Path(cmd[0]).name == "optstereo-train":
+            raise Stop
+
+    monkeypatch.setattr(inference, "cpu_has_native_bf16", lambda: native)
+    monkeypatch.setattr(demo, "_run", fake_run)
+    with pytest.raises(Stop):
+        demo.main(["--out", str(tmp_path), "--amp", choice])
+    train = commands[-1]
+    assert train[train.index("--amp") + 1] == expected
