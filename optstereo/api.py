@@ -45,6 +45,7 @@ def predict(
     *,
     iters: int | None = None,
     amp: str = "none",
+    scale: float = 1.0,
 ) -> npt.NDArray[np.float32] | list[npt.NDArray[np.float32]]:
     """Disparity of the left view: positive, full resolution, left(x) matches right(x - d).
 
@@ -54,6 +55,8 @@ def predict(
             ``left`` a list of (left, right) pairs and ``right`` None.
         iters: GRU iterations (None = the model's own).
         amp: ``none``, ``bf16`` or ``fp16`` (CUDA).
+        scale: run the network on both images resized by this factor (e.g. 0.5 for a large Middlebury pair); the
+            disparity comes back at the input's size, in its pixels.
 
     Returns:
         (H, W) float32, or a list of them for a list of pairs (each at its own size).
@@ -64,5 +67,5 @@ def predict(
     if right is None:
         if isinstance(left, np.ndarray):
             raise ValueError("predict(model, left, right): give the right image, or a list of (left, right) pairs")
-        return [infer(model, lft, rgt, iters=iters, device=device, amp=amp) for lft, rgt in left]
-    return infer(model, np.asarray(left), np.asarray(right), iters=iters, device=device, amp=amp)
+        return [infer(model, lft, rgt, iters=iters, device=device, amp=amp, scale=scale) for lft, rgt in left]
+    return infer(model, np.asarray(left), np.asarray(right), iters=iters, device=device, amp=amp, scale=scale)

@@ -68,6 +68,12 @@ def _infer_amp_option(fn):
                         help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
 
 
+def _scale_option(fn):
+    return click.option("--scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+                        help="Run the network on both images resized by this factor (e.g. 0.5 for large "
+                             "Middlebury pairs); disparities come back at the input's size.")(fn)
+
+
 def _reader_options(fn):
     """The dataset-reader options pvm-label has, for optstereo-eval and optstereo-predict --dataset."""
     for option in reversed((
@@ -257,9 +263,10 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
 @click.option("--save-maps/--no-save-maps", default=True, help="Write colour disparity and error maps.")
 @_device_option
 @_infer_amp_option
+@_scale_option
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
-              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
+              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str, scale: float,
               quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
     _setup_logging(quiet)
@@ -275,7 +282,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
         model, dev = _load_model(checkpoint, device)
         result = _run_guarded(evaluate.evaluate_model, model, dataset, root, split=split, iters=iters, device=dev,
                               out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
-                              amp=amp, reader_options=_collect_reader_options(**reader))
+                              amp=amp, reader_options=_collect_reader_options(**reader), scale=scale)
     s = result.summary
     click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
                f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
@@ -317,11 +324,12 @@ def _load_model(checkpoint: Path, device: str):
               help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
 @_device_option
 @_infer_amp_option
+@_scale_option
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
                  calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
-                 amp: str, quiet: bool, **reader: Any) -> None:
+                 amp: str, scale: float, quiet: bool, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -331,6 +339,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
     if backend == "onnxruntime":
+        if scale != 1.0:
+            raise click.UsageError("--scale is for the torch backend; resize the images before onnxruntime")
         _predict_onnx(checkpoint, left, right, out, formats, dataset)
         return
     geometry = [f for f in formats if f in inference.GEOMETRY_FORMATS]
@@ -344,14 +354,15 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     model, dev = _load_model(checkpoint, device)
     if dataset is None:
         paths = _run_guarded(inference.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
-                             amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"))
+                             amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
+                             scale=scale)
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
         if submission is not None and "png" not in formats:
             formats = (*formats, "png")
         written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,
                                formats=formats, device=dev, limit=limit, amp=amp, submission=submission,
-                               reader_options=_collect_reader_options(**reader))
+                               reader_options=_collect_reader_options(**reader), scale=scale)
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
 

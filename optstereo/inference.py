@@ -87,6 +87,7 @@ def infer(
     iters: int | None = None,
     device: torch.device | str = "cpu",
     amp: str = "none",
+    scale: float = 1.0,
 ) -> npt.NDArray[np.float32]:
     """Full-resolution disparity of one pair.
 
@@ -95,12 +96,18 @@ def infer(
         left, right: (H, W, 3) uint8 RGB of equal shape (any H, W: padded to the model's multiple and un-padded).
         iters: GRU iterations (None = the model's default).
         amp: ``none`` (float32), ``bf16`` (CPU with AVX512-BF16/AMX, or CUDA) or ``fp16`` (CUDA).
+        scale: resize both images by this factor before the network (see :func:`rescaled_pair`) and bring the
+            disparity back to the input's size and pixel units; 1 = as given.
 
     Returns:
-        (H, W) float32 disparity in pixels (positive, left(x) matches right(x - d)).
+        (H, W) float32 disparity in pixels of the input (positive, left(x) matches right(x - d)).
     """
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
+    if scale != 1.0:
+        left_s, right_s = rescaled_pair(left, right, scale)
+        disp_s = infer(model, left_s, right_s, iters=iters, device=device, amp=amp)
+        return disparity_to_size(disp_s, left.shape[:2])
     device = torch.device(device)
     was_training = model.training
     model.eval()
@@ -114,6 +121,30 @@ def infer(
     finally:
         model.train(was_training)
     return disp.float().cpu().numpy().astype(np.float32)
+
+
+def rescaled_pair(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+                  scale: float) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]:
+    """Both (H, W, 3) uint8 images resized to (round(H * scale), round(W * scale)) (at least 8x8): area averaging
+    when shrinking (no aliasing), bilinear when enlarging. Rows stay aligned, so the pair stays rectified."""
+    import cv2
+
+    if not scale > 0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    h, w = left.shape[:2]
+    size = (max(8, round(w * scale)), max(8, round(h * scale)))  # cv2 wants (width, height)
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    return cv2.resize(left, size, interpolation=interp), cv2.resize(right, size, interpolation=interp)
+
+
+def disparity_to_size(disp: npt.NDArray[np.float32], shape: tuple[int, int]) -> npt.NDArray[np.float32]:
+    """(h, w) disparity of a rescaled pair -> (H, W) = ``shape``: bilinear, and values times W / w, because a
+    disparity is a horizontal distance in pixels of the image it was measured on."""
+    import cv2
+
+    h_out, w_out = shape
+    resized = cv2.resize(disp, (w_out, h_out), interpolation=cv2.INTER_LINEAR)
+    return (resized * (w_out / disp.shape[1])).astype(np.float32)
 
 
 def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
@@ -204,7 +235,7 @@ def write_geometry(
 def predict_pair(
     model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
     formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
-    calib: Any = None, max_depth: float = float("inf"),
+    calib: Any = None, max_depth: float = float("inf"), scale: float = 1.0,
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
     from pvm_labeler.common.io import read_image
@@ -213,7 +244,7 @@ def predict_pair(
     if left.shape != right.shape:
         raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
     t0 = time.perf_counter()
-    disp = infer(model, left, right, iters=iters, device=device, amp=amp)
+    disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale)
     logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
     stem = Path(left_path).stem
     return {**write_disparity(out_dir, stem, disp, formats),
@@ -224,7 +255,7 @@ def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
     limit: int | None = None, amp: str = "none", submission: Path | None = None,
-    reader_options: dict[str, Any] | None = None,
+    reader_options: dict[str, Any] | None = None, scale: float = 1.0,
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
 
@@ -238,7 +269,7 @@ def predict_dataset(
     written = []
     for ref in refs:
         sample = load_pair(ref)
-        disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp)
+        disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale)
         written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
     if submission is not None:
         write_submission(out_dir, submission, refs)

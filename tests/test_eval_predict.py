@@ -81,6 +81,29 @@ class TestPredict:
         assert disp.shape == shape and disp.dtype == np.float32
         np.testing.assert_array_equal(disp, left[..., 0].astype(np.float32))
 
+    @pytest.mark.parametrize(("shape", "scale", "small_w"), [((40, 80), 0.5, 40), ((37, 75), 1.25, 94)])
+    def test_feature_scale_returns_input_size_and_pixels(self, shape: tuple[int, int], scale: float,
+                                                         small_w: int) -> None:
+        # Echo returns the red channel as disparity: a constant red c is a disparity of c pixels of the RESIZED
+        # image, i.e. c * W / w pixels of the input (hand-computed: 40 * 80 / 40 = 80; 40 * 75 / 94).
+        left = np.full((*shape, 3), 40, np.uint8)
+        disp = infer(Echo(), left, left, scale=scale)
+        assert disp.shape == shape and disp.dtype == np.float32
+        np.testing.assert_allclose(disp, 40 * shape[1] / small_w, rtol=1e-6)
+
+    def test_scale_keeps_columns_aligned(self) -> None:
+        # Red = 2x (x the column): at half size column j holds the mean of input columns 2j, 2j + 1, i.e. 4j + 1
+        # (an integer, so uint8 keeps it), and bilinear up-sampling with aligned pixel centres gives back 2x inside
+        # the image; times W / w = 2: 4x. A half-pixel shift anywhere in the round trip would show as +-2 px here.
+        left = np.zeros((16, 64, 3), np.uint8)
+        left[..., 0] = 2 * np.arange(64, dtype=np.uint8)
+        disp = infer(Echo(), left, left, scale=0.5)
+        np.testing.assert_allclose(disp[:, 1:-1], 4 * np.arange(1, 63, dtype=np.float32)[None].repeat(16, 0),
+                                   atol=1e-4)
+        np.testing.assert_array_equal(infer(Echo(), left, left, scale=1.0), infer(Echo(), left, left))
+        with pytest.raises(ValueError, match="scale must be positive"):
+            infer(Echo(), left, left, scale=0.0)
+
     def test_feature_bf16_inference_close_to_fp32(self, rng: np.random.Generator) -> None:
         # bf16 autocast (--amp bf16) runs the convs in bf16 (8-bit mantissa) but keeps correlation, lookup and the
         # disparity accumulator in float32: the prediction stays within a few % of the float32 one, and is float32.
@@ -169,6 +192,15 @@ class TestCli:
                                                 "--format", "pfm", "--format", "npy", "--iters", "1"])
         assert res.exit_code == 0, res.output
         assert read_pfm(tmp_path / "o" / "l.pfm").shape == (30, 70) and (tmp_path / "o" / "l.npy").is_file()
+        res = CliRunner().invoke(predict_main, ["--checkpoint", str(tiny_ckpt), str(tmp_path / "l.png"),
+                                                str(tmp_path / "r.png"), "--out", str(tmp_path / "scaled"),
+                                                "--format", "npy", "--iters", "1", "--scale", "1.5"])
+        assert res.exit_code == 0, res.output
+        assert np.load(tmp_path / "scaled" / "l.npy").shape == (30, 70)  # back at the input's size
+        res = CliRunner().invoke(predict_main, ["--checkpoint", str(tiny_ckpt), str(tmp_path / "l.png"),
+                                                str(tmp_path / "r.png"), "--out", str(tmp_path / "o"),
+                                                "--backend", "onnxruntime", "--scale", "0.5"])
+        assert res.exit_code == 2 and "--scale is for the torch backend" in res.output
 
     def test_eval_labels_cli(self, tmp_path: Path) -> None:
         shards = make_shards(tmp_path / "s", n=2, height=8, width=16)
