@@ -161,6 +161,8 @@ def _device_option(fn):
               f"[default: {_D.data.crop[0]}x{_D.data.crop[1]}]")
 @click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.data.flip_swap_p}]")
 @click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")
+@click.option("--scale-range", help="Spatial scale augmentation LO,HI: each sample resized by s ~ U(LO, HI) before "
+              "the crop (labels and disparities with it). [default: 1,1 = off]")
 @click.option("--occlude-p", type=float, help="Probability of pasted occluders in the network's right input, "
               "supervised by L_P (L_R/L_S see the clean pair). [default: 0]")
 @click.option("--device", type=click.Choice(DEVICES), help=f"auto = cuda when available. [default: {_D.device}]")

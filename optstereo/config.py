@@ -22,6 +22,7 @@ from pvm_labeler.common.errors import ConfigError
 
 __all__ = [
     "FLAT_KEYS", "DataConfig", "LossConfig", "ModelConfig", "OptimConfig", "ValConfig", "merge", "nest", "parse_crop",
+    "parse_scale_range",
 ]
 
 PHOTOMETRIC_ITERS = ("last", "all")
@@ -43,7 +44,7 @@ FLAT_KEYS: dict[str, str] = {
     "analogy_start": "loss.analogy_start", "analogy_every": "loss.analogy_every",
     "labels": "data.labels", "supervision": "data.supervision", "batch_size": "data.batch_size",
     "crop": "data.crop", "flip_swap_p": "data.flip_swap_p", "photometric": "data.photometric",
-    "occlude_p": "data.occlude_p",
+    "occlude_p": "data.occlude_p", "scale_range": "data.scale_range",
     "max_disp": "data.max_disp", "workers": "data.workers", "shuffle_buffer": "data.shuffle_buffer",
     "steps": "optim.steps", "lr": "optim.lr", "weight_decay": "optim.weight_decay", "schedule": "optim.schedule",
     "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
@@ -65,6 +66,18 @@ def parse_crop(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
     if h <= 0 or w <= 0 or h % 8 or w % 8:
         raise ConfigError(f"--crop sides must be positive multiples of 8 (the network works at 1/8), got {h}x{w}")
     return h, w
+
+
+def parse_scale_range(text: str | tuple[float, float] | list[float]) -> tuple[float, float]:
+    """Parse ``"1.0,1.25"`` (lo, hi) or a 2-sequence into floats with 0 < lo <= hi."""
+    parts = list(text) if isinstance(text, (tuple, list)) else str(text).split(",")
+    try:
+        lo, hi = (float(p) for p in parts)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"--scale-range must look like LO,HI (e.g. 1.0,1.25), got {text!r}") from exc
+    if not 0 < lo <= hi:
+        raise ConfigError(f"--scale-range needs 0 < LO <= HI, got {lo},{hi}")
+    return lo, hi
 
 
 def _require(checks: list[tuple[bool, str]]) -> None:
@@ -186,6 +199,8 @@ class DataConfig(_Section):
         crop: (H, W) random crop; frames smaller than the crop use the whole frame (rounded down to multiples of 8).
         flip_swap_p: probability of the flip-swap augmentation (needs the right-view label).
         photometric: enable photometric jitter (brightness/contrast/gamma/saturation).
+        scale_range: (lo, hi) of the spatial scale augmentation, s ~ U(lo, hi) per sample before the crop
+            (``TrainTransform``); (1, 1) = off.
         occlude_p: probability per sample that the network's right input gets L_T's pasted occluders
             (``optstereo.analogy.occlude_right``; sizes from loss.analogy); L_P supervises the occluded pixels with
             their PVM labels, L_R and L_S see the clean pair (with L_T on, its D0 is the occluded input's).
@@ -206,6 +221,7 @@ class DataConfig(_Section):
     crop: tuple[int, int] = (320, 736)
     flip_swap_p: float = 0.5
     photometric: bool = False
+    scale_range: tuple[float, float] = (1.0, 1.0)
     occlude_p: float = 0.0
     max_disp: float = 256.0
     workers: int = 2
@@ -213,6 +229,7 @@ class DataConfig(_Section):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "crop", parse_crop(self.crop))  # YAML gives "320x736" or a list
+        object.__setattr__(self, "scale_range", parse_scale_range(self.scale_range))
         _require([
             (self.supervision in SUPERVISIONS, f"--supervision must be in {SUPERVISIONS}, got {self.supervision!r}"),
             (self.batch_size >= 1, f"--batch-size must be >= 1, got {self.batch_size}"),

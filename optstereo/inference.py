@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from optstereo.padding import InputPadder, divisor_of
+from optstereo.rescale import disparity_to_size, rescaled_pair
 from pvm_labeler.common.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
@@ -121,30 +122,6 @@ def infer(
     finally:
         model.train(was_training)
     return disp.float().cpu().numpy().astype(np.float32)
-
-
-def rescaled_pair(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-                  scale: float) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]:
-    """Both (H, W, 3) uint8 images resized to (round(H * scale), round(W * scale)) (at least 8x8): area averaging
-    when shrinking (no aliasing), bilinear when enlarging. Rows stay aligned, so the pair stays rectified."""
-    import cv2
-
-    if not scale > 0:
-        raise ValueError(f"scale must be positive, got {scale}")
-    h, w = left.shape[:2]
-    size = (max(8, round(w * scale)), max(8, round(h * scale)))  # cv2 wants (width, height)
-    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
-    return cv2.resize(left, size, interpolation=interp), cv2.resize(right, size, interpolation=interp)
-
-
-def disparity_to_size(disp: npt.NDArray[np.float32], shape: tuple[int, int]) -> npt.NDArray[np.float32]:
-    """(h, w) disparity of a rescaled pair -> (H, W) = ``shape``: bilinear, and values times W / w, because a
-    disparity is a horizontal distance in pixels of the image it was measured on."""
-    import cv2
-
-    h_out, w_out = shape
-    resized = cv2.resize(disp, (w_out, h_out), interpolation=cv2.INTER_LINEAR)
-    return (resized * (w_out / disp.shape[1])).astype(np.float32)
 
 
 def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:

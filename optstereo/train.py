@@ -88,7 +88,8 @@ def build_loader(cfg: TrainConfig, info: ddp.DistInfo, start_step: int = 0) -> D
     stream = ShardStream(
         data.labels,
         supervision=data.supervision,
-        transform=TrainTransform(crop=data.crop, flip_swap_p=data.flip_swap_p, photometric=data.photometric),
+        transform=TrainTransform(crop=data.crop, flip_swap_p=data.flip_swap_p, photometric=data.photometric,
+                                 scale_range=data.scale_range),
         seed=cfg.seed,
         shuffle_size=data.shuffle_buffer,
         max_disp=data.max_disp,

@@ -1,4 +1,5 @@
-"""Joint training augmentations on numpy samples: flip-swap, random crop, photometric jitter, to tensors.
+"""Joint training augmentations on numpy samples: flip-swap, spatial scale, random crop, photometric jitter, to
+tensors.
 
 All functions take an explicit ``numpy.random.Generator`` so a sample's augmentation is a pure function of its
 seed; the stream derives that seed from (seed, epoch, global worker id, sample counter), which makes training
@@ -66,6 +67,18 @@ def photometric_jitter(left: Image, right: Image, rng: np.random.Generator) -> t
     return out[0], out[1]
 
 
+def rescale_sample(left: Image, right: Image, label: Disp, weight: Disp | None,
+                   scale: float) -> tuple[Image, Image, Disp, Disp | None]:
+    """One training sample resized by ``scale`` (optstereo.rescale): the pair smoothly, the sparse label and its
+    confidence by nearest neighbour, the label's disparities times the width ratio."""
+    from optstereo.rescale import rescaled_pair, sparse_to_size
+
+    left, right = rescaled_pair(left, right, scale)
+    shape = left.shape[:2]
+    label = sparse_to_size(label, shape)
+    return left, right, label, None if weight is None else sparse_to_size(weight, shape, scale_values=False)
+
+
 @dataclass(frozen=True)
 class TrainTransform:
     """flip-swap (p) -> random crop -> optional photometric jitter, on one numpy sample.
@@ -74,11 +87,15 @@ class TrainTransform:
         crop: (H, W) crop size (whole frame when smaller, rounded down to multiples of 8).
         flip_swap_p: probability of flip-swap; samples without a right-view label are never flipped.
         photometric: apply photometric_jitter.
+        scale_range: (lo, hi): before the crop, the whole sample is resized by s ~ U(lo, hi) (images area/bilinear,
+            labels and confidences nearest, disparities times the width ratio); (1, 1) = off and draws nothing, so
+            runs without it keep their random sequence.
     """
 
     crop: tuple[int, int] = (320, 736)
     flip_swap_p: float = 0.5
     photometric: bool = False
+    scale_range: tuple[float, float] = (1.0, 1.0)
 
     def __call__(
         self, left: Image, right: Image, label: Disp, label_right: Disp | None, rng: np.random.Generator,
@@ -98,6 +115,8 @@ class TrainTransform:
             left, right, label, label_right = flip_swap(left, right, label, label_right)
             if weight is not None:
                 weight = np.ones(label.shape, dtype=np.float32)
+        if self.scale_range != (1.0, 1.0):
+            left, right, label, weight = rescale_sample(left, right, label, weight, rng.uniform(*self.scale_range))
         left, right, label, weight = random_crop([left, right, label, weight], self.crop, rng)
         if self.photometric:
             left, right = photometric_jitter(left, right, rng)
