@@ -15,7 +15,7 @@ matcher, holes filled along the row) and of the PVM label, and the region's shar
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
     .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--name kitti15] [--photometric]
-                                              [--lr-check]
+                                              [--lr-check] [--scale S ...]
                                               -> results/error_regions/NAME.{json,md}
 
 LABEL (e.g. ``v5=out/pretrained/long_conf7``) names a checkpoint's table; without one the table is named by its path.
@@ -161,15 +161,15 @@ def pct(part: int, whole: int) -> str:
 
 
 def lr_consistent(net: Any, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-                  pred: npt.NDArray[np.float32], threshold: float = 1.0) -> npt.NDArray[np.bool_]:
+                  pred: npt.NDArray[np.float32], threshold: float = 1.0, scale: float = 1.0) -> npt.NDArray[np.bool_]:
     """(H, W) bool: the network's left disparity agrees within ``threshold`` px with its own right-view disparity
-    (the flip-swapped pair's prediction, mirrored back), by the labeler's LRDCC."""
+    (the flip-swapped pair's prediction at input scale ``scale``, mirrored back), by the labeler's LRDCC."""
     from optstereo.api import predict
     from optstereo.augment import flip_swap
     from pvm_labeler.voting import lr_check
 
     flipped_left, flipped_right, _, _ = flip_swap(left, right, None, None)
-    disp_r = np.ascontiguousarray(predict(net, flipped_left, flipped_right, iters=TEST_ITERS)[:, ::-1])
+    disp_r = np.ascontiguousarray(predict(net, flipped_left, flipped_right, iters=TEST_ITERS, scale=scale)[:, ::-1])
     return np.isfinite(lr_check(pred, disp_r, threshold)[0])
 
 
@@ -212,11 +212,12 @@ def parse_checkpoint(arg: str) -> tuple[str, str]:
 
 
 def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False,
-        lr: bool = False) -> dict[str, Any]:
+        lr: bool = False, scales: tuple[float, ...] = (1.0,)) -> dict[str, Any]:
     """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown.
 
     ``photometric`` adds, per network, :func:`count_photo_preference` pooled over the frames; ``lr`` adds
-    :func:`count_reliability` of the network's own LR check (one more prediction per frame).
+    :func:`count_reliability` of the network's own LR check (one more prediction per frame). Each network is
+    predicted at every input scale of ``scales`` (``optstereo-predict --scale``; tables "LABEL x1.125").
     """
     from optstereo.api import load_model, predict
     from pipelines.dense_sgm import fill_rows_nearest, sgm_left
@@ -224,8 +225,10 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.multiscale import label_pair
 
-    named = dict(parse_checkpoint(arg) for arg in checkpoints)  # table name -> checkpoint spec, in order
-    cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in named.items()}
+    loaded = dict(parse_checkpoint(arg) for arg in checkpoints)  # checkpoint label -> spec, in order
+    cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in loaded.items()}
+    runs = {scaled_tag(tag, scale): (tag, scale) for tag in loaded for scale in scales}  # table name -> network
+    named = {key: loaded[tag] for key, (tag, _) in runs.items()}
     color_norm = recipe_color_norm()  # L_R as the shipped model was trained with it
     total: dict[str, dict[str, int]] = {}
     photo: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
@@ -235,7 +238,8 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
         sample = load_pair(ref)
         pvm = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
         sgm = fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, KITTI15_MAX_DISP)[0])
-        nets = {tag: predict(net, sample.left, sample.right, iters=TEST_ITERS) for tag, net in models.items()}
+        nets = {key: predict(models[tag], sample.left, sample.right, iters=TEST_ITERS, scale=scale)
+                for key, (tag, scale) in runs.items()}
         masks = region_masks(pvm, sample.gt, sample.gt_noc)
         counts = count_bad(masks, sample.gt, {"sgm": sgm, "label": pvm, **nets})
         frames[ref.frame_id] = counts
@@ -250,7 +254,8 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
                 add_counts(photo[tag], count_photo_preference(masks, sample.gt, pred, err, err_gt))
         if lr:
             for tag, pred in nets.items():
-                consistent = lr_consistent(models[tag], sample.left, sample.right, pred)
+                net_tag, scale = runs[tag]
+                consistent = lr_consistent(models[net_tag], sample.left, sample.right, pred, scale=scale)
                 add_counts(reliability[tag], count_reliability(masks, sample.gt, pred, consistent))
         print(f"{ref.frame_id}: {counts}", flush=True)
     md = "\n\n".join(f"{_heading(tag, spec)}:\n\n{table(total, tag)}" for tag, spec in named.items())
@@ -261,7 +266,8 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
         md += "\n\n## How reliable is the network's own LR-consistent prediction? (a candidate L_T target)\n\n"
         md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{reliability_table(reliability[tag])}"
                             for tag, spec in named.items())
-    doc = {"checkpoints": named, "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
+    doc = {"checkpoints": named, "scales": {key: scale for key, (_, scale) in runs.items()}, "iters": TEST_ITERS,
+           "bad_px": 3, "pooled": total, "frames": frames,
            **({"photometric": photo, "photometric_color_norm": color_norm} if photometric else {}),
            **({"lr_check": reliability} if lr else {}),
            **_machine()}
@@ -270,6 +276,11 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
     (RESULTS / f"{name}.md").write_text(f"# Network errors by PVM region, KITTI 2015\n\n{md}\n")
     print(md)
     return doc
+
+
+def scaled_tag(tag: str, scale: float) -> str:
+    """The table name of a network at an input scale: its label, with " x<scale>" unless the scale is 1."""
+    return tag if scale == 1.0 else f"{tag} x{scale:g}"
 
 
 def _heading(label: str, spec: str) -> str:
@@ -285,8 +296,10 @@ def main(argv: list[str] | None = None) -> None:
                         help="also count, per region, the bad pixels whose photometric error is lower than GT's")
     parser.add_argument("--lr-check", action="store_true",
                         help="also count how many pixels pass the network's own LR check and their bad-3")
+    parser.add_argument("--scale", type=float, action="append",
+                        help="input scale of every network (optstereo-predict --scale); repeatable; default 1")
     args = parser.parse_args(argv)
-    run(args.checkpoint or ["pretrained"], args.name, args.photometric, args.lr_check)
+    run(args.checkpoint or ["pretrained"], args.name, args.photometric, args.lr_check, tuple(args.scale or (1.0,)))
 
 
 if __name__ == "__main__":

@@ -142,8 +142,8 @@ def test_lr_consistent_mirrors_the_right_view(monkeypatch: pytest.MonkeyPatch) -
     left, right = shifted_pair(4)
     calls = []
 
-    def fake_predict(net: object, a: np.ndarray, b: np.ndarray, iters: int) -> np.ndarray:
-        calls.append((a, b))
+    def fake_predict(net: object, a: np.ndarray, b: np.ndarray, iters: int, scale: float) -> np.ndarray:
+        calls.append((a, b, scale))
         out = np.full(a.shape[:2], 4, np.float32)
         out[:, -1] = 50  # the flipped pair's last column is the right view's first: mirrored back, column 0
         return out
@@ -160,6 +160,20 @@ def test_lr_consistent_mirrors_the_right_view(monkeypatch: pytest.MonkeyPatch) -
     want[:, 4] = False  # x - 4 = 0: right column 0, disparity 50 there
     want[3, 20] = want[5, 30] = False
     np.testing.assert_array_equal(got, want)
+    lr_consistent(object(), left, right, pred, scale=1.125)
+    assert calls[0][2] == 1.0 and calls[1][2] == 1.125  # the right view at the left prediction's input scale
+
+
+def test_scaled_tables_and_flag(monkeypatch: pytest.MonkeyPatch) -> None:
+    import pipelines.error_regions as er
+
+    assert er.scaled_tag("v6", 1.0) == "v6" and er.scaled_tag("v6", 1.125) == "v6 x1.125"
+    seen = {}
+    monkeypatch.setattr(er, "run", lambda *args: seen.update(args=args))
+    er.main(["--checkpoint", "v6=pretrained", "--scale", "1", "--scale", "1.125", "--name", "s"])
+    assert seen["args"] == (["v6=pretrained"], "s", False, False, (1.0, 1.125))
+    er.main([])
+    assert seen["args"] == (["pretrained"], "kitti15", False, False, (1.0,))
 
 
 def test_bad3_mask_is_the_ruler_of_count_bad() -> None:
