@@ -81,7 +81,7 @@ def rescale_sample(left: Image, right: Image, label: Disp, weight: Disp | None,
 
 @dataclass(frozen=True)
 class TrainTransform:
-    """flip-swap (p) -> random crop -> optional photometric jitter, on one numpy sample.
+    """flip-swap (p) -> spatial scale (off by default) -> random crop -> optional photometric jitter, on one sample.
 
     Attributes:
         crop: (H, W) crop size (whole frame when smaller, rounded down to multiples of 8).
