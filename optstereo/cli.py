@@ -277,6 +277,8 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     if labels is not None:
+        if scale != 1.0:
+            raise click.UsageError("--scale resizes a network's input; --labels evaluates stored labels as they are")
         result = _run_guarded(evaluate.evaluate_labels, labels, out_dir=out, limit=limit, save_maps=save_maps)
     else:
         if dataset is None:

@@ -12,6 +12,7 @@ Run directories and checkpoints written before the sections existed hold ONE fla
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -75,8 +76,8 @@ def parse_scale_range(text: str | tuple[float, float] | list[float]) -> tuple[fl
         lo, hi = (float(p) for p in parts)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"--scale-range must look like LO,HI (e.g. 1.0,1.25), got {text!r}") from exc
-    if not 0 < lo <= hi:
-        raise ConfigError(f"--scale-range needs 0 < LO <= HI, got {lo},{hi}")
+    if not 0 < lo <= hi < math.inf:
+        raise ConfigError(f"--scale-range needs 0 < LO <= HI (finite), got {lo},{hi}")
     return lo, hi
 
 

@@ -41,12 +41,32 @@ def to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor
 INFER_AMP = ("none", "bf16", "fp16")
 
 
+NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")  # x86 /proc/cpuinfo "flags"; aarch64 "Features"
+
+
+def cpuinfo_flags(text: str) -> set[str] | None:
+    """The CPU feature flags of a /proc/cpuinfo text (its first "flags" or "Features" line), None if it has none."""
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() in ("flags", "Features"):
+            return set(value.split())
+    return None
+
+
 @functools.cache
 def cpu_has_native_bf16() -> bool:
-    """True when oneDNN has native bf16 kernels on this CPU (AVX512-BF16 or AMX).
+    """True when the CPU has bf16 arithmetic in hardware (x86 AVX512-BF16 or AMX, aarch64 BF16).
 
-    Without them torch emulates bf16 convolutions, which runs many times slower than float32.
+    Without it torch emulates bf16 convolutions, which runs many times slower than float32. torch's own check
+    (``torch.ops.mkldnn._is_mkldnn_bf16_supported``, the fallback where /proc/cpuinfo is missing) is also true on
+    AVX-512 CPUs without AVX512-BF16, which emulate.
     """
+    try:
+        flags = cpuinfo_flags(Path("/proc/cpuinfo").read_text())
+    except OSError:
+        flags = None
+    if flags is not None:
+        return any(flag in flags for flag in NATIVE_BF16_FLAGS)
     try:
         return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):

@@ -43,7 +43,11 @@ def disparity_to_size(disp: npt.NDArray[np.float32], shape: tuple[int, int]) -> 
 def sparse_to_size(label: npt.NDArray[np.float32], shape: tuple[int, int],
                    scale_values: bool = True) -> npt.NDArray[np.float32]:
     """(H, W) sparse map (NaN = none) -> ``shape`` by nearest neighbour, so no label is blended with a hole or a
-    neighbour across an edge; with ``scale_values`` (disparities) times w / W, else as is (confidences)."""
+    neighbour across an edge; with ``scale_values`` (disparities) times w / W, else as is (confidences).
+
+    Nearest by pixel centres (INTER_NEAREST_EXACT), the convention of the images' area/bilinear resize; plain
+    INTER_NEAREST takes floor(x * W / w) and would shift the labels up to half a pixel right and down of their images.
+    """
     h_out, w_out = shape
-    resized = cv2.resize(label, (w_out, h_out), interpolation=cv2.INTER_NEAREST)
+    resized = cv2.resize(label, (w_out, h_out), interpolation=cv2.INTER_NEAREST_EXACT)
     return (resized * (w_out / label.shape[1]) if scale_values else resized).astype(np.float32)

@@ -299,6 +299,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scale", type=float, action="append",
                         help="input scale of every network (optstereo-predict --scale); repeatable; default 1")
     args = parser.parse_args(argv)
+    if any(not scale > 0 for scale in args.scale or ()):
+        parser.error(f"--scale must be positive, got {args.scale}")
     run(args.checkpoint or ["pretrained"], args.name, args.photometric, args.lr_check, tuple(args.scale or (1.0,)))
 
 

@@ -174,6 +174,8 @@ def test_scaled_tables_and_flag(monkeypatch: pytest.MonkeyPatch) -> None:
     assert seen["args"] == (["v6=pretrained"], "s", False, False, (1.0, 1.125))
     er.main([])
     assert seen["args"] == (["pretrained"], "kitti15", False, False, (1.0,))
+    with pytest.raises(SystemExit):
+        er.main(["--scale", "0"])
 
 
 def test_bad3_mask_is_the_ruler_of_count_bad() -> None:

@@ -132,6 +132,20 @@ class TestPredict:
         warn_if_emulated_bf16("bf16", torch.device("cpu"))
         assert not caplog.records
 
+    def test_native_bf16_from_cpuinfo_flags(self) -> None:
+        from optstereo.inference import NATIVE_BF16_FLAGS, cpuinfo_flags
+
+        def native(text: str) -> bool:
+            flags = cpuinfo_flags(text)
+            return flags is not None and any(f in flags for f in NATIVE_BF16_FLAGS)
+
+        # An AVX-512 Xeon without AVX512-BF16 emulates bf16 (torch's own check says yes there); AMX or
+        # AVX512-BF16 on x86 and BF16 on aarch64 are native.
+        assert not native("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512bw avx512vl avx512dq\n")
+        assert native("flags\t\t: fpu avx512f avx512_bf16\n") and native("flags\t: sse2 amx_bf16 amx_tile\n")
+        assert native("Features\t: fp asimd bf16 i8mm\n") and not native("Features\t: fp asimd\n")
+        assert cpuinfo_flags("processor\t: 0\n") is None  # no flags line: torch's check decides
+
     def test_exception_amp(self, rng: np.random.Generator) -> None:
         left = rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)
         with pytest.raises(ValueError, match="fp16 needs a CUDA"):
@@ -216,6 +230,8 @@ class TestCli:
         assert res.exit_code == 2 and "--dataset" in res.output
         res = runner.invoke(predict_main, ["--checkpoint", str(tiny_ckpt), "--out", str(tmp_path)])
         assert res.exit_code == 2 and "LEFT RIGHT" in res.output
+        res = runner.invoke(eval_main, ["--labels", str(tmp_path), "--scale", "0.5", "--out", str(tmp_path / "o")])
+        assert res.exit_code == 2 and "--scale resizes a network's input" in res.output
         res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti99", "--out",
                                         str(tmp_path)])
         assert res.exit_code == 2 and "kitti99" in res.output and "kitti_unlabelled" in res.output

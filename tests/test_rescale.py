@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from optstereo.cli import train_main
 from optstereo.config import parse_scale_range
-from optstereo.data.transforms import TrainTransform, rescale_sample
+from optstereo.data.transforms import TrainTransform, crop_window, rescale_sample
 from optstereo.rescale import scaled_size, sparse_to_size
 from optstereo.train_config import TrainConfig
 from pvm_labeler.common.errors import ConfigError
@@ -36,6 +36,16 @@ def test_sparse_to_size_hand_computed() -> None:
     np.testing.assert_array_equal(sparse_to_size(label, (4, 8), scale_values=False),
                                   np.kron(label, np.ones((2, 2), np.float32)))
     assert scaled_size((375, 1242, 3), 1.125) == (422, 1397) and scaled_size((10, 10), 0.1) == (8, 8)
+
+
+@pytest.mark.parametrize(("width", "first_far"), [(100, 51), (40, 20)])
+def test_sparse_to_size_keeps_pixel_centres(width: int, first_far: int) -> None:
+    # A label step at column 41 of 80. Output column j samples the input at its centre, (j + 0.5) * 80 / width:
+    # the first column at or past 41 is j = 51 at x1.25 (50.75 rounded up) and j = 20 at x0.5 (exactly 41). The
+    # floor(j * 80 / width) convention of INTER_NEAREST would give 52 and 21: half a pixel off the images.
+    label = np.where(np.arange(80) < 41, 1.0, 2.0).astype(np.float32)[None].repeat(4, 0)
+    out = sparse_to_size(label, (4, width), scale_values=False)
+    assert np.argmax(out[0] == 2.0) == first_far and np.all(out[:, :first_far] == 1.0)
     with pytest.raises(ValueError, match="scale must be positive"):
         scaled_size((10, 10), -1.0)
 
@@ -72,17 +82,21 @@ def test_transform_scale_range() -> None:
     big = TrainTransform(crop=(512, 512), flip_swap_p=0.0, scale_range=(2.0, 2.0))
     left_s, _, label_s = big(left, right, label, None, np.random.default_rng(0))
     assert left_s.shape == (96, 192, 3) and np.all(label_s == 8.0)  # whole frame (smaller than the crop), x2
-    # Off by default, and off draws nothing: the crop window (the next draw) is the one of a transform without it.
-    plain = TrainTransform(crop=(16, 32), flip_swap_p=0.0)
-    off = TrainTransform(crop=(16, 32), flip_swap_p=0.0, scale_range=(1.0, 1.0))
-    a = plain(left, right, label, None, np.random.default_rng(3))[0]
-    b = off(left, right, label, None, np.random.default_rng(3))[0]
-    np.testing.assert_array_equal(a, b)
+    # Off ((1, 1), also as a YAML list) draws nothing: after the flip draw, the next draw is the crop window.
+    rng = np.random.default_rng(3)
+    rng.random()
+    y0, x0, h, w = crop_window(48, 96, (16, 32), rng)
+    for off in ((1.0, 1.0), [1, 1]):
+        got = TrainTransform(crop=(16, 32), flip_swap_p=0.0, scale_range=off)(
+            left, right, label, None, np.random.default_rng(3))[0]
+        np.testing.assert_array_equal(got, left[y0:y0 + h, x0:x0 + w])
+    on = TrainTransform(crop=(16, 32), flip_swap_p=0.0, scale_range=(1.0, 1.001))  # one more draw: another window
+    assert not np.array_equal(on(left, right, label, None, np.random.default_rng(3))[0], left[y0:y0 + h, x0:x0 + w])
 
 
 def test_scale_range_config_and_flag(tmp_path: Path) -> None:
     assert parse_scale_range("1.0,1.25") == (1.0, 1.25) == parse_scale_range([1, 1.25])
-    for bad in ("1.2", "a,b", "1.3,1.2", "0,1"):
+    for bad in ("1.2", "a,b", "1.3,1.2", "0,1", "1,inf"):
         with pytest.raises(ConfigError, match="--scale-range"):
             parse_scale_range(bad)
     result = CliRunner().invoke(train_main, ["--scale-range", "1,1.25", "--print-config"])

@@ -97,6 +97,10 @@ class TrainTransform:
     photometric: bool = False
     scale_range: tuple[float, float] = (1.0, 1.0)
 
+    def __post_init__(self) -> None:
+        lo, hi = (float(v) for v in self.scale_range)  # a list [1, 1] from YAML is "off" too
+        object.__setattr__(self, "scale_range", (lo, hi))
+
     def __call__(
         self, left: Image, right: Image, label: Disp, label_right: Disp | None, rng: np.random.Generator,
         weight: Disp | None = None,
