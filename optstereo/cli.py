@@ -63,15 +63,13 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
         raise click.BadParameter(str(exc), param_hint="--checkpoint/--init") from exc
 
 
-def _infer_amp_option(fn):
+def _infer_options(fn):
+    """--amp and --scale, the inference options of optstereo-eval and optstereo-predict."""
+    fn = click.option("--scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+                      help="Run the network on both images resized by this factor (e.g. 0.5 for large pairs, 1.5 "
+                           "for small disparities); disparities come back at the input's size.")(fn)
     return click.option("--amp", type=click.Choice(("none", "bf16", "fp16")), default="none", show_default=True,
                         help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
-
-
-def _scale_option(fn):
-    return click.option("--scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
-                        help="Run the network on both images resized by this factor (e.g. 0.5 for large "
-                             "Middlebury pairs); disparities come back at the input's size.")(fn)
 
 
 def _reader_options(fn):
@@ -264,8 +262,7 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
 @click.option("--limit", type=int, default=None, help="Only the first N frames.")
 @click.option("--save-maps/--no-save-maps", default=True, help="Write colour disparity and error maps.")
 @_device_option
-@_infer_amp_option
-@_scale_option
+@_infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
               out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str, scale: float,
@@ -327,8 +324,7 @@ def _load_model(checkpoint: Path, device: str):
 @click.option("--submission", type=click.Path(path_type=Path),
               help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
 @_device_option
-@_infer_amp_option
-@_scale_option
+@_infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
