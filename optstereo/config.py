@@ -270,6 +270,8 @@ class OptimConfig(_Section):
             (self.lr > 0, f"--lr must be > 0, got {self.lr}"),
             (self.schedule in SCHEDULES, f"--schedule must be one of {SCHEDULES}, got {self.schedule!r}"),
             (0 < self.pct_start < 1, f"pct_start must be in (0, 1), got {self.pct_start}"),
+            (self.schedule != "onecycle" or self.steps >= 4,
+             f"--schedule onecycle needs --steps >= 4 (a warm-up and a decay), got {self.steps}"),
         ])
 
 

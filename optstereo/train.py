@@ -62,8 +62,11 @@ def build_optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Opt
     optimizer = torch.optim.Adam(model.parameters(), lr=opt.lr, weight_decay=opt.weight_decay)
     if opt.schedule == "constant":
         return optimizer, None
+    # torch ends the warm-up at pct_start * steps - 1 and divides by that: it must be >= 1, or a short run (under
+    # 40 steps at pct_start 0.05) dies with ZeroDivisionError at step 0. Longer runs keep their schedule exactly.
+    pct_start = max(opt.pct_start, 2 / opt.steps)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=opt.lr, total_steps=opt.steps, pct_start=opt.pct_start,
+        optimizer, max_lr=opt.lr, total_steps=opt.steps, pct_start=pct_start,
         cycle_momentum=False, anneal_strategy="linear",
     )
     return optimizer, scheduler

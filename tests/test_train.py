@@ -350,3 +350,31 @@ class TestAmp:
         assert summary["step"] == 4 and all(torch.isfinite(torch.tensor(r["total"])) for r in records)
         state = load_checkpoint(tmp_path / "run" / "last.pt")
         assert all(t.dtype == torch.float32 for t in state.model_state.values() if t.is_floating_point())
+
+
+@pytest.mark.parametrize("steps", [4, 5, 20, 39, 1000])
+def test_onecycle_short_runs_step_and_long_runs_keep_their_schedule(steps: int) -> None:
+    from optstereo.config import ConfigError
+    from optstereo.train import build_optimizer
+
+    cfg = TrainConfig.from_dict({"optim": {"schedule": "onecycle", "steps": steps, "lr": 1e-3, "pct_start": 0.05}})
+    model = torch.nn.Linear(2, 2)
+    optimizer, scheduler = build_optimizer(model, cfg)
+    lrs = []
+    for _ in range(steps):  # a 20-step run died here with ZeroDivisionError at step 0 before the warm-up clamp
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert max(lrs) == pytest.approx(1e-3) and lrs[-1] < lrs[len(lrs) // 2] <= 1e-3
+    if steps * 0.05 >= 2:  # long enough for the asked warm-up: exactly torch's own schedule
+        ref_opt = torch.optim.Adam(torch.nn.Linear(2, 2).parameters(), lr=1e-3)
+        ref = torch.optim.lr_scheduler.OneCycleLR(ref_opt, max_lr=1e-3, total_steps=steps, pct_start=0.05,
+                                                  cycle_momentum=False, anneal_strategy="linear")
+        ref_lrs = []
+        for _ in range(steps):
+            ref_lrs.append(ref_opt.param_groups[0]["lr"])
+            ref_opt.step()
+            ref.step()
+        assert lrs == ref_lrs
+    with pytest.raises(ConfigError, match="onecycle needs --steps >= 4"):
+        TrainConfig.from_dict({"optim": {"schedule": "onecycle", "steps": 3}})
