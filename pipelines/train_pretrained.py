@@ -83,6 +83,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("long_bf16c", "pretrained", LABELS_K03, ["--steps", "5000", "--lr", "1e-4", "--seed", "16", "--amp", "bf16"]),
     ("long_bf16d", "long_bf16c", LABELS_K03, ["--steps", "3000", "--lr", "1e-4", "--seed", "17", "--amp", "bf16"]),
     ("long_bf16e", "long_bf16d", LABELS_K03, ["--steps", "5000", "--lr", "1e-4", "--seed", "18", "--amp", "bf16"]),
+    ("scale_f", "long_bf16e", LABELS_K03, ["--steps", "5000", "--lr", "1e-4", "--seed", "20", "--amp", "bf16",
+                                           "--scale-range", "1.0,1.25"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
