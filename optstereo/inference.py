@@ -23,6 +23,7 @@ from torch import nn
 from optstereo.padding import InputPadder, divisor_of
 from optstereo.rescale import disparity_to_size, rescaled_pair
 from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.version import cpuinfo_flags
 
 logger = logging.getLogger(__name__)
 
@@ -44,15 +45,6 @@ INFER_AMP = ("none", "bf16", "fp16")
 NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")  # x86 /proc/cpuinfo "flags"; aarch64 "Features"
 
 
-def cpuinfo_flags(text: str) -> set[str] | None:
-    """The CPU feature flags of a /proc/cpuinfo text (its first "flags" or "Features" line), None if it has none."""
-    for line in text.splitlines():
-        key, sep, value = line.partition(":")
-        if sep and key.strip() in ("flags", "Features"):
-            return set(value.split())
-    return None
-
-
 @functools.cache
 def cpu_has_native_bf16() -> bool:
     """True when the CPU has bf16 arithmetic in hardware (x86 AVX512-BF16 or AMX, aarch64 BF16).
@@ -61,10 +53,7 @@ def cpu_has_native_bf16() -> bool:
     (``torch.ops.mkldnn._is_mkldnn_bf16_supported``, the fallback where /proc/cpuinfo is missing) is also true on
     AVX-512 CPUs without AVX512-BF16, which emulate.
     """
-    try:
-        flags = cpuinfo_flags(Path("/proc/cpuinfo").read_text())
-    except OSError:
-        flags = None
+    flags = cpuinfo_flags()
     if flags is not None:
         return any(flag in flags for flag in NATIVE_BF16_FLAGS)
     try:

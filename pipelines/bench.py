@@ -18,7 +18,7 @@ import platform
 import time
 from pathlib import Path
 
-from pvm_labeler.common.version import git_commit
+from pvm_labeler.common.version import cpuinfo_flags, git_commit
 
 SECTIONS = ("labeler", "job", "network", "train", "export")
 
@@ -52,17 +52,16 @@ def main(argv: list[str] | None = None) -> None:
 
 def cpu_summary() -> str:
     """CPU model, core count and the SIMD extensions that decide our kernels' speed (AVX2 / AVX-512 / bf16)."""
-    model, flags = "unknown", set()
+    model = "unknown"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             key, _, value = line.partition(":")
             if key.strip() == "model name":
                 model = value.strip()
-            elif key.strip() == "flags":
-                flags = set(value.split())
                 break
     except OSError:
         pass
+    flags = cpuinfo_flags() or set()
     simd = [f for f in ("avx2", "avx512f", "avx512bw", "avx512_bf16", "amx_bf16") if f in flags]
     return f"{model}, {os.cpu_count()} cores, {' '.join(simd) or 'no AVX2'}"
 

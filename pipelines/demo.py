@@ -32,9 +32,9 @@ BIN = Path(sys.executable).parent
 
 
 def training_amp(choice: str) -> str:
-    """The trainer's ``--amp`` for the demo: ``auto`` is bf16 where oneDNN has native bf16 kernels (AVX512-BF16 or
-    AMX: a demo step at 128x256 ran 2.0x faster than float32 on an AMX Xeon, so the 4 minutes buy twice the steps),
-    float32 elsewhere (emulated bf16 is many times slower)."""
+    """The trainer's ``--amp`` for the demo: ``auto`` is bf16 where the CPU has bf16 in hardware
+    (``cpu_has_native_bf16``: AVX512-BF16 or AMX; a demo step at 128x256 ran 2.0x faster than float32 on an AMX
+    Xeon, so the 4 minutes buy twice the steps), float32 elsewhere (emulated bf16 is many times slower)."""
     if choice != "auto":
         return choice
     from optstereo.inference import cpu_has_native_bf16

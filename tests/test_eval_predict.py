@@ -133,7 +133,8 @@ class TestPredict:
         assert not caplog.records
 
     def test_native_bf16_from_cpuinfo_flags(self) -> None:
-        from optstereo.inference import NATIVE_BF16_FLAGS, cpuinfo_flags
+        from optstereo.inference import NATIVE_BF16_FLAGS
+        from pvm_labeler.common.version import cpuinfo_flags
 
         def native(text: str) -> bool:
             flags = cpuinfo_flags(text)

@@ -98,8 +98,10 @@ class TrainTransform:
     scale_range: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
-        lo, hi = (float(v) for v in self.scale_range)  # a list [1, 1] from YAML is "off" too
-        object.__setattr__(self, "scale_range", (lo, hi))
+        from optstereo.config import parse_scale_range
+
+        # The config's own parser: a list [1, 1] from YAML is "off" too, and a bad range fails the same way.
+        object.__setattr__(self, "scale_range", parse_scale_range(self.scale_range))
 
     def __call__(
         self, left: Image, right: Image, label: Disp, label_right: Disp | None, rng: np.random.Generator,

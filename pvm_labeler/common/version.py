@@ -1,4 +1,4 @@
-"""The code version recorded in shards, checkpoints and benchmark reports."""
+"""The code version, and the CPU feature flags, recorded in shards, checkpoints and benchmark reports."""
 
 from __future__ import annotations
 
@@ -30,3 +30,18 @@ def git_commit() -> str:
 def code_version() -> str:
     """Package version of PVStereo."""
     return __version__
+
+
+def cpuinfo_flags(text: str | None = None) -> set[str] | None:
+    """The CPU feature flags of a /proc/cpuinfo text (this machine's when None): its first "flags" (x86) or
+    "Features" (aarch64) line; None where there is no such line or no /proc/cpuinfo."""
+    if text is None:
+        try:
+            text = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return None
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() in ("flags", "Features"):
+            return set(value.split())
+    return None
