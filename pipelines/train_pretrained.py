@@ -60,8 +60,8 @@ ARM_STEPS = 200
 #: Continuations, each a weights-only ``--init`` of the previous run with a new OneCycle schedule, the recipe's loss
 #: without L_T and with confidence-weighted L_P (RESULTS.md: better on every GT set at equal steps): (run, init run,
 #: labels, flags). Version 1 (1200 steps) was arm_no_lt; finetune_conf and long_conf followed (version 2 = long_conf),
-#: then long_conf3 (version 3), long_conf4 (measured, 0.199 points short of its shipping rule), long_conf5
-#: (version 4), long_conf6 (measured, 0.14 points short of its rule), long_conf7 (version 5: long_conf6 + 1500 steps
+#: then long_conf3 (version 3), long_conf4 (measured, 0.001 points short of its shipping rule), long_conf5
+#: (version 4), long_conf6 (measured, 0.06 points short of its rule), long_conf7 (version 5: long_conf6 + 1500 steps
 #: met the rule against version 4), long_conf8 (measured, 0.10 points short of its rule) and long_conf9 (measured,
 #: 0.02 points short). long_conf10 (long_conf9 + 1900) never ran: long_conf9's weights lived only in the git-ignored
 #: out/ of a session that ended. long_bf16 starts again from the shipped file ("pretrained"), bf16 autocast on a CPU
@@ -96,9 +96,9 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("finetune_conf", "+ 550 steps, confidence-weighted L_P, OneCycle peak 1e-4", 550, ""),
     ("long_conf", "+ 1500 steps, confidence-weighted L_P, today's labels (kappa2 0.3): version 2", 1500, ""),
     ("long_conf3", "+ 1800 steps, the same loss, labels and peak: version 3", 1800, ""),
-    ("long_conf4", "+ 1300 steps, the same (measured, not shipped: 0.199 points short of its rule)", 1300, ""),
+    ("long_conf4", "+ 1300 steps, the same (measured, not shipped: 0.001 points short of its rule)", 1300, ""),
     ("long_conf5", "+ 1900 steps, the same: version 4", 1900, ""),
-    ("long_conf6", "+ 1900 steps, the same (measured, not shipped: 0.14 points short of its rule)", 1900, ""),
+    ("long_conf6", "+ 1900 steps, the same (measured, not shipped: 0.06 points short of its rule)", 1900, ""),
     ("long_conf7", "+ 1500 steps, the same: version 5", 1500, ""),
     ("long_conf8", "+ 1900 steps, the same (measured, not shipped: 0.10 points short of its rule)", 1900, ""),
     ("long_conf9", "+ 1900 steps, the same (measured, not shipped: 0.02 points short of its rule)", 1900, ""),
