@@ -67,7 +67,8 @@ ARM_STEPS = 200
 #: out/ of a session that ended. long_bf16 starts again from the shipped file ("pretrained"), bf16 autocast on a CPU
 #: with AVX512-BF16 (its rule in RESULTS.md); it became version 6. long_bf16b (2500 steps) never ran: its session was
 #: cut off; long_bf16c continues version 6 from the shipped file; long_bf16d and long_bf16e continue it (neither
-#: met its rule; long_bf16e's weights are the committed head in HEADS).
+#: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
+#: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e.
 #: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped.
 CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("finetune_conf", "arm_no_lt", LABELS, ["--steps", "550", "--lr", "1e-4", "--seed", "2"]),
@@ -85,6 +86,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("long_bf16e", "long_bf16d", LABELS_K03, ["--steps", "5000", "--lr", "1e-4", "--seed", "18", "--amp", "bf16"]),
     ("scale_f", "long_bf16e", LABELS_K03, ["--steps", "5000", "--lr", "1e-4", "--seed", "20", "--amp", "bf16",
                                            "--scale-range", "1.0,1.25"]),
+    ("iters8_g", "long_bf16e", LABELS_K03, ["--steps", "3500", "--lr", "1e-4", "--seed", "22", "--amp", "bf16",
+                                            "--iters", "8"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
