@@ -176,3 +176,37 @@ def test_blosc_shard_without_plugin_names_the_fix(tmp_path: Path) -> None:
             f"print('\\n'.join(verify({str(shards)!r})))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "compressed with Blosc" in out and "pvm-label convert" in out and "pip install hdf5plugin" in out
+
+
+def test_gpu_continue_script_runs_on_cpu(tmp_path: Path, rng: np.random.Generator) -> None:
+    """pipelines/gpu/continue.sh end to end at toy size on the CPU: label, probe, size, train from the head, export."""
+    import subprocess
+    import sys
+
+    from conftest import make_synthetic_pair
+
+    from optstereo.checkpoint import load_checkpoint
+
+    repo = Path(__file__).resolve().parents[1]
+    for i in range(2):
+        left, right = make_synthetic_pair(rng, height=96, width=256, disp=6)
+        for view, img in (("left", left), ("right", right)):
+            (tmp_path / "pack" / view).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(tmp_path / "pack" / view / f"{i:06d}.png"), img)
+    init = repo / "results/pretrained/weights/long_bf16e.safetensors"
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "DEVICE": "cpu", "AMP": "none", "BATCH": "1",
+           "CROP": "64x128", "ITERS": "1", "BUDGET_S": "1", "PROBE": "4", "WORKERS": "1", "THREADS": "1", "JOBS": "1",
+           "PACK": str(tmp_path / "pack"), "WORK": str(tmp_path / "work"), "OUT": str(tmp_path / "out"),
+           "PY": sys.executable, "NAME": "toy", "INIT": str(init)}
+    proc = subprocess.run(["bash", "pipelines/gpu/continue.sh"], cwd=repo, env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "-> 4 steps" in proc.stdout  # 1 s of budget rounds down to nothing: the floor of 4 steps
+    out = load_checkpoint(tmp_path / "out" / "toy.safetensors")
+    start = load_checkpoint(init)
+    assert out.step == 4 and out.model_config["feature_dim"] == start.model_config["feature_dim"]
+    moved = [k for k in start.model_state if not torch.equal(start.model_state[k], out.model_state[k])]
+    assert moved, "the weights should have moved from the head after 4 steps"
+    config = (tmp_path / "out" / "config.yaml").read_text()
+    assert "lambda_t: 0.0" in config and "conf_weight: true" in config
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["config.yaml", "env.txt", "metrics.jsonl",
+                                                                     "toy.safetensors"]

@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# Continue the lineage's head on a lent GPU in ONE device call (a task gets ~15 min of device time, starts included).
+#
+# Here, once:  python -m pipelines.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl
+#              (87 pairs as JPEG q95, ~33 MB: the PNGs and their labels are too big to carry)
+# Device:      run(command="bash pipelines/gpu/continue.sh", carry=[".carry/unl"], timeout_s=600)
+# Here, after: mkdir -p out/pretrained/NAME && cp FILES_AT/NAME.safetensors out/pretrained/NAME/model.safetensors
+#              python -m pipelines.train_pretrained eval NAME   (CPU, float32, the lineage's rule: RESULTS.md)
+#
+# On the device it labels the pack with PVM (all cores, lzf shards: no hdf5plugin there), times 20 steps, sizes the
+# run to BUDGET_S seconds and trains it: the lineage's loss (L_P confidence-weighted + 0.1 L_R + 0.1 L_S, no L_T)
+# from INIT with one OneCycle (peak 1e-4), bf16, batch 8, 320x960 crops, N_s = 8. NAME.safetensors, its
+# metrics.jsonl, config.yaml and env.txt land in $OUT. The trained-on images are JPEG-decoded; its report says so.
+# A CPU smoke run of the same logic: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 BUDGET_S=1 PROBE=4 WORKERS=1 THREADS=2
+set -euo pipefail
+export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
+INIT=${INIT:-results/pretrained/weights/long_bf16e.safetensors}
+NAME=${NAME:-gpu_h}
+PACK=${PACK:-.carry/unl}
+BUDGET_S=${BUDGET_S:-360}   # training wall seconds after the probe
+PROBE=${PROBE:-20}          # probe steps (the mean of the second half is the step time)
+DEVICE=${DEVICE:-cuda} AMP=${AMP:-bf16} BATCH=${BATCH:-8} CROP=${CROP:-320x960} ITERS=${ITERS:-8}
+SEED=${SEED:-30} JOBS=${JOBS:-$(nproc)} WORKERS=${WORKERS:-6} THREADS=${THREADS:-4}
+W=${WORK:-/tmp/pv}
+OUTD=${OUT:-/tmp/out}
+PY=${PY:-python3}
+mkdir -p "$W" "$OUTD"
+
+{ date -u; git rev-parse --short HEAD 2>/dev/null || true; nproc
+  command -v nvidia-smi > /dev/null && nvidia-smi -L
+  $PY -c "import torch, numba, h5py, cv2; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(),
+'numba', numba.__version__, 'h5py', h5py.__version__, 'cv2', cv2.__version__)"; } | tee "$W/env.txt"
+
+t0=$SECONDS
+$PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels" --jobs "$JOBS" --compression lzf \
+  --quiet 2>&1 | tail -n 2
+echo "labels in $((SECONDS - t0)) s" | tee -a "$W/env.txt"
+
+train() {  # out dir, steps, extra args: the lineage's recipe at GPU size
+  $PY -m optstereo.cli train --config pipelines/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 --conf-weight \
+    --labels "$W/labels" --out "$1" --steps "$2" --lr 1e-4 --seed "$SEED" --device "$DEVICE" --amp "$AMP" \
+    --batch-size "$BATCH" --crop "$CROP" --iters "$ITERS" --workers "$WORKERS" --threads "$THREADS" --quiet "${@:3}"
+}
+
+rm -rf "$W/probe"
+train "$W/probe" "$PROBE" --log-every 2 --ckpt-every 100000
+step_s=$($PY - "$W/probe/metrics.jsonl" <<'EOF'
+import json, sys
+rows = [json.loads(line) for line in open(sys.argv[1])]
+half = rows[len(rows) // 2:]
+print(sum(r["step_time_s"] for r in half) / len(half))
+EOF
+)
+steps=$($PY -c "print(max(4, int($BUDGET_S / $step_s) // 50 * 50))")
+echo "probe: $step_s s/step -> $steps steps" | tee -a "$W/env.txt"
+echo "$(date -u +%FT%TZ) train $W/$NAME $steps (INIT=$INIT seed $SEED $DEVICE $AMP batch $BATCH crop $CROP N_s $ITERS)" \
+  | tee -a "$W/env.txt"
+train "$W/$NAME" "$steps" --ckpt-every 500 --max-minutes "$($PY -c "print($BUDGET_S * 1.5 / 60)")"
+
+$PY - "$W/$NAME" "$OUTD/$NAME.safetensors" <<'EOF'
+import sys
+from pathlib import Path
+from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
+ckpt = load_checkpoint(Path(sys.argv[1]) / "last.pt")
+export_safetensors(Path(sys.argv[2]), build_model_from_checkpoint(ckpt), step=ckpt.step)
+print(f"wrote {sys.argv[2]} at step {ckpt.step}")
+EOF
+cp "$W/$NAME/metrics.jsonl" "$W/$NAME/config.yaml" "$W/env.txt" "$OUTD/"
