@@ -180,6 +180,20 @@ def test_lineage_side_branch_is_left_out_of_the_main_path(tmp_path: Path, monkey
     assert cv2.imread(str(tmp_path / "lineage.png")) is not None
 
 
+def test_lineage_extrapolates_along_the_recipe_head_not_a_later_branch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recipe change branching off the head (listed after it) must not end the curve the extrapolation fits."""
+    monkeypatch.setattr(tp, "LINEAGE", (("a", "", 1000, ""), ("b", "", 1000, ""), ("c", "", 2000, ""),
+                                        ("new_recipe", "", 500, "c")))
+    doc = lambda k15: {s: {"summary": {"bad3": k15}} for s, *_ in tp.EVAL_SETS}  # noqa: E731
+    points = tp.lineage_points({"a": doc(10.0), "b": doc(9.0), "c": doc(8.0), "new_recipe": doc(8.5)})
+    assert [p[1] for p in tp.main_path(points)] == ["a", "b", "c", "new_recipe"]  # default: the last row
+    assert [p[1] for p in tp.main_path(points, "c")] == ["a", "b", "c"]
+    # along a -> b -> c: 1 point per doubling, 12000 more steps to 6 %; through new_recipe the fit is another
+    assert "12,000 at the log-linear rate" in tp.extrapolation_text(points, sgm_bad3=8.0, head="c")
+    assert "12,000" not in tp.extrapolation_text(points, sgm_bad3=8.0, head="new_recipe")
+    assert [p[1] for p in tp.main_path(points, "not evaluated")] == ["a", "b", "c", "new_recipe"]
+
+
 def test_bench_export_paired_ratios_by_hand() -> None:
     from pipelines.bench_export import _timings, paired_ratios
 
