@@ -105,16 +105,18 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("long_conf7", "+ 1500 steps, the same: version 5", 1500, ""),
     ("long_conf8", "+ 1900 steps, the same (measured, not shipped: 0.10 points short of its rule)", 1900, ""),
     ("long_conf9", "+ 1900 steps, the same (measured, not shipped: 0.02 points short of its rule)", 1900, ""),
-    ("shipped", "version 5 + 6000 steps in bf16 autocast, one OneCycle: version 6, shipped (long_bf16)", 6000,
+    ("long_bf16", "version 5 + 6000 steps in bf16 autocast, one OneCycle: version 6 (shipped until version 7)", 6000,
      "long_conf7"),
     ("long_bf16c", "version 6 + 5000 steps in bf16, one OneCycle (measured, not shipped: 0.09 points short of its "
-     "rule)", 5000, "shipped"),
+     "rule)", 5000, "long_bf16"),
     ("long_bf16d", "+ 3000 steps in bf16, one OneCycle (measured, not shipped: 0.06 points short of its rule)", 3000,
      ""),
     ("long_bf16e", "+ 5000 steps in bf16, one OneCycle (measured, not shipped: 0.04 points short of its rule)", 5000,
      ""),
     ("scale_f", "`long_bf16e` + 5000 steps in bf16 with scale augmentation 1-1.25x (measured, not shipped: 0.12 "
      "points short of its rule)", 5000, "long_bf16e"),
+    ("iters8_g", "`long_bf16e` + 3500 steps in bf16 at N_s = 8 in training: version 7, shipped", 3500,
+     "long_bf16e"),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
