@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Continue the lineage's head on a lent GPU in ONE device call (a task gets ~15 min of device time, starts included).
+# Continue the shipped model (the lineage's head) on a lent GPU in ONE device call (a task gets ~15 min of device time, starts included).
 #
 # Here, once:  python -m pipelines.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl
 #              (87 pairs as JPEG q95, ~33 MB: the PNGs and their labels are too big to carry)
@@ -14,7 +14,7 @@
 # A CPU smoke run of the same logic: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 BUDGET_S=1 PROBE=4 WORKERS=1 THREADS=2
 set -euo pipefail
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
-INIT=${INIT:-results/pretrained/weights/long_bf16e.safetensors}
+INIT=${INIT:-pretrained}   # the shipped file (version 7)
 NAME=${NAME:-gpu_h}
 PACK=${PACK:-.carry/unl}
 BUDGET_S=${BUDGET_S:-360}   # training wall seconds after the probe
