@@ -57,12 +57,5 @@ echo "$(date -u +%FT%TZ) train $W/$NAME $steps (INIT=$INIT seed $SEED $DEVICE $A
   | tee -a "$W/env.txt"
 train "$W/$NAME" "$steps" --ckpt-every 500 --max-minutes "$($PY -c "print($BUDGET_S * 1.5 / 60)")"
 
-$PY - "$W/$NAME" "$OUTD/$NAME.safetensors" <<'EOF'
-import sys
-from pathlib import Path
-from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
-ckpt = load_checkpoint(Path(sys.argv[1]) / "last.pt")
-export_safetensors(Path(sys.argv[2]), build_model_from_checkpoint(ckpt), step=ckpt.step)
-print(f"wrote {sys.argv[2]} at step {ckpt.step}")
-EOF
+cp "$W/$NAME/model.safetensors" "$OUTD/$NAME.safetensors"  # the trainer exports it when the run ends
 cp "$W/$NAME/metrics.jsonl" "$W/$NAME/config.yaml" "$W/env.txt" "$OUTD/"
