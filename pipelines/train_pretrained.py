@@ -68,7 +68,8 @@ ARM_STEPS = 200
 #: with AVX512-BF16 (its rule in RESULTS.md); it became version 6. long_bf16b (2500 steps) never ran: its session was
 #: cut off; long_bf16c continues version 6 from the shipped file; long_bf16d and long_bf16e continue it (neither
 #: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
-#: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e.
+#: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e; iters8_g
+#: became version 7 and iters8_h continues it at N_s = 8.
 #: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped.
 CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("finetune_conf", "arm_no_lt", LABELS, ["--steps", "550", "--lr", "1e-4", "--seed", "2"]),
@@ -88,6 +89,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
                                            "--scale-range", "1.0,1.25"]),
     ("iters8_g", "long_bf16e", LABELS_K03, ["--steps", "3500", "--lr", "1e-4", "--seed", "22", "--amp", "bf16",
                                             "--iters", "8"]),
+    ("iters8_h", "iters8_g", LABELS_K03, ["--steps", "4000", "--lr", "1e-4", "--seed", "23", "--amp", "bf16",
+                                          "--iters", "8"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
