@@ -70,7 +70,9 @@ ARM_STEPS = 200
 #: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
 #: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e; iters8_g
 #: became version 7; iters8_h continued it at N_s = 8 (measured, 0.21 points short of its rule).
-#: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped.
+#: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped. "pretrained" is the shipped file
+#: when the command runs: version 5 for long_bf16 and version 6 for long_bf16c when they ran, version 7 today, so a
+#: re-run of those two rows starts from other weights than the recorded runs did.
 CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("finetune_conf", "arm_no_lt", LABELS, ["--steps", "550", "--lr", "1e-4", "--seed", "2"]),
     ("long_conf", "finetune_conf", LABELS_K03, ["--steps", "1500", "--lr", "1e-4", "--seed", "3"]),
@@ -412,12 +414,12 @@ def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None
     """The plot's caption and the steps to the target along ``head``'s ancestors (the recipe's own line)."""
     target = TARGET_RATIO * sgm_bad3
     more = steps_to_target(main_path(points, head), target)
-    head = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM and "
-            f"the target {target:.2f} % dashed).")
+    caption = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM "
+               f"and the target {target:.2f} % dashed).")
     if more is None:
-        return head
-    return (f"{head} If the trend held, KITTI 2015 would reach {target:.2f} % after about {more[0]:,.0f} more steps at "
-            f"the last three runs' linear rate, or {more[1]:,.0f} at the log-linear rate of the whole lineage "
+        return caption
+    return (f"{caption} If the trend held, KITTI 2015 would reach {target:.2f} % after about {more[0]:,.0f} more "
+            f"steps at the last three runs' linear rate, or {more[1]:,.0f} at the log-linear rate of the whole lineage "
             f"(a constant gain per doubling of steps); the gain per run has been shrinking, so read the first as a "
             f"lower bound.")
 
