@@ -16,7 +16,7 @@ from optstereo.data import ShardStream, TrainTransform, collate_min_size, to_ten
 from optstereo.data.stream import shuffle_buffer, skip_count
 from optstereo.data.transforms import crop_window, photometric_jitter
 from pvm_labeler.common.errors import ShardError
-from pvm_labeler.shards import ShardRecord, write_shard_dir
+from pvm_labeler.shards import DEFAULT_COMPRESSION, ShardRecord, write_shard_dir
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -31,7 +31,7 @@ def one_torch_thread():
 
 def make_shards(
     out: Path, n: int = 4, shard_size: int = 2, height: int = 32, width: int = 64, disp: int = 4,
-    with_gt: bool = True, seed: int = 0,
+    with_gt: bool = True, seed: int = 0, compression: str = DEFAULT_COMPRESSION,
 ) -> Path:
     """Tiny shard dir of synthetic pairs (left(x) == right(x - disp)); sample i's label is disp + i / 100.
 
@@ -49,7 +49,7 @@ def make_shards(
         gt = np.full((height, width), float(disp), np.float32) if with_gt else None
         records.append(ShardRecord(f"frame-{i:03d}", left, right, label, label_right,
                                    np.isfinite(label).astype(np.float32), gt=gt))
-    return write_shard_dir(out, records, config={"k": 1}, shard_size=shard_size)
+    return write_shard_dir(out, records, config={"k": 1}, shard_size=shard_size, compression=compression)
 
 
 def ids_of(stream: ShardStream) -> list[str]:

@@ -18,6 +18,7 @@ INIT=${INIT:-pretrained}   # the shipped file (version 7)
 NAME=${NAME:-gpu_h}
 PACK=${PACK:-.carry/unl}
 BUDGET_S=${BUDGET_S:-360}   # training wall seconds after the probe
+END_AT=${END_AT:-}          # epoch seconds by which training must end (overrides BUDGET_S): session.sh sets it
 PROBE=${PROBE:-20}          # probe steps (the mean of the second half is the step time)
 DEVICE=${DEVICE:-cuda} AMP=${AMP:-bf16} BATCH=${BATCH:-8} CROP=${CROP:-320x960} ITERS=${ITERS:-8}
 SEED=${SEED:-30} JOBS=${JOBS:-$(nproc)} WORKERS=${WORKERS:-6} THREADS=${THREADS:-4}
@@ -31,10 +32,12 @@ mkdir -p "$W" "$OUTD"
   $PY -c "import torch, numba, h5py, cv2; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(),
 'numba', numba.__version__, 'h5py', h5py.__version__, 'cv2', cv2.__version__)"; } | tee "$W/env.txt"
 
-t0=$SECONDS
-$PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels" --jobs "$JOBS" --compression lzf \
-  --quiet 2>&1 | tail -n 2
-echo "labels in $((SECONDS - t0)) s" | tee -a "$W/env.txt"
+if [ ! -e "$W/labels.ok" ]; then  # session.sh labels while the GPU tests run, then leaves this marker
+  t0=$SECONDS
+  $PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels" --jobs "$JOBS" --compression lzf \
+    --quiet 2>&1 | tail -n 2
+  echo "labels in $((SECONDS - t0)) s" | tee -a "$W/env.txt"
+fi
 
 train() {  # out dir, steps, extra args: the lineage's recipe at GPU size
   $PY -m optstereo.cli train --config pipelines/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 --conf-weight \
@@ -51,11 +54,13 @@ half = rows[len(rows) // 2:]
 print(sum(r["step_time_s"] for r in half) / len(half))
 EOF
 )
-steps=$($PY -c "print(max(4, int($BUDGET_S / $step_s) // 50 * 50))")
+if [ -n "$END_AT" ]; then BUDGET_S=$((END_AT - $(date +%s) - 25)); fi  # 25 s: start-up, export and copy
+# 0.92: the run also loads data, checkpoints every 500 steps and exports; its OneCycle must end before the cap does
+steps=$($PY -c "print(max(4, int(0.92 * $BUDGET_S / $step_s) // 50 * 50))")
 echo "probe: $step_s s/step -> $steps steps" | tee -a "$W/env.txt"
 echo "$(date -u +%FT%TZ) train $W/$NAME $steps (INIT=$INIT seed $SEED $DEVICE $AMP batch $BATCH crop $CROP N_s $ITERS)" \
   | tee -a "$W/env.txt"
-train "$W/$NAME" "$steps" --ckpt-every 500 --max-minutes "$($PY -c "print($BUDGET_S * 1.5 / 60)")"
+train "$W/$NAME" "$steps" --ckpt-every 500 --max-minutes "$($PY -c "print(max($BUDGET_S, 1) / 60)")"
 
 cp "$W/$NAME/model.safetensors" "$OUTD/$NAME.safetensors"  # the trainer exports it when the run ends
 cp "$W/$NAME/metrics.jsonl" "$W/$NAME/config.yaml" "$W/env.txt" "$OUTD/"

@@ -1,0 +1,110 @@
+"""KITTI-size inference time on CUDA (issue 14: the paper reports 100 ms on an RTX 2080 Ti), for a lent GPU.
+
+Times the network alone (inputs already on the GPU, padded 375x1242 -> 376x1248, test mode, 8 GRU iterations),
+median of ``--repeats`` calls after ``--warmup``, each bracketed by ``torch.cuda.synchronize()``; and once
+end to end through :func:`optstereo.inference.infer` (uint8 numpy in, numpy out: host copies and padding
+included). Rows: the shipped model (C = 128) and the paper-size network (C = 256, random weights: the time does
+not depend on them), float32 / TF32 / bf16 / fp16 autocast.
+
+    python -m pipelines.gpu.cuda_timing --out $OUT/cuda_timing.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from optstereo.api import load_model
+from optstereo.inference import infer, inference_autocast
+from optstereo.models import build_model
+
+KITTI_HW = (375, 1242)
+PADDED_HW = (376, 1248)
+ITERS = 8
+PAPER_MS = 100.0  # the paper's OptStereo on an RTX 2080 Ti
+
+
+def cuda_median_s(fn: Callable[[], Any], repeats: int, warmup: int) -> float:
+    """Median wall seconds of ``fn`` with the GPU drained before and after each call."""
+    for _ in range(warmup):
+        fn()
+    torch.cuda.synchronize()
+    times = []
+    for _ in range(repeats):
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def network_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int) -> list[dict[str, Any]]:
+    """One row per precision: the network's forward at PADDED_HW, inputs resident on the GPU."""
+    dev = torch.device("cuda")
+    gen = torch.Generator(device=dev).manual_seed(0)
+    left = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
+    right = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
+    rows = []
+    for precision in ("fp32", "tf32", "bf16", "fp16"):
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = precision == "tf32"
+        amp = precision if precision in ("bf16", "fp16") else "none"
+
+        @torch.inference_mode()
+        def forward() -> None:
+            with inference_autocast(amp, dev):
+                model(left, right, iters=ITERS, test_mode=True)
+
+        torch.cuda.reset_peak_memory_stats()
+        seconds = cuda_median_s(forward, repeats, warmup)
+        rows.append({"model": label, "precision": precision, "ms": round(seconds * 1e3, 2),
+                     "vs_paper_100ms": round(seconds * 1e3 / PAPER_MS, 3),
+                     "peak_gpu_mib": round(torch.cuda.max_memory_allocated() / 2**20, 1)})
+        print(rows[-1], flush=True)
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    return rows
+
+
+def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int) -> dict[str, Any]:
+    """``infer`` on uint8 numpy arrays of KITTI size (host-to-device, padding, unpadding and the copy back)."""
+    rng = np.random.default_rng(0)
+    left = rng.integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8)
+    right = np.roll(left, -8, axis=1)
+    seconds = cuda_median_s(lambda: infer(model, left, right, iters=ITERS, device="cuda", amp="bf16"),
+                            repeats, warmup)
+    row = {"model": "shipped", "precision": "bf16", "what": "infer() end to end", "ms": round(seconds * 1e3, 2)}
+    print(row, flush=True)
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--warmup", type=int, default=5)
+    args = parser.parse_args()
+    if not torch.cuda.is_available():
+        raise SystemExit("cuda_timing: no CUDA device")
+    shipped = load_model("pretrained", device="cuda")
+    torch.manual_seed(0)
+    paper = build_model("optstereo", iters=ITERS).cuda().eval()  # the defaults are the paper's sizes
+    rows = network_rows(shipped, "shipped (C=128)", args.repeats, args.warmup)
+    rows += network_rows(paper, "paper size (C=256)", args.repeats, args.warmup)
+    rows.append(end_to_end_row(shipped, args.repeats, args.warmup))
+    report = {"device": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
+              "input": f"{KITTI_HW[0]}x{KITTI_HW[1]} padded to {PADDED_HW[0]}x{PADDED_HW[1]}", "iters": ITERS,
+              "repeats": args.repeats, "warmup": args.warmup, "rows": rows}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
