@@ -247,7 +247,7 @@ def train_steps(
             time_up = cfg.max_minutes > 0 and _time_is_up(start_time, cfg.max_minutes, device)
             if state.step % cfg.log_every == 0 or state.step == cfg.optim.steps or time_up:
                 now = time.perf_counter()
-                mean = {k: float(np.nanmean([w[k] for w in window])) for k in window[0]}
+                mean = {k: _nanmean([w[k] for w in window]) for k in window[0]}
                 mean = ddp.all_reduce_mean(mean, device)
                 mean["samples_per_s"] = (state.step - tick_step) * cfg.data.batch_size * world / max(now - tick, 1e-9)
                 mean["step_time_s"] = (now - tick) / max(state.step - tick_step, 1)
@@ -269,6 +269,14 @@ def train_steps(
     finally:
         bar.close()
     return state
+
+
+def _nanmean(values: list[float]) -> float:
+    """Mean of the non-NaN values; NaN, without numpy's warning, when all are NaN (fp16 steps the GradScaler
+    skipped have a NaN gradient norm)."""
+    arr = np.asarray(values, dtype=np.float64)
+    kept = arr[~np.isnan(arr)]
+    return float(kept.mean()) if kept.size else float("nan")
 
 
 def _time_is_up(start: float, max_minutes: float, device: torch.device) -> bool:

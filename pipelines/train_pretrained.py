@@ -69,7 +69,8 @@ ARM_STEPS = 200
 #: cut off; long_bf16c continues version 6 from the shipped file; long_bf16d and long_bf16e continue it (neither
 #: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
 #: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e; iters8_g
-#: became version 7; iters8_h continued it at N_s = 8 (measured, 0.21 points short of its rule).
+#: became version 7; iters8_h continued it at N_s = 8 (measured, 0.21 points short of its rule). gpu_i (LINEAGE) is
+#: no CPU row: it ran on a lent H100 with `bash pipelines/gpu/session.sh` (RESULTS.md).
 #: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped. "pretrained" is the shipped file
 #: when the command runs: version 5 for long_bf16 and version 6 for long_bf16c when they ran, version 7 today, so a
 #: re-run of those two rows starts from other weights than the recorded runs did.
@@ -123,6 +124,8 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("iters8_g", "`long_bf16e` + 3500 steps in bf16 at N_s = 8 in training: version 7, shipped", 3500,
      "long_bf16e"),
     ("iters8_h", "+ 4000 steps in bf16 at N_s = 8 (measured, not shipped: 0.21 points short of its rule)", 4000, ""),
+    ("gpu_i", "version 7 + 2850 steps on an H100: batch 8, 320x960 crops (7.5x a CPU step's pixels), bf16, N_s = 8, "
+     "JPEG-decoded pairs (measured, not shipped: 0.34 points short of its rule)", 2850, "iters8_g"),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).

@@ -6,6 +6,7 @@ machine with ``python -m pytest -m gpu tests/test_gpu.py``.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,17 @@ def _pair(b: int = 2, h: int = 64, w: int = 128, disp: int = 5) -> tuple[torch.T
     return base[..., :w].contiguous(), base[..., disp:disp + w].contiguous()
 
 
+@pytest.fixture
+def no_tf32() -> Iterator[None]:
+    """CUDA convolutions default to TF32 (a 10-bit mantissa): on an H100 the stem's weight gradient then differed
+    from the CPU's by ~1.5 % of its largest entry. Comparisons with the CPU run in true float32, then restore it."""
+    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    yield
+    torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
+
+
+@pytest.mark.usefixtures("no_tf32")
 def test_forward_backward_matches_cpu() -> None:
     left, right = _pair()
     grads = {}
@@ -44,12 +56,15 @@ def test_forward_backward_matches_cpu() -> None:
         preds = model(left.to(device), right.to(device))
         loss = sum(p.mean() for p in preds)
         loss.backward()
-        grads[device] = (float(loss), {n: p.grad.detach().cpu() for n, p in model.named_parameters()})
+        grads[device] = (float(loss.detach()), {n: p.grad.detach().cpu() for n, p in model.named_parameters()})
     assert grads["cuda"][0] == pytest.approx(grads["cpu"][0], rel=1e-3)
+    # a bias before a normalisation has an analytically zero gradient: both devices give rounding noise (~1e-6 on
+    # an H100), so the floor of the tolerance follows the model's largest gradient, not that tensor's own
+    floor = 1e-6 * max(float(g.abs().max()) for g in grads["cpu"][1].values())
     for name, g_cpu in grads["cpu"][1].items():
         g_gpu = grads["cuda"][1][name]
         assert torch.isfinite(g_gpu).all(), name
-        assert torch.allclose(g_gpu, g_cpu, rtol=1e-2, atol=1e-3 * (g_cpu.abs().max() + 1e-6)), name
+        assert torch.allclose(g_gpu, g_cpu, rtol=1e-2, atol=1e-3 * float(g_cpu.abs().max()) + floor), name
 
 
 @pytest.mark.parametrize("amp", ["fp16", "bf16"])
@@ -90,6 +105,7 @@ def test_analogy_transform_on_cuda_matches_cpu() -> None:
     assert torch.allclose(out["cuda"].right.cpu(), out["cpu"].right, atol=1e-3)
 
 
+@pytest.mark.usefixtures("no_tf32")
 def test_predict_on_cuda_matches_cpu() -> None:
     rng = np.random.default_rng(0)
     base = rng.integers(0, 256, size=(61, 133, 3), dtype=np.uint8)  # odd size: padding on both devices

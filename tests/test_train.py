@@ -378,3 +378,15 @@ def test_onecycle_short_runs_step_and_long_runs_keep_their_schedule(steps: int) 
         assert lrs == ref_lrs
     with pytest.raises(ConfigError, match="onecycle needs --steps >= 4"):
         TrainConfig.from_dict({"optim": {"schedule": "onecycle", "steps": 3}})
+
+
+def test_window_mean_skips_nan_and_stays_quiet_when_all_nan() -> None:
+    import math
+    import warnings
+
+    from optstereo.train import _nanmean
+
+    assert _nanmean([1.0, float("nan"), 3.0]) == 2.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's nanmean warns "Mean of empty slice" here
+        assert math.isnan(_nanmean([float("nan"), float("nan")]))

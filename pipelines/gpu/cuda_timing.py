@@ -59,7 +59,7 @@ def network_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int) 
         amp = precision if precision in ("bf16", "fp16") else "none"
 
         @torch.inference_mode()
-        def forward() -> None:
+        def forward(amp: str = amp) -> None:
             with inference_autocast(amp, dev):
                 model(left, right, iters=ITERS, test_mode=True)
 

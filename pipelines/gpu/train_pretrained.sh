@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The shipped model's recipe at paper size for a lent H100, written but NOT run yet (no session has had a GPU;
-# RESULTS.md). Run with the device tool from the repo root; .carry/unl carried:
+# The shipped model's recipe at paper size for a lent H100, written but NOT run yet (the one session lent a GPU had 15
+# minutes of device time, which session.sh used; its calls need more, RESULTS.md). Run with the device tool from the
+# repo root; .carry/unl carried:
 # `python -m pipelines.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl`.
 #   bash pipelines/gpu/train_pretrained.sh start    env, PVM labels (JPEG pack, 16 cores), gpu tests, probe, launch
 #   bash pipelines/gpu/train_pretrained.sh poll S   watch the runs for S seconds, then snapshot weights into $OUT
