@@ -94,6 +94,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
                                             "--iters", "8"]),
     ("iters8_h", "iters8_g", LABELS_K03, ["--steps", "4000", "--lr", "1e-4", "--seed", "23", "--amp", "bf16",
                                           "--iters", "8"]),
+    ("scale8_j", "iters8_g", LABELS_K03, ["--steps", "4000", "--lr", "1e-4", "--seed", "24", "--amp", "bf16",
+                                          "--iters", "8", "--scale-range", "1.0,1.25"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
