@@ -45,7 +45,7 @@ def predict(
     *,
     iters: int | None = None,
     amp: str = "none",
-    scale: float = 1.0,
+    scale: float | None = None,
 ) -> npt.NDArray[np.float32] | list[npt.NDArray[np.float32]]:
     """Disparity of the left view: positive, full resolution, left(x) matches right(x - d).
 
@@ -56,7 +56,8 @@ def predict(
         iters: GRU iterations (None = the model's own).
         amp: ``none``, ``bf16`` or ``fp16`` (CUDA).
         scale: run the network on both images resized by this factor (e.g. 0.5 for a large Middlebury pair); the
-            disparity comes back at the input's size, in its pixels.
+            disparity comes back at the input's size, in its pixels. None = the model's own input scale (1 unless
+            its checkpoint records another).
 
     Returns:
         (H, W) float32, or a list of them for a list of pairs (each at its own size).

@@ -65,9 +65,10 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
 
 def _infer_options(fn):
     """--amp and --scale, the inference options of optstereo-eval and optstereo-predict."""
-    fn = click.option("--scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+    fn = click.option("--scale", type=click.FloatRange(min=0, min_open=True),
                       help="Run the network on both images resized by this factor (e.g. 0.5 for large pairs, 1.5 "
-                           "for small disparities); disparities come back at the input's size.")(fn)
+                           "for small disparities); disparities come back at the input's size. Default: the "
+                           "model's own input scale (1 unless its checkpoint records another).")(fn)
     return click.option("--amp", type=click.Choice(("none", "bf16", "fp16")), default="none", show_default=True,
                         help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
 
@@ -265,8 +266,8 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
 @_infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
-              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str, scale: float,
-              quiet: bool, **reader: Any) -> None:
+              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
+              scale: float | None, quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
     _setup_logging(quiet)
     from optstereo import evaluate
@@ -274,7 +275,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     if labels is not None:
-        if scale != 1.0:
+        if scale is not None:
             raise click.UsageError("--scale resizes a network's input; --labels evaluates stored labels as they are")
         result = _run_guarded(evaluate.evaluate_labels, labels, out_dir=out, limit=limit, save_maps=save_maps)
     else:
@@ -329,7 +330,7 @@ def _load_model(checkpoint: Path, device: str):
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
                  calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
-                 amp: str, scale: float, quiet: bool, **reader: Any) -> None:
+                 amp: str, scale: float | None, quiet: bool, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -339,8 +340,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
     if backend == "onnxruntime":
-        if scale != 1.0:
-            raise click.UsageError("--scale is for the torch backend; resize the images before onnxruntime")
+        if scale is not None:
+            raise click.UsageError("--scale is for the torch backend; the ONNX file records the model's own scale")
         _predict_onnx(checkpoint, left, right, out, formats, dataset)
         return
     geometry = [f for f in formats if f in inference.GEOMETRY_FORMATS]

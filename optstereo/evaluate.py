@@ -182,7 +182,7 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
 def model_frames(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", limit: int | None = None, amp: str = "none",
-    reader_options: dict[str, Any] | None = None, scale: float = 1.0,
+    reader_options: dict[str, Any] | None = None, scale: float | None = None,
 ) -> Iterator[Frame]:
     """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames."""
     from optstereo.inference import infer
@@ -217,12 +217,16 @@ def evaluate_model(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", out_dir: Path | None = None, limit: int | None = None,
     save_maps: bool = False, meta: dict | None = None, amp: str = "none", reader_options: dict[str, Any] | None = None,
-    scale: float = 1.0,
+    scale: float | None = None,
 ) -> EvalResult:
     """Evaluate a network on a dataset's GT; summary also holds the mean seconds per frame.
 
     Frames stream through (one decoded pair and its prediction in memory at a time); the timing is a running mean.
+    ``scale`` None = the model's own input scale (recorded in the summary as ``input_scale``).
     """
+    from optstereo.inference import model_input_scale
+
+    scale = model_input_scale(model) if scale is None else scale
     meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp, "input_scale": scale,
             "seconds_per_frame": math.nan, **(meta or {})}
     count = 0

@@ -75,10 +75,25 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     if hasattr(model, "image_chunk"):
         model.image_chunk = 0 if batch else 1  # the same outputs either way (tests/test_model_optstereo.py)
     try:
-        return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch)
+        path = _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch)
     finally:
         if hasattr(model, "image_chunk"):
             model.image_chunk = saved_chunk
+    if fmt == "onnx":
+        from optstereo.inference import model_input_scale
+
+        _record_input_scale(path, model_input_scale(model))
+    return path
+
+
+def _record_input_scale(path: Path, scale: float) -> None:
+    """Store the model's input scale in the ONNX file's metadata: :func:`infer_onnx` resizes pairs by it."""
+    import onnx
+
+    proto = onnx.load(str(path))
+    onnx.helper.set_model_props(proto, {"input_scale": repr(float(scale))})
+    with atomic_path(path) as tmp:
+        onnx.save(proto, str(tmp))
 
 
 def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], batch: bool) -> Path:
@@ -109,12 +124,22 @@ def onnx_session(path: Path | str, threads: int = 0):
 
 
 def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:
-    """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session (padding as ``infer``)."""
-    from optstereo.inference import to_batch
-    from optstereo.padding import InputPadder
+    """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session (padding as ``infer``; at
+    the input scale the file records, as ``infer`` at the model's own)."""
+    from optstereo.rescale import disparity_to_size, rescaled_pair
 
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
+    scale = float(session.get_modelmeta().custom_metadata_map.get("input_scale", 1.0))
+    if scale != 1.0:
+        return disparity_to_size(_run_onnx(session, *rescaled_pair(left, right, scale)), left.shape[:2])
+    return _run_onnx(session, left, right)
+
+
+def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:
+    from optstereo.inference import to_batch
+    from optstereo.padding import InputPadder
+
     cpu = torch.device("cpu")
     left_t, right_t = to_batch(left, cpu), to_batch(right, cpu)
     padder = InputPadder(left_t.shape, divis_by=8)

@@ -89,6 +89,11 @@ def inference_autocast(amp: str, device: torch.device) -> contextlib.AbstractCon
     return torch.autocast(device_type=device.type, dtype=torch.bfloat16 if amp == "bf16" else torch.float16)
 
 
+def model_input_scale(model: nn.Module) -> float:
+    """The input scale a model's config records (``ModelConfig.input_scale``), 1.0 for a model without one."""
+    return float(getattr(getattr(model, "config", None), "input_scale", 1.0))
+
+
 @torch.inference_mode()
 def infer(
     model: nn.Module,
@@ -97,7 +102,7 @@ def infer(
     iters: int | None = None,
     device: torch.device | str = "cpu",
     amp: str = "none",
-    scale: float = 1.0,
+    scale: float | None = None,
 ) -> npt.NDArray[np.float32]:
     """Full-resolution disparity of one pair.
 
@@ -107,16 +112,18 @@ def infer(
         iters: GRU iterations (None = the model's default).
         amp: ``none`` (float32), ``bf16`` (CPU with AVX512-BF16/AMX, or CUDA) or ``fp16`` (CUDA).
         scale: resize both images by this factor before the network (see :func:`rescaled_pair`) and bring the
-            disparity back to the input's size and pixel units; 1 = as given.
+            disparity back to the input's size and pixel units; 1 = as given, None = the model's own
+            (:func:`model_input_scale`).
 
     Returns:
         (H, W) float32 disparity in pixels of the input (positive, left(x) matches right(x - d)).
     """
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
+    scale = model_input_scale(model) if scale is None else scale
     if scale != 1.0:
         left_s, right_s = rescaled_pair(left, right, scale)
-        disp_s = infer(model, left_s, right_s, iters=iters, device=device, amp=amp)
+        disp_s = infer(model, left_s, right_s, iters=iters, device=device, amp=amp, scale=1.0)
         return disparity_to_size(disp_s, left.shape[:2])
     device = torch.device(device)
     was_training = model.training
@@ -221,7 +228,7 @@ def write_geometry(
 def predict_pair(
     model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
     formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
-    calib: Any = None, max_depth: float = float("inf"), scale: float = 1.0,
+    calib: Any = None, max_depth: float = float("inf"), scale: float | None = None,
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
     from pvm_labeler.common.io import read_image
@@ -241,7 +248,7 @@ def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
     limit: int | None = None, amp: str = "none", submission: Path | None = None,
-    reader_options: dict[str, Any] | None = None, scale: float = 1.0,
+    reader_options: dict[str, Any] | None = None, scale: float | None = None,
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
 

@@ -262,8 +262,9 @@ def step_baselines() -> dict[str, Any]:
     return out
 
 
-def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS) -> dict[str, Any]:
-    """The network (a RUN_DIR under out/pretrained, a checkpoint path, or 'pretrained') on every GT set."""
+def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS, scale: float | None = None) -> dict[str, Any]:
+    """The network (a RUN_DIR under out/pretrained, a checkpoint path, or 'pretrained') on every GT set, at input
+    ``scale`` (None: the model's own, which each summary records as ``input_scale``)."""
     from optstereo.api import load_model
     from optstereo.evaluate import evaluate_model
 
@@ -276,7 +277,7 @@ def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS) -> dic
         out["train_summary"] = json.loads(summary_path.read_text())
     for set_name, reader, root, _ in EVAL_SETS:
         result = evaluate_model(model, reader, SHARED / root, iters=iters, out_dir=RUNS / "eval" / name / set_name,
-                                save_maps=set_name == "kitti15")
+                                save_maps=set_name == "kitti15", scale=scale)
         out[set_name] = {"summary": result.summary, "frames": result.rows}
         s = result.summary
         print(f"{name} {set_name}: bad3 {s['bad3']:.2f} %, D1 {s['d1_all']:.2f} %, EPE {s['epe']:.3f} px, "
@@ -285,12 +286,14 @@ def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS) -> dic
     return out
 
 
-def step_ship(run: str) -> None:
-    """Export the run's final weights (float32 safetensors, model config in the metadata) as the shipped model."""
+def step_ship(run: str, input_scale: float = 1.0) -> None:
+    """Export the run's final weights (float32 safetensors, model config in the metadata) as the shipped model,
+    recording ``input_scale`` as the scale ``infer`` runs it at by default."""
     from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 
     ckpt = load_checkpoint(RUNS / run)
-    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS)  # the shipped default: 8 iterations at test time
+    # the shipped defaults: 8 iterations at test time, and the input scale its rule was judged at
+    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS, input_scale=input_scale)
     WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
     export_safetensors(WEIGHTS, model, step=ckpt.step)
     WEIGHTS.chmod(0o644)  # safetensors writes 0600; the package file is read by every user
@@ -465,6 +468,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("run", nargs="?", default="arm_no_lt")
     parser.add_argument("--name", help="result name for eval (default: the run's name)")
     parser.add_argument("--iters", type=int, default=TEST_ITERS)
+    parser.add_argument("--scale", type=float, help="eval: input scale (default: the model's own)")
+    parser.add_argument("--input-scale", type=float, default=1.0, help="ship: the default input scale to record")
     args = parser.parse_args(argv)
     if args.step == "label":
         step_label()
@@ -479,9 +484,9 @@ def main(argv: list[str] | None = None) -> None:
     elif args.step == "baselines":
         step_baselines()
     elif args.step == "eval":
-        step_eval(args.run, args.name, args.iters)
+        step_eval(args.run, args.name, args.iters, args.scale)
     elif args.step == "ship":
-        step_ship(args.run)
+        step_ship(args.run, args.input_scale)
     elif args.step == "soup":
         step_soup(args.run)
     else:

@@ -6,6 +6,7 @@ import csv
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from optstereo import inference as predict_mod
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
-from optstereo.inference import infer, warn_if_emulated_bf16, write_disparity
+from optstereo.inference import infer, model_input_scale, warn_if_emulated_bf16, write_disparity
 from optstereo.models import build_model
 from pvm_labeler.common.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.common.metrics import disparity_metrics
@@ -103,6 +104,25 @@ class TestPredict:
         np.testing.assert_array_equal(infer(Echo(), left, left, scale=1.0), infer(Echo(), left, left))
         with pytest.raises(ValueError, match="scale must be positive"):
             infer(Echo(), left, left, scale=0.0)
+
+    def test_model_input_scale_is_the_default(self) -> None:
+        # A model whose config records input_scale 0.5 runs at half size unless the caller says otherwise: a
+        # constant red 40 is 40 px of the half-size pair, i.e. 80 px of the input (hand-computed, as above).
+        echo = Echo()
+        echo.config = SimpleNamespace(input_scale=0.5)
+        left = np.full((40, 80, 3), 40, np.uint8)
+        np.testing.assert_allclose(infer(echo, left, left), 80.0, rtol=1e-6)
+        np.testing.assert_allclose(infer(echo, left, left, scale=1.0), 40.0, rtol=1e-6)
+        assert model_input_scale(echo) == 0.5 and model_input_scale(Echo()) == 1.0
+
+    def test_input_scale_survives_the_checkpoint_and_is_validated(self, tmp_path: Path) -> None:
+        from optstereo.api import load_model
+        from optstereo.checkpoint import export_safetensors
+
+        ckpt = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", input_scale=1.25, **TINY))
+        assert model_input_scale(load_model(ckpt)) == 1.25
+        with pytest.raises(ValueError, match="input_scale must be positive"):
+            build_model("optstereo", input_scale=0.0)
 
     def test_feature_bf16_inference_close_to_fp32(self, rng: np.random.Generator) -> None:
         # bf16 autocast (--amp bf16) runs the convs in bf16 (8-bit mantissa) but keeps correlation, lookup and the

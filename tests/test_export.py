@@ -52,6 +52,23 @@ def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_
         assert diff.mean() <= 0.01 and diff.max() <= 0.1, (h, w, diff.mean(), diff.max())
 
 
+def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Path) -> None:
+    # A model trained for enlarged inputs (ModelConfig.input_scale) exports its scale into the file's metadata,
+    # and infer_onnx resizes by it as infer does: the two still agree at the tolerance.
+    from optstereo.export import export, infer_onnx, onnx_session
+
+    torch.manual_seed(0)
+    model = build_model("optstereo", iters=3, input_scale=1.5, **TINY).eval()
+    session = onnx_session(export(model, tmp_path / "scaled.onnx"))
+    assert session.get_modelmeta().custom_metadata_map["input_scale"] == "1.5"
+    left, right = _kitti_crop(shared_data, 96, 200)
+    ref, got = infer(model, left, right), infer_onnx(session, left, right)
+    assert got.shape == (96, 200)
+    assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the scale does change the output
+    diff = np.abs(got - ref)
+    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+
+
 def test_predict_backend_onnxruntime(exported: tuple[Path, Path], shared_data: Path, tmp_path: Path) -> None:
     ckpt, onnx_file = exported
     base = shared_data / "kitti15/training"

@@ -36,6 +36,9 @@ class ModelConfig:
         corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
         max_disp: HITNet only: the initial local cost volumes search [0, max_disp) full-resolution pixels
             (OptStereo has no search range and ignores it; 192 is the PVM labeler's default range).
+        input_scale: the factor ``optstereo.inference.infer`` resizes a pair by before the network when the caller
+            gives none (weights trained on enlarged crops run best on enlarged inputs); disparities always come
+            back at the input's size and in its pixels. 1 = as given.
 
     HITNet ("hitnet", optstereo.models.hitnet) reads the shared fields with its own meaning: feature_dim = channels
     of its finest (1/2) U-Net level, hidden_dim = width of the propagation CNNs, corr_levels = resolutions (one
@@ -55,6 +58,7 @@ class ModelConfig:
     norm: str = "instance"
     corr_scale: bool = True
     max_disp: int = 192
+    input_scale: float = 1.0
 
     @property
     def corr_channels(self) -> int:
@@ -66,6 +70,8 @@ class ModelConfig:
         for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim", "max_disp"):
             if getattr(self, key) < 1:
                 raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
+        if not 0 < self.input_scale < float("inf"):
+            raise ValueError(f"model option input_scale must be positive and finite, got {self.input_scale}")
         if self.corr_radius < 0:
             raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
         if self.upsampler not in UPSAMPLERS:
