@@ -4,7 +4,9 @@ Times the network alone (inputs already on the GPU, padded 375x1242 -> 376x1248,
 median of ``--repeats`` calls after ``--warmup``, each bracketed by ``torch.cuda.synchronize()``; and once
 end to end through :func:`optstereo.inference.infer` (uint8 numpy in, numpy out: host copies and padding
 included). Rows: the shipped model (C = 128) and the paper-size network (C = 256, random weights: the time does
-not depend on them), float32 / TF32 / bf16 / fp16 autocast.
+not depend on them), float32 / TF32 / bf16 / fp16 autocast; then the float32 and TF32 forwards captured as CUDA
+graphs and replayed (no Python or kernel-launch overhead). "fp32" means TF32 off for convolutions too, which PyTorch
+leaves on by default.
 
     python -m pipelines.gpu.cuda_timing --out $OUT/cuda_timing.json
 """
@@ -55,7 +57,7 @@ def network_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int) 
     right = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
     rows = []
     for precision in ("fp32", "tf32", "bf16", "fp16"):
-        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = precision == "tf32"
+        set_tf32(precision == "tf32")
         amp = precision if precision in ("bf16", "fp16") else "none"
 
         @torch.inference_mode()
@@ -69,8 +71,37 @@ def network_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int) 
                      "vs_paper_100ms": round(seconds * 1e3 / PAPER_MS, 3),
                      "peak_gpu_mib": round(torch.cuda.max_memory_allocated() / 2**20, 1)})
         print(rows[-1], flush=True)
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    set_tf32(False)
     return rows
+
+
+def set_tf32(on: bool) -> None:
+    """TF32 for cuDNN convolutions and matmuls together (PyTorch's defaults differ: convolutions on, matmuls off)."""
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
+
+
+def graph_row(model: torch.nn.Module, label: str, precision: str, repeats: int, warmup: int) -> dict[str, Any]:
+    """The forward (``fp32`` or ``tf32``) captured once as a CUDA graph and replayed: no Python or launch overhead."""
+    set_tf32(precision == "tf32")
+    dev = torch.device("cuda")
+    gen = torch.Generator(device=dev).manual_seed(0)
+    left = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
+    right = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side), torch.inference_mode():  # warm-up off the default stream, as capture wants
+        for _ in range(3):
+            model(left, right, iters=ITERS, test_mode=True)
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.inference_mode(), torch.cuda.graph(graph):
+        model(left, right, iters=ITERS, test_mode=True)
+    seconds = cuda_median_s(graph.replay, repeats, warmup)
+    set_tf32(False)
+    row = {"model": label, "precision": precision, "what": "CUDA graph replay", "ms": round(seconds * 1e3, 2),
+           "vs_paper_100ms": round(seconds * 1e3 / PAPER_MS, 3)}
+    print(row, flush=True)
+    return row
 
 
 def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int) -> dict[str, Any]:
@@ -90,15 +121,25 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=5)
+    parser.add_argument("--graphs-only", action="store_true", help="only the CUDA-graph rows")
     args = parser.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("cuda_timing: no CUDA device")
     shipped = load_model("pretrained", device="cuda")
     torch.manual_seed(0)
     paper = build_model("optstereo", iters=ITERS).cuda().eval()  # the defaults are the paper's sizes
-    rows = network_rows(shipped, "shipped (C=128)", args.repeats, args.warmup)
-    rows += network_rows(paper, "paper size (C=256)", args.repeats, args.warmup)
-    rows.append(end_to_end_row(shipped, args.repeats, args.warmup))
+    rows = []
+    if not args.graphs_only:
+        rows += network_rows(shipped, "shipped (C=128)", args.repeats, args.warmup)
+        rows += network_rows(paper, "paper size (C=256)", args.repeats, args.warmup)
+        rows.append(end_to_end_row(shipped, args.repeats, args.warmup))
+    for model, label in ((shipped, "shipped (C=128)"), (paper, "paper size (C=256)")):
+        for precision in ("fp32", "tf32"):
+            try:
+                rows.append(graph_row(model, label, precision, args.repeats, args.warmup))
+            except RuntimeError as exc:  # a capture can fail (a host sync inside forward): record why, go on
+                rows.append({"model": label, "precision": precision, "what": "CUDA graph replay",
+                             "error": str(exc)[:300]})
     report = {"device": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
               "input": f"{KITTI_HW[0]}x{KITTI_HW[1]} padded to {PADDED_HW[0]}x{PADDED_HW[1]}", "iters": ITERS,
               "repeats": args.repeats, "warmup": args.warmup, "rows": rows}
