@@ -70,7 +70,8 @@ ARM_STEPS = 200
 #: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
 #: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e; iters8_g
 #: became version 7; iters8_h continued it at N_s = 8 (measured, 0.21 points short of its rule). gpu_i (LINEAGE) is
-#: no CPU row: it ran on a lent H100 with `bash pipelines/gpu/session.sh` (RESULTS.md).
+#: no CPU row: it ran on a lent H100 with `bash pipelines/gpu/session.sh` (RESULTS.md). scale8_j (N_s = 8 and scale
+#: augmentation, judged at input scale 1.25) became version 8, shipped with `ship scale8_j --input-scale 1.25`.
 #: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped. "pretrained" is the shipped file
 #: when the command runs: version 5 for long_bf16 and version 6 for long_bf16c when they ran, version 7 today, so a
 #: re-run of those two rows starts from other weights than the recorded runs did.
@@ -123,11 +124,13 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
      ""),
     ("scale_f", "`long_bf16e` + 5000 steps in bf16 with scale augmentation 1-1.25x (measured, not shipped: 0.12 "
      "points short of its rule)", 5000, "long_bf16e"),
-    ("iters8_g", "`long_bf16e` + 3500 steps in bf16 at N_s = 8 in training: version 7, shipped", 3500,
+    ("iters8_g", "`long_bf16e` + 3500 steps in bf16 at N_s = 8 in training: version 7 (shipped until version 8)", 3500,
      "long_bf16e"),
     ("iters8_h", "+ 4000 steps in bf16 at N_s = 8 (measured, not shipped: 0.21 points short of its rule)", 4000, ""),
     ("gpu_i", "version 7 + 2850 steps on an H100: batch 8, 320x960 crops (7.5x a CPU step's pixels), bf16, N_s = 8, "
      "JPEG-decoded pairs (measured, not shipped: 0.34 points short of its rule)", 2850, "iters8_g"),
+    ("scale8_j", "version 7 + 4000 steps in bf16 at N_s = 8 with scale augmentation 1-1.25, evaluated at its input "
+     "scale 1.25 (the other rows: 1): version 8, shipped", 4000, "iters8_g"),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
