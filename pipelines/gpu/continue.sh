@@ -9,12 +9,13 @@
 #
 # On the device it labels the pack with PVM (all cores, lzf shards: no hdf5plugin there), times 20 steps, sizes the
 # run to BUDGET_S seconds and trains it: the lineage's loss (L_P confidence-weighted + 0.1 L_R + 0.1 L_S, no L_T)
-# from INIT with one OneCycle (peak 1e-4), bf16, batch 8, 320x960 crops, N_s = 8. NAME.safetensors, its
-# metrics.jsonl, config.yaml and env.txt land in $OUT. The trained-on images are JPEG-decoded; its report says so.
+# from INIT with one OneCycle (peak 1e-4), bf16, batch 8, 320x960 crops enlarged by U(SCALE_RANGE), N_s = 8.
+# NAME.safetensors, its metrics.jsonl, config.yaml and env.txt land in $OUT. The trained-on images are JPEG-decoded; its report says so.
 # A CPU smoke run of the same logic: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 BUDGET_S=1 PROBE=4 WORKERS=1 THREADS=2
 set -euo pipefail
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
-INIT=${INIT:-pretrained}   # the shipped file (version 7)
+INIT=${INIT:-pretrained}   # the shipped file (version 8: it runs at input scale 1.25, so it trains on enlarged crops)
+SCALE_RANGE=${SCALE_RANGE:-1.0,1.25}  # version 8's scale augmentation; 1.0,1.0 = off
 NAME=${NAME:-gpu_h}
 PACK=${PACK:-.carry/unl}
 BUDGET_S=${BUDGET_S:-360}   # training wall seconds after the probe
@@ -42,7 +43,8 @@ fi
 train() {  # out dir, steps, extra args: the lineage's recipe at GPU size
   $PY -m optstereo.cli train --config pipelines/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 --conf-weight \
     --labels "$W/labels" --out "$1" --steps "$2" --lr 1e-4 --seed "$SEED" --device "$DEVICE" --amp "$AMP" \
-    --batch-size "$BATCH" --crop "$CROP" --iters "$ITERS" --workers "$WORKERS" --threads "$THREADS" --quiet "${@:3}"
+    --batch-size "$BATCH" --crop "$CROP" --iters "$ITERS" --workers "$WORKERS" --threads "$THREADS" \
+    --scale-range "$SCALE_RANGE" --quiet "${@:3}"
 }
 
 rm -rf "$W/probe"
