@@ -10,7 +10,9 @@ The exported graph is the test-mode network: N_s GRU iterations unrolled, the fi
     output   disparity: (B, 1, H, W) float32, positive, left(x) matches right(x - d).
 
 ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimiser of onnxscript 0.7 fails on this
-graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper.
+graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper. The ONNX
+file's metadata records the model's input scale (``input_scale``), which :func:`infer_onnx` applies; a TorchScript
+file does not carry it, so its caller resizes by ``model.config.input_scale`` as ``infer`` does.
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -74,29 +76,18 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):
         model.image_chunk = 0 if batch else 1  # the same outputs either way (tests/test_model_optstereo.py)
+    from optstereo.inference import model_input_scale
+
     try:
-        path = _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch)
+        return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch,
+                       model_input_scale(model))
     finally:
         if hasattr(model, "image_chunk"):
             model.image_chunk = saved_chunk
-    if fmt == "onnx":
-        from optstereo.inference import model_input_scale
-
-        _record_input_scale(path, model_input_scale(model))
-    return path
 
 
-def _record_input_scale(path: Path, scale: float) -> None:
-    """Store the model's input scale in the ONNX file's metadata: :func:`infer_onnx` resizes pairs by it."""
-    import onnx
-
-    proto = onnx.load(str(path))
-    onnx.helper.set_model_props(proto, {"input_scale": repr(float(scale))})
-    with atomic_path(path) as tmp:
-        onnx.save(proto, str(tmp))
-
-
-def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], batch: bool) -> Path:
+def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], batch: bool,
+            input_scale: float) -> Path:
     h, w = example_hw
     gen = torch.Generator().manual_seed(0)
     left = torch.rand(1, 3, h, w, generator=gen) * 255
@@ -104,10 +95,12 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
     with atomic_path(out) as tmp, torch.no_grad():
         if fmt == "onnx":
             dims = {0: "batch", 2: "height", 3: "width"} if batch else {2: "height", 3: "width"}
-            torch.onnx.export(graph, (left, right), str(tmp), dynamo=True, input_names=["left", "right"],
-                              output_names=["disparity"], dynamic_shapes={"left": dims, "right": dims},
-                              opset_version=OPSET, optimize=False, verbose=False,
-                              external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
+            program = torch.onnx.export(graph, (left, right), dynamo=True, input_names=["left", "right"],
+                                        output_names=["disparity"], dynamic_shapes={"left": dims, "right": dims},
+                                        opset_version=OPSET, optimize=False, verbose=False)
+            # the model's input scale travels in the file: infer_onnx resizes pairs by it, as infer does
+            program.model.metadata_props["input_scale"] = repr(float(input_scale))
+            program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
             torch.jit.save(torch.jit.trace(graph, (left, right), check_trace=False), str(tmp))
     return out

@@ -49,12 +49,16 @@ def cuda_median_s(fn: Callable[[], Any], repeats: int, warmup: int) -> float:
     return statistics.median(times)
 
 
+def gpu_pair() -> tuple[torch.Tensor, torch.Tensor]:
+    """A fixed random (1, 3, *PADDED_HW) pair in [0, 255], resident on the GPU (the time does not depend on it)."""
+    gen = torch.Generator(device="cuda").manual_seed(0)
+    return tuple(torch.rand(1, 3, *PADDED_HW, device="cuda", generator=gen) * 255 for _ in range(2))
+
+
 def network_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int) -> list[dict[str, Any]]:
     """One row per precision: the network's forward at PADDED_HW, inputs resident on the GPU."""
     dev = torch.device("cuda")
-    gen = torch.Generator(device=dev).manual_seed(0)
-    left = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
-    right = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
+    left, right = gpu_pair()
     rows = []
     for precision in ("fp32", "tf32", "bf16", "fp16"):
         set_tf32(precision == "tf32")
@@ -83,10 +87,7 @@ def set_tf32(on: bool) -> None:
 def graph_row(model: torch.nn.Module, label: str, precision: str, repeats: int, warmup: int) -> dict[str, Any]:
     """The forward (``fp32`` or ``tf32``) captured once as a CUDA graph and replayed: no Python or launch overhead."""
     set_tf32(precision == "tf32")
-    dev = torch.device("cuda")
-    gen = torch.Generator(device=dev).manual_seed(0)
-    left = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
-    right = torch.rand(1, 3, *PADDED_HW, device=dev, generator=gen) * 255
+    left, right = gpu_pair()
     side = torch.cuda.Stream()
     side.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(side), torch.inference_mode():  # warm-up off the default stream, as capture wants
