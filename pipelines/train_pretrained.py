@@ -73,7 +73,7 @@ ARM_STEPS = 200
 #: no CPU row: it ran on a lent H100 with `bash pipelines/gpu/session.sh` (RESULTS.md). scale8_j (N_s = 8 and scale
 #: augmentation, judged at input scale 1.25) became version 8, shipped with `ship scale8_j --input-scale 1.25`;
 #: scale15_k continues it with scale augmentation 1.25-1.5, judged at input scale 1.5 (measured, 0.06 points short of
-#: its rule); scale15_l continues it (measured, 0.15 points short).
+#: its rule; its weights are a committed head in HEADS); scale15_l continues it (measured, 0.15 points short).
 #: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped. "pretrained" is the shipped file
 #: when the command runs: version 5 for long_bf16 and version 6 for long_bf16c when they ran, version 8 today, so a
 #: re-run of those two rows starts from other weights than the recorded runs did.
