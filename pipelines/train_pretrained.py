@@ -136,7 +136,7 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("gpu_i", "version 7 + 2850 steps on an H100: batch 8, 320x960 crops (7.5x a CPU step's pixels), bf16, N_s = 8, "
      "JPEG-decoded pairs (measured, not shipped: 0.34 points short of its rule)", 2850, "iters8_g"),
     ("scale8_j", "version 7 + 4000 steps in bf16 at N_s = 8 with scale augmentation 1-1.25, evaluated at its input "
-     "scale 1.25 (the other rows: 1): version 8, shipped", 4000, "iters8_g"),
+     "scale 1.25 (the rows before it: 1): version 8, shipped", 4000, "iters8_g"),
     ("scale15_k", "version 8 + 4000 steps in bf16 at N_s = 8 with scale augmentation 1.25-1.5, evaluated at its input "
      "scale 1.5 (measured, not shipped: 0.06 points short of its rule)", 4000, ""),
     ("scale15_l", "+ 3000 steps, the same recipe, evaluated at input scale 1.5 (measured, not shipped: 0.15 points "
@@ -436,7 +436,8 @@ def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None
     target = TARGET_RATIO * sgm_bad3
     more = steps_to_target(main_path(points, head), target)
     caption = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM "
-               f"and the target {target:.2f} % dashed).")
+               f"and the target {target:.2f} % dashed; each point at the input scale its table row names: 1 up to "
+               f"`gpu_i`, 1.25 for `scale8_j`, 1.5 after it).")
     if more is None:
         return caption
     return (f"{caption} If the trend held, KITTI 2015 would reach {target:.2f} % after about {more[0]:,.0f} more "
