@@ -17,6 +17,14 @@ import click
 import yaml
 
 from optstereo.checkpoint import CheckpointError, LoadedCheckpoint, load_checkpoint
+from optstereo.cli_options import (
+    EXISTING,
+    collect_reader_options,
+    dataset_option,
+    device_option,
+    infer_options,
+    reader_options,
+)
 from optstereo.config import COLOR_NORMS, PHOTOMETRIC_ITERS, SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS
 from optstereo.train_config import AMP_MODES, DEVICES, SCHEDULES, SUPERVISIONS, TrainConfig, read_yaml
 from pvm_labeler.common.errors import ConfigError, PVMError
@@ -24,7 +32,6 @@ from pvm_labeler.common.errors import ConfigError, PVMError
 logger = logging.getLogger(__name__)
 
 _D = TrainConfig()
-EXISTING = click.Path(exists=True, path_type=Path)
 
 
 def _setup_logging(quiet: bool) -> None:
@@ -61,52 +68,6 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
         return resolve_checkpoint_spec(spec)
     except CheckpointError as exc:
         raise click.BadParameter(str(exc), param_hint="--checkpoint/--init") from exc
-
-
-def _infer_options(fn):
-    """--amp and --scale, the inference options of optstereo-eval and optstereo-predict."""
-    fn = click.option("--scale", type=click.FloatRange(min=0, min_open=True),
-                      help="Run the network on both images resized by this factor (e.g. 0.5 for large pairs, 1.5 "
-                           "for small disparities); disparities come back at the input's size. Default: the "
-                           "model's own input scale (1 unless its checkpoint records another).")(fn)
-    return click.option("--amp", type=click.Choice(("none", "bf16", "fp16")), default="none", show_default=True,
-                        help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
-
-
-def _reader_options(fn):
-    """The dataset-reader options pvm-label has, for optstereo-eval and optstereo-predict --dataset."""
-    for option in reversed((
-        click.option("--left", "folder_left", default=None,
-                     help="folder dataset: left images (folder or glob, relative to --root)."),
-        click.option("--right", "folder_right", default=None, help="folder dataset: right images (folder or glob)."),
-        click.option("--gt", "folder_gt", default=None,
-                     help="folder dataset: GT folder (KITTI-style PNG, .pfm or .npy)."),
-        click.option("--gt-scale", type=float, default=None, help="folder dataset: integer GT = disparity x this "
-                     "(KITTI 256)."),
-        click.option("--sceneflow-pass", type=click.Choice(("clean", "final")), default=None,
-                     help="sceneflow dataset: render pass."),
-    )):
-        fn = option(fn)
-    return fn
-
-
-def _collect_reader_options(folder_left: str | None, folder_right: str | None, folder_gt: str | None,
-                            gt_scale: float | None, sceneflow_pass: str | None) -> dict[str, Any]:
-    values = {"left": folder_left, "right": folder_right, "gt": folder_gt, "gt_scale": gt_scale,
-              "pass_": sceneflow_pass}
-    return {k: v for k, v in values.items() if v is not None}
-
-
-def _dataset_option(fn):
-    from pvm_labeler.common.datasets import DATASETS
-
-    return click.option("--dataset", type=click.Choice(DATASETS),
-                        help="Dataset reader (official layouts); `folder` takes --left/--right/--gt.")(fn)
-
-
-def _device_option(fn):
-    return click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
-                        help="auto = cuda when available, else cpu.")(fn)
 
 
 # -- optstereo-train -----------------------------------------------------------------------------------------------
@@ -254,16 +215,16 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
 @click.option("--checkpoint", type=click.Path(path_type=Path),
               help="Checkpoint file (.pt/.pth/.ckpt/.safetensors), RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--labels", type=EXISTING, help="Evaluate this shard directory's own PVM labels instead of a network.")
-@_dataset_option
+@dataset_option
 @click.option("--root", type=EXISTING, help="Dataset root folder (not needed for sample).")
-@_reader_options
+@reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Report folder.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
 @click.option("--limit", type=int, default=None, help="Only the first N frames.")
 @click.option("--save-maps/--no-save-maps", default=True, help="Write colour disparity and error maps.")
-@_device_option
-@_infer_options
+@device_option
+@infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
               out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
@@ -284,7 +245,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
         model, dev = _load_model(checkpoint, device)
         result = _run_guarded(evaluate.evaluate_model, model, dataset, root, split=split, iters=iters, device=dev,
                               out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
-                              amp=amp, reader_options=_collect_reader_options(**reader), scale=scale)
+                              amp=amp, reader_options=collect_reader_options(**reader), scale=scale)
     s = result.summary
     click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
                f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
@@ -306,9 +267,9 @@ def _load_model(checkpoint: Path, device: str):
 @click.option("--checkpoint", type=click.Path(path_type=Path), required=True,
               help="Checkpoint file, RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
-@_dataset_option
+@dataset_option
 @click.option("--root", type=EXISTING, help="Dataset root (predicts the whole dataset; KITTI: disp_0/<frame>.png).")
-@_reader_options
+@reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
@@ -324,8 +285,8 @@ def _load_model(checkpoint: Path, device: str):
               help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats).")
 @click.option("--submission", type=click.Path(path_type=Path),
               help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
-@_device_option
-@_infer_options
+@device_option
+@infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
@@ -363,7 +324,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
             formats = (*formats, "png")
         written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,
                                formats=formats, device=dev, limit=limit, amp=amp, submission=submission,
-                               reader_options=_collect_reader_options(**reader), scale=scale)
+                               reader_options=collect_reader_options(**reader), scale=scale)
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
 

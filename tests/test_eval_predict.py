@@ -243,6 +243,21 @@ class TestCli:
         assert res.exit_code == 0, res.output
         assert json.loads((tmp_path / "o" / "summary.json").read_text())["density"] == pytest.approx(75.0)
 
+    @pytest.mark.parametrize("command", [eval_main, predict_main])
+    def test_threads_option_sets_torch_threads(self, command, tmp_path: Path) -> None:
+        # The option acts as it is parsed, so even a run that then stops on a usage error has set it.
+        before = torch.get_num_threads()
+        wanted = 2 if before != 2 else 1
+        try:
+            res = CliRunner().invoke(command, ["--threads", str(wanted), "--out", str(tmp_path)])
+            assert res.exit_code == 2 and torch.get_num_threads() == wanted
+            res = CliRunner().invoke(command, ["--threads", "-1", "--out", str(tmp_path)])
+            assert res.exit_code == 2 and "--threads" in res.output and torch.get_num_threads() == wanted
+            CliRunner().invoke(command, ["--threads", "0", "--out", str(tmp_path)])
+            assert torch.get_num_threads() == wanted  # 0 leaves torch as it is
+        finally:
+            torch.set_num_threads(before)
+
     def test_usage_errors(self, tiny_ckpt: Path, tmp_path: Path) -> None:
         runner = CliRunner()
         res = runner.invoke(eval_main, ["--out", str(tmp_path)])

@@ -1,0 +1,75 @@
+"""Options shared by ``optstereo-eval`` and ``optstereo-predict`` (click decorators) and their small helpers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from optstereo.train_config import DEVICES
+
+EXISTING = click.Path(exists=True, path_type=Path)
+
+
+def _set_threads(_ctx: click.Context, _param: click.Parameter, threads: int) -> int:
+    """--threads' callback: set torch's intra-op threads as the option is parsed (0 leaves torch's default)."""
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+    return threads
+
+
+def infer_options(fn):
+    """--amp, --scale and --threads, the inference options of optstereo-eval and optstereo-predict."""
+    fn = click.option("--threads", type=click.IntRange(min=0), default=0, expose_value=False, callback=_set_threads,
+                      help="torch CPU threads (0 = torch's default, one per core). Give 1 to each process when it "
+                           "shares the cores with a training run: two busy 2-thread processes on 2 cores slow "
+                           "each other many times over (docs/training.md).")(fn)
+    fn = click.option("--scale", type=click.FloatRange(min=0, min_open=True),
+                      help="Run the network on both images resized by this factor (e.g. 0.5 for large pairs, 1.5 "
+                           "for small disparities); disparities come back at the input's size. Default: the "
+                           "model's own input scale (1 unless its checkpoint records another).")(fn)
+    return click.option("--amp", type=click.Choice(("none", "bf16", "fp16")), default="none", show_default=True,
+                        help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
+
+
+def reader_options(fn):
+    """The dataset-reader options pvm-label has, for optstereo-eval and optstereo-predict --dataset."""
+    for option in reversed((
+        click.option("--left", "folder_left", default=None,
+                     help="folder dataset: left images (folder or glob, relative to --root)."),
+        click.option("--right", "folder_right", default=None, help="folder dataset: right images (folder or glob)."),
+        click.option("--gt", "folder_gt", default=None,
+                     help="folder dataset: GT folder (KITTI-style PNG, .pfm or .npy)."),
+        click.option("--gt-scale", type=float, default=None, help="folder dataset: integer GT = disparity x this "
+                     "(KITTI 256)."),
+        click.option("--sceneflow-pass", type=click.Choice(("clean", "final")), default=None,
+                     help="sceneflow dataset: render pass."),
+    )):
+        fn = option(fn)
+    return fn
+
+
+def collect_reader_options(folder_left: str | None, folder_right: str | None, folder_gt: str | None,
+                           gt_scale: float | None, sceneflow_pass: str | None) -> dict[str, Any]:
+    """reader_options' values as the keyword arguments of ``pvm_labeler.common.datasets`` readers (unset ones left
+    out)."""
+    values = {"left": folder_left, "right": folder_right, "gt": folder_gt, "gt_scale": gt_scale,
+              "pass_": sceneflow_pass}
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def dataset_option(fn):
+    """--dataset, one of the readers of ``pvm_labeler.common.datasets``."""
+    from pvm_labeler.common.datasets import DATASETS
+
+    return click.option("--dataset", type=click.Choice(DATASETS),
+                        help="Dataset reader (official layouts); `folder` takes --left/--right/--gt.")(fn)
+
+
+def device_option(fn):
+    """--device auto|cpu|cuda."""
+    return click.option("--device", type=click.Choice(DEVICES), default="auto", show_default=True,
+                        help="auto = cuda when available, else cpu.")(fn)
