@@ -26,9 +26,12 @@ Tried without a gain beyond the noise: a static shape, InstanceNorm decomposed i
 no thread spinning, the EXTENDED optimisation level, the GRU's z and r convolutions split (fewer layout reorders),
 the parallel executor (the two encoder branches side by side, 2 inter-op threads with 1 or 2 intra-op threads each:
 1.46-1.54x torch, far slower), and int8 (QDQ, per-channel weights, MinMax calibration on unlabelled frames) of the
-32 encoder convolutions (speed unchanged, +0.1-0.3 points of bad-3). The convolutions already run near this CPU's
-float32 rate (110 GMAC per 376x1248 frame, ~0.9 s of the 1.3 s: ~240 GFLOP/s of the two cores' ~320-380 AVX-512 FMA
-peak), so a faster graph needs a smaller network, not a different runtime.
+32 encoder convolutions (speed unchanged, +0.1-0.3 points of bad-3), and onnxruntime-openvino 1.24.1's OpenVINO
+execution provider on the CPU (precision FP32 or ACCURACY, 2 threads; outputs within 0.001 px: 1.05-1.11x the CPU
+provider's time on the AMX Xeon, 2026-11-26; its default precision there is bf16, which changes the output). The
+convolutions already run near this CPU's float32 rate (110 GMAC per 376x1248 frame, ~0.9 s of the 1.3 s: ~240
+GFLOP/s of the two cores' ~320-380 AVX-512 FMA peak), so a faster graph needs a smaller network, not a different
+runtime.
 """
 
 from __future__ import annotations
