@@ -11,7 +11,8 @@ GT set of ../shared/data against dense SGM, export the weights.
     python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/ (version 1:
                                                       arm_no_lt: in the ablation L_T cost 1.5 points of KITTI 2015
                                                       bad-3, so the shipped model is the recipe without it;
-                                                      version 5: long_conf7, a CONTINUE run)
+                                                      version 5: long_conf7, a CONTINUE run; version 9:
+                                                      scale175_m, --input-scale 1.625)
     python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
@@ -74,7 +75,8 @@ ARM_STEPS = 200
 #: augmentation, judged at input scale 1.25) became version 8, shipped with `ship scale8_j --input-scale 1.25`;
 #: scale15_k continues it with scale augmentation 1.25-1.5, judged at input scale 1.5 (measured, 0.06 points short of
 #: its rule; its weights are a committed head in HEADS); scale15_l continues it (measured, 0.15 points short);
-#: scale175_m continues scale15_k with scale augmentation 1.5-1.75, judged at input scale 1.625.
+#: scale175_m continues scale15_k with scale augmentation 1.5-1.75, judged at input scale 1.625; it became version 9,
+#: shipped with `ship scale175_m --input-scale 1.625`.
 #: long_conf2 (700 steps at peak 5e-5 from long_conf) was measured and not shipped. "pretrained" is the shipped file
 #: when the command runs: version 5 for long_bf16 and version 6 for long_bf16c when they ran, version 8 today, so a
 #: re-run of those two rows starts from other weights than the recorded runs did.
@@ -139,11 +141,13 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("gpu_i", "version 7 + 2850 steps on an H100: batch 8, 320x960 crops (7.5x a CPU step's pixels), bf16, N_s = 8, "
      "JPEG-decoded pairs (measured, not shipped: 0.34 points short of its rule)", 2850, "iters8_g"),
     ("scale8_j", "version 7 + 4000 steps in bf16 at N_s = 8 with scale augmentation 1-1.25, evaluated at its input "
-     "scale 1.25 (the rows before it: 1): version 8, shipped", 4000, "iters8_g"),
+     "scale 1.25 (the rows before it: 1): version 8 (shipped until version 9)", 4000, "iters8_g"),
     ("scale15_k", "version 8 + 4000 steps in bf16 at N_s = 8 with scale augmentation 1.25-1.5, evaluated at its input "
      "scale 1.5 (measured, not shipped: 0.06 points short of its rule)", 4000, ""),
     ("scale15_l", "+ 3000 steps, the same recipe, evaluated at input scale 1.5 (measured, not shipped: 0.15 points "
      "short of its rule)", 3000, ""),
+    ("scale175_m", "`scale15_k` + 4000 steps in bf16 at N_s = 8 with scale augmentation 1.5-1.75, evaluated at its "
+     "input scale 1.625: version 9, shipped", 4000, "scale15_k"),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
@@ -440,7 +444,7 @@ def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None
     more = steps_to_target(main_path(points, head), target)
     caption = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM "
                f"and the target {target:.2f} % dashed; each point at the input scale its table row names: 1 up to "
-               f"`gpu_i`, 1.25 for `scale8_j`, 1.5 after it).")
+               f"`gpu_i`, 1.25 for `scale8_j`, 1.5 for `scale15_k` and `scale15_l`, 1.625 for `scale175_m`).")
     if more is None:
         return caption
     return (f"{caption} If the trend held, KITTI 2015 would reach {target:.2f} % after about {more[0]:,.0f} more "
