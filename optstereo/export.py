@@ -119,14 +119,16 @@ def onnx_session(path: Path | str, threads: int = 0):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:
+def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+               scale: float | None = None) -> npt.NDArray[np.float32]:
     """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session (padding as ``infer``; at
-    the input scale the file records, as ``infer`` at the model's own)."""
+    input ``scale``, None = the one the file records, as ``infer`` at the model's own)."""
     from optstereo.rescale import disparity_to_size, rescaled_pair
 
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
-    scale = float(session.get_modelmeta().custom_metadata_map.get("input_scale", 1.0))
+    if scale is None:
+        scale = float(session.get_modelmeta().custom_metadata_map.get("input_scale", 1.0))
     if scale != 1.0:
         return disparity_to_size(_run_onnx(session, *rescaled_pair(left, right, scale)), left.shape[:2])
     return _run_onnx(session, left, right)

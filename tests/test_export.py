@@ -67,6 +67,9 @@ def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Pa
     assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the scale does change the output
     diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+    # scale= overrides the file's, as it overrides the model's in infer
+    diff = np.abs(infer_onnx(session, left, right, scale=1.0) - infer(model, left, right, scale=1.0))
+    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
 
 
 def test_predict_backend_onnxruntime(exported: tuple[Path, Path], shared_data: Path, tmp_path: Path) -> None:
