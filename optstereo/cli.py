@@ -301,9 +301,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
     if backend == "onnxruntime":
-        if scale is not None:
-            raise click.UsageError("--scale is for the torch backend; the ONNX file records the model's own scale")
-        _predict_onnx(checkpoint, left, right, out, formats, dataset)
+        _predict_onnx(checkpoint, left, right, out, formats, dataset, scale)
         return
     geometry = [f for f in formats if f in inference.GEOMETRY_FORMATS]
     if geometry and (calib is None or dataset is not None):
@@ -330,7 +328,9 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
 
 
 def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...],
-                  dataset: str | None) -> None:
+                  dataset: str | None, scale: float | None) -> None:
+    import torch
+
     from optstereo import inference
     from optstereo.export import infer_onnx, onnx_session
     from pvm_labeler.common.io import read_image
@@ -339,8 +339,8 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
         raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")
     if not Path(onnx_file).is_file():
         raise click.BadParameter(f"{onnx_file} does not exist", param_hint="--checkpoint")
-    session = _run_guarded(onnx_session, onnx_file)
-    disp = _run_guarded(infer_onnx, session, read_image(left), read_image(right))
+    session = _run_guarded(onnx_session, onnx_file, threads=torch.get_num_threads())  # --threads, or one per core
+    disp = _run_guarded(infer_onnx, session, read_image(left), read_image(right), scale=scale)
     paths = _run_guarded(inference.write_disparity, out, Path(left).stem, disp, formats)
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
 

@@ -232,10 +232,6 @@ class TestCli:
                                                 "--format", "npy", "--iters", "1", "--scale", "1.5"])
         assert res.exit_code == 0, res.output
         assert np.load(tmp_path / "scaled" / "l.npy").shape == (30, 70)  # back at the input's size
-        res = CliRunner().invoke(predict_main, ["--checkpoint", str(tiny_ckpt), str(tmp_path / "l.png"),
-                                                str(tmp_path / "r.png"), "--out", str(tmp_path / "o"),
-                                                "--backend", "onnxruntime", "--scale", "0.5"])
-        assert res.exit_code == 2 and "--scale is for the torch backend" in res.output
 
     def test_eval_labels_cli(self, tmp_path: Path) -> None:
         shards = make_shards(tmp_path / "s", n=2, height=8, width=16)

@@ -77,13 +77,16 @@ def test_predict_backend_onnxruntime(exported: tuple[Path, Path], shared_data: P
     base = shared_data / "kitti15/training"
     pair = [str(base / "image_2/000001_10.png"), str(base / "image_3/000001_10.png")]
     runs = {}
-    for backend, checkpoint in (("torch", ckpt), ("onnxruntime", onnx_file)):
-        result = CliRunner().invoke(predict_main, ["--checkpoint", str(checkpoint), *pair, "--out",
-                                                   str(tmp_path / backend), "--format", "npy", "--backend", backend])
-        assert result.exit_code == 0, result.output
-        runs[backend] = np.load(tmp_path / backend / "000001_10.npy")
-    diff = np.abs(runs["onnxruntime"] - runs["torch"])  # a full KITTI frame (375 x 1242), padded to 376 x 1248
-    assert runs["torch"].shape == (375, 1242) and diff.mean() <= 0.01 and diff.max() <= 0.1
+    for scale in ((), ("--scale", "0.5")):  # the file's own input scale, then another one, on both backends
+        for backend, checkpoint in (("torch", ckpt), ("onnxruntime", onnx_file)):
+            out = tmp_path / f"{backend}{len(scale)}"
+            result = CliRunner().invoke(predict_main, ["--checkpoint", str(checkpoint), *pair, "--out", str(out),
+                                                       "--format", "npy", "--backend", backend, *scale])
+            assert result.exit_code == 0, result.output
+            runs[backend, scale] = np.load(out / "000001_10.npy")
+        diff = np.abs(runs["onnxruntime", scale] - runs["torch", scale])  # a full KITTI frame, padded to x8
+        assert runs["torch", scale].shape == (375, 1242) and diff.mean() <= 0.01 and diff.max() <= 0.1, scale
+    assert not np.allclose(runs["torch", ()], runs["torch", ("--scale", "0.5")], atol=0.1)  # the scale did act
 
 
 def test_dynamic_batch_export(tmp_path: Path, shared_data: Path) -> None:
