@@ -40,10 +40,11 @@ def paired_ratios(num: list[float], den: list[float]) -> dict[str, float]:
     return {"min": ratios[0], "median": statistics.median(ratios), "max": ratios[-1]}
 
 
-def _timings(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, list[float]]:
-    """Seconds of each call of each function, run in alternation after one warm-up each."""
+def _timings(fns: dict[str, Callable[[], Any]], repeats: int, warmup: bool = True) -> dict[str, list[float]]:
+    """Seconds of each call of each function, run in alternation after one warm-up each (unless the caller has
+    already run them)."""
     times: dict[str, list[float]] = {name: [] for name in fns}
-    for fn in fns.values():
+    for fn in fns.values() if warmup else ():
         fn()
     for _ in range(repeats):
         for name, fn in fns.items():
@@ -58,10 +59,11 @@ def _compare(model: Any, session: Any, left: np.ndarray, right: np.ndarray, scal
     from optstereo.export import infer_onnx
     from optstereo.inference import infer
 
-    times = _timings({"torch": lambda: infer(model, left, right, scale=scale),
-                      "onnxruntime": lambda: infer_onnx(session, left, right, scale=scale)}, REPEATS)
+    fns = {"torch": lambda: infer(model, left, right, scale=scale),
+           "onnxruntime": lambda: infer_onnx(session, left, right, scale=scale)}
+    diff = np.abs(fns["onnxruntime"]() - fns["torch"]())  # these first calls are the warm-up, too
+    times = _timings(fns, REPEATS, warmup=False)
     torch_s, ort_s = statistics.median(times["torch"]), statistics.median(times["onnxruntime"])
-    diff = np.abs(infer_onnx(session, left, right, scale=scale) - infer(model, left, right, scale=scale))
     return {"input_scale": scale, "torch_s": torch_s, "onnxruntime_s": ort_s, "ratio": ort_s / torch_s,
             "paired_ratio": paired_ratios(times["onnxruntime"], times["torch"]),
             "mean_abs_diff_px": float(diff.mean()), "max_abs_diff_px": float(diff.max())}

@@ -206,6 +206,9 @@ def test_bench_export_paired_ratios_by_hand() -> None:
     times = _timings({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}, repeats=2)
     assert calls == ["a", "b", "a", "b", "a", "b"]  # one warm-up each, then alternating
     assert [len(v) for v in times.values()] == [2, 2]
+    calls.clear()
+    _timings({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}, repeats=1, warmup=False)
+    assert calls == ["a", "b"]  # the caller already warmed them up
 
 
 @pytest.mark.parametrize(("native", "choice", "expected"), [(True, "auto", "bf16"), (False, "auto", "none"),
