@@ -22,9 +22,9 @@ On AMD EPYCs with AVX-512 and AVX512-BF16: 0.67 on a quiet one (paired 0.47-0.71
 On an Intel Xeon with AMX, once torch's float32 inference ran the encoder channels-last (0.86x, docs/optstereo.md):
 0.94 (torch 1.18 s, onnxruntime 1.11 s, 5 repeats, paired 0.69-1.03; 2026-11-25): a faster torch moves the target.
 With version 9, whose input scale is 1.625 (a 609x2018 input), on the same Xeon: 0.73, 0.70 and 0.71 in three runs
-(torch 3.5 s, onnxruntime 2.5 s; 0.72 and 0.69 later), and 0.88-1.01 at scale 1 in the same runs (2026-11-26): for
-2.64x the pixels torch's
-convolutions take 3.0x, its instance norms 3.9x and its elementwise adds 5.3x (torch profiler), onnxruntime 2.96x.
+(torch 3.5 s, onnxruntime 2.5 s; 0.72 and 0.69 later), and 0.88-1.01 at scale 1 in the same runs (2026-11-26):
+for 2.64x the pixels torch's convolutions take 3.0x, its instance norms 3.9x and its elementwise adds 5.3x (torch
+profiler), onnxruntime 2.96x.
 onnxruntime's profile: Conv + FusedConv 70 %, InstanceNorm 7.5 %, layout reorders 7.7 %, the lookup's gathers 1.4 %.
 Tried without a gain beyond the noise: a static shape, InstanceNorm decomposed into reductions, denormals-as-zero,
 no thread spinning, the EXTENDED optimisation level, the GRU's z and r convolutions split (fewer layout reorders),
