@@ -1,6 +1,7 @@
 """Where the shipped network's errors are, split by what PVM would have supervised there.
 
-For each KITTI 2015 GT frame, every GT-valid pixel falls in one region:
+For each GT frame of a set (KITTI 2015 by default; ``--dataset`` names another of the eval sets), every GT-valid
+pixel falls in one region:
 
     labelled                PVM gives this pixel a label (the labeler at its defaults, run on the frame itself; the
                             frame never entered training: this only asks what kind of pixel it is)
@@ -8,17 +9,19 @@ For each KITTI 2015 GT frame, every GT-valid pixel falls in one region:
                             nearest labelled pixel: the seams between labels, edges
     unlabelled, noc, 3-10   the same, 3-10 px from a label
     unlabelled, noc, > 10   the same, farther: the inside of large holes (textureless, reflective, transparent)
-    unlabelled, occ         no PVM label, occluded in the right view (disp_occ valid, disp_noc not)
+    unlabelled, occ         no PVM label, occluded in the right view (disp_occ valid, disp_noc not; a set without
+                            a separate noc map, as Middlebury here, counts every GT pixel as visible)
 
 and the table gives each region's share of the pixels, the bad-3 of the network, of dense SGM (the teacher's
 matcher, holes filled along the row) and of the PVM label, and the region's share of all the network's bad pixels.
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
-    .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--name kitti15] [--photometric]
-                                              [--lr-check] [--scale S ...]
+    .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--dataset kitti15]
+                                              [--name DATASET] [--photometric] [--lr-check] [--scale S ...]
                                               -> results/error_regions/NAME.{json,md}
 
 LABEL (e.g. ``v5=out/pretrained/long_conf7``) names a checkpoint's table; without one the table is named by its path.
+Without ``--scale`` each network runs at its file's recorded input scale (``optstereo-predict``'s default).
 
 Several checkpoints share one labelling and one SGM pass (a table each). ``--photometric`` adds a second table per
 network: of its bad-3 pixels in each region, the share where the photometric error of L_R (the only loss a hole
@@ -45,7 +48,10 @@ RESULTS = Path("results/error_regions")
 BANDS = (("unlabelled, noc, <= 3", 0.0, 3.0), ("unlabelled, noc, 3-10", 3.0, 10.0),
          ("unlabelled, noc, > 10", 10.0, np.inf))
 REGIONS = ("labelled", *(band[0] for band in BANDS), "unlabelled, occ")
-KITTI15_MAX_DISP = next(md for name, _, _, md in EVAL_SETS if name == "kitti15")  # SGM search range
+#: The sets a region table can be made for: name -> (reader, root under SHARED, SGM search range or None: the pair's).
+DATASETS = {name: (reader, root, max_disp) for name, reader, root, max_disp in EVAL_SETS}
+KITTI15_MAX_DISP = DATASETS["kitti15"][2]
+TITLES = {"kitti15": "KITTI 2015", "kitti12": "KITTI 2012", "middlebury": "Middlebury", "sceneflow": "FlyingThings3D"}
 
 
 def bad3(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_]:
@@ -211,33 +217,42 @@ def parse_checkpoint(arg: str) -> tuple[str, str]:
     return label, spec
 
 
-def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False,
-        lr: bool = False, scales: tuple[float, ...] = (1.0,)) -> dict[str, Any]:
-    """Label, match and predict every KITTI 2015 GT frame; pool the counts; write JSON and Markdown.
+def run(checkpoints: list[str], name: str | None = None, photometric: bool = False,
+        lr: bool = False, scales: tuple[float | None, ...] = (None,), dataset: str = "kitti15") -> dict[str, Any]:
+    """Label, match and predict every GT frame of ``dataset`` (a key of DATASETS); pool the counts; write JSON and
+    Markdown as ``name`` (default: the dataset's name).
 
     ``photometric`` adds, per network, :func:`count_photo_preference` pooled over the frames; ``lr`` adds
     :func:`count_reliability` of the network's own LR check (one more prediction per frame). Each network is
-    predicted at every input scale of ``scales`` (``optstereo-predict --scale``; tables "LABEL x1.125").
+    predicted at every input scale of ``scales`` (``optstereo-predict --scale``; tables "LABEL x1.125"); None is the
+    file's own input scale.
     """
     from optstereo.api import load_model, predict
+    from optstereo.inference import model_input_scale
     from pipelines.dense_sgm import fill_rows_nearest, sgm_left
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.multiscale import label_pair
 
+    if dataset not in DATASETS:
+        raise ValueError(f"unknown dataset {dataset!r}; expected one of {sorted(DATASETS)}")
+    reader, root, max_disp = DATASETS[dataset]
+    name = name or dataset
     loaded = dict(parse_checkpoint(arg) for arg in checkpoints)  # checkpoint label -> spec, in order
     cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in loaded.items()}
-    runs = {scaled_tag(tag, scale): (tag, scale) for tag in loaded for scale in scales}  # table name -> network
+    resolved = {tag: [model_input_scale(models[tag]) if s is None else s for s in scales] for tag in loaded}
+    runs = {scaled_tag(tag, scale): (tag, scale) for tag in loaded for scale in resolved[tag]}  # table -> network
     named = {key: loaded[tag] for key, (tag, _) in runs.items()}
     color_norm = recipe_color_norm()  # L_R as the shipped model was trained with it
     total: dict[str, dict[str, int]] = {}
     photo: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     reliability: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     frames = {}
-    for ref in discover("kitti15", SHARED / "kitti15"):
+    for ref in discover(reader, SHARED / root):
         sample = load_pair(ref)
         pvm = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
-        sgm = fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, KITTI15_MAX_DISP)[0])
+        search = max_disp or sample.max_disp or 64  # the eval's SGM range (train_pretrained's dense SGM baseline)
+        sgm = fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, search)[0])
         nets = {key: predict(models[tag], sample.left, sample.right, iters=TEST_ITERS, scale=scale)
                 for key, (tag, scale) in runs.items()}
         masks = region_masks(pvm, sample.gt, sample.gt_noc)
@@ -266,14 +281,14 @@ def run(checkpoints: list[str], name: str = "kitti15", photometric: bool = False
         md += "\n\n## How reliable is the network's own LR-consistent prediction? (a candidate L_T target)\n\n"
         md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{reliability_table(reliability[tag])}"
                             for tag, spec in named.items())
-    doc = {"checkpoints": named, "scales": {key: scale for key, (_, scale) in runs.items()}, "iters": TEST_ITERS,
-           "bad_px": 3, "pooled": total, "frames": frames,
+    doc = {"dataset": dataset, "checkpoints": named, "scales": {key: scale for key, (_, scale) in runs.items()},
+           "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
            **({"photometric": photo, "photometric_color_norm": color_norm} if photometric else {}),
            **({"lr_check": reliability} if lr else {}),
            **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))
-    (RESULTS / f"{name}.md").write_text(f"# Network errors by PVM region, KITTI 2015\n\n{md}\n")
+    (RESULTS / f"{name}.md").write_text(f"# Network errors by PVM region, {TITLES[dataset]}\n\n{md}\n")
     print(md)
     return doc
 
@@ -291,17 +306,20 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", action="append",
                         help="[LABEL=]CHECKPOINT: 'pretrained' (default), a file or a RUN_DIR; repeatable")
-    parser.add_argument("--name", default="kitti15", help="report name: results/error_regions/NAME.{json,md}")
+    parser.add_argument("--dataset", default="kitti15", choices=sorted(DATASETS), help="the GT set to split")
+    parser.add_argument("--name", help="report name: results/error_regions/NAME.{json,md} (default: the dataset)")
     parser.add_argument("--photometric", action="store_true",
                         help="also count, per region, the bad pixels whose photometric error is lower than GT's")
     parser.add_argument("--lr-check", action="store_true",
                         help="also count how many pixels pass the network's own LR check and their bad-3")
     parser.add_argument("--scale", type=float, action="append",
-                        help="input scale of every network (optstereo-predict --scale); repeatable; default 1")
+                        help="input scale of every network (optstereo-predict --scale); repeatable; default: "
+                             "each file's own")
     args = parser.parse_args(argv)
     if any(not scale > 0 for scale in args.scale or ()):
         parser.error(f"--scale must be positive, got {args.scale}")
-    run(args.checkpoint or ["pretrained"], args.name, args.photometric, args.lr_check, tuple(args.scale or (1.0,)))
+    run(args.checkpoint or ["pretrained"], args.name, args.photometric, args.lr_check, tuple(args.scale or (None,)),
+        args.dataset)
 
 
 if __name__ == "__main__":

@@ -171,11 +171,73 @@ def test_scaled_tables_and_flag(monkeypatch: pytest.MonkeyPatch) -> None:
     seen = {}
     monkeypatch.setattr(er, "run", lambda *args: seen.update(args=args))
     er.main(["--checkpoint", "v6=pretrained", "--scale", "1", "--scale", "1.125", "--name", "s"])
-    assert seen["args"] == (["v6=pretrained"], "s", False, False, (1.0, 1.125))
-    er.main([])
-    assert seen["args"] == (["pretrained"], "kitti15", False, False, (1.0,))
-    with pytest.raises(SystemExit):
-        er.main(["--scale", "0"])
+    assert seen["args"] == (["v6=pretrained"], "s", False, False, (1.0, 1.125), "kitti15")
+    er.main([])  # each file at its own input scale, named after the dataset
+    assert seen["args"] == (["pretrained"], None, False, False, (None,), "kitti15")
+    er.main(["--dataset", "kitti12"])
+    assert seen["args"][-1] == "kitti12"
+    for bad in (["--scale", "0"], ["--dataset", "kitti2013"]):
+        with pytest.raises(SystemExit):
+            er.main(bad)
+
+
+def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    """run(dataset="middlebury") on the real scenes, with the matchers replaced by fakes whose errors are known: the
+    regions partition each scene's GT pixels, the counts are the fakes' bad pixels, and the network runs at the input
+    scale its file records when no scale is given."""
+    import types
+
+    import optstereo.api
+    import pipelines.dense_sgm
+    import pipelines.error_regions as er
+    import pvm_labeler.multiscale
+    from pvm_labeler.common.datasets import discover, load_pair
+
+    if not (er.SHARED / "middlebury2001").is_dir():
+        pytest.skip("../shared/data is not here")
+    model = types.SimpleNamespace(config=types.SimpleNamespace(input_scale=1.5))
+    scales = []
+
+    def fake_predict(net, left, right, iters, scale):  # right on even columns, 5 px off on odd ones
+        scales.append(scale)
+        pred = np.full(left.shape[:2], 30.0, np.float32)
+        pred[:, 1::2] += 5
+        return pred
+
+    def fake_label(left, right, cfg, frame_id):  # labels the top half of the frame
+        label = np.full(left.shape[:2], np.nan, np.float32)
+        label[: left.shape[0] // 2] = 30.0
+        return types.SimpleNamespace(label=label)
+
+    monkeypatch.setattr(optstereo.api, "load_model", lambda spec: model)
+    monkeypatch.setattr(optstereo.api, "predict", fake_predict)
+    monkeypatch.setattr(pvm_labeler.multiscale, "label_pair", fake_label)
+    monkeypatch.setattr(pipelines.dense_sgm, "sgm_left", lambda left, right, cfg, max_disp: (
+        np.full(left.shape[:2], 30.0, np.float32), 0.0))
+    monkeypatch.setattr(er, "RESULTS", tmp_path)
+    doc = er.run(["net=pretrained"], dataset="middlebury")
+    assert scales and set(scales) == {1.5}  # the file's own input scale
+    assert doc["dataset"] == "middlebury" and doc["scales"] == {"net x1.5": 1.5}
+    want_n = want_net = want_sgm = want_occ = 0
+    for ref in discover("middlebury", er.SHARED):
+        sample = load_pair(ref)
+        gt, valid = sample.gt, np.isfinite(sample.gt)
+        want_n += int(valid.sum())
+        if sample.gt_noc is not None:  # Motorcycle's mask0nocc; Tsukuba and Cones have none: all visible
+            occ = valid & ~np.isfinite(sample.gt_noc)
+            want_occ += int(occ[gt.shape[0] // 2:].sum())  # the unlabelled (bottom) half
+        odd = np.zeros(gt.shape, bool)
+        odd[:, 1::2] = True
+        want_net += int((valid & (np.abs(np.where(odd, 35.0, 30.0) - gt) > 3)).sum())
+        want_sgm += int((valid & (np.abs(30.0 - gt) > 3)).sum())
+    pooled = doc["pooled"]
+    assert sum(pooled[r]["n"] for r in REGIONS) == want_n  # a partition of the GT pixels
+    assert sum(pooled[r]["net x1.5"] for r in REGIONS) == want_net
+    assert sum(pooled[r]["sgm"] for r in REGIONS) == want_sgm
+    assert pooled["unlabelled, occ"]["n"] == want_occ > 0
+    assert (tmp_path / "middlebury.md").read_text().startswith("# Network errors by PVM region, Middlebury")
+    with pytest.raises(ValueError, match="kitti2013"):
+        er.run(["pretrained"], dataset="kitti2013")
 
 
 def test_bad3_mask_is_the_ruler_of_count_bad() -> None:
