@@ -95,6 +95,12 @@ class TrainConfig:
     def __post_init__(self) -> None:
         # Resolving here (the one place) keeps the recorded config explicit: a saved gt run says lambda_r: 0.0.
         object.__setattr__(self, "loss", self.loss.with_supervision_defaults(self.data.supervision))
+        lo, hi = self.data.scale_range
+        if (lo, hi) != (1.0, 1.0) and self.model.input_scale == 1.0:
+            # Weights trained on crops enlarged by U(lo, hi) run best near the middle of that range (RESULTS.md's
+            # input-scale scans); recording it makes predict/eval of the run's exports default to it. A config that
+            # sets its own input_scale keeps it.
+            object.__setattr__(self, "model", dataclasses.replace(self.model, input_scale=(lo + hi) / 2))
         try:
             self.model.validate()
         except ValueError as exc:

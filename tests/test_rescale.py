@@ -105,5 +105,10 @@ def test_scale_range_config_and_flag(tmp_path: Path) -> None:
     assert printed["data"]["scale_range"] == [1.0, 1.25]
     assert TrainConfig.from_dict(printed).data.scale_range == (1.0, 1.25)  # a saved run's config reads back
     assert TrainConfig().data.scale_range == (1.0, 1.0)
+    # The exports of a run on enlarged crops record the middle of the range as their input scale, unless set.
+    assert printed["model"]["input_scale"] == 1.125
+    assert TrainConfig().model.input_scale == 1.0
+    own = TrainConfig.from_dict({"data": {"scale_range": [1.5, 1.75]}, "model": {"input_scale": 1.5}})
+    assert own.model.input_scale == 1.5
     bad = CliRunner().invoke(train_main, ["--scale-range", "2,1", "--print-config"])
     assert bad.exit_code == 2 and "0 < LO <= HI" in bad.output
