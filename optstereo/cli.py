@@ -122,7 +122,8 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
 @click.option("--flip-swap-p", type=float, help=f"Flip-swap probability. [default: {_D.data.flip_swap_p}]")
 @click.option("--photometric/--no-photometric", default=None, help="Photometric jitter. [default: off]")
 @click.option("--scale-range", help="Spatial scale augmentation LO,HI: each sample resized by s ~ U(LO, HI) before "
-              "the crop (labels and disparities with it). [default: 1,1 = off]")
+              "the crop (labels and disparities with it); the exports record (LO + HI) / 2 as their input scale. "
+              "[default: 1,1 = off]")
 @click.option("--occlude-p", type=float, help="Probability of pasted occluders in the network's right input, "
               "supervised by L_P (L_R/L_S see the clean pair). [default: 0]")
 @click.option("--device", type=click.Choice(DEVICES), help=f"auto = cuda when available. [default: {_D.device}]")
