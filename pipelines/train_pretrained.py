@@ -151,6 +151,8 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
      "short of its rule)", 3000, ""),
     ("scale175_m", "`scale15_k` + 4000 steps in bf16 at N_s = 8 with scale augmentation 1.5-1.75, evaluated at its "
      "input scale 1.625: version 9, shipped", 4000, "scale15_k"),
+    ("scale2_n", "+ 4000 steps in bf16 at N_s = 8 with scale augmentation 1.75-2.0, evaluated at its input scale "
+     "1.875 (measured, not shipped: 0.48 points short of its rule)", 4000, ""),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
@@ -447,7 +449,8 @@ def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None
     more = steps_to_target(main_path(points, head), target)
     caption = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM "
                f"and the target {target:.2f} % dashed; each point at the input scale its table row names: 1 up to "
-               f"`gpu_i`, 1.25 for `scale8_j`, 1.5 for `scale15_k` and `scale15_l`, 1.625 for `scale175_m`).")
+               f"`gpu_i`, 1.25 for `scale8_j`, 1.5 for `scale15_k` and `scale15_l`, 1.625 for `scale175_m`, "
+               f"1.875 for `scale2_n`).")
     if more is None:
         return caption
     return (f"{caption} If the trend held, KITTI 2015 would reach {target:.2f} % after about {more[0]:,.0f} more "
