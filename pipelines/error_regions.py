@@ -167,9 +167,11 @@ def pct(part: int, whole: int) -> str:
 
 
 def lr_consistent(net: Any, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-                  pred: npt.NDArray[np.float32], threshold: float = 1.0, scale: float = 1.0) -> npt.NDArray[np.bool_]:
+                  pred: npt.NDArray[np.float32], threshold: float = 1.0,
+                  scale: float | None = None) -> npt.NDArray[np.bool_]:
     """(H, W) bool: the network's left disparity agrees within ``threshold`` px with its own right-view disparity
-    (the flip-swapped pair's prediction at input scale ``scale``, mirrored back), by the labeler's LRDCC."""
+    (the flip-swapped pair's prediction at input scale ``scale``, mirrored back), by the labeler's LRDCC. ``scale``
+    None is the file's own input scale, as ``predict``'s (the scale ``pred`` must have been made at)."""
     from optstereo.api import predict
     from optstereo.augment import flip_swap
     from pvm_labeler.voting import lr_check

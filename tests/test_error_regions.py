@@ -161,7 +161,7 @@ def test_lr_consistent_mirrors_the_right_view(monkeypatch: pytest.MonkeyPatch) -
     want[3, 20] = want[5, 30] = False
     np.testing.assert_array_equal(got, want)
     lr_consistent(object(), left, right, pred, scale=1.125)
-    assert calls[0][2] == 1.0 and calls[1][2] == 1.125  # the right view at the left prediction's input scale
+    assert calls[0][2] is None and calls[1][2] == 1.125  # the right view at the left prediction's input scale
 
 
 def test_scaled_tables_and_flag(monkeypatch: pytest.MonkeyPatch) -> None:
