@@ -17,7 +17,7 @@ matcher, holes filled along the row) and of the PVM label, and the region's shar
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
     .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--dataset kitti15]
-                                              [--name DATASET] [--photometric] [--lr-check] [--scale S ...]
+                                              [--name DATASET] [--photometric] [--lr-check] [--edges] [--scale S ...]
                                               -> results/error_regions/NAME.{json,md}
 
 LABEL (e.g. ``v5=out/pretrained/long_conf7``) names a checkpoint's table; without one the table is named by its path.
@@ -28,6 +28,10 @@ network: of its bad-3 pixels in each region, the share where the photometric err
 pixel gets besides L_S) is lower at the wrong prediction than at the GT disparity: there L_R rewards the error.
 ``--lr-check`` adds a third: the share of each region where the network agrees with its own right-view prediction
 (1 px LRDCC), and bad-3 of those pixels against the rest: how clean an L_T target kept by that test would be.
+``--edges`` adds a fourth: the network and SGM by distance to the nearest depth edge of the GT (a jump of more than
+EDGE_JUMP px between GT-valid 4-neighbours), i.e. whether the errors sit at object boundaries. It needs dense GT
+(Middlebury, FlyingThings3D): KITTI's LiDAR GT leaves the pixels at depth edges out (no two GT-valid neighbours of
+its frames here differ by more than 1.1 px), so every KITTI pixel lands in "> 10 px" and the table says so.
 """
 
 from __future__ import annotations
@@ -48,6 +52,11 @@ RESULTS = Path("results/error_regions")
 BANDS = (("unlabelled, noc, <= 3", 0.0, 3.0), ("unlabelled, noc, 3-10", 3.0, 10.0),
          ("unlabelled, noc, > 10", 10.0, np.inf))
 REGIONS = ("labelled", *(band[0] for band in BANDS), "unlabelled, occ")
+#: ``--edges``: GT pixels by distance (px, Euclidean) to the nearest depth edge: (name, low, high].
+EDGE_BANDS = (("<= 2 px from a depth edge", -1.0, 2.0), ("2-5 px", 2.0, 5.0), ("5-10 px", 5.0, 10.0),
+              ("> 10 px", 10.0, np.inf))
+#: A depth edge: a GT pixel with a GT-valid 4-neighbour more than this many px of disparity away.
+EDGE_JUMP = 2.0
 #: The sets a region table can be made for: name -> (reader, root under SHARED, SGM search range or None: the pair's).
 DATASETS = {name: (reader, root, max_disp) for name, reader, root, max_disp in EVAL_SETS}
 KITTI15_MAX_DISP = DATASETS["kitti15"][2]
@@ -83,6 +92,48 @@ def region_masks(label: npt.NDArray[np.float32], gt: npt.NDArray[np.float32],
         masks[name] = unlabelled_noc & (dist > low) & (dist <= high)
     masks["unlabelled, occ"] = valid & ~has_label & ~noc
     return masks
+
+
+def edge_masks(gt: npt.NDArray[np.float32], jump: float = EDGE_JUMP) -> dict[str, npt.NDArray[np.bool_]]:
+    """Boolean (H, W) masks of EDGE_BANDS over the GT-valid pixels (NaN = no GT); they partition them.
+
+    An edge pixel has a GT-valid 4-neighbour whose disparity differs by more than ``jump`` px (both sides of a jump
+    are edge pixels; a GT pixel beside a pixel without GT is not one). Without any edge every pixel is "> 10 px".
+    """
+    import cv2
+
+    valid = np.isfinite(gt)
+    edge = np.zeros(gt.shape, bool)
+    for axis in (0, 1):
+        a, b = (gt[:-1], gt[1:]) if axis == 0 else (gt[:, :-1], gt[:, 1:])
+        both = (valid[:-1] & valid[1:]) if axis == 0 else (valid[:, :-1] & valid[:, 1:])
+        jumps = both & (np.abs(np.where(both, a - b, 0)) > jump)
+        if axis == 0:
+            edge[:-1] |= jumps
+            edge[1:] |= jumps
+        else:
+            edge[:, :-1] |= jumps
+            edge[:, 1:] |= jumps
+    if edge.any():
+        dist = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    else:
+        dist = np.full(gt.shape, np.inf, np.float32)
+    return {name: valid & (dist > low) & (dist <= high) for name, low, high in EDGE_BANDS}
+
+
+def edge_table(total: dict[str, dict[str, int]], network: str) -> str:
+    """Markdown: per EDGE_BANDS band, its share of the GT pixels and the bad-3 % of the network and of dense SGM."""
+    n_all = max(sum(row["n"] for row in total.values()), 1)
+    if total.get(EDGE_BANDS[-1][0], {}).get("n", 0) == n_all:
+        return "No depth edge in the GT: no two GT-valid neighbours differ by more than " \
+               f"{EDGE_JUMP:g} px (sparse GT leaves the edges out), so the split says nothing here."
+    lines = ["| distance to the nearest depth edge | share of GT pixels % | network bad-3 % | dense SGM bad-3 % |",
+             "|---|---:|---:|---:|"]
+    for name, _, _ in EDGE_BANDS:
+        row = total.get(name, {"n": 0, network: 0, "sgm": 0})
+        lines.append(f"| {name} | {100 * row['n'] / n_all:.1f} | {pct(row[network], row['n'])} | "
+                     f"{pct(row['sgm'], row['n'])} |")
+    return "\n".join(lines)
 
 
 def count_bad(masks: dict[str, npt.NDArray[np.bool_]], gt: npt.NDArray[np.float32],
@@ -220,14 +271,15 @@ def parse_checkpoint(arg: str) -> tuple[str, str]:
 
 
 def run(checkpoints: list[str], name: str | None = None, photometric: bool = False,
-        lr: bool = False, scales: tuple[float | None, ...] = (None,), dataset: str = "kitti15") -> dict[str, Any]:
+        lr: bool = False, scales: tuple[float | None, ...] = (None,), dataset: str = "kitti15",
+        edges: bool = False) -> dict[str, Any]:
     """Label, match and predict every GT frame of ``dataset`` (a key of DATASETS); pool the counts; write JSON and
     Markdown as ``name`` (default: the dataset's name).
 
     ``photometric`` adds, per network, :func:`count_photo_preference` pooled over the frames; ``lr`` adds
     :func:`count_reliability` of the network's own LR check (one more prediction per frame). Each network is
     predicted at every input scale of ``scales`` (``optstereo-predict --scale``; tables "LABEL x1.125"); None is the
-    file's own input scale.
+    file's own input scale. ``edges`` adds, per network, the split of :func:`edge_masks` (distance to GT depth edges).
     """
     from optstereo.api import load_model, predict
     from optstereo.inference import model_input_scale
@@ -249,6 +301,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     total: dict[str, dict[str, int]] = {}
     photo: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     reliability: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
+    edge_total: dict[str, dict[str, int]] = {}
     frames = {}
     for ref in discover(reader, SHARED / root):
         sample = load_pair(ref)
@@ -261,6 +314,8 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
         counts = count_bad(masks, sample.gt, {"sgm": sgm, "label": pvm, **nets})
         frames[ref.frame_id] = counts
         add_counts(total, counts)
+        if edges:
+            add_counts(edge_total, count_bad(edge_masks(sample.gt), sample.gt, {"sgm": sgm, **nets}))
         if photometric:
             for tag, pred in nets.items():
                 err = photo_errors(sample.left, sample.right, pred, color_norm)
@@ -283,10 +338,14 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
         md += "\n\n## How reliable is the network's own LR-consistent prediction? (a candidate L_T target)\n\n"
         md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{reliability_table(reliability[tag])}"
                             for tag, spec in named.items())
+    if edges:
+        md += f"\n\n## By distance to the nearest depth edge (GT disparity jump > {EDGE_JUMP:g} px)\n\n"
+        md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{edge_table(edge_total, tag)}" for tag, spec in named.items())
     doc = {"dataset": dataset, "checkpoints": named, "scales": {key: scale for key, (_, scale) in runs.items()},
            "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
            **({"photometric": photo, "photometric_color_norm": color_norm} if photometric else {}),
            **({"lr_check": reliability} if lr else {}),
+           **({"edges": edge_total, "edge_jump_px": EDGE_JUMP} if edges else {}),
            **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))
@@ -314,6 +373,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="also count, per region, the bad pixels whose photometric error is lower than GT's")
     parser.add_argument("--lr-check", action="store_true",
                         help="also count how many pixels pass the network's own LR check and their bad-3")
+    parser.add_argument("--edges", action="store_true",
+                        help=f"also split the GT pixels by distance to the nearest depth edge (a GT jump > "
+                             f"{EDGE_JUMP:g} px)")
     parser.add_argument("--scale", type=float, action="append",
                         help="input scale of every network (optstereo-predict --scale); repeatable; default: "
                              "each file's own")
@@ -321,7 +383,7 @@ def main(argv: list[str] | None = None) -> None:
     if any(not scale > 0 for scale in args.scale or ()):
         parser.error(f"--scale must be positive, got {args.scale}")
     run(args.checkpoint or ["pretrained"], args.name, args.photometric, args.lr_check, tuple(args.scale or (None,)),
-        args.dataset)
+        args.dataset, args.edges)
 
 
 if __name__ == "__main__":

@@ -6,12 +6,15 @@ import numpy as np
 import pytest
 
 from pipelines.error_regions import (
+    EDGE_BANDS,
     REGIONS,
     add_counts,
     bad3,
     count_bad,
     count_photo_preference,
     count_reliability,
+    edge_masks,
+    edge_table,
     lr_consistent,
     parse_checkpoint,
     photo_errors,
@@ -171,11 +174,11 @@ def test_scaled_tables_and_flag(monkeypatch: pytest.MonkeyPatch) -> None:
     seen = {}
     monkeypatch.setattr(er, "run", lambda *args: seen.update(args=args))
     er.main(["--checkpoint", "v6=pretrained", "--scale", "1", "--scale", "1.125", "--name", "s"])
-    assert seen["args"] == (["v6=pretrained"], "s", False, False, (1.0, 1.125), "kitti15")
+    assert seen["args"] == (["v6=pretrained"], "s", False, False, (1.0, 1.125), "kitti15", False)
     er.main([])  # each file at its own input scale, named after the dataset
-    assert seen["args"] == (["pretrained"], None, False, False, (None,), "kitti15")
-    er.main(["--dataset", "kitti12"])
-    assert seen["args"][-1] == "kitti12"
+    assert seen["args"] == (["pretrained"], None, False, False, (None,), "kitti15", False)
+    er.main(["--dataset", "kitti12", "--edges"])
+    assert seen["args"][-2:] == ("kitti12", True)
     for bad in (["--scale", "0"], ["--dataset", "kitti2013"]):
         with pytest.raises(SystemExit):
             er.main(bad)
@@ -215,7 +218,7 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
     monkeypatch.setattr(pipelines.dense_sgm, "sgm_left", lambda left, right, cfg, max_disp: (
         np.full(left.shape[:2], 30.0, np.float32), 0.0))
     monkeypatch.setattr(er, "RESULTS", tmp_path)
-    doc = er.run(["net=pretrained"], dataset="middlebury")
+    doc = er.run(["net=pretrained"], dataset="middlebury", edges=True)
     assert scales and set(scales) == {1.5}  # the file's own input scale
     assert doc["dataset"] == "middlebury" and doc["scales"] == {"net x1.5": 1.5}
     want_n = want_net = want_sgm = want_occ = 0
@@ -235,6 +238,9 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
     assert sum(pooled[r]["net x1.5"] for r in REGIONS) == want_net
     assert sum(pooled[r]["sgm"] for r in REGIONS) == want_sgm
     assert pooled["unlabelled, occ"]["n"] == want_occ > 0
+    assert sum(row["n"] for row in doc["edges"].values()) == want_n  # the edge bands partition them too
+    assert sum(row["net x1.5"] for row in doc["edges"].values()) == want_net
+    assert "## By distance to the nearest depth edge" in (tmp_path / "middlebury.md").read_text()
     assert (tmp_path / "middlebury.md").read_text().startswith("# Network errors by PVM region, Middlebury")
     with pytest.raises(ValueError, match="kitti2013"):
         er.run(["pretrained"], dataset="kitti2013")
@@ -251,3 +257,29 @@ def test_bad3_mask_is_the_ruler_of_count_bad() -> None:
     counts = count_bad(masks, gt, {"net": pred})
     for region, mask in masks.items():
         assert int((bad3(pred, gt) & mask).sum()) == counts[region]["net"]
+
+
+def test_edge_masks_by_hand() -> None:
+    """A 7x16 GT with a 10 px jump between columns 7 and 8, a 1 px step (no edge) between columns 3 and 4, and no GT
+    at (0, 8): the edge pixels are columns 7 and 8 of rows 1-6 ((0, 7) and (0, 9) have no GT-valid neighbour across
+    the jump); the bands follow the brute-force Euclidean distance to them."""
+    gt = np.full((7, 16), 20.0, np.float32)
+    gt[:, 4:] = 21.0  # a 1 px step: not an edge
+    gt[:, 8:] = 31.0  # the jump
+    gt[0, 8] = N
+    masks = edge_masks(gt)
+    edges = [(r, c) for r in range(1, 7) for c in (7, 8)]
+    rows, cols = np.mgrid[0:7, 0:16]
+    dist = np.min([np.hypot(rows - r, cols - c) for r, c in edges], axis=0)
+    valid = np.isfinite(gt)
+    for name, low, high in EDGE_BANDS:
+        np.testing.assert_array_equal(masks[name], valid & (dist > low) & (dist <= high), err_msg=name)
+    assert not masks[EDGE_BANDS[0][0]][0, 5] and masks[EDGE_BANDS[1][0]][0, 5]  # sqrt(5) from (1, 7): band 2-5
+    assert sum(m.sum() for m in masks.values()) == valid.sum()  # a partition of the GT pixels
+    names = [name for name, _, _ in EDGE_BANDS]
+    flat = edge_masks(np.full((4, 5), 3.0, np.float32))
+    assert flat[names[3]].all() and not any(flat[n].any() for n in names[:3])  # no edge at all
+    none = {name: {"n": 20 if name == names[3] else 0, "net": 0, "sgm": 0} for name in names}
+    assert edge_table(none, "net").startswith("No depth edge in the GT")
+    some = {name: {"n": 10, "net": 5, "sgm": 1} for name in names}
+    assert "| <= 2 px from a depth edge | 25.0 | 50.0 | 10.0 |" in edge_table(some, "net")
