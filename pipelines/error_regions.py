@@ -59,7 +59,6 @@ EDGE_BANDS = (("<= 2 px from a depth edge", -1.0, 2.0), ("2-5 px", 2.0, 5.0), ("
 EDGE_JUMP = 2.0
 #: The sets a region table can be made for: name -> (reader, root under SHARED, SGM search range or None: the pair's).
 DATASETS = {name: (reader, root, max_disp) for name, reader, root, max_disp in EVAL_SETS}
-KITTI15_MAX_DISP = DATASETS["kitti15"][2]
 TITLES = {"kitti15": "KITTI 2015", "kitti12": "KITTI 2012", "middlebury": "Middlebury", "sceneflow": "FlyingThings3D"}
 
 
@@ -104,16 +103,12 @@ def edge_masks(gt: npt.NDArray[np.float32], jump: float = EDGE_JUMP) -> dict[str
 
     valid = np.isfinite(gt)
     edge = np.zeros(gt.shape, bool)
-    for axis in (0, 1):
-        a, b = (gt[:-1], gt[1:]) if axis == 0 else (gt[:, :-1], gt[:, 1:])
-        both = (valid[:-1] & valid[1:]) if axis == 0 else (valid[:, :-1] & valid[:, 1:])
-        jumps = both & (np.abs(np.where(both, a - b, 0)) > jump)
-        if axis == 0:
-            edge[:-1] |= jumps
-            edge[1:] |= jumps
-        else:
-            edge[:, :-1] |= jumps
-            edge[:, 1:] |= jumps
+    head, tail, every = slice(None, -1), slice(1, None), slice(None)
+    for before, after in (((head, every), (tail, every)), ((every, head), (every, tail))):  # vertical, horizontal
+        both = valid[before] & valid[after]
+        jumps = both & (np.abs(np.where(both, gt[before] - gt[after], 0)) > jump)
+        edge[before] |= jumps
+        edge[after] |= jumps
     if edge.any():
         dist = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     else:
