@@ -204,6 +204,7 @@ def test_gpu_continue_script_runs_on_cpu(tmp_path: Path, rng: np.random.Generato
     out = load_checkpoint(tmp_path / "out" / "toy.safetensors")
     start = load_checkpoint(init)
     assert out.step == 4 and out.model_config["feature_dim"] == start.model_config["feature_dim"]
+    assert out.model_config["input_scale"] == 1.625  # the default U(1.5, 1.75): the export runs at its middle
     moved = [k for k in start.model_state if not torch.equal(start.model_state[k], out.model_state[k])]
     assert moved, "the weights should have moved from the head after 4 steps"
     config = (tmp_path / "out" / "config.yaml").read_text()
