@@ -278,7 +278,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     """
     from optstereo.api import load_model, predict
     from optstereo.inference import model_input_scale
-    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
+    from pipelines.dense_sgm import dense_sgm
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.multiscale import label_pair
@@ -301,8 +301,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     for ref in discover(reader, SHARED / root):
         sample = load_pair(ref)
         pvm = label_pair(sample.left, sample.right, cfg, ref.frame_id).label
-        search = max_disp or sample.max_disp or 64  # the eval's SGM range (train_pretrained's dense SGM baseline)
-        sgm = fill_rows_nearest(sgm_left(sample.left, sample.right, cfg, search)[0])
+        sgm = dense_sgm(sample.left, sample.right, cfg, max_disp, sample.max_disp)[0]  # step_baselines' SGM
         nets = {key: predict(models[tag], sample.left, sample.right, iters=TEST_ITERS, scale=scale)
                 for key, (tag, scale) in runs.items()}
         masks = region_masks(pvm, sample.gt, sample.gt_noc)

@@ -270,7 +270,7 @@ def step_continue() -> None:
 def step_baselines() -> dict[str, Any]:
     """Dense full-resolution SGM (the labeler's matcher: census 5x5, 8 paths, P1/P2 as labelled) on every GT set."""
     from optstereo.evaluate import Frame, evaluate_frames
-    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
+    from pipelines.dense_sgm import dense_sgm
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
 
@@ -280,9 +280,9 @@ def step_baselines() -> dict[str, Any]:
         frames, seconds = [], []
         for ref in discover(reader, SHARED / root):
             sample = load_pair(ref)
-            disp, sec = sgm_left(sample.left, sample.right, cfg, max_disp or sample.max_disp or 64)
+            disp, sec = dense_sgm(sample.left, sample.right, cfg, max_disp, sample.max_disp)
             seconds.append(sec)
-            frames.append(Frame(ref.frame_id, fill_rows_nearest(disp), sample.gt, sample.gt_noc))
+            frames.append(Frame(ref.frame_id, disp, sample.gt, sample.gt_noc))
         result = evaluate_frames(frames, RUNS / "eval" / "sgm_dense" / name, title=f"dense SGM on {name}")
         out[name] = {"summary": result.summary, "frames": result.rows, "seconds_per_frame": float(np.mean(seconds))}
         print(f"dense SGM {name}: bad3 {result.summary['bad3']:.2f} %, EPE {result.summary['epe']:.3f} px", flush=True)
