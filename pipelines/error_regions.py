@@ -120,8 +120,8 @@ def edge_table(total: dict[str, dict[str, int]], network: str) -> str:
     """Markdown: per EDGE_BANDS band, its share of the GT pixels and the bad-3 % of the network and of dense SGM."""
     n_all = max(sum(row["n"] for row in total.values()), 1)
     if total.get(EDGE_BANDS[-1][0], {}).get("n", 0) == n_all:
-        return "No depth edge in the GT: no two GT-valid neighbours differ by more than " \
-               f"{EDGE_JUMP:g} px (sparse GT leaves the edges out), so the split says nothing here."
+        return (f"No depth edge in the GT: no two GT-valid neighbours differ by more than {EDGE_JUMP:g} px (sparse GT "
+                "leaves the edges out), so the split says nothing here.")
     lines = ["| distance to the nearest depth edge | share of GT pixels % | network bad-3 % | dense SGM bad-3 % |",
              "|---|---:|---:|---:|"]
     for name, _, _ in EDGE_BANDS:
