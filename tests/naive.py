@@ -138,3 +138,27 @@ def naive_lr_check(disp_left: np.ndarray, disp_right: np.ndarray, threshold: flo
     ok = np.abs(disp_left[ys, xs] - disp_right[ys, xr]) <= threshold
     out[ys[ok], xs[ok]] = disp_left[ys[ok], xs[ok]]
     return out
+
+
+def naive_weighted_median(disp: np.ndarray, image: np.ndarray, radius: int, sigma: float,
+                          min_range: float) -> np.ndarray:
+    """Colour-weighted median, pixel by pixel: window values sorted, the first whose cumulative weight reaches half
+    the total; windows spanning <= min_range px (and all-NaN windows) keep the centre. (H, W) float32."""
+    height, width = disp.shape
+    guide = image.astype(np.float64)
+    out = disp.copy()
+    for y in range(height):
+        for x in range(width):
+            ys, xs = slice(max(0, y - radius), y + radius + 1), slice(max(0, x - radius), x + radius + 1)
+            values = disp[ys, xs].ravel()
+            dist2 = ((guide[ys, xs] - guide[y, x]) ** 2).sum(-1).ravel()
+            keep = np.isfinite(values)
+            if not keep.any():
+                continue
+            if np.isfinite(disp[y, x]) and values[keep].max() - values[keep].min() <= min_range:
+                continue
+            values, weights = values[keep], np.exp(-dist2[keep] / (2 * sigma**2))
+            order = np.argsort(values, kind="stable")
+            cum = np.cumsum(weights[order])
+            out[y, x] = values[order][np.searchsorted(cum, cum[-1] / 2)]
+    return out
