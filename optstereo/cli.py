@@ -229,7 +229,7 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
               out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
-              scale: float | None, quiet: bool, **reader: Any) -> None:
+              scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
     _setup_logging(quiet)
     from optstereo import evaluate
@@ -237,8 +237,9 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     if labels is not None:
-        if scale is not None:
-            raise click.UsageError("--scale resizes a network's input; --labels evaluates stored labels as they are")
+        if scale is not None or refine is not None:
+            raise click.UsageError("--scale and --refine act on a network's prediction; --labels evaluates stored "
+                                   "labels as they are")
         result = _run_guarded(evaluate.evaluate_labels, labels, out_dir=out, limit=limit, save_maps=save_maps)
     else:
         if dataset is None:
@@ -246,7 +247,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
         model, dev = _load_model(checkpoint, device)
         result = _run_guarded(evaluate.evaluate_model, model, dataset, root, split=split, iters=iters, device=dev,
                               out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
-                              amp=amp, reader_options=collect_reader_options(**reader), scale=scale)
+                              amp=amp, reader_options=collect_reader_options(**reader), scale=scale, refine=refine)
     s = result.summary
     click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
                f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
@@ -292,7 +293,7 @@ def _load_model(checkpoint: Path, device: str):
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
                  calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
-                 amp: str, scale: float | None, quiet: bool, **reader: Any) -> None:
+                 amp: str, scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -302,7 +303,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
     if backend == "onnxruntime":
-        _predict_onnx(checkpoint, left, right, out, formats, dataset, scale)
+        _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
         return
     geometry = [f for f in formats if f in inference.GEOMETRY_FORMATS]
     if geometry and (calib is None or dataset is not None):
@@ -316,20 +317,20 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if dataset is None:
         paths = _run_guarded(inference.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
-                             scale=scale)
+                             scale=scale, refine=refine)
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
         if submission is not None and "png" not in formats:
             formats = (*formats, "png")
         written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,
                                formats=formats, device=dev, limit=limit, amp=amp, submission=submission,
-                               reader_options=collect_reader_options(**reader), scale=scale)
+                               reader_options=collect_reader_options(**reader), scale=scale, refine=refine)
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
 
 
 def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...],
-                  dataset: str | None, scale: float | None) -> None:
+                  dataset: str | None, scale: float | None, refine: str | None) -> None:
     import torch
 
     from optstereo import inference
@@ -341,7 +342,7 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
     if not Path(onnx_file).is_file():
         raise click.BadParameter(f"{onnx_file} does not exist", param_hint="--checkpoint")
     session = _run_guarded(onnx_session, onnx_file, threads=torch.get_num_threads())  # --threads, or one per core
-    disp = _run_guarded(infer_onnx, session, read_image(left), read_image(right), scale=scale)
+    disp = _run_guarded(infer_onnx, session, read_image(left), read_image(right), scale=scale, refine=refine)
     paths = _run_guarded(inference.write_disparity, out, Path(left).stem, disp, formats)
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
 

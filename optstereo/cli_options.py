@@ -22,7 +22,7 @@ def _set_threads(_ctx: click.Context, _param: click.Parameter, threads: int) -> 
 
 
 def infer_options(fn):
-    """--amp, --scale and --threads, the inference options of optstereo-eval and optstereo-predict."""
+    """--amp, --scale, --refine and --threads, the inference options of optstereo-eval and optstereo-predict."""
     fn = click.option("--threads", type=click.IntRange(min=0), default=0, expose_value=False, callback=_set_threads,
                       help="torch CPU threads (0 = torch's default, one per core). Give 1 to each process when it "
                            "shares the cores with a training run: two busy 2-thread processes on 2 cores slow "
@@ -31,6 +31,10 @@ def infer_options(fn):
                       help="Run the network on both images resized by this factor (e.g. 0.5 for large pairs, 1.5 "
                            "for small disparities); disparities come back at the input's size. Default: the "
                            "model's own input scale (1 unless its checkpoint records another).")(fn)
+    fn = click.option("--refine", type=click.Choice(("none", "wmedian")),
+                      help="Post-filter of the disparity: wmedian = colour-weighted median (snaps blurred depth "
+                           "edges to colour edges), none = the network's output as it is. Default: the model's own "
+                           "(the shipped model: wmedian).")(fn)
     return click.option("--amp", type=click.Choice(("none", "bf16", "fp16")), default="none", show_default=True,
                         help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
 

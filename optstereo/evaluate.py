@@ -182,7 +182,7 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
 def model_frames(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", limit: int | None = None, amp: str = "none",
-    reader_options: dict[str, Any] | None = None, scale: float | None = None,
+    reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
 ) -> Iterator[Frame]:
     """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames."""
     from optstereo.inference import infer
@@ -191,7 +191,8 @@ def model_frames(
     for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
         sample = load_pair(ref)
         t0 = time.perf_counter()
-        pred = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale)
+        pred = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
+                     refine=refine)
         seconds = time.perf_counter() - t0
         logger.info("%s: %dx%d in %.2f s", ref.frame_id, sample.left.shape[0], sample.left.shape[1], seconds)
         yield Frame(ref.frame_id, pred, sample.gt, sample.gt_noc, sample.left, seconds)
@@ -217,25 +218,27 @@ def evaluate_model(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", out_dir: Path | None = None, limit: int | None = None,
     save_maps: bool = False, meta: dict | None = None, amp: str = "none", reader_options: dict[str, Any] | None = None,
-    scale: float | None = None,
+    scale: float | None = None, refine: str | None = None,
 ) -> EvalResult:
     """Evaluate a network on a dataset's GT; summary also holds the mean seconds per frame.
 
     Frames stream through (one decoded pair and its prediction in memory at a time); the timing is a running mean.
-    ``scale`` None = the model's own input scale (recorded in the summary as ``input_scale``).
+    ``scale`` / ``refine`` None = the model's own input scale / post-filter (recorded in the summary as
+    ``input_scale`` / ``refine``).
     """
-    from optstereo.inference import model_input_scale
+    from optstereo.inference import model_input_scale, model_refine
 
     scale = model_input_scale(model) if scale is None else scale
+    refine = model_refine(model) if refine is None else refine
     meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp, "input_scale": scale,
-            "seconds_per_frame": math.nan, **(meta or {})}
+            "refine": refine, "seconds_per_frame": math.nan, **(meta or {})}
     count = 0
 
     def timed() -> Iterator[Frame]:
         nonlocal count
         total = 0.0
         for frame in model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit, amp=amp,
-                                  reader_options=reader_options, scale=scale):
+                                  reader_options=reader_options, scale=scale, refine=refine):
             count += 1
             total += frame.seconds
             meta["seconds_per_frame"] = total / count  # evaluate_frames reads meta after the last frame

@@ -11,8 +11,9 @@ The exported graph is the test-mode network: N_s GRU iterations unrolled, the fi
 
 ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimiser of onnxscript 0.7 fails on this
 graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper. The ONNX
-file's metadata records the model's input scale (``input_scale``), which :func:`infer_onnx` applies; a TorchScript
-file does not carry it, so its caller resizes by ``model.config.input_scale`` as ``infer`` does.
+file's metadata records the model's input scale (``input_scale``) and post-filter (``refine``), which
+:func:`infer_onnx` applies; a TorchScript file carries neither, so its caller resizes by ``model.config.input_scale``
+and filters by ``model.config.refine`` (``optstereo.inference.apply_refine``) as ``infer`` does.
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -83,18 +84,18 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):
         model.image_chunk = 0 if batch else 1  # the same outputs either way (tests/test_model_optstereo.py)
-    from optstereo.inference import model_input_scale
+    from optstereo.inference import model_input_scale, model_refine
 
     try:
         return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch,
-                       model_input_scale(model))
+                       model_input_scale(model), model_refine(model))
     finally:
         if hasattr(model, "image_chunk"):
             model.image_chunk = saved_chunk
 
 
 def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], batch: bool,
-            input_scale: float) -> Path:
+            input_scale: float, refine: str) -> Path:
     h, w = example_hw
     gen = torch.Generator().manual_seed(0)
     left = torch.rand(1, 3, h, w, generator=gen) * 255
@@ -105,8 +106,9 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
             program = torch.onnx.export(graph, (left, right), dynamo=True, input_names=["left", "right"],
                                         output_names=["disparity"], dynamic_shapes={"left": dims, "right": dims},
                                         opset_version=OPSET, optimize=False, verbose=False)
-            # the model's input scale travels in the file: infer_onnx resizes pairs by it, as infer does
+            # the model's input scale and post-filter travel in the file: infer_onnx applies them, as infer does
             program.model.metadata_props["input_scale"] = repr(float(input_scale))
+            program.model.metadata_props["refine"] = refine
             program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
             torch.jit.save(torch.jit.trace(graph, (left, right), check_trace=False), str(tmp))
@@ -124,18 +126,24 @@ def onnx_session(path: Path | str, threads: int = 0):
 
 
 def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-               scale: float | None = None) -> npt.NDArray[np.float32]:
+               scale: float | None = None, refine: str | None = None) -> npt.NDArray[np.float32]:
     """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session (padding as ``infer``; at
-    input ``scale``, None = the one the file records, as ``infer`` at the model's own)."""
+    input ``scale`` and with post-filter ``refine``, None = the ones the file records, as ``infer`` at the model's
+    own)."""
+    from optstereo.inference import apply_refine, check_refine
     from optstereo.rescale import disparity_to_size, rescaled_pair
 
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
-    if scale is None:
-        scale = float(session.get_modelmeta().custom_metadata_map.get("input_scale", 1.0))
+    recorded = session.get_modelmeta().custom_metadata_map
+    scale = float(recorded.get("input_scale", 1.0)) if scale is None else scale
+    refine = recorded.get("refine", "none") if refine is None else refine
+    check_refine(refine)
     if scale != 1.0:
-        return disparity_to_size(_run_onnx(session, *rescaled_pair(left, right, scale)), left.shape[:2])
-    return _run_onnx(session, left, right)
+        disp = disparity_to_size(_run_onnx(session, *rescaled_pair(left, right, scale)), left.shape[:2])
+    else:
+        disp = _run_onnx(session, left, right)
+    return apply_refine(disp, left, refine)
 
 
 def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:

@@ -94,6 +94,30 @@ def model_input_scale(model: nn.Module) -> float:
     return float(getattr(getattr(model, "config", None), "input_scale", 1.0))
 
 
+def model_refine(model: nn.Module) -> str:
+    """The post-filter a model's config records (``ModelConfig.refine``), "none" for a model without one."""
+    return str(getattr(getattr(model, "config", None), "refine", "none"))
+
+
+def check_refine(refine: str) -> None:
+    """Raise ValueError unless ``refine`` names a post-filter (ModelConfig.refine)."""
+    from optstereo.models.config import REFINERS
+
+    if refine not in REFINERS:
+        raise ValueError(f"refine must be one of {REFINERS}, got {refine!r}")
+
+
+def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], refine: str) -> npt.NDArray[np.float32]:
+    """The post-filter ``refine`` ("none" or "wmedian", see ModelConfig.refine) on an (H, W) float32 disparity of the
+    (H, W, 3) uint8 left image."""
+    check_refine(refine)
+    if refine == "none":
+        return disp
+    from pvm_labeler.refine import weighted_median
+
+    return weighted_median(disp, left)
+
+
 @torch.inference_mode()
 def infer(
     model: nn.Module,
@@ -103,6 +127,7 @@ def infer(
     device: torch.device | str = "cpu",
     amp: str = "none",
     scale: float | None = None,
+    refine: str | None = None,
 ) -> npt.NDArray[np.float32]:
     """Full-resolution disparity of one pair.
 
@@ -114,6 +139,8 @@ def infer(
         scale: resize both images by this factor before the network (see :func:`rescaled_pair`) and bring the
             disparity back to the input's size and pixel units; 1 = as given, None = the model's own
             (:func:`model_input_scale`).
+        refine: post-filter of the disparity at the input's size, guided by ``left``: "none", "wmedian"; None =
+            the model's own (:func:`model_refine`).
 
     Returns:
         (H, W) float32 disparity in pixels of the input (positive, left(x) matches right(x - d)).
@@ -121,11 +148,20 @@ def infer(
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     scale = model_input_scale(model) if scale is None else scale
+    refine = model_refine(model) if refine is None else refine
+    check_refine(refine)  # before the network runs, not after
+    device = torch.device(device)
     if scale != 1.0:
         left_s, right_s = rescaled_pair(left, right, scale)
-        disp_s = infer(model, left_s, right_s, iters=iters, device=device, amp=amp, scale=1.0)
-        return disparity_to_size(disp_s, left.shape[:2])
-    device = torch.device(device)
+        disp = disparity_to_size(_network(model, left_s, right_s, iters, device, amp), left.shape[:2])
+    else:
+        disp = _network(model, left, right, iters, device, amp)
+    return apply_refine(disp, left, refine)
+
+
+def _network(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], iters: int | None,
+             device: torch.device, amp: str) -> npt.NDArray[np.float32]:
+    """The network's (H, W) float32 disparity of a pair as given (padded to its multiple and un-padded)."""
     was_training = model.training
     model.eval()
     try:
@@ -228,7 +264,7 @@ def write_geometry(
 def predict_pair(
     model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
     formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
-    calib: Any = None, max_depth: float = float("inf"), scale: float | None = None,
+    calib: Any = None, max_depth: float = float("inf"), scale: float | None = None, refine: str | None = None,
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
     from pvm_labeler.common.io import read_image
@@ -237,7 +273,7 @@ def predict_pair(
     if left.shape != right.shape:
         raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
     t0 = time.perf_counter()
-    disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale)
+    disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale, refine=refine)
     logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
     stem = Path(left_path).stem
     return {**write_disparity(out_dir, stem, disp, formats),
@@ -248,7 +284,7 @@ def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
     limit: int | None = None, amp: str = "none", submission: Path | None = None,
-    reader_options: dict[str, Any] | None = None, scale: float | None = None,
+    reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
 
@@ -262,7 +298,8 @@ def predict_dataset(
     written = []
     for ref in refs:
         sample = load_pair(ref)
-        disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale)
+        disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
+                     refine=refine)
         written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
     if submission is not None:
         write_submission(out_dir, submission, refs)

@@ -12,7 +12,8 @@ GT set of ../shared/data against dense SGM, export the weights.
                                                       arm_no_lt: in the ablation L_T cost 1.5 points of KITTI 2015
                                                       bad-3, so the shipped model is the recipe without it;
                                                       version 5: long_conf7, a CONTINUE run; version 9:
-                                                      scale175_m, --input-scale 1.625)
+                                                      scale175_m, --input-scale 1.625; version 10: the same
+                                                      weights, --refine wmedian)
     python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
@@ -314,14 +315,14 @@ def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS, scale:
     return out
 
 
-def step_ship(run: str, input_scale: float = 1.0) -> None:
+def step_ship(run: str, input_scale: float = 1.0, refine: str = "none") -> None:
     """Export the run's final weights (float32 safetensors, model config in the metadata) as the shipped model,
-    recording ``input_scale`` as the scale ``infer`` runs it at by default."""
+    recording ``input_scale`` and ``refine`` as the scale and post-filter ``infer`` uses by default."""
     from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 
     ckpt = load_checkpoint(RUNS / run)
-    # the shipped defaults: 8 iterations at test time, and the input scale its rule was judged at
-    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS, input_scale=input_scale)
+    # the shipped defaults: 8 iterations at test time, and the input scale and post-filter its rules were judged at
+    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS, input_scale=input_scale, refine=refine)
     WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
     export_safetensors(WEIGHTS, model, step=ckpt.step)
     WEIGHTS.chmod(0o644)  # safetensors writes 0600; the package file is read by every user
@@ -500,6 +501,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--iters", type=int, default=TEST_ITERS)
     parser.add_argument("--scale", type=float, help="eval: input scale (default: the model's own)")
     parser.add_argument("--input-scale", type=float, default=1.0, help="ship: the default input scale to record")
+    parser.add_argument("--refine", choices=("none", "wmedian"), default="none",
+                        help="ship: the default post-filter to record")
     args = parser.parse_args(argv)
     if args.step == "label":
         step_label()
@@ -516,7 +519,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.step == "eval":
         step_eval(args.run, args.name, args.iters, args.scale)
     elif args.step == "ship":
-        step_ship(args.run, args.input_scale)
+        step_ship(args.run, args.input_scale, args.refine)
     elif args.step == "soup":
         step_soup(args.run)
     else:

@@ -23,8 +23,9 @@ class MedianParams:
     """Weighted-median settings: window radius (px), colour sigma (8-bit RGB units), disparity range (px) below which
     a window is left alone."""
 
-    radius: int = 7
-    sigma: float = 25.5
+    # chosen without GT on the unlabelled training pairs' PVM labels (pipelines/refine_study.py choose; RESULTS.md)
+    radius: int = 5
+    sigma: float = 51.0
     min_range: float = 1.0
 
     def __post_init__(self) -> None:

@@ -18,7 +18,7 @@ from optstereo import inference as predict_mod
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
-from optstereo.inference import infer, model_input_scale, warn_if_emulated_bf16, write_disparity
+from optstereo.inference import infer, model_input_scale, model_refine, warn_if_emulated_bf16, write_disparity
 from optstereo.models import build_model
 from pvm_labeler.common.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.common.metrics import disparity_metrics
@@ -123,6 +123,34 @@ class TestPredict:
         assert model_input_scale(load_model(ckpt)) == 1.25
         with pytest.raises(ValueError, match="input_scale must be positive"):
             build_model("optstereo", input_scale=0.0)
+
+    def test_model_refine_is_the_default_and_filters_at_the_input_size(self) -> None:
+        # Echo at half size returns a blurred step (bilinear up-sampling of a two-valued red channel); a model whose
+        # config records refine "wmedian" runs the colour-weighted median on it at the INPUT's size, guided by the
+        # input's left image: exactly pvm_labeler.refine.weighted_median of the unfiltered output.
+        from pvm_labeler.refine import weighted_median
+
+        left = np.zeros((24, 48, 3), np.uint8)
+        left[:, :21, 0], left[:, 21:, 0] = 30, 10
+        left[:, 21:, 1] = 200  # the colour edge at column 21
+        echo = Echo()
+        echo.config = SimpleNamespace(input_scale=0.5, refine="wmedian")
+        raw = infer(echo, left, left, refine="none")
+        assert len(np.unique(raw)) > 2  # the up-sampling blurred the step
+        np.testing.assert_array_equal(infer(echo, left, left), weighted_median(raw, left))
+        assert len(np.unique(infer(echo, left, left)[:, 3:-3])) == 2  # and the median snapped it back
+        assert model_refine(echo) == "wmedian" and model_refine(Echo()) == "none"
+        with pytest.raises(ValueError, match="refine must be one of"):
+            infer(echo, left, left, refine="bilateral")
+
+    def test_refine_survives_the_checkpoint_and_is_validated(self, tmp_path: Path) -> None:
+        from optstereo.api import load_model
+        from optstereo.checkpoint import export_safetensors
+
+        ckpt = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", refine="wmedian", **TINY))
+        assert model_refine(load_model(ckpt)) == "wmedian"
+        with pytest.raises(ValueError, match="refine must be one of"):
+            build_model("optstereo", refine="median")
 
     def test_feature_bf16_inference_close_to_fp32(self, rng: np.random.Generator) -> None:
         # bf16 autocast (--amp bf16) runs the convs in bf16 (8-bit mantissa) but keeps correlation, lookup and the
@@ -263,7 +291,12 @@ class TestCli:
         res = runner.invoke(predict_main, ["--checkpoint", str(tiny_ckpt), "--out", str(tmp_path)])
         assert res.exit_code == 2 and "LEFT RIGHT" in res.output
         res = runner.invoke(eval_main, ["--labels", str(tmp_path), "--scale", "0.5", "--out", str(tmp_path / "o")])
-        assert res.exit_code == 2 and "--scale resizes a network's input" in res.output
+        assert res.exit_code == 2 and "act on a network's prediction" in res.output
+        res = runner.invoke(eval_main, ["--labels", str(tmp_path), "--refine", "wmedian", "--out", str(tmp_path / "o")])
+        assert res.exit_code == 2 and "act on a network's prediction" in res.output
+        res = runner.invoke(predict_main, ["--checkpoint", str(tiny_ckpt), "--refine", "median", "--out",
+                                           str(tmp_path)])
+        assert res.exit_code == 2 and "'median' is not one of" in res.output
         res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti99", "--out",
                                         str(tmp_path)])
         assert res.exit_code == 2 and "kitti99" in res.output and "kitti_unlabelled" in res.output

@@ -72,6 +72,22 @@ def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Pa
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
 
 
+def test_onnx_file_records_the_model_refine(tmp_path: Path, shared_data: Path) -> None:
+    # The post-filter travels in the metadata too: infer_onnx applies the file's, refine= overrides it.
+    from optstereo.export import export, infer_onnx, onnx_session
+    from pvm_labeler.refine import weighted_median
+
+    torch.manual_seed(0)
+    model = build_model("optstereo", iters=3, refine="wmedian", **TINY).eval()
+    session = onnx_session(export(model, tmp_path / "refined.onnx"))
+    assert session.get_modelmeta().custom_metadata_map["refine"] == "wmedian"
+    left, right = _kitti_crop(shared_data, 96, 200)
+    raw = infer_onnx(session, left, right, refine="none")
+    np.testing.assert_array_equal(infer_onnx(session, left, right), weighted_median(raw, left))
+    diff = np.abs(raw - infer(model, left, right, refine="none"))
+    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+
+
 def test_predict_backend_onnxruntime(exported: tuple[Path, Path], shared_data: Path, tmp_path: Path) -> None:
     ckpt, onnx_file = exported
     base = shared_data / "kitti15/training"

@@ -15,6 +15,8 @@ from pvm_labeler.common.configtools import reject_unknown_keys
 
 UPSAMPLERS = ("conv", "convex")
 NORMS = ("instance", "batch", "group", "none")
+#: Post-filters ``infer`` can apply to the full-resolution disparity (pvm_labeler.refine).
+REFINERS = ("none", "wmedian")
 
 
 @dataclass(frozen=True)
@@ -39,6 +41,9 @@ class ModelConfig:
         input_scale: the factor ``optstereo.inference.infer`` resizes a pair by before the network when the caller
             gives none (weights trained on enlarged crops run best on enlarged inputs); disparities always come
             back at the input's size and in its pixels. 1 = as given.
+        refine: the post-filter ``infer`` applies to the disparity at the input's size when the caller gives none:
+            "none", or "wmedian" (the colour-weighted median of ``pvm_labeler.refine`` at its default settings,
+            which snaps depth edges blurred by the 1/8 grid to the colour edges).
 
     HITNet ("hitnet", optstereo.models.hitnet) reads the shared fields with its own meaning: feature_dim = channels
     of its finest (1/2) U-Net level, hidden_dim = width of the propagation CNNs, corr_levels = resolutions (one
@@ -59,6 +64,7 @@ class ModelConfig:
     corr_scale: bool = True
     max_disp: int = 192
     input_scale: float = 1.0
+    refine: str = "none"
 
     @property
     def corr_channels(self) -> int:
@@ -76,6 +82,8 @@ class ModelConfig:
             raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
         if self.upsampler not in UPSAMPLERS:
             raise ValueError(f"model option upsampler must be one of {UPSAMPLERS}, got {self.upsampler!r}")
+        if self.refine not in REFINERS:
+            raise ValueError(f"model option refine must be one of {REFINERS}, got {self.refine!r}")
         if self.norm not in NORMS:
             raise ValueError(f"model option norm must be one of {NORMS}, got {self.norm!r}")
         return self
