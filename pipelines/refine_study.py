@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from pipelines.train_pretrained import EVAL_SETS, SHARED, _machine
@@ -93,8 +94,9 @@ def step_choose() -> dict[str, Any]:
 
 
 def step_score(params: MedianParams) -> dict[str, Any]:
-    """The cached network predictions and dense SGM, each with and without the filter, on every GT set (pooled; the
-    Middlebury scenes also one by one), with the metric code of ``optstereo-eval``."""
+    """The cached network predictions and dense SGM, each with and without the filter (SGM also with plain 3x3 and
+    5x5 medians), on every GT set (pooled; the Middlebury scenes also one by one), with the metric code of
+    ``optstereo-eval``."""
     from pipelines.dense_sgm import dense_sgm
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
@@ -107,15 +109,18 @@ def step_score(params: MedianParams) -> dict[str, Any]:
             net = np.load(PREDS / name / f"{ref.frame_id}.npy")
             sgm, _ = dense_sgm(sample.left, sample.right, cfg, max_disp, sample.max_disp)
             outs = {"network": net, "network + median": weighted_median(net, sample.left, params),
-                    "dense SGM": sgm, "dense SGM + median": weighted_median(sgm, sample.left, params)}
+                    "dense SGM": sgm, "dense SGM + median": weighted_median(sgm, sample.left, params),
+                    # the plain median filters of SGM's own post-processing (Hirschmueller 2008), for the record
+                    "dense SGM + 3x3 median": cv2.medianBlur(sgm, 3), "dense SGM + 5x5 median": cv2.medianBlur(sgm, 5)}
             for key in (name, *([f"{name}: {ref.frame_id}"] if name == "middlebury" else [])):
                 for method, disp in outs.items():
                     accs.setdefault(key, {}).setdefault(method, MetricAccumulator()).update(disp, sample.gt)
     rows = {key: {method: acc.compute() for method, acc in methods.items()} for key, methods in accs.items()}
     doc = {"what": "network (cached predictions) and dense SGM, each with and without the weighted median",
            "params": vars(params), "rows": rows, **_machine()}
-    methods = ("network", "network + median", "dense SGM", "dense SGM + median")
-    lines = ["| GT set | " + " | ".join(f"{m} bad-3 % / AEPE" for m in methods) + " |", "|---|" + "---:|" * 4]
+    methods = tuple(next(iter(rows.values())))
+    lines = ["| GT set | " + " | ".join(f"{m} bad-3 % / AEPE" for m in methods) + " |",
+             "|---|" + "---:|" * len(methods)]
     lines += [f"| {key} | " + " | ".join(f"{r[m]['bad3']:.2f} / {r[m]['epe']:.3f}" for m in methods) + " |"
               for key, r in rows.items()]
     write(RESULTS / f"score_{tag(params)}", doc, "\n".join(lines) + "\n")
