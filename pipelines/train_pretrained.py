@@ -40,6 +40,10 @@ BIN = Path(sys.executable).parent
 SHARED = Path("../shared/data")
 LABELS = Path("out/labels/kitti_unlabelled")  # kappa2 = 0.6: the default when version 1 was trained
 LABELS_K03 = Path("out/labels/kitti_unlabelled_k03")  # today's defaults (kappa2 = 0.3 votes, docs/pvm.md)
+#: LABELS_K03 with the left view's holes filled by dense SGM through the colour-weighted median, confidence 0.3:
+#: `pvm-label densify out/labels/kitti_unlabelled_k03 out/labels/kitti_unlabelled_k03_sgmwm --method sgm
+#: --fill-confidence 0.3`
+LABELS_SGMWM = Path("out/labels/kitti_unlabelled_k03_sgmwm")
 RUNS = Path("out/pretrained")
 RESULTS = Path("results/pretrained")
 RECIPE = Path("pipelines/recipes/cpu_main.yaml")
@@ -117,6 +121,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
                                             "--iters", "8", "--scale-range", "1.75,2.0"]),
     ("seed_m29", "scale15_k", LABELS_K03, ["--steps", "4000", "--lr", "1e-4", "--seed", "29", "--amp", "bf16",
                                            "--iters", "8", "--scale-range", "1.5,1.75"]),
+    ("sgmfill_o", "scale175_m", LABELS_SGMWM, ["--steps", "4000", "--lr", "1e-4", "--seed", "30", "--amp", "bf16",
+                                               "--iters", "8", "--scale-range", "1.5,1.75"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
@@ -293,9 +299,11 @@ def step_baselines() -> dict[str, Any]:
     return out
 
 
-def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS, scale: float | None = None) -> dict[str, Any]:
+def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS, scale: float | None = None,
+              refine: str | None = None) -> dict[str, Any]:
     """The network (a RUN_DIR under out/pretrained, a checkpoint path, or 'pretrained') on every GT set, at input
-    ``scale`` (None: the model's own, which each summary records as ``input_scale``)."""
+    ``scale`` and with post-filter ``refine`` (None: the model's own, which each summary records as ``input_scale``
+    and ``refine``)."""
     from optstereo.api import load_model
     from optstereo.evaluate import evaluate_model
 
@@ -308,7 +316,7 @@ def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS, scale:
         out["train_summary"] = json.loads(summary_path.read_text())
     for set_name, reader, root, _ in EVAL_SETS:
         result = evaluate_model(model, reader, SHARED / root, iters=iters, out_dir=RUNS / "eval" / name / set_name,
-                                save_maps=set_name == "kitti15", scale=scale)
+                                save_maps=set_name == "kitti15", scale=scale, refine=refine)
         out[set_name] = {"summary": result.summary, "frames": result.rows}
         s = result.summary
         print(f"{name} {set_name}: bad3 {s['bad3']:.2f} %, D1 {s['d1_all']:.2f} %, EPE {s['epe']:.3f} px, "
@@ -505,6 +513,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--name", help="result name for eval (default: the run's name)")
     parser.add_argument("--iters", type=int, default=TEST_ITERS)
     parser.add_argument("--scale", type=float, help="eval: input scale (default: the model's own)")
+    parser.add_argument("--eval-refine", choices=("none", "wmedian"),
+                        help="eval: post-filter (default: the model's own)")
     parser.add_argument("--input-scale", type=float, default=1.0, help="ship: the default input scale to record")
     parser.add_argument("--refine", choices=("none", "wmedian"), default="none",
                         help="ship: the default post-filter to record")
@@ -522,7 +532,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.step == "baselines":
         step_baselines()
     elif args.step == "eval":
-        step_eval(args.run, args.name, args.iters, args.scale)
+        step_eval(args.run, args.name, args.iters, args.scale, args.eval_refine)
     elif args.step == "ship":
         step_ship(args.run, args.input_scale, args.refine)
     elif args.step == "soup":

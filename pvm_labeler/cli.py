@@ -259,13 +259,17 @@ def convert_cmd(shard_dir: Path, out: Path, compression: str) -> None:
               help="Largest RMS residual (px) of a superpixel's plane fit that may fill its holes.")
 @click.option("--fill-confidence", type=click.FloatRange(0, 1, min_open=True), default=0.5, show_default=True,
               help="Confidence of the filled pixels (their weight in a confidence-weighted L_P).")
-def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fill_confidence: float) -> None:
-    """Rewrite SHARD_DIR into OUT with each view's label holes filled by one plane per superpixel."""
+@click.option("--method", type=click.Choice(("planes", "sgm")), default="planes", show_default=True,
+              help="planes: one plane per superpixel, both views; sgm: the left view's holes from dense SGM through "
+                   "the colour-weighted median.")
+def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fill_confidence: float,
+                method: str) -> None:
+    """Rewrite SHARD_DIR into OUT with label holes filled (one plane per superpixel, or filtered dense SGM)."""
     from pvm_labeler.densify import densify
     from pvm_labeler.shards import read_index
 
     try:
-        densify(shard_dir, out, region_size, max_rms, fill_confidence, progress=True)
+        densify(shard_dir, out, region_size, max_rms, fill_confidence, progress=True, method=method)
     except PVMError as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {read_index(out).num_samples} densified samples into {out}")

@@ -194,3 +194,49 @@ def test_an_interrupted_densify_resumes_only_the_same_settings(tmp_path: Path, m
     calls = _count_calls(monkeypatch)
     densify(src, tmp_path / "dense2", region_size=8, max_rms=0.2)
     assert len(calls) == 6 and read_index(tmp_path / "dense2").raw["densify"]["max_rms"] == 0.2
+
+
+def test_sgm_method_fills_the_left_view_from_filtered_sgm(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # The left view's holes take exactly the weighted median of the row-filled dense SGM (a fake matcher here: a
+    # known map with NaN streaks and one non-positive value); labels, the right view and the images stay.
+    import pvm_labeler.dense as dense
+    from pvm_labeler.refine import weighted_median
+
+    hole = (slice(10, 14), slice(20, 26))
+    records, _ = zip(*(_record(f"f{i}", hole) for i in range(2)), strict=True)
+    src = write_shard_dir(tmp_path / "src", records, {"k": 6, "max_disp": 64}, shard_size=2)
+    h, w = records[0].label.shape
+    sgm = (5.0 + np.arange(w, dtype=np.float32) / 10)[None].repeat(h, 0)
+    sgm[11, 18:23] = np.nan  # a streak the row fill closes
+    sgm[13:] = -1.0  # a region the median keeps negative: its hole pixels (row 13) stay empty
+    seen = []
+
+    def fake_sgm_left(left, right, cfg, max_disp):
+        seen.append(max_disp)
+        return sgm.copy(), 0.0
+
+    monkeypatch.setattr(dense, "sgm_left", fake_sgm_left)
+    result = CliRunner().invoke(pvm_main, ["densify", str(src), str(tmp_path / "dense"), "--method", "sgm",
+                                           "--fill-confidence", "0.3"])
+    assert result.exit_code == 0, result.output
+    assert seen == [64, 64]  # the labeler's search range from the shards' config
+    index = read_index(tmp_path / "dense")
+    assert index.raw["densify"]["method"] == "sgm" and index.raw["densify"]["views"] == "left"
+    filled = weighted_median(dense.fill_rows_nearest(sgm), records[0].left)
+    with open_shard(index.shards[0][0]) as h5:
+        for record in records:
+            new = read_sample(h5, record.frame_id)
+            labelled = np.isfinite(record.label)
+            np.testing.assert_array_equal(new.label[labelled], record.label[labelled])
+            want = np.where(filled[hole] > 0, filled[hole], np.nan)
+            np.testing.assert_array_equal(new.label[hole], want)
+            assert np.isnan(new.label[13, 20:26]).all() and np.isfinite(new.label[10:13, 20:26]).all()
+            assert new.attrs["densify_filled_left"] == np.isfinite(want).sum() == 18
+            np.testing.assert_allclose(new.confidence[hole][np.isfinite(want)], 0.3, atol=1e-3)
+            np.testing.assert_array_equal(new.label_right, record.label_right)
+            np.testing.assert_array_equal(new.left, record.left)
+
+
+def test_densify_refuses_an_unknown_method(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="method must be one of"):
+        densify(tmp_path, tmp_path / "out", method="poisson")
