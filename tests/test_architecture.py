@@ -106,7 +106,15 @@ def test_models_know_no_training() -> None:
 
 
 def test_the_trainer_reaches_the_labeler_only_through_the_base_and_the_shard_schema() -> None:
-    assert _offenders("optstereo", ("pvm_labeler",), allowed=("pvm_labeler.common", "pvm_labeler.shards")) == {}
+    # and the disparity post-filter both programs apply (numba, so not in the base): infer's --refine, densify's fill
+    assert _offenders("optstereo", ("pvm_labeler",), allowed=("pvm_labeler.common", "pvm_labeler.shards",
+                                                               "pvm_labeler.refine")) == {}
+
+
+def test_the_post_filter_brings_nothing_else_of_the_labeler() -> None:
+    """What optstereo may import of the labeler besides the base: pvm_labeler.refine, which uses only its kernel."""
+    labeler = {n for n in imported_modules(ROOT / "pvm_labeler" / "refine.py") if n.startswith("pvm_labeler")}
+    assert labeler and all(n.startswith("pvm_labeler.kernels.wmedian") for n in labeler), labeler
 
 
 def test_no_module_has_more_than_one_job() -> None:
