@@ -13,7 +13,8 @@ GT set of ../shared/data against dense SGM, export the weights.
                                                       bad-3, so the shipped model is the recipe without it;
                                                       version 5: long_conf7, a CONTINUE run; version 9:
                                                       scale175_m, --input-scale 1.625; version 10: the same
-                                                      weights, --refine wmedian)
+                                                      weights, --refine wmedian; version 11: sgmfill_o,
+                                                      --input-scale 1.625 --refine wmedian)
     python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
@@ -162,9 +163,11 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("scale15_l", "+ 3000 steps, the same recipe, evaluated at input scale 1.5 (measured, not shipped: 0.15 points "
      "short of its rule)", 3000, ""),
     ("scale175_m", "`scale15_k` + 4000 steps in bf16 at N_s = 8 with scale augmentation 1.5-1.75, evaluated at its "
-     "input scale 1.625: version 9, shipped", 4000, "scale15_k"),
+     "input scale 1.625: version 9 (version 10: these weights + the wmedian post-filter)", 4000, "scale15_k"),
     ("scale2_n", "+ 4000 steps in bf16 at N_s = 8 with scale augmentation 1.75-2.0, evaluated at its input scale "
      "1.875 (measured, not shipped: 0.48 points short of its rule)", 4000, ""),
+    ("sgmfill_o", "`scale175_m` + 4000 steps, its recipe, on labels whose left-view holes hold dense SGM through the "
+     "wmedian filter (confidence 0.3), evaluated at 1.625 with wmedian: version 11, shipped", 4000, "scale175_m"),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
@@ -467,7 +470,7 @@ def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None
     caption = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM "
                f"and the target {target:.2f} % dashed; each point at the input scale its table row names: 1 up to "
                f"`gpu_i`, 1.25 for `scale8_j`, 1.5 for `scale15_k` and `scale15_l`, 1.625 for `scale175_m`, "
-               f"1.875 for `scale2_n`).")
+               f"1.875 for `scale2_n`, 1.625 with the wmedian post-filter for `sgmfill_o`).")
     if more is None:
         return caption
     return (f"{caption} If the trend held, KITTI 2015 would reach {target:.2f} % after about {more[0]:,.0f} more "
