@@ -278,9 +278,9 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     """
     from optstereo.api import load_model, predict
     from optstereo.inference import model_input_scale
-    from pipelines.dense_sgm import dense_sgm
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.dense import dense_sgm
     from pvm_labeler.multiscale import label_pair
 
     if dataset not in DATASETS:

@@ -97,9 +97,9 @@ def step_score(params: MedianParams) -> dict[str, Any]:
     """The cached network predictions and dense SGM, each with and without the filter (SGM also with plain 3x3 and
     5x5 medians), on every GT set (pooled; the Middlebury scenes also one by one), with the metric code of
     ``optstereo-eval``."""
-    from pipelines.dense_sgm import dense_sgm
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.dense import dense_sgm
 
     cfg = LabelerConfig()
     accs: dict[str, dict[str, MetricAccumulator]] = {}

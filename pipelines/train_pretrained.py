@@ -282,9 +282,9 @@ def step_continue() -> None:
 def step_baselines() -> dict[str, Any]:
     """Dense full-resolution SGM (the labeler's matcher: census 5x5, 8 paths, P1/P2 as labelled) on every GT set."""
     from optstereo.evaluate import Frame, evaluate_frames
-    from pipelines.dense_sgm import dense_sgm
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.dense import dense_sgm
 
     cfg = LabelerConfig()
     out: dict[str, Any] = {"what": "dense SGM, NaN filled by the nearest valid value on the row", **_machine()}

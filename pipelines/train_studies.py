@@ -213,9 +213,9 @@ def labels_eval_command() -> list[str]:
 def step_sgm_dense() -> dict[str, dict]:
     """Full-resolution SGM (left view, no LR check, no filtering) on the 15 frames, scored three ways."""
     from optstereo.evaluate import Frame, evaluate_frames
-    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.dense import fill_rows_nearest, sgm_left
     from pvm_labeler.shards import read_index
 
     index_cfg = json.loads((LABELS / "index.json").read_text())["config"]
@@ -348,9 +348,9 @@ def plot_overview(path: Path, frame_index: int = 0) -> None:
 
     from optstereo.checkpoint import build_model_from_checkpoint
     from optstereo.inference import infer
-    from pipelines.dense_sgm import fill_rows_nearest, sgm_left
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
+    from pvm_labeler.dense import fill_rows_nearest, sgm_left
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     ref = discover("kitti15", DATA_ROOT)[frame_index]

@@ -1,5 +1,7 @@
-"""Dense left-view SGM: the labeler's matcher at full resolution, no LR check, no filtering, holes filled along the
-row. The evaluation's baseline (pipelines/dense_sgm.py) and the hole fill of ``pvm-label densify --method sgm``."""
+"""Dense left-view SGM: the labeler's matcher at full resolution, no LR check, no filtering, holes filled by the
+nearest valid value on their row. The baseline the network must beat (the evaluation's ``dense_sgm``, used by
+pipelines/train_pretrained.py, error_regions.py, refine_study.py, train_studies.py) and, filtered, the hole fill of
+``pvm-label densify --method sgm``."""
 
 from __future__ import annotations
 
@@ -37,3 +39,15 @@ def sgm_left(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     t0 = time.perf_counter()
     res, _ = sgm_pair(_to_grey(left, "left"), _to_grey(right, "right"), cfg, max_disp=max_disp, right_view=False)
     return res.disp, time.perf_counter() - t0
+
+
+#: Search range of a GT set that states none and a pair that records none (the eval's dense-SGM baseline).
+FALLBACK_MAX_DISP = 64
+
+
+def dense_sgm(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, set_max_disp: int | None,
+              pair_max_disp: int | None = None) -> tuple[np.ndarray, float]:
+    """The evaluation's dense-SGM baseline of one pair: :func:`sgm_left` over the set's search range (else the
+    pair's own, else FALLBACK_MAX_DISP), holes filled along the row. Returns ((H, W) float32, seconds of SGM)."""
+    disp, seconds = sgm_left(left, right, cfg, set_max_disp or pair_max_disp or FALLBACK_MAX_DISP)
+    return fill_rows_nearest(disp), seconds

@@ -76,35 +76,36 @@ def densify_view(image: npt.NDArray[np.uint8], label: npt.NDArray[np.float32], c
                  region_size: int, max_rms: float, fill_confidence: float
                  ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int]:
     """One view: (label with the plane fills added, confidence with ``fill_confidence`` there, pixels filled)."""
-    fills = plane_fill(image, label, region_size, max_rms)
-    filled = np.isfinite(fills) & ~np.isfinite(label)
+    return add_fills(label, confidence, plane_fill(image, label, region_size, max_rms), fill_confidence)
+
+
+def add_fills(label: npt.NDArray[np.float32], confidence: npt.NDArray[np.float32], fills: npt.NDArray[np.float32],
+              fill_confidence: float) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int]:
+    """(label with ``fills`` in its holes, confidence with ``fill_confidence`` there, pixels filled); (H, W) float32.
+
+    Labelled pixels never change. Non-finite and non-positive fills (a plane extrapolated past the horizon, a
+    matcher's invalid value) are no disparity: their holes stay empty.
+    """
+    filled = ~np.isfinite(label) & np.isfinite(fills) & (fills > 0)
     dense = np.where(filled, fills, label).astype(np.float32)
-    # Negative fills (a plane extrapolated past the horizon) are no disparity: leave those holes empty.
-    bad = filled & (dense <= 0)
-    dense[bad] = np.nan
-    filled &= ~bad
     return dense, np.where(filled, np.float32(fill_confidence), confidence).astype(np.float32), int(filled.sum())
 
 
 def sgm_fill(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any) -> npt.NDArray[np.float32]:
     """(H, W) float32 dense left-view SGM of an (H, W, 3) uint8 pair (``cfg``: a LabelerConfig; its search range),
     holes filled along the row, through the colour-weighted median guided by the left image."""
-    from pvm_labeler.dense import fill_rows_nearest, sgm_left
+    from pvm_labeler.dense import dense_sgm
     from pvm_labeler.refine import weighted_median
 
-    disp, _ = sgm_left(left, right, cfg, cfg.max_disp)
-    return weighted_median(fill_rows_nearest(disp), left)
+    return weighted_median(dense_sgm(left, right, cfg, cfg.max_disp)[0], left)
 
 
 def densify_sgm_view(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], label: npt.NDArray[np.float32],
                      confidence: npt.NDArray[np.float32], cfg: Any, fill_confidence: float
                      ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int]:
     """The left view: (label with :func:`sgm_fill` in its holes, confidence with ``fill_confidence`` there, pixels
-    filled). Non-positive or non-finite fills leave their holes empty."""
-    fills = sgm_fill(left, right, cfg)
-    filled = ~np.isfinite(label) & np.isfinite(fills) & (fills > 0)
-    dense = np.where(filled, fills, label).astype(np.float32)
-    return dense, np.where(filled, np.float32(fill_confidence), confidence).astype(np.float32), int(filled.sum())
+    filled), as :func:`add_fills`."""
+    return add_fills(label, confidence, sgm_fill(left, right, cfg), fill_confidence)
 
 
 def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, max_rms: float = MAX_RMS,

@@ -1,11 +1,11 @@
-"""pipelines/dense_sgm.py: the row fill by hand, and which search range the evaluation's dense-SGM baseline uses."""
+"""pvm_labeler/dense.py: the row fill by hand, and which search range the evaluation's dense-SGM baseline uses."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import pipelines.dense_sgm as ds
+import pvm_labeler.dense as ds
 from pvm_labeler.config import LabelerConfig
 
 N = np.nan

@@ -191,8 +191,8 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
     import types
 
     import optstereo.api
-    import pipelines.dense_sgm
     import pipelines.error_regions as er
+    import pvm_labeler.dense
     import pvm_labeler.multiscale
     from pvm_labeler.common.datasets import discover, load_pair
 
@@ -215,7 +215,7 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
     monkeypatch.setattr(optstereo.api, "load_model", lambda spec: model)
     monkeypatch.setattr(optstereo.api, "predict", fake_predict)
     monkeypatch.setattr(pvm_labeler.multiscale, "label_pair", fake_label)
-    monkeypatch.setattr(pipelines.dense_sgm, "sgm_left", lambda left, right, cfg, max_disp: (
+    monkeypatch.setattr(pvm_labeler.dense, "sgm_left", lambda left, right, cfg, max_disp: (
         np.full(left.shape[:2], 30.0, np.float32), 0.0))
     monkeypatch.setattr(er, "RESULTS", tmp_path)
     doc = er.run(["net=pretrained"], dataset="middlebury", edges=True)
