@@ -52,16 +52,22 @@ def weighted_median_kernel(disp, guide, todo, radius, inv_two_sigma2, out):
                         diff = guide[yy, xx, c] - guide[y, x, c]
                         dist2 += diff * diff
                     w = np.float32(np.exp(-dist2 * inv_two_sigma2))
-                    values[count] = d
-                    weights[count] = w
+                    # insertion into the sorted prefix: no allocation per pixel (this is the inference hot path),
+                    # and a window is nearly sorted along its rows on smooth surfaces
+                    i = count
+                    while i > 0 and values[i - 1] > d:
+                        values[i] = values[i - 1]
+                        weights[i] = weights[i - 1]
+                        i -= 1
+                    values[i] = d
+                    weights[i] = w
                     total += w
                     count += 1
             if count == 0:
                 continue
-            order = np.argsort(values[:count])
             half = total * np.float32(0.5)
             acc = np.float32(0.0)
-            for i in order:
+            for i in range(count):
                 acc += weights[i]
                 if acc >= half:
                     out[y, x] = values[i]
