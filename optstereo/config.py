@@ -135,7 +135,8 @@ class LossConfig(_Section):
         color_norm: how colour channels combine in the L1 term of L_R and in L_S's edge weights: "l1" = the L1
             norm over channels, as the paper's equations write it; "mean" = the channel mean (1/3 of it), which every
             run before issue 15 used, the shipped model included (a checkpoint without this key resumes with it).
-        conf_weight: weight L_P per pixel by the shards' PVM confidence (flip-swapped samples: weight 1).
+        conf_weight: weight L_P per pixel by the shards' PVM confidence (flip-swapped samples: the right view's
+            where the shards hold it, else 1).
         lambda_t: weight of the transformation self-supervision L_T ("learning by analogy", optstereo.analogy);
             0 = off (it costs a second forward/backward per step).
         analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).

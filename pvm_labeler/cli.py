@@ -262,14 +262,17 @@ def convert_cmd(shard_dir: Path, out: Path, compression: str) -> None:
 @click.option("--method", type=click.Choice(("planes", "sgm")), default="planes", show_default=True,
               help="planes: one plane per superpixel, both views; sgm: the left view's holes from dense SGM through "
                    "the colour-weighted median.")
+@click.option("--views", type=click.Choice(("left", "both")), default="left", show_default=True,
+              help="--method sgm: fill the left view's holes only, or the right view's too (writes "
+                   "confidence_right, the weight of the trainer's flip-swapped samples).")
 def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fill_confidence: float,
-                method: str) -> None:
+                method: str, views: str) -> None:
     """Rewrite SHARD_DIR into OUT with label holes filled (one plane per superpixel, or filtered dense SGM)."""
     from pvm_labeler.densify import densify
     from pvm_labeler.shards import read_index
 
     try:
-        densify(shard_dir, out, region_size, max_rms, fill_confidence, progress=True, method=method)
+        densify(shard_dir, out, region_size, max_rms, fill_confidence, progress=True, method=method, views=views)
     except PVMError as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {read_index(out).num_samples} densified samples into {out}")

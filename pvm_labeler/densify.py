@@ -12,13 +12,15 @@ from the labels, yet 600 steps of training on densified labels left KITTI 2015 u
 rewrites a shard directory with both views densified (left on the left image, right on the right image) and the
 filled pixels' confidence set to ``fill_confidence`` (what a confidence-weighted L_P gives them).
 
-    pvm-label densify SHARD_DIR OUT --method sgm [--fill-confidence 0.3]
+    pvm-label densify SHARD_DIR OUT --method sgm [--fill-confidence 0.3] [--views left|both]
 
-fills every hole of the LEFT view instead with the labeler's own matcher cleaned up: dense full-resolution SGM
+fills every hole of the left view instead with the labeler's own matcher cleaned up: dense full-resolution SGM
 (holes along the row filled, ``pvm_labeler.dense``) through the colour-weighted median (``pvm_labeler.refine``). On
 the 15 KITTI 2015 GT frames that map is right more often than the shipped network inside PVM's holes (RESULTS.md).
-The right view keeps its PVM labels: the shards hold one confidence map, the left view's, so right-view fills would
-weigh 1 in the trainer's flip-swapped samples.
+With ``--views both`` the right view's holes get the same treatment (SGM of the mirrored pair, guided by the right
+image) and the shards gain ``confidence_right`` (1 on PVM's right labels, ``fill_confidence`` on the fills), the
+weight of the trainer's flip-swapped samples; ``left`` (the default, what version 11 trained on) leaves the right
+view's PVM labels as they are.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ REGION_SIZE = 40
 MAX_RMS = 0.6
 FILL_CONFIDENCE = 0.5
 METHODS = ("planes", "sgm")
+VIEWS = ("left", "both")
 
 
 def fill_planes(segments: npt.NDArray[np.int32], label: npt.NDArray[np.float32], max_rms: float,
@@ -100,6 +103,13 @@ def sgm_fill(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any
     return weighted_median(dense_sgm(left, right, cfg, cfg.max_disp)[0], left)
 
 
+def sgm_fill_right(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any) -> npt.NDArray[np.float32]:
+    """(H, W) float32 dense RIGHT-view disparity of an (H, W, 3) uint8 pair: :func:`sgm_fill` of the mirrored,
+    swapped pair (the right image becomes a left one), mirrored back; positive, right(x) matches left(x + d)."""
+    return np.ascontiguousarray(sgm_fill(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]),
+                                         cfg)[:, ::-1])
+
+
 def densify_sgm_view(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], label: npt.NDArray[np.float32],
                      confidence: npt.NDArray[np.float32], cfg: Any, fill_confidence: float
                      ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int]:
@@ -109,19 +119,24 @@ def densify_sgm_view(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], 
 
 
 def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, max_rms: float = MAX_RMS,
-            fill_confidence: float = FILL_CONFIDENCE, progress: bool = False, method: str = "planes") -> Path:
+            fill_confidence: float = FILL_CONFIDENCE, progress: bool = False, method: str = "planes",
+            views: str = "left") -> Path:
     """Rewrite the shard directory ``src`` into ``out`` with both views' labels densified by :func:`plane_fill`
-    (``method`` "planes"), or the left view's by :func:`sgm_fill` ("sgm", the matcher's settings from the shards'
-    labeler config) (``progress``: a bar over the pairs on a terminal).
+    (``method`` "planes"), or by :func:`sgm_fill` ("sgm", the matcher's settings from the shards' labeler config):
+    the left view's, and with ``views`` "both" the right view's too (:func:`sgm_fill_right`, its weights in
+    ``confidence_right``). ``progress``: a bar over the pairs on a terminal.
 
     Raises:
-        ValueError: an unknown method, ``region_size`` < 4, ``max_rms`` <= 0 or ``fill_confidence`` outside (0, 1].
+        ValueError: an unknown method or views, ``region_size`` < 4, ``max_rms`` <= 0 or ``fill_confidence``
+            outside (0, 1].
     """
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.shards import read_index, rewrite
 
     if method not in METHODS:
         raise ValueError(f"densify: method must be one of {METHODS}, got {method!r}")
+    if views not in VIEWS:
+        raise ValueError(f"densify: views must be one of {VIEWS}, got {views!r}")
     if region_size < 4 or max_rms <= 0 or not 0 < fill_confidence <= 1:
         raise ValueError(f"densify: need region_size >= 4, max_rms > 0 and 0 < fill_confidence <= 1, got "
                          f"{region_size}, {max_rms}, {fill_confidence}")
@@ -131,9 +146,18 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
         def transform_sgm(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
             label, conf, n_left = densify_sgm_view(sample.left, sample.right, sample.label, sample.confidence, cfg,
                                                    fill_confidence)
-            return ({"label": label, "confidence": conf.astype(np.float16)}, {"densify_filled_left": n_left})
+            arrays = {"label": label, "confidence": conf.astype(np.float16)}
+            if views == "left":
+                return arrays, {"densify_filled_left": n_left}
+            # PVM's right labels weigh 1, as the trainer weighed a flip-swapped sample before this map existed.
+            labelled = np.isfinite(sample.label_right).astype(np.float32)  # 1 on labels, 0 elsewhere
+            label_right, conf_right, n_right = add_fills(sample.label_right, labelled,
+                                                         sgm_fill_right(sample.left, sample.right, cfg),
+                                                         fill_confidence)
+            return ({**arrays, "label_right": label_right, "confidence_right": conf_right.astype(np.float16)},
+                    {"densify_filled_left": n_left, "densify_filled_right": n_right})
 
-        settings = {"method": "sgm", "filter": "wmedian", "fill_confidence": fill_confidence, "views": "left"}
+        settings = {"method": "sgm", "filter": "wmedian", "fill_confidence": fill_confidence, "views": views}
         return rewrite(src, out, transform=transform_sgm, extra={"densified_from": str(src), "densify": settings},
                        progress=progress)
 

@@ -237,6 +237,50 @@ def test_sgm_method_fills_the_left_view_from_filtered_sgm(monkeypatch: pytest.Mo
             np.testing.assert_array_equal(new.left, record.left)
 
 
+def test_sgm_method_with_both_views_fills_the_right_view_from_the_mirrored_pair(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # The fake matcher tells the mirrored pair (right image flipped as "left") by its content and answers with a
+    # map rising along x: the right view's fills must be that map's filtered version, mirrored back.
+    import pvm_labeler.dense as dense
+    from pvm_labeler.refine import weighted_median
+
+    hole = (slice(10, 14), slice(20, 26))
+    record, _ = _record("f0", hole)
+    rng = np.random.default_rng(0)
+    record.left = rng.integers(0, 255, record.left.shape, dtype=np.uint8)
+    record.right = rng.integers(0, 255, record.right.shape, dtype=np.uint8)
+    src = write_shard_dir(tmp_path / "src", [record], {"k": 6, "max_disp": 64})
+    h, w = record.label.shape
+    ramp = (5.0 + np.arange(w, dtype=np.float32) / 10)[None].repeat(h, 0)
+    mirrored = []
+
+    def fake_sgm_left(left, right, cfg, max_disp):
+        mirrored.append(np.array_equal(left, record.right[:, ::-1]) and np.array_equal(right, record.left[:, ::-1]))
+        return (ramp + 20 if mirrored[-1] else ramp).copy(), 0.0
+
+    monkeypatch.setattr(dense, "sgm_left", fake_sgm_left)
+    result = CliRunner().invoke(pvm_main, ["densify", str(src), str(tmp_path / "dense"), "--method", "sgm",
+                                           "--fill-confidence", "0.3", "--views", "both"])
+    assert result.exit_code == 0, result.output
+    assert mirrored == [False, True]
+    index = read_index(tmp_path / "dense")
+    assert index.raw["densify"]["views"] == "both" and verify(tmp_path / "dense") == []
+    want_left = weighted_median(ramp, record.left)
+    want_right = weighted_median(ramp + 20, np.ascontiguousarray(record.right[:, ::-1]))[:, ::-1]
+    with open_shard(index.shards[0][0]) as h5:
+        new = read_sample(h5, "f0")
+    labelled = np.isfinite(record.label_right)
+    np.testing.assert_array_equal(new.label[hole], want_left[hole])
+    np.testing.assert_array_equal(new.label_right[hole], want_right[hole])
+    np.testing.assert_array_equal(new.label_right[labelled], record.label_right[labelled])
+    assert (new.label_right[hole] > 24).all()  # the mirrored map (>= 25), not the left view's (< 7)
+    np.testing.assert_allclose(new.confidence_right[hole], 0.3, atol=1e-3)
+    assert (new.confidence_right[labelled] == 1).all()
+    assert new.attrs["densify_filled_right"] == new.attrs["densify_filled_left"] == 24
+
+
 def test_densify_refuses_an_unknown_method(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="method must be one of"):
         densify(tmp_path, tmp_path / "out", method="poisson")
+    with pytest.raises(ValueError, match="views must be one of"):
+        densify(tmp_path, tmp_path / "out", method="sgm", views="right")

@@ -237,6 +237,24 @@ def test_stream_with_confidence_crops_it_like_the_label(tmp_path: Path) -> None:
     assert torch.equal(flipped[4], torch.ones_like(flipped[4]))  # no right-view confidence: weight 1
 
 
+def test_flip_swapped_samples_take_the_right_views_confidence_mirrored(tmp_path: Path) -> None:
+    # A right-view confidence that varies along x (0.01 * x on labels) shows both its use and its mirroring.
+    rng = np.random.default_rng(3)
+    left, right = make_synthetic_pair(rng, 16, 40, 4)
+    label, label_right = np.full((16, 40), 4.0, np.float32), np.full((16, 40), 4.5, np.float32)
+    conf_right = np.broadcast_to(np.arange(40, dtype=np.float32) / 100, (16, 40)).copy()
+    record = ShardRecord("f", left, right, label, label_right, np.full((16, 40), 0.7, np.float32),
+                         confidence_right=conf_right)
+    shards = write_shard_dir(tmp_path / "s", [record], config={"k": 1})
+    items = [next(iter(stream(shards, transform=TrainTransform(crop=(16, 40), flip_swap_p=p), with_ids=False,
+                              with_confidence=True))) for p in (1.0, 0.0)]
+    flipped, kept = items[0][4][0], items[1][4][0]
+    assert torch.equal(items[0][2][0], torch.full((16, 40), 4.5))  # the right label, flip-swapped
+    # float16 on disk: 0.01 * x within half a float16 step
+    torch.testing.assert_close(flipped, torch.from_numpy(conf_right[:, ::-1].copy()), atol=2e-4, rtol=0)
+    assert torch.equal(kept, torch.full((16, 40), 0.7, dtype=torch.float16).float())
+
+
 def test_unflippable_samples_are_counted_and_warned_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """GT shards without gt_right: flip-swap cannot apply to any sample; PVM shards always have label_right."""
     from optstereo.distributed import DistInfo

@@ -81,7 +81,7 @@ class ShardStream(IterableDataset):
         infinite: loop over epochs forever (training); False = one epoch.
         with_ids: append the frame id to every yielded tuple.
         with_confidence: also yield the PVM confidence (1, h, w) float32 after ``valid`` (weights of a
-            confidence-weighted L_P; flip-swapped samples get 1).
+            confidence-weighted L_P; flip-swapped samples get the right view's, else 1).
         skip_batches, batch_size: skip what the first ``skip_batches`` batches consumed (resume); worker roles
             are rotated so batch ``skip_batches`` comes from the worker that would have made it.
     """
@@ -189,7 +189,8 @@ class ShardStream(IterableDataset):
         return self._read(path, frame_id)[:4]
 
     def _read(self, path: str, frame_id: str) -> tuple:
-        """read() plus the sample's confidence (1 where the supervision is GT)."""
+        """read() plus the sample's confidence (1 where the supervision is GT) and the right view's (None when the
+        shards hold none, or the supervision is GT)."""
         sample = read_sample(self._open(path), frame_id)
         if self.supervision == "gt":
             if sample.gt is None:
@@ -197,8 +198,9 @@ class ShardStream(IterableDataset):
                     f"--supervision gt needs ground truth, but sample {frame_id!r} in shard {path} has no 'gt' "
                     "(label a dataset with GT, or use --supervision pvm)"
                 )
-            return sample.left, sample.right, sample.gt, sample.gt_right, np.ones_like(sample.gt)
-        return sample.left, sample.right, sample.label, sample.label_right, sample.confidence
+            return sample.left, sample.right, sample.gt, sample.gt_right, np.ones_like(sample.gt), None
+        return (sample.left, sample.right, sample.label, sample.label_right, sample.confidence,
+                sample.confidence_right)
 
     # -- iteration ----------------------------------------------------------------------------------------------
     def __iter__(self) -> Iterator[tuple]:
@@ -229,10 +231,11 @@ class ShardStream(IterableDataset):
             self.close()
 
     def _make(self, path: str, frame_id: str, rng: np.random.Generator) -> tuple:
-        left, right, label, label_right, confidence = self._read(path, frame_id)
+        left, right, label, label_right, confidence, confidence_right = self._read(path, frame_id)
         weight = confidence if self.with_confidence else None
         if self.transform is not None:
-            left, right, label, *rest = self.transform(left, right, label, label_right, rng, weight=weight)
+            left, right, label, *rest = self.transform(left, right, label, label_right, rng, weight=weight,
+                                                       weight_right=confidence_right)
             weight = rest[0] if rest else None
         else:
             h, w = left.shape[0] // 8 * 8, left.shape[1] // 8 * 8

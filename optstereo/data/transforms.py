@@ -105,13 +105,14 @@ class TrainTransform:
 
     def __call__(
         self, left: Image, right: Image, label: Disp, label_right: Disp | None, rng: np.random.Generator,
-        weight: Disp | None = None,
+        weight: Disp | None = None, weight_right: Disp | None = None,
     ) -> tuple[Image, Image, Disp] | tuple[Image, Image, Disp, Disp]:
         """Returns augmented (left, right, label); shapes (h, w, 3), (h, w, 3), (h, w).
 
         With ``weight`` (the left view's per-pixel PVM confidence) it returns (left, right, label, weight), the weight
-        cropped like the label. A flip-swapped sample gets weight 1 everywhere: the shards hold no right-view
-        confidence. The random draws are the same with or without a weight.
+        cropped like the label. A flip-swapped sample takes ``weight_right`` (the right view's, mirrored with it),
+        or weight 1 everywhere when the shards hold no right-view confidence. The random draws are the same with or
+        without weights.
         """
         # Draw the flip decision even when it cannot be applied so the random sequence does not depend on data.
         do_flip = rng.random() < self.flip_swap_p
@@ -120,7 +121,8 @@ class TrainTransform:
 
             left, right, label, label_right = flip_swap(left, right, label, label_right)
             if weight is not None:
-                weight = np.ones(label.shape, dtype=np.float32)
+                weight = (np.ones(label.shape, dtype=np.float32) if weight_right is None
+                          else np.ascontiguousarray(weight_right[:, ::-1], dtype=np.float32))
         if self.scale_range != (1.0, 1.0):
             left, right, label, weight = rescale_sample(left, right, label, weight, rng.uniform(*self.scale_range))
         left, right, label, weight = random_crop([left, right, label, weight], self.crop, rng)

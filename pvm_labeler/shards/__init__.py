@@ -9,6 +9,7 @@ Layout of a shard directory ``DIR``::
         label, label_right    (H, W) float32, NaN = no label (right view: right(x) matches left(x + d))
         confidence            (H, W) float16 in [0, 1], 0 where no label
         gt, gt_noc, gt_right  (H, W) float32, NaN = unknown -- only when the dataset has them
+        confidence_right      (H, W) float16, the right view's -- optional (densify --views both writes it)
         attrs: sources (JSON), eps (K,), factors (K,), seed, plus free extras (timings JSON ...)
       root attrs: schema_name, schema_version, config (JSON), git_commit, code_version, samples (JSON list)
 

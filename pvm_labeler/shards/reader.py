@@ -120,4 +120,5 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
         gt_noc=arrays.get("gt_noc"),
         gt_right=arrays.get("gt_right"),
         attrs={key: decode_attr(value) for key, value in group.attrs.items()},
+        confidence_right=None if "confidence_right" not in arrays else arrays["confidence_right"].astype(np.float32),
     )

@@ -41,7 +41,10 @@ OPTIONAL: dict[str, tuple[np.dtype, int]] = {
     "gt": (np.dtype(np.float32), 2),
     "gt_noc": (np.dtype(np.float32), 2),
     "gt_right": (np.dtype(np.float32), 2),
+    "confidence_right": (np.dtype(np.float16), 2),
 }
+#: Datasets stored as float16 and read back as float32.
+HALF_ON_DISK: tuple[str, ...] = ("confidence", "confidence_right")
 
 
 def blosc_plugin() -> Any:
@@ -92,6 +95,8 @@ class ShardRecord:
         label, label_right: (H, W) float32, NaN = no label.
         confidence: (H, W) float in [0, 1] (stored as float16).
         gt, gt_noc, gt_right: optional (H, W) float32, NaN = unknown.
+        confidence_right: optional (H, W) float in [0, 1], the right view's (stored as float16); absent, a reader
+            weighs the right-view labels 1.
         attrs: sources (dict), eps, factors (arrays), seed (int), and any JSON-able extras.
     """
 
@@ -104,12 +109,13 @@ class ShardRecord:
     gt: npt.NDArray[np.float32] | None = None
     gt_noc: npt.NDArray[np.float32] | None = None
     gt_right: npt.NDArray[np.float32] | None = None
+    confidence_right: npt.NDArray[np.floating] | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
 class ShardSample:
-    """One sample as read back (the trainer's view). ``confidence`` is float32; absent GT maps are None."""
+    """One sample as read back (the trainer's view). Confidences are float32; absent optional maps are None."""
 
     frame_id: str
     left: npt.NDArray[np.uint8]
@@ -121,6 +127,7 @@ class ShardSample:
     gt_noc: npt.NDArray[np.float32] | None
     gt_right: npt.NDArray[np.float32] | None
     attrs: dict[str, Any]
+    confidence_right: npt.NDArray[np.float32] | None = None
 
 
 @dataclass

@@ -11,7 +11,7 @@ import numpy as np
 
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards.reader import open_shard, read_index, read_sample, shard_sample_ids
-from pvm_labeler.shards.schema import INDEX_NAME, OPTIONAL, REQUIRED, TMP_SUFFIX, ShardSample, jsonable
+from pvm_labeler.shards.schema import HALF_ON_DISK, INDEX_NAME, OPTIONAL, REQUIRED, TMP_SUFFIX, ShardSample, jsonable
 
 
 def verify_shard(path: Path, expected_ids: Sequence[str] | None, config: dict[str, Any] | None) -> list[str]:
@@ -49,7 +49,7 @@ def _check_sample(path: Path, sample: ShardSample) -> list[str]:
         array = getattr(sample, name)
         if array is None:
             continue
-        if name == "confidence":
+        if name in HALF_ON_DISK:
             dtype = np.dtype(np.float32)  # converted on read
         if array.dtype != dtype or array.ndim != ndim or array.shape[:2] != shape:
             out.append(f"shard {path}: sample '{sample.frame_id}' array '{name}' is {array.dtype} {array.shape}, "
