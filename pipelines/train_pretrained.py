@@ -45,6 +45,10 @@ LABELS_K03 = Path("out/labels/kitti_unlabelled_k03")  # today's defaults (kappa2
 #: `pvm-label densify out/labels/kitti_unlabelled_k03 out/labels/kitti_unlabelled_k03_sgmwm --method sgm
 #: --fill-confidence 0.3`
 LABELS_SGMWM = Path("out/labels/kitti_unlabelled_k03_sgmwm")
+#: The same fills in BOTH views (the right view's from the mirrored pair, weighed by confidence_right): `pvm-label
+#: densify out/labels/kitti_unlabelled_k03 out/labels/kitti_unlabelled_k03_sgmwm2 --method sgm --fill-confidence 0.3
+#: --views both`
+LABELS_SGMWM2 = Path("out/labels/kitti_unlabelled_k03_sgmwm2")
 RUNS = Path("out/pretrained")
 RESULTS = Path("results/pretrained")
 RECIPE = Path("pipelines/recipes/cpu_main.yaml")
@@ -123,6 +127,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     ("seed_m29", "scale15_k", LABELS_K03, ["--steps", "4000", "--lr", "1e-4", "--seed", "29", "--amp", "bf16",
                                            "--iters", "8", "--scale-range", "1.5,1.75"]),
     ("sgmfill_o", "scale175_m", LABELS_SGMWM, ["--steps", "4000", "--lr", "1e-4", "--seed", "30", "--amp", "bf16",
+                                               "--iters", "8", "--scale-range", "1.5,1.75"]),
+    ("sgmboth_p", "sgmfill_o", LABELS_SGMWM2, ["--steps", "5000", "--lr", "1e-4", "--seed", "31", "--amp", "bf16",
                                                "--iters", "8", "--scale-range", "1.5,1.75"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
