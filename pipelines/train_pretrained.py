@@ -470,13 +470,18 @@ def steps_to_target(points: list[tuple[int, str, dict[str, float], str | None]],
 
 def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None]], sgm_bad3: float,
                        head: str | None = RECIPE_HEAD) -> str:
-    """The plot's caption and the steps to the target along ``head``'s ancestors (the recipe's own line)."""
+    """The plot's caption and the steps to the target along ``head``'s ancestors (the recipe's own line), or, once a
+    row meets the target, the first row that does."""
     target = TARGET_RATIO * sgm_bad3
-    more = steps_to_target(main_path(points, head), target)
     caption = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM "
                f"and the target {target:.2f} % dashed; each point at the input scale its table row names: 1 up to "
                f"`gpu_i`, 1.25 for `scale8_j`, 1.5 for `scale15_k` and `scale15_l`, 1.625 for `scale175_m`, "
                f"1.875 for `scale2_n`, 1.625 with the wmedian post-filter for `sgmfill_o`).")
+    met = [p for p in points if p[2]["kitti15"] <= target]
+    if met:
+        return (f"{caption} The KITTI 2015 target is met, first by `{met[0][1]}` ({met[0][2]['kitti15']:.2f} % after "
+                f"{met[0][0]:,} steps), so no trend is extrapolated.")
+    more = steps_to_target(main_path(points, head), target)
     if more is None:
         return caption
     return (f"{caption} If the trend held, KITTI 2015 would reach {target:.2f} % after about {more[0]:,.0f} more "

@@ -162,6 +162,9 @@ def test_lineage_steps_add_up_and_extrapolation_is_hand_computed(tmp_path: Path,
     image = cv2.imread(str(tmp_path / "lineage.png"))
     assert image is not None and image.shape[0] > 300 and image.shape[1] > 600
     assert "3,111 more steps" in tp.extrapolation_text(points, sgm_bad3=8.0)
+    # target 0.75 x 11.5 = 8.625: b (9.0) misses it, c (8.0) meets it first -> named, nothing extrapolated
+    met = tp.extrapolation_text(points, sgm_bad3=11.5)
+    assert "met, first by `c` (8.00 % after 4,000 steps)" in met and "more steps" not in met
 
 
 def test_lineage_side_branch_is_left_out_of_the_main_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -169,7 +172,7 @@ def test_lineage_side_branch_is_left_out_of_the_main_path(tmp_path: Path, monkey
     monkeypatch.setattr(tp, "LINEAGE", (("a", "", 1000, ""), ("b", "", 1000, ""), ("side", "", 9000, ""),
                                         ("c", "", 2000, "b")))
     doc = lambda k15: {s: {"summary": {"bad3": k15}} for s, *_ in tp.EVAL_SETS}  # noqa: E731
-    points = tp.lineage_points({"a": doc(10.0), "b": doc(9.0), "side": doc(1.0), "c": doc(8.0)})
+    points = tp.lineage_points({"a": doc(10.0), "b": doc(9.0), "side": doc(7.0), "c": doc(8.0)})
     assert [(p[0], p[1], p[3]) for p in points] == [(1000, "a", None), (2000, "b", "a"), (11000, "side", "b"),
                                                   (4000, "c", "b")]
     assert [p[1] for p in tp.main_path(points)] == ["a", "b", "c"]
