@@ -14,7 +14,8 @@ GT set of ../shared/data against dense SGM, export the weights.
                                                       version 5: long_conf7, a CONTINUE run; version 9:
                                                       scale175_m, --input-scale 1.625; version 10: the same
                                                       weights, --refine wmedian; version 11: sgmfill_o,
-                                                      --input-scale 1.625 --refine wmedian)
+                                                      --input-scale 1.625 --refine wmedian; version 12:
+                                                      sgmboth_p, the same flags)
     python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
@@ -173,7 +174,10 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("scale2_n", "+ 4000 steps in bf16 at N_s = 8 with scale augmentation 1.75-2.0, evaluated at its input scale "
      "1.875 (measured, not shipped: 0.48 points short of its rule)", 4000, ""),
     ("sgmfill_o", "`scale175_m` + 4000 steps, its recipe, on labels whose left-view holes hold dense SGM through the "
-     "wmedian filter (confidence 0.3), evaluated at 1.625 with wmedian: version 11, shipped", 4000, "scale175_m"),
+     "wmedian filter (confidence 0.3), evaluated at 1.625 with wmedian: version 11 (shipped until version 12)", 4000,
+     "scale175_m"),
+    ("sgmboth_p", "+ 5000 steps, the same recipe, on labels with those fills in the right view too (weighed by "
+     "confidence_right), evaluated at 1.625 with wmedian: version 12, shipped", 5000, ""),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
@@ -476,7 +480,8 @@ def extrapolation_text(points: list[tuple[int, str, dict[str, float], str | None
     caption = (f"Lineage plot: `results/pretrained/lineage.png` (bad-3 against cumulative training steps, dense SGM "
                f"and the target {target:.2f} % dashed; each point at the input scale its table row names: 1 up to "
                f"`gpu_i`, 1.25 for `scale8_j`, 1.5 for `scale15_k` and `scale15_l`, 1.625 for `scale175_m`, "
-               f"1.875 for `scale2_n`, 1.625 with the wmedian post-filter for `sgmfill_o`).")
+               f"1.875 for `scale2_n`, 1.625 with the wmedian post-filter for `sgmfill_o` and "
+               f"`sgmboth_p`).")
     met = [p for p in points if p[2]["kitti15"] <= target]
     if met:
         return (f"{caption} The KITTI 2015 target is met, first by `{met[0][1]}` ({met[0][2]['kitti15']:.2f} % after "
