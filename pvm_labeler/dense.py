@@ -41,6 +41,15 @@ def sgm_left(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: 
     return res.disp, time.perf_counter() - t0
 
 
+def sgm_views(left: np.ndarray, right: np.ndarray, cfg: LabelerConfig, max_disp: int | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(left-view, right-view) SGM disparity, (H, W) float32 with NaN where SGM gives none, of an (H, W, 3) uint8
+    pair from ONE census cost volume (the labeler's own right view: right(x) matches left(x + d))."""
+    res_l, res_r = sgm_pair(_to_grey(left, "left"), _to_grey(right, "right"), cfg, max_disp=max_disp,
+                            right_view=True)
+    return res_l.disp, res_r.disp
+
+
 #: Search range of a GT set that states none and a pair that records none (the eval's dense-SGM baseline).
 FALLBACK_MAX_DISP = 64
 

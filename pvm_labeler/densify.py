@@ -17,10 +17,10 @@ filled pixels' confidence set to ``fill_confidence`` (what a confidence-weighted
 fills every hole of the left view instead with the labeler's own matcher cleaned up: dense full-resolution SGM
 (holes along the row filled, ``pvm_labeler.dense``) through the colour-weighted median (``pvm_labeler.refine``). On
 the 15 KITTI 2015 GT frames that map is right more often than the shipped network inside PVM's holes (RESULTS.md).
-With ``--views both`` the right view's holes get the same treatment (SGM of the mirrored pair, guided by the right
-image) and the shards gain ``confidence_right`` (1 on PVM's right labels, ``fill_confidence`` on the fills), the
-weight of the trainer's flip-swapped samples; ``left`` (the default, what version 11 trained on) leaves the right
-view's PVM labels as they are.
+With ``--views both`` the right view's holes get the same treatment (the labeler's right-view SGM from the same cost
+volume, guided by the right image) and the shards gain ``confidence_right`` (1 on PVM's right labels,
+``fill_confidence`` on the fills), the weight of the trainer's flip-swapped samples; ``left`` (the default, what version
+11 trained on; version 12 trained on ``both``) leaves the right view's PVM labels as they are.
 """
 
 from __future__ import annotations
@@ -103,11 +103,18 @@ def sgm_fill(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any
     return weighted_median(dense_sgm(left, right, cfg, cfg.max_disp)[0], left)
 
 
-def sgm_fill_right(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any) -> npt.NDArray[np.float32]:
-    """(H, W) float32 dense RIGHT-view disparity of an (H, W, 3) uint8 pair: :func:`sgm_fill` of the mirrored,
-    swapped pair (the right image becomes a left one), mirrored back; positive, right(x) matches left(x + d)."""
-    return np.ascontiguousarray(sgm_fill(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]),
-                                         cfg)[:, ::-1])
+def sgm_fills_both(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any
+                   ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """(left-view :func:`sgm_fill`, the same for the right view), (H, W) float32, from one SGM cost volume
+    (:func:`pvm_labeler.dense.sgm_views`). The right view is the left view's recipe mirrored: its holes fill
+    along the row with ties going right (the mirror of ``fill_rows_nearest``'s left), and the median follows the
+    right image; this equals :func:`sgm_fill` of the mirrored, swapped pair, mirrored back."""
+    from pvm_labeler.dense import fill_rows_nearest, sgm_views
+    from pvm_labeler.refine import weighted_median
+
+    disp_l, disp_r = sgm_views(left, right, cfg, cfg.max_disp)
+    mirrored_fill = fill_rows_nearest(np.ascontiguousarray(disp_r[:, ::-1]))[:, ::-1]
+    return weighted_median(fill_rows_nearest(disp_l), left), weighted_median(mirrored_fill, right)
 
 
 def densify_sgm_view(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], label: npt.NDArray[np.float32],
@@ -123,7 +130,7 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
             views: str = "left") -> Path:
     """Rewrite the shard directory ``src`` into ``out`` with both views' labels densified by :func:`plane_fill`
     (``method`` "planes"), or by :func:`sgm_fill` ("sgm", the matcher's settings from the shards' labeler config):
-    the left view's, and with ``views`` "both" the right view's too (:func:`sgm_fill_right`, its weights in
+    the left view's, and with ``views`` "both" the right view's too (:func:`sgm_fills_both`, its weights in
     ``confidence_right``). ``progress``: a bar over the pairs on a terminal.
 
     Raises:
@@ -144,17 +151,17 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
         cfg = LabelerConfig.from_dict(read_index(src).config)
 
         def transform_sgm(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-            label, conf, n_left = densify_sgm_view(sample.left, sample.right, sample.label, sample.confidence, cfg,
-                                                   fill_confidence)
-            arrays = {"label": label, "confidence": conf.astype(np.float16)}
             if views == "left":
-                return arrays, {"densify_filled_left": n_left}
+                label, conf, n_left = densify_sgm_view(sample.left, sample.right, sample.label, sample.confidence,
+                                                       cfg, fill_confidence)
+                return {"label": label, "confidence": conf.astype(np.float16)}, {"densify_filled_left": n_left}
+            fill_l, fill_r = sgm_fills_both(sample.left, sample.right, cfg)
+            label, conf, n_left = add_fills(sample.label, sample.confidence, fill_l, fill_confidence)
             # PVM's right labels weigh 1, as the trainer weighed a flip-swapped sample before this map existed.
             labelled = np.isfinite(sample.label_right).astype(np.float32)  # 1 on labels, 0 elsewhere
-            label_right, conf_right, n_right = add_fills(sample.label_right, labelled,
-                                                         sgm_fill_right(sample.left, sample.right, cfg),
-                                                         fill_confidence)
-            return ({**arrays, "label_right": label_right, "confidence_right": conf_right.astype(np.float16)},
+            label_right, conf_right, n_right = add_fills(sample.label_right, labelled, fill_r, fill_confidence)
+            return ({"label": label, "confidence": conf.astype(np.float16), "label_right": label_right,
+                     "confidence_right": conf_right.astype(np.float16)},
                     {"densify_filled_left": n_left, "densify_filled_right": n_right})
 
         settings = {"method": "sgm", "filter": "wmedian", "fill_confidence": fill_confidence, "views": views}

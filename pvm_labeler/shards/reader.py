@@ -11,6 +11,7 @@ import numpy as np
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards.schema import (
     BLOSC_HINT,
+    HALF_ON_DISK,
     INDEX_NAME,
     OPTIONAL,
     REQUIRED,
@@ -102,6 +103,7 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
     group = h5[frame_id]
     try:
         arrays = {name: group[name][()] for name in (*REQUIRED, *OPTIONAL) if name in group}
+        arrays.update({name: arrays[name].astype(np.float32) for name in HALF_ON_DISK if name in arrays})
     except (OSError, KeyError) as exc:
         text = str(exc).lower()
         hint = f"; {BLOSC_HINT}" if blosc_plugin() is None or "filter" in text or "plugin" in text else ""
@@ -115,10 +117,10 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
         right=arrays["right"],
         label=arrays["label"],
         label_right=arrays["label_right"],
-        confidence=arrays["confidence"].astype(np.float32),
+        confidence=arrays["confidence"],
         gt=arrays.get("gt"),
         gt_noc=arrays.get("gt_noc"),
         gt_right=arrays.get("gt_right"),
         attrs={key: decode_attr(value) for key, value in group.attrs.items()},
-        confidence_right=None if "confidence_right" not in arrays else arrays["confidence_right"].astype(np.float32),
+        confidence_right=arrays.get("confidence_right"),
     )

@@ -138,7 +138,8 @@ def _record_arrays(record: ShardRecord) -> dict[str, np.ndarray]:
         raise ShardError(f"sample {record.frame_id}: left must be (H, W, 3) uint8, got {left.shape} {left.dtype}")
     shape = left.shape[:2]
     arrays: dict[str, np.ndarray] = {"left": left}
-    for name in ("right", "label", "label_right", "confidence", "gt", "gt_noc", "gt_right", "confidence_right"):
+    # every dataset the schema names (one list: an optional field added there is written without touching this)
+    for name in (n for n in (*schema.REQUIRED, *schema.OPTIONAL) if n != "left"):
         value = getattr(record, name)
         if value is None:
             if name in schema.REQUIRED:
