@@ -50,6 +50,9 @@ LABELS_SGMWM = Path("out/labels/kitti_unlabelled_k03_sgmwm")
 #: densify out/labels/kitti_unlabelled_k03 out/labels/kitti_unlabelled_k03_sgmwm2 --method sgm --fill-confidence 0.3
 #: --views both`
 LABELS_SGMWM2 = Path("out/labels/kitti_unlabelled_k03_sgmwm2")
+#: The same fills in both views at twice the confidence (0.6): `pvm-label densify out/labels/kitti_unlabelled_k03
+#: out/labels/kitti_unlabelled_k03_sgmwm6 --method sgm --fill-confidence 0.6 --views both`
+LABELS_SGMWM6 = Path("out/labels/kitti_unlabelled_k03_sgmwm6")
 RUNS = Path("out/pretrained")
 RESULTS = Path("results/pretrained")
 RECIPE = Path("pipelines/recipes/cpu_main.yaml")
@@ -131,6 +134,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
                                                "--iters", "8", "--scale-range", "1.5,1.75"]),
     ("sgmboth_p", "sgmfill_o", LABELS_SGMWM2, ["--steps", "5000", "--lr", "1e-4", "--seed", "31", "--amp", "bf16",
                                                "--iters", "8", "--scale-range", "1.5,1.75"]),
+    ("sgmconf_q", "pretrained", LABELS_SGMWM6, ["--steps", "4000", "--lr", "1e-4", "--seed", "32", "--amp", "bf16",
+                                                "--iters", "8", "--scale-range", "1.5,1.75"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
