@@ -17,11 +17,12 @@ PYTEST_ARGS ?=
 install: $(STAMP)
 
 # torch is installed first with an exact pin so pip takes the local CPU wheel instead of a multi-GB CUDA build.
+# --no-cache-dir: a fresh CI disk ran out of space (ENOSPC) holding the wheels twice, once in .venv, once in the cache.
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q "torch==2.13.0"
-	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -m pip install -q --no-cache-dir --upgrade pip
+	$(PY) -m pip install -q --no-cache-dir "torch==2.13.0"
+	$(PY) -m pip install -q --no-cache-dir -e ".[dev]"
 	touch $(STAMP)
 
 test: $(STAMP)
