@@ -10,7 +10,8 @@ from the labels, yet 600 steps of training on densified labels left KITTI 2015 u
     pvm-label densify SHARD_DIR OUT [--region-size 40] [--max-rms 0.6] [--fill-confidence 0.5]
 
 rewrites a shard directory with both views densified (left on the left image, right on the right image) and the
-filled pixels' confidence set to ``fill_confidence`` (what a confidence-weighted L_P gives them).
+filled pixels' confidence set to ``fill_confidence`` (what a confidence-weighted L_P gives them), the right view's
+in ``confidence_right`` (1 on PVM's right labels).
 
     pvm-label densify SHARD_DIR OUT --method sgm [--fill-confidence 0.3] [--views left|both]
 
@@ -94,6 +95,12 @@ def add_fills(label: npt.NDArray[np.float32], confidence: npt.NDArray[np.float32
     return dense, np.where(filled, np.float32(fill_confidence), confidence).astype(np.float32), int(filled.sum())
 
 
+def right_confidence(label_right: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """(H, W) float32: 1 on PVM's right-view labels, 0 in its holes. PVM keeps no right-view confidence; 1 is the
+    weight the trainer gave a flip-swapped sample before ``confidence_right`` existed, so PVM's labels keep it."""
+    return np.isfinite(label_right).astype(np.float32)
+
+
 def sgm_fill(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any) -> npt.NDArray[np.float32]:
     """(H, W) float32 dense left-view SGM of an (H, W, 3) uint8 pair (``cfg``: a LabelerConfig; its search range),
     holes filled along the row, through the colour-weighted median guided by the left image."""
@@ -158,8 +165,8 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
             fill_l, fill_r = sgm_fills_both(sample.left, sample.right, cfg)
             label, conf, n_left = add_fills(sample.label, sample.confidence, fill_l, fill_confidence)
             # PVM's right labels weigh 1, as the trainer weighed a flip-swapped sample before this map existed.
-            labelled = np.isfinite(sample.label_right).astype(np.float32)  # 1 on labels, 0 elsewhere
-            label_right, conf_right, n_right = add_fills(sample.label_right, labelled, fill_r, fill_confidence)
+            label_right, conf_right, n_right = add_fills(sample.label_right, right_confidence(sample.label_right),
+                                                         fill_r, fill_confidence)
             return ({"label": label, "confidence": conf.astype(np.float16), "label_right": label_right,
                      "confidence_right": conf_right.astype(np.float16)},
                     {"densify_filled_left": n_left, "densify_filled_right": n_right})
@@ -171,10 +178,11 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
     def transform(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         label, conf_left, n_left = densify_view(sample.left, sample.label, sample.confidence, region_size, max_rms,
                                                 fill_confidence)
-        label_right, _, n_right = densify_view(sample.right, sample.label_right, sample.confidence, region_size,
-                                               max_rms, fill_confidence)
-        # The shards keep one confidence map, the left view's (the trainer's flip-swapped samples weigh 1).
-        return ({"label": label, "label_right": label_right, "confidence": conf_left.astype(np.float16)},
+        label_right, conf_right, n_right = densify_view(sample.right, sample.label_right,
+                                                        right_confidence(sample.label_right), region_size, max_rms,
+                                                        fill_confidence)
+        return ({"label": label, "label_right": label_right, "confidence": conf_left.astype(np.float16),
+                 "confidence_right": conf_right.astype(np.float16)},
                 {"densify_filled_left": n_left, "densify_filled_right": n_right})
 
     settings = {"method": "planes", "region_size": region_size, "max_rms": max_rms, "min_labels": MIN_LABELS,

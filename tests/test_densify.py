@@ -121,6 +121,9 @@ def test_densify_rewrites_a_shard_directory(tmp_path: Path) -> None:
                     np.testing.assert_allclose(label[hole], plane[hole], atol=1e-3)
                     np.testing.assert_array_equal(label[np.isfinite(old.label)], old.label[np.isfinite(old.label)])
                 assert (new.confidence[hole] == 0.25).all()
+                # The right view's weights: the fill confidence on its fills, 1 on PVM's right labels.
+                assert (new.confidence_right[hole] == 0.25).all()
+                assert (new.confidence_right[np.isfinite(old.label_right)] == 1).all()
                 np.testing.assert_array_equal(new.confidence[np.isfinite(old.label)],
                                               old.confidence[np.isfinite(old.label)])
                 np.testing.assert_array_equal(new.left, old.left)
