@@ -164,7 +164,6 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
                 return {"label": label, "confidence": conf.astype(np.float16)}, {"densify_filled_left": n_left}
             fill_l, fill_r = sgm_fills_both(sample.left, sample.right, cfg)
             label, conf, n_left = add_fills(sample.label, sample.confidence, fill_l, fill_confidence)
-            # PVM's right labels weigh 1, as the trainer weighed a flip-swapped sample before this map existed.
             label_right, conf_right, n_right = add_fills(sample.label_right, right_confidence(sample.label_right),
                                                          fill_r, fill_confidence)
             return ({"label": label, "confidence": conf.astype(np.float16), "label_right": label_right,
