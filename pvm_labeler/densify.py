@@ -115,21 +115,14 @@ def sgm_fills_both(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cf
     """(left-view :func:`sgm_fill`, the same for the right view), (H, W) float32, from one SGM cost volume
     (:func:`pvm_labeler.dense.sgm_views`). The right view is the left view's recipe mirrored: its holes fill
     along the row with ties going right (the mirror of ``fill_rows_nearest``'s left), and the median follows the
-    right image; this equals :func:`sgm_fill` of the mirrored, swapped pair, mirrored back."""
+    right image; this equals :func:`sgm_fill` of the mirrored, swapped pair, mirrored back, up to a sub-pixel rounding
+    on a handful of pixels (the two cost-volume indexings; tested)."""
     from pvm_labeler.dense import fill_rows_nearest, sgm_views
     from pvm_labeler.refine import weighted_median
 
     disp_l, disp_r = sgm_views(left, right, cfg, cfg.max_disp)
     mirrored_fill = fill_rows_nearest(np.ascontiguousarray(disp_r[:, ::-1]))[:, ::-1]
     return weighted_median(fill_rows_nearest(disp_l), left), weighted_median(mirrored_fill, right)
-
-
-def densify_sgm_view(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], label: npt.NDArray[np.float32],
-                     confidence: npt.NDArray[np.float32], cfg: Any, fill_confidence: float
-                     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int]:
-    """The left view: (label with :func:`sgm_fill` in its holes, confidence with ``fill_confidence`` there, pixels
-    filled), as :func:`add_fills`."""
-    return add_fills(label, confidence, sgm_fill(left, right, cfg), fill_confidence)
 
 
 def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, max_rms: float = MAX_RMS,
@@ -159,15 +152,16 @@ def densify(src: Path | str, out: Path | str, region_size: int = REGION_SIZE, ma
 
         def transform_sgm(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
             if views == "left":
-                label, conf, n_left = densify_sgm_view(sample.left, sample.right, sample.label, sample.confidence,
-                                                       cfg, fill_confidence)
-                return {"label": label, "confidence": conf.astype(np.float16)}, {"densify_filled_left": n_left}
-            fill_l, fill_r = sgm_fills_both(sample.left, sample.right, cfg)
+                fill_l, fill_r = sgm_fill(sample.left, sample.right, cfg), None
+            else:
+                fill_l, fill_r = sgm_fills_both(sample.left, sample.right, cfg)
             label, conf, n_left = add_fills(sample.label, sample.confidence, fill_l, fill_confidence)
+            arrays = {"label": label, "confidence": conf.astype(np.float16)}
+            if fill_r is None:
+                return arrays, {"densify_filled_left": n_left}
             label_right, conf_right, n_right = add_fills(sample.label_right, right_confidence(sample.label_right),
                                                          fill_r, fill_confidence)
-            return ({"label": label, "confidence": conf.astype(np.float16), "label_right": label_right,
-                     "confidence_right": conf_right.astype(np.float16)},
+            return ({**arrays, "label_right": label_right, "confidence_right": conf_right.astype(np.float16)},
                     {"densify_filled_left": n_left, "densify_filled_right": n_right})
 
         settings = {"method": "sgm", "filter": "wmedian", "fill_confidence": fill_confidence, "views": views}
