@@ -59,7 +59,8 @@ RECIPE = Path("pipelines/recipes/cpu_main.yaml")
 WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
 #: Dense SGM through the weighted median the shipped model applies (``pipelines.refine_study score``).
 FILTERED_SGM = Path("results/refine/score_r5_s51.json")
-#: Committed weights of the lineage's unshipped head, so that a later session (a fresh checkout) can continue it.
+#: Committed weights a CONTINUE run starts from when its parent run is gone (a fresh checkout): the lineage's
+#: unshipped heads, and version 11 (sgmfill_o, the start of sgmboth_p and its control sgmleft_r).
 HEADS = RESULTS / "weights"
 TEST_ITERS = 8  # the run trains with N_s = 4; RAFT-style refinement keeps improving with more test iterations
 
@@ -136,6 +137,9 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
                                                "--iters", "8", "--scale-range", "1.5,1.75"]),
     ("sgmconf_q", "pretrained", LABELS_SGMWM6, ["--steps", "4000", "--lr", "1e-4", "--seed", "32", "--amp", "bf16",
                                                 "--iters", "8", "--scale-range", "1.5,1.75"]),
+    # sgmboth_p's control: the same start, seed and steps on left-only fills (HEADS/sgmfill_o = version 11's file)
+    ("sgmleft_r", "sgmfill_o", LABELS_SGMWM, ["--steps", "5000", "--lr", "1e-4", "--seed", "31", "--amp", "bf16",
+                                              "--iters", "8", "--scale-range", "1.5,1.75"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
