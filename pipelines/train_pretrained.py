@@ -6,6 +6,8 @@ GT set of ../shared/data against dense SGM, export the weights.
     python -m pipelines.train_pretrained branch      the ablation arms from the main run's checkpoint at analogy_start
     python -m pipelines.train_pretrained finish      the arm without L_T continued to the full schedule (version 1)
     python -m pipelines.train_pretrained continue    version 1 continued: --init, confidence-weighted L_P (CONTINUE)
+    python -m pipelines.train_pretrained continue R  only stage R of CONTINUE, from its parent's export or committed
+                                                      head (a fresh checkout has no out/)
     python -m pipelines.train_pretrained baselines   dense SGM (the labeler's matcher, holes filled along rows)
     python -m pipelines.train_pretrained eval RUN    a run (or 'pretrained') on every GT set -> results/pretrained/
     python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/ (version 1:
@@ -293,9 +295,24 @@ def continue_commands() -> dict[str, list[str]]:
     return cmds
 
 
-def step_continue() -> None:
-    """Run the CONTINUE stages in order, skipping finished ones (a summary.json) and resuming interrupted ones."""
-    for run, cmd in continue_commands().items():
+def step_continue(only: str | None = None) -> None:
+    """Run the CONTINUE stages in order, skipping finished ones (a summary.json) and resuming interrupted ones.
+
+    ``only`` runs (or resumes) that one stage from its parent's weights (a run's export or its committed head), the
+    way in for a fresh checkout, where the whole chain would retrain from version 1's run: ValueError when the stage
+    is unknown or its starting weights are nowhere on disk.
+    """
+    cmds = continue_commands()
+    if only is not None:
+        if only not in cmds:
+            raise ValueError(f"continue {only!r}: no such CONTINUE stage; expected one of {', '.join(cmds)}")
+        init = dict((run, init) for run, init, *_ in CONTINUE)[only]
+        start = init_weights(init)
+        if "--resume" not in cmds[only] and not start.exists():
+            raise ValueError(f"continue {only!r}: its starting weights {start} do not exist; run `continue {init}` "
+                             f"first, or commit {init}'s weights as {HEADS / (init + '.safetensors')}")
+        cmds = {only: cmds[only]}
+    for run, cmd in cmds.items():
         if not (RUNS / run / "summary.json").exists():
             _run(cmd)
 
@@ -539,7 +556,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("step", choices=("label", "train", "branch", "finish", "continue", "baselines", "eval", "ship",
                                              "soup", "report"))
-    parser.add_argument("run", nargs="?", default="arm_no_lt")
+    parser.add_argument("run", nargs="?",
+                        help="eval/ship: the run (default arm_no_lt); continue: only this stage; soup: its name")
     parser.add_argument("--name", help="result name for eval (default: the run's name)")
     parser.add_argument("--iters", type=int, default=TEST_ITERS)
     parser.add_argument("--scale", type=float, help="eval: input scale (default: the model's own)")
@@ -558,14 +576,19 @@ def main(argv: list[str] | None = None) -> None:
     elif args.step == "finish":
         step_finish()
     elif args.step == "continue":
-        step_continue()
+        try:
+            step_continue(args.run)
+        except ValueError as exc:
+            parser.exit(2, f"error: {exc}\n")
     elif args.step == "baselines":
         step_baselines()
     elif args.step == "eval":
-        step_eval(args.run, args.name, args.iters, args.scale, args.eval_refine)
+        step_eval(args.run or "arm_no_lt", args.name, args.iters, args.scale, args.eval_refine)
     elif args.step == "ship":
-        step_ship(args.run, args.input_scale, args.refine)
+        step_ship(args.run or "arm_no_lt", args.input_scale, args.refine)
     elif args.step == "soup":
+        if args.run is None:
+            parser.error(f"soup needs a name: one of {', '.join(SOUPS)}")
         step_soup(args.run)
     else:
         step_report()

@@ -105,6 +105,33 @@ def test_continue_stages_chain_skip_and_resume(tmp_path: Path, monkeypatch: pyte
 
 
 
+def test_continue_one_stage_from_its_parents_weights(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """`continue RUN` runs only that stage, from its parent's committed head when the parent's run dir is gone; an
+    unknown stage or missing starting weights is a clear error naming them, and nothing runs."""
+    monkeypatch.setattr(tp, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(tp, "HEADS", tmp_path / "heads")
+    ran: list[list[str]] = []
+    monkeypatch.setattr(tp, "_run", lambda cmd: ran.append([str(c) for c in cmd]))
+    run, init = next((run, init) for run, init, *_ in tp.CONTINUE if init != "pretrained")
+    with pytest.raises(ValueError, match=f"{init}.safetensors"):
+        tp.step_continue(run)
+    with pytest.raises(SystemExit):
+        tp.main(["continue", "no_such_stage"])
+    assert "no such CONTINUE stage" in capsys.readouterr().err and not ran
+    head = tmp_path / "heads" / f"{init}.safetensors"
+    head.parent.mkdir()
+    head.write_bytes(b"")
+    tp.step_continue(run)
+    assert len(ran) == 1 and ran[0][ran[0].index("--out") + 1] == str(tmp_path / "runs" / run)
+    assert ran[0][ran[0].index("--init") + 1] == str(head)
+    (tmp_path / "runs" / run).mkdir(parents=True)
+    (tmp_path / "runs" / run / "last.pt").write_bytes(b"")  # cut short: resumed, whatever its parent's weights
+    head.unlink()
+    tp.step_continue(run)
+    assert ran[1] == [str(tp.BIN / "optstereo-train"), "--resume", str(tmp_path / "runs" / run), "--quiet"]
+
+
 def test_init_weights_falls_back_to_the_committed_head(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A run's own export wins; without its directory, the committed head; neither: the export path (made earlier)."""
     monkeypatch.setattr(tp, "RUNS", tmp_path / "runs")
