@@ -29,9 +29,10 @@ pixel gets besides L_S) is lower at the wrong prediction than at the GT disparit
 ``--lr-check`` adds a third: the share of each region where the network agrees with its own right-view prediction
 (1 px LRDCC), and bad-3 of those pixels against the rest: how clean an L_T target kept by that test would be.
 ``--edges`` adds a fourth: the network and SGM by distance to the nearest depth edge of the GT (a jump of more than
-EDGE_JUMP px between GT-valid 4-neighbours), i.e. whether the errors sit at object boundaries. It needs dense GT
-(Middlebury, FlyingThings3D): KITTI's LiDAR GT leaves the pixels at depth edges out (no two GT-valid neighbours of
-its frames here differ by more than 1.1 px), so every KITTI pixel lands in "> 10 px" and the table says so.
+EDGE_JUMP px between GT-valid 4-neighbours), i.e. whether the errors sit at object boundaries, pooled and per
+frame. It needs dense GT (Middlebury, FlyingThings3D): KITTI's LiDAR GT leaves the pixels at depth edges out (no
+two GT-valid neighbours of its frames here differ by more than 1.1 px), so every KITTI pixel lands in "> 10 px" and
+the table says so.
 """
 
 from __future__ import annotations
@@ -117,17 +118,19 @@ def edge_masks(gt: npt.NDArray[np.float32], jump: float = EDGE_JUMP) -> dict[str
 
 
 def edge_table(total: dict[str, dict[str, int]], network: str) -> str:
-    """Markdown: per EDGE_BANDS band, its share of the GT pixels and the bad-3 % of the network and of dense SGM."""
+    """Markdown: per EDGE_BANDS band, its share of the GT pixels, the bad-3 % of the network and of dense SGM, and
+    its share of all the network's bad pixels."""
     n_all = max(sum(row["n"] for row in total.values()), 1)
+    bad_all = sum(row.get(network, 0) for row in total.values())
     if total.get(EDGE_BANDS[-1][0], {}).get("n", 0) == n_all:
         return (f"No depth edge in the GT: no two GT-valid neighbours differ by more than {EDGE_JUMP:g} px (sparse GT "
                 "leaves the edges out), so the split says nothing here.")
-    lines = ["| distance to the nearest depth edge | share of GT pixels % | network bad-3 % | dense SGM bad-3 % |",
-             "|---|---:|---:|---:|"]
+    lines = ["| distance to the nearest depth edge | share of GT pixels % | network bad-3 % | dense SGM bad-3 % | "
+             "share of the network's bad pixels % |", "|---|---:|---:|---:|---:|"]
     for name, _, _ in EDGE_BANDS:
         row = total.get(name, {"n": 0, network: 0, "sgm": 0})
         lines.append(f"| {name} | {100 * row['n'] / n_all:.1f} | {pct(row[network], row['n'])} | "
-                     f"{pct(row['sgm'], row['n'])} |")
+                     f"{pct(row['sgm'], row['n'])} | {pct(row[network], bad_all)} |")
     return "\n".join(lines)
 
 
@@ -297,6 +300,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     photo: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     reliability: dict[str, dict[str, dict[str, int]]] = {tag: {} for tag in named}
     edge_total: dict[str, dict[str, int]] = {}
+    edge_frames: dict[str, dict[str, dict[str, int]]] = {}  # per frame: a pooled set can hide one scene's edges
     frames = {}
     for ref in discover(reader, SHARED / root):
         sample = load_pair(ref)
@@ -309,7 +313,8 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
         frames[ref.frame_id] = counts
         add_counts(total, counts)
         if edges:
-            add_counts(edge_total, count_bad(edge_masks(sample.gt), sample.gt, {"sgm": sgm, **nets}))
+            edge_frames[ref.frame_id] = count_bad(edge_masks(sample.gt), sample.gt, {"sgm": sgm, **nets})
+            add_counts(edge_total, edge_frames[ref.frame_id])
         if photometric:
             for tag, pred in nets.items():
                 err = photo_errors(sample.left, sample.right, pred, color_norm)
@@ -335,11 +340,14 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     if edges:
         md += f"\n\n## By distance to the nearest depth edge (GT disparity jump > {EDGE_JUMP:g} px)\n\n"
         md += "\n\n".join(f"{_heading(tag, spec)}:\n\n{edge_table(edge_total, tag)}" for tag, spec in named.items())
+        if len(edge_frames) > 1:
+            md += "".join(f"\n\n### {frame}, {_heading(tag, spec)}:\n\n{edge_table(counts, tag)}"
+                           for frame, counts in edge_frames.items() for tag, spec in named.items())
     doc = {"dataset": dataset, "checkpoints": named, "scales": {key: scale for key, (_, scale) in runs.items()},
            "iters": TEST_ITERS, "bad_px": 3, "pooled": total, "frames": frames,
            **({"photometric": photo, "photometric_color_norm": color_norm} if photometric else {}),
            **({"lr_check": reliability} if lr else {}),
-           **({"edges": edge_total, "edge_jump_px": EDGE_JUMP} if edges else {}),
+           **({"edges": edge_total, "edge_frames": edge_frames, "edge_jump_px": EDGE_JUMP} if edges else {}),
            **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(doc, indent=1))

@@ -240,6 +240,11 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
     assert pooled["unlabelled, occ"]["n"] == want_occ > 0
     assert sum(row["n"] for row in doc["edges"].values()) == want_n  # the edge bands partition them too
     assert sum(row["net x1.5"] for row in doc["edges"].values()) == want_net
+    frames = doc["edge_frames"]  # per frame, and they add up to the pooled split
+    assert set(frames) == {ref.frame_id for ref in discover("middlebury", er.SHARED)}
+    for band, row in doc["edges"].items():
+        assert row == {key: sum(counts[band][key] for counts in frames.values()) for key in row}
+    assert "### middlebury2001-tsukuba, net x1.5" in (tmp_path / "middlebury.md").read_text()
     assert "## By distance to the nearest depth edge" in (tmp_path / "middlebury.md").read_text()
     assert (tmp_path / "middlebury.md").read_text().startswith("# Network errors by PVM region, Middlebury")
     with pytest.raises(ValueError, match="kitti2013"):
@@ -282,4 +287,4 @@ def test_edge_masks_by_hand() -> None:
     none = {name: {"n": 20 if name == names[3] else 0, "net": 0, "sgm": 0} for name in names}
     assert edge_table(none, "net").startswith("No depth edge in the GT")
     some = {name: {"n": 10, "net": 5, "sgm": 1} for name in names}
-    assert "| <= 2 px from a depth edge | 25.0 | 50.0 | 10.0 |" in edge_table(some, "net")
+    assert "| <= 2 px from a depth edge | 25.0 | 50.0 | 10.0 | 25.0 |" in edge_table(some, "net")
