@@ -107,12 +107,18 @@ def check_refine(refine: str) -> None:
         raise ValueError(f"refine must be one of {REFINERS}, got {refine!r}")
 
 
-def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], refine: str) -> npt.NDArray[np.float32]:
+def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], refine: str,
+                 device: torch.device | str = "cpu") -> npt.NDArray[np.float32]:
     """The post-filter ``refine`` ("none" or "wmedian", see ModelConfig.refine) on an (H, W) float32 disparity of the
-    (H, W, 3) uint8 left image."""
+    (H, W, 3) uint8 left image; on a CUDA ``device`` the median runs there (``optstereo.refine_torch``), on the CPU
+    in the labeler's numba kernel."""
     check_refine(refine)
     if refine == "none":
         return disp
+    if torch.device(device).type == "cuda":
+        from optstereo.refine_torch import weighted_median_torch
+
+        return weighted_median_torch(disp, left, device=device)
     from pvm_labeler.refine import weighted_median
 
     return weighted_median(disp, left)
@@ -156,7 +162,7 @@ def infer(
         disp = disparity_to_size(_network(model, left_s, right_s, iters, device, amp), left.shape[:2])
     else:
         disp = _network(model, left, right, iters, device, amp)
-    return apply_refine(disp, left, refine)
+    return apply_refine(disp, left, refine, device)
 
 
 def _network(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], iters: int | None,

@@ -5,8 +5,8 @@ median of ``--repeats`` calls after ``--warmup``, each bracketed by ``torch.cuda
 end to end through :func:`optstereo.inference.infer` (uint8 numpy in, numpy out: host copies and padding
 included). Rows: the shipped model (C = 128) and the paper-size network (C = 256, random weights: the time does
 not depend on them), float32 / TF32 / bf16 / fp16 autocast; then the float32 and TF32 forwards captured as CUDA
-graphs and replayed (no Python or kernel-launch overhead). "fp32" means TF32 off for convolutions too, which PyTorch
-leaves on by default.
+graphs and replayed (no Python or kernel-launch overhead); and the shipped post-filter (wmedian) on the CPU and on the
+GPU. "fp32" means TF32 off for convolutions too, which PyTorch leaves on by default.
 
     python -m pipelines.gpu.cuda_timing --out $OUT/cuda_timing.json
 """
@@ -117,6 +117,25 @@ def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int) -> dict[st
     return row
 
 
+def wmedian_rows(repeats: int, warmup: int) -> list[dict[str, Any]]:
+    """The shipped post-filter (``refine: wmedian``) on a KITTI-size disparity: the CPU's numba kernel (what infer
+    ran on every device before) against the torch one on the GPU (what infer runs on CUDA)."""
+    from optstereo.refine_torch import weighted_median_torch
+    from pvm_labeler.refine import weighted_median
+
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8)
+    coarse = rng.uniform(0, 100, (KITTI_HW[0] // 8 + 1, KITTI_HW[1] // 8 + 1)).astype(np.float32)
+    disp = np.kron(coarse, np.ones((8, 8), np.float32))[:KITTI_HW[0], :KITTI_HW[1]].copy()  # 8-px blocks: edges
+    rows = []
+    for what, fn in (("wmedian, numba on the CPU", lambda: weighted_median(disp, image)),
+                     ("wmedian, torch on CUDA", lambda: weighted_median_torch(disp, image, device="cuda"))):
+        seconds = cuda_median_s(fn, max(3, repeats // 4), min(warmup, 2))
+        rows.append({"what": what, "input": f"{KITTI_HW[0]}x{KITTI_HW[1]}", "ms": round(seconds * 1e3, 2)})
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -134,6 +153,7 @@ def main() -> None:
         rows += network_rows(shipped, "shipped (C=128)", args.repeats, args.warmup)
         rows += network_rows(paper, "paper size (C=256)", args.repeats, args.warmup)
         rows.append(end_to_end_row(shipped, args.repeats, args.warmup))
+        rows += wmedian_rows(args.repeats, args.warmup)
     for model, label in ((shipped, "shipped (C=128)"), (paper, "paper size (C=256)")):
         for precision in ("fp32", "tf32"):
             try:
