@@ -2,7 +2,8 @@
 # Everything a lent GPU is wanted for, in ONE device call of at most ~9.5 minutes (a task gets 15 minutes of device
 # time, the machine's start included, and no second start fits after a full call):
 #   1. PVM labels of the carried pack on 12 cores (lzf shards), in the background, while
-#   2. the gpu-marked tests run (tests/test_gpu.py: CUDA vs CPU, fp16 + GradScaler, bf16, L_T, predict);
+#   2. the gpu-marked tests run (tests/test_gpu.py: CUDA vs CPU, fp16 + GradScaler, bf16, L_T, predict; the
+#      wmedian filter on CUDA vs the CPU kernel, tests/test_refine_torch.py);
 #   3. KITTI-size inference time on CUDA, alone on the machine (pipelines/gpu/cuda_timing.py);
 #   4. continue.sh: the lineage's continuation at GPU size, sized to end by T0 + TOTAL_S.
 # Device: run(command="bash pipelines/gpu/session.sh", carry=[".carry/unl"], timeout_s=600)
@@ -22,7 +23,7 @@ echo "session start $(date -u +%FT%TZ), training ends by +$TOTAL_S s"
     --jobs "${LABEL_JOBS:-12}" --compression lzf --quiet > "$W/labels.log" 2>&1 && touch "$W/labels.ok" ) &
 labeller=$!
 
-timeout 200 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py > "$OUTD/gpu_tests.txt" 2>&1
+timeout 200 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_refine_torch.py > "$OUTD/gpu_tests.txt" 2>&1
 echo "gpu tests: exit $? ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
 wait "$labeller"
 echo "labels: exit $? at +$(( $(date +%s) - T0 )) s; $(tail -n 1 "$W/labels.log")"
