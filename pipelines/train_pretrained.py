@@ -191,6 +191,8 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
      "confidence_right), evaluated at 1.625 with wmedian: version 12, shipped", 5000, ""),
     ("sgmconf_q", "+ 4000 steps, the same recipe, the fills at confidence 0.6 instead of 0.3 (measured, not shipped: "
      "KITTI 2012 0.12 points over its rule)", 4000, ""),
+    ("sgmleft_r", "`sgmfill_o` + 5000 steps, `sgmboth_p`'s control: the same seed and recipe on left-only fills "
+     "(measured, not shipped: KITTI 2015 0.04 points over its rule)", 5000, "sgmfill_o"),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
