@@ -308,7 +308,7 @@ def step_continue(only: str | None = None) -> None:
     if only is not None:
         if only not in cmds:
             raise ValueError(f"continue {only!r}: no such CONTINUE stage; expected one of {', '.join(cmds)}")
-        init = dict((run, init) for run, init, *_ in CONTINUE)[only]
+        init = next(parent for run, parent, *_ in CONTINUE if run == only)
         start = init_weights(init)
         if "--resume" not in cmds[only] and not start.exists():
             raise ValueError(f"continue {only!r}: its starting weights {start} do not exist; run `continue {init}` "
