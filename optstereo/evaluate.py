@@ -50,6 +50,7 @@ class Frame:
     gt_noc: npt.NDArray[np.float32] | None = None
     left: npt.NDArray[np.uint8] | None = None
     seconds: float = math.nan
+    input_scale: float = math.nan  # a network's final pass (optstereo.inference.infer_scaled); NaN for labels
 
 
 @dataclass
@@ -75,6 +76,7 @@ def _frame_row(frame: Frame, acc_all: MetricAccumulator, acc_noc: MetricAccumula
     else:
         row.update(epe_noc=math.nan, bad3_noc=math.nan, d1_noc=math.nan)
     row["seconds"] = frame.seconds
+    row["input_scale"] = frame.input_scale
     return row
 
 
@@ -185,17 +187,19 @@ def model_frames(
     reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
 ) -> Iterator[Frame]:
     """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames."""
-    from optstereo.inference import infer
+    from optstereo.inference import infer_scaled
     from pvm_labeler.common.datasets import discover, load_pair
 
     for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
         sample = load_pair(ref)
         t0 = time.perf_counter()
-        pred = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
-                     refine=refine)
+        result = infer_scaled(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
+                              refine=refine)
         seconds = time.perf_counter() - t0
-        logger.info("%s: %dx%d in %.2f s", ref.frame_id, sample.left.shape[0], sample.left.shape[1], seconds)
-        yield Frame(ref.frame_id, pred, sample.gt, sample.gt_noc, sample.left, seconds)
+        logger.info("%s: %dx%d in %.2f s (input scale %.3f)", ref.frame_id, sample.left.shape[0],
+                    sample.left.shape[1], seconds, result.input_scale)
+        yield Frame(ref.frame_id, result.disparity, sample.gt, sample.gt_noc, sample.left, seconds,
+                    result.input_scale)
 
 
 def label_frames(labels_dir: Path, limit: int | None = None) -> Iterator[Frame]:
@@ -224,13 +228,16 @@ def evaluate_model(
 
     Frames stream through (one decoded pair and its prediction in memory at a time); the timing is a running mean.
     ``scale`` / ``refine`` None = the model's own input scale / post-filter (recorded in the summary as
-    ``input_scale`` / ``refine``).
+    ``input_scale`` / ``refine``; a model's adaptive scale as ``scale_refs``, and each frame's final scale in its
+    row).
     """
-    from optstereo.inference import model_input_scale, model_refine
+    from optstereo.inference import model_input_scale, model_refine, model_scale_refs
 
-    scale = model_input_scale(model) if scale is None else scale
+    refs = model_scale_refs(model) if scale is None else None
     refine = model_refine(model) if refine is None else refine
-    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp, "input_scale": scale,
+    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp,
+            "input_scale": model_input_scale(model) if scale is None else scale,
+            "scale_refs": None if refs is None else {"scale_ref_disp": refs[0], "scale_ref_pixels": refs[1]},
             "refine": refine, "seconds_per_frame": math.nan, **(meta or {})}
     count = 0
 

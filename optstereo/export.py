@@ -11,8 +11,9 @@ The exported graph is the test-mode network: N_s GRU iterations unrolled, the fi
 
 ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimiser of onnxscript 0.7 fails on this
 graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper. The ONNX
-file's metadata records the model's input scale (``input_scale``) and post-filter (``refine``), which
-:func:`infer_onnx` applies; a TorchScript file carries neither, so its caller resizes by ``model.config.input_scale``
+file's metadata records the model's input scale (``input_scale``), its adaptive-scale references (``scale_ref_disp``,
+``scale_ref_pixels``, when set) and post-filter (``refine``), which :func:`infer_onnx` applies as ``infer`` does; a
+TorchScript file carries none of them, so its caller resizes by ``model.config.input_scale``
 and filters by ``model.config.refine`` (``optstereo.inference.apply_refine``) as ``infer`` does.
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
@@ -84,18 +85,21 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):
         model.image_chunk = 0 if batch else 1  # the same outputs either way (tests/test_model_optstereo.py)
-    from optstereo.inference import model_input_scale, model_refine
+    from optstereo.inference import model_input_scale, model_refine, model_scale_refs
 
+    recorded = {"input_scale": repr(model_input_scale(model)), "refine": model_refine(model)}
+    refs = model_scale_refs(model)
+    if refs is not None:
+        recorded.update(scale_ref_disp=repr(refs[0]), scale_ref_pixels=str(refs[1]))
     try:
-        return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch,
-                       model_input_scale(model), model_refine(model))
+        return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch, recorded)
     finally:
         if hasattr(model, "image_chunk"):
             model.image_chunk = saved_chunk
 
 
 def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], batch: bool,
-            input_scale: float, refine: str) -> Path:
+            recorded: dict[str, str]) -> Path:
     h, w = example_hw
     gen = torch.Generator().manual_seed(0)
     left = torch.rand(1, 3, h, w, generator=gen) * 255
@@ -107,8 +111,7 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
                                         output_names=["disparity"], dynamic_shapes={"left": dims, "right": dims},
                                         opset_version=OPSET, optimize=False, verbose=False)
             # the model's input scale and post-filter travel in the file: infer_onnx applies them, as infer does
-            program.model.metadata_props["input_scale"] = repr(float(input_scale))
-            program.model.metadata_props["refine"] = refine
+            program.model.metadata_props.update(recorded)
             program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
             torch.jit.save(torch.jit.trace(graph, (left, right), check_trace=False), str(tmp))
@@ -131,19 +134,31 @@ def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8
     input ``scale`` and with post-filter ``refine``, None = the ones the file records, as ``infer`` at the model's
     own)."""
     from optstereo.inference import apply_refine, check_refine
-    from optstereo.rescale import disparity_to_size, rescaled_pair
+    from optstereo.rescale import adaptive_factor
 
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     recorded = session.get_modelmeta().custom_metadata_map
+    adaptive = scale is None and float(recorded.get("scale_ref_disp", 0.0)) > 0
     scale = float(recorded.get("input_scale", 1.0)) if scale is None else scale
     refine = recorded.get("refine", "none") if refine is None else refine
     check_refine(refine)
-    if scale != 1.0:
-        disp = disparity_to_size(_run_onnx(session, *rescaled_pair(left, right, scale)), left.shape[:2])
-    else:
-        disp = _run_onnx(session, left, right)
+    disp = _run_onnx_at(session, left, right, scale)
+    if adaptive:  # the second pass of optstereo.inference.infer_scaled
+        gain = adaptive_factor(disp, float(recorded["scale_ref_disp"]), int(recorded["scale_ref_pixels"]))
+        if gain > 1.0:
+            disp = _run_onnx_at(session, left, right, scale * gain)
     return apply_refine(disp, left, refine)
+
+
+def _run_onnx_at(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+                 scale: float) -> npt.NDArray[np.float32]:
+    """The session's disparity of a pair resized by ``scale``, at the input's size and in its pixels."""
+    from optstereo.rescale import disparity_to_size, rescaled_pair
+
+    if scale == 1.0:
+        return _run_onnx(session, left, right)
+    return disparity_to_size(_run_onnx(session, *rescaled_pair(left, right, scale)), left.shape[:2])
 
 
 def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:

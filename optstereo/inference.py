@@ -12,6 +12,7 @@ import functools
 import logging
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ import torch
 from torch import nn
 
 from optstereo.padding import InputPadder, divisor_of
-from optstereo.rescale import disparity_to_size, rescaled_pair
+from optstereo.rescale import adaptive_factor, disparity_to_size, rescaled_pair
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.version import cpuinfo_flags
 
@@ -124,7 +125,21 @@ def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], ref
     return weighted_median(disp, left)
 
 
-@torch.inference_mode()
+def model_scale_refs(model: nn.Module) -> tuple[float, int] | None:
+    """(scale_ref_disp, scale_ref_pixels) of a model whose config records an adaptive input scale, else None."""
+    config = getattr(model, "config", None)
+    ref_disp = float(getattr(config, "scale_ref_disp", 0.0))
+    return (ref_disp, int(getattr(config, "scale_ref_pixels", 0))) if ref_disp > 0 else None
+
+
+@dataclass(frozen=True)
+class Inference:
+    """One pair's disparity and the factor its pair was resized by for the network's final pass."""
+
+    disparity: npt.NDArray[np.float32]
+    input_scale: float
+
+
 def infer(
     model: nn.Module,
     left: npt.NDArray[np.uint8],
@@ -144,25 +159,60 @@ def infer(
         amp: ``none`` (float32), ``bf16`` (CPU with AVX512-BF16/AMX, or CUDA) or ``fp16`` (CUDA).
         scale: resize both images by this factor before the network (see :func:`rescaled_pair`) and bring the
             disparity back to the input's size and pixel units; 1 = as given, None = the model's own
-            (:func:`model_input_scale`).
+            (:func:`model_input_scale`, enlarged further for a small pair when the model records an adaptive
+            scale: :func:`infer_scaled`).
         refine: post-filter of the disparity at the input's size, guided by ``left``: "none", "wmedian"; None =
             the model's own (:func:`model_refine`).
 
     Returns:
         (H, W) float32 disparity in pixels of the input (positive, left(x) matches right(x - d)).
     """
+    return infer_scaled(model, left, right, iters, device, amp, scale, refine).disparity
+
+
+@torch.inference_mode()
+def infer_scaled(
+    model: nn.Module,
+    left: npt.NDArray[np.uint8],
+    right: npt.NDArray[np.uint8],
+    iters: int | None = None,
+    device: torch.device | str = "cpu",
+    amp: str = "none",
+    scale: float | None = None,
+    refine: str | None = None,
+) -> Inference:
+    """:func:`infer`, also returning the input scale of the final pass.
+
+    With ``scale`` None and a model that records ``scale_ref_disp`` (:func:`model_scale_refs`), the first pass at
+    the model's input scale decides whether a second, larger one runs (:func:`optstereo.rescale.adaptive_factor`):
+    a small pair with small disparities is enlarged until they match the model's training pairs. A given ``scale``
+    is always used as it is.
+    """
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
+    refs = model_scale_refs(model) if scale is None else None
     scale = model_input_scale(model) if scale is None else scale
     refine = model_refine(model) if refine is None else refine
     check_refine(refine)  # before the network runs, not after
     device = torch.device(device)
-    if scale != 1.0:
-        left_s, right_s = rescaled_pair(left, right, scale)
-        disp = disparity_to_size(_network(model, left_s, right_s, iters, device, amp), left.shape[:2])
-    else:
-        disp = _network(model, left, right, iters, device, amp)
-    return apply_refine(disp, left, refine, device)
+    disp = _network_at(model, left, right, scale, iters, device, amp)
+    if refs is not None:
+        gain = adaptive_factor(disp, *refs)
+        if gain > 1.0:
+            logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0],
+                        scale, scale * gain)
+            scale *= gain
+            disp = _network_at(model, left, right, scale, iters, device, amp)
+    return Inference(apply_refine(disp, left, refine, device), scale)
+
+
+def _network_at(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
+                iters: int | None, device: torch.device, amp: str) -> npt.NDArray[np.float32]:
+    """The network's (H, W) disparity of a pair resized by ``scale``, brought back to the input's size and pixels."""
+    if scale == 1.0:
+        return _network(model, left, right, iters, device, amp)
+    left_s, right_s = rescaled_pair(left, right, scale)
+    return disparity_to_size(_network(model, left_s, right_s, iters, device, amp), left.shape[:2])
 
 
 def _network(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], iters: int | None,

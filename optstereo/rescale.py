@@ -8,11 +8,21 @@ rectified.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["disparity_to_size", "rescaled_pair", "scaled_size", "sparse_to_size"]
+__all__ = ["ADAPTIVE_MIN_GAIN", "ADAPTIVE_PERCENTILE", "adaptive_factor", "disparity_to_size", "rescaled_pair",
+           "scaled_size", "sparse_to_size"]
+
+#: The percentile of a first pass's disparity that :func:`adaptive_factor` compares with the model's reference: the
+#: top of the pair's disparity range, robust to a few wild pixels.
+ADAPTIVE_PERCENTILE = 95.0
+#: Below this enlargement :func:`adaptive_factor` answers 1: a second pass would cost a whole network run for a change
+#: of a fraction of a 1/8-grid cell (a KITTI frame a few pixels smaller than the reference frame).
+ADAPTIVE_MIN_GAIN = 1.1
 
 
 def scaled_size(shape: tuple[int, ...], scale: float) -> tuple[int, int]:
@@ -51,3 +61,23 @@ def sparse_to_size(label: npt.NDArray[np.float32], shape: tuple[int, int],
     h_out, w_out = shape
     resized = cv2.resize(label, (w_out, h_out), interpolation=cv2.INTER_NEAREST_EXACT)
     return (resized * (w_out / label.shape[1]) if scale_values else resized).astype(np.float32)
+
+
+def adaptive_factor(disp: npt.NDArray[np.float32], ref_disp: float, ref_pixels: int) -> float:
+    """How much more than its first pass to enlarge a pair so that its disparities reach the model's reference.
+
+    ``disp`` is the (H, W) disparity of the first pass, at the input's size and in its pixels; ``ref_disp`` is the
+    same statistic (the ADAPTIVE_PERCENTILE-th percentile) of the pairs the model learned on, measured the same way;
+    ``ref_pixels`` their pixel count. The factor is min(ref_disp / p, sqrt(ref_pixels / (H * W))) with p the pair's
+    percentile: large enough that the pair's disparities span as many grid cells as the training pairs' did, and
+    never more pixels than a training pair. It is 1 (no second pass) when that is below ADAPTIVE_MIN_GAIN, so a pair
+    with disparities as large as the references' is never shrunk and one of their size never enlarged.
+    """
+    if ref_disp <= 0 or ref_pixels <= 0:
+        raise ValueError(f"adaptive scale needs positive references, got ref_disp {ref_disp}, ref_pixels {ref_pixels}")
+    finite = disp[np.isfinite(disp)]
+    top = float(np.percentile(finite, ADAPTIVE_PERCENTILE)) if finite.size else 0.0
+    by_disp = ref_disp / top if top > 0 else math.inf
+    by_pixels = math.sqrt(ref_pixels / (disp.shape[0] * disp.shape[1]))
+    factor = min(by_disp, by_pixels)
+    return factor if factor >= ADAPTIVE_MIN_GAIN else 1.0

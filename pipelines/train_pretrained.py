@@ -368,18 +368,22 @@ def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS, scale:
     return out
 
 
-def step_ship(run: str, input_scale: float = 1.0, refine: str = "none") -> None:
-    """Export the run's final weights (float32 safetensors, model config in the metadata) as the shipped model,
-    recording ``input_scale`` and ``refine`` as the scale and post-filter ``infer`` uses by default."""
+def step_ship(run: str, input_scale: float = 1.0, refine: str = "none", scale_refs: tuple[float, int] | None = None,
+              out: Path = WEIGHTS) -> None:
+    """Export the run's final weights (a RUN under out/pretrained, or a checkpoint path; float32 safetensors, model
+    config in the metadata) as the shipped model, recording ``input_scale``, ``refine`` and the adaptive scale's
+    ``scale_refs`` (scale_ref_disp, scale_ref_pixels; None = off) as what ``infer`` does by default."""
     from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 
-    ckpt = load_checkpoint(RUNS / run)
+    ckpt = load_checkpoint(Path(run) if Path(run).exists() else RUNS / run)
+    ref_disp, ref_pixels = scale_refs or (0.0, 0)
     # the shipped defaults: 8 iterations at test time, and the input scale and post-filter its rules were judged at
-    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS, input_scale=input_scale, refine=refine)
-    WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
-    export_safetensors(WEIGHTS, model, step=ckpt.step)
-    WEIGHTS.chmod(0o644)  # safetensors writes 0600; the package file is read by every user
-    print(f"wrote {WEIGHTS} ({WEIGHTS.stat().st_size / 1e6:.1f} MB, step {ckpt.step})")
+    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS, input_scale=input_scale, refine=refine,
+                                        scale_ref_disp=ref_disp, scale_ref_pixels=ref_pixels)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    export_safetensors(out, model, step=ckpt.step)
+    out.chmod(0o644)  # safetensors writes 0600; the package file is read by every user
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, step {ckpt.step})")
 
 
 def step_soup(name: str) -> None:
@@ -568,6 +572,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--input-scale", type=float, default=1.0, help="ship: the default input scale to record")
     parser.add_argument("--refine", choices=("none", "wmedian"), default="none",
                         help="ship: the default post-filter to record")
+    parser.add_argument("--scale-refs", type=Path,
+                        help="ship: record the adaptive input scale of this JSON (pipelines.adaptive_scale reference)")
     args = parser.parse_args(argv)
     if args.step == "label":
         step_label()
@@ -587,7 +593,11 @@ def main(argv: list[str] | None = None) -> None:
     elif args.step == "eval":
         step_eval(args.run or "arm_no_lt", args.name, args.iters, args.scale, args.eval_refine)
     elif args.step == "ship":
-        step_ship(args.run or "arm_no_lt", args.input_scale, args.refine)
+        refs = None
+        if args.scale_refs is not None:
+            doc = json.loads(args.scale_refs.read_text())
+            refs = (float(doc["scale_ref_disp"]), int(doc["scale_ref_pixels"]))
+        step_ship(args.run or "arm_no_lt", args.input_scale, args.refine, refs)
     elif args.step == "soup":
         if args.run is None:
             parser.error(f"soup needs a name: one of {', '.join(SOUPS)}")

@@ -44,6 +44,12 @@ class ModelConfig:
         refine: the post-filter ``infer`` applies to the disparity at the input's size when the caller gives none:
             "none", or "wmedian" (the colour-weighted median of ``pvm_labeler.refine`` at its default settings,
             which snaps depth edges blurred by the 1/8 grid to the colour edges).
+        scale_ref_disp: 0 = off; else ``infer`` (when the caller gives no scale) runs a second pass on a pair whose
+            first pass (at ``input_scale``) has smaller disparities than the model learned on, enlarged so that the
+            95th percentile of its disparity reaches this many pixels (``optstereo.rescale.adaptive_factor``; the
+            reference is the same percentile of the model's own predictions on its training pairs).
+        scale_ref_pixels: the pixel count (H x W) of the training pairs: the second pass never feeds the network
+            more pixels than a training pair at ``input_scale`` (required when ``scale_ref_disp`` is set).
 
     HITNet ("hitnet", optstereo.models.hitnet) reads the shared fields with its own meaning: feature_dim = channels
     of its finest (1/2) U-Net level, hidden_dim = width of the propagation CNNs, corr_levels = resolutions (one
@@ -65,6 +71,8 @@ class ModelConfig:
     max_disp: int = 192
     input_scale: float = 1.0
     refine: str = "none"
+    scale_ref_disp: float = 0.0
+    scale_ref_pixels: int = 0
 
     @property
     def corr_channels(self) -> int:
@@ -78,6 +86,11 @@ class ModelConfig:
                 raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
         if not 0 < self.input_scale < float("inf"):
             raise ValueError(f"model option input_scale must be positive and finite, got {self.input_scale}")
+        if not 0 <= self.scale_ref_disp < float("inf") or self.scale_ref_pixels < 0:
+            raise ValueError(f"model options scale_ref_disp and scale_ref_pixels must be >= 0 and finite, got "
+                             f"{self.scale_ref_disp} and {self.scale_ref_pixels}")
+        if self.scale_ref_disp > 0 and self.scale_ref_pixels == 0:
+            raise ValueError("model option scale_ref_disp needs scale_ref_pixels (the training pairs' pixel count)")
         if self.corr_radius < 0:
             raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
         if self.upsampler not in UPSAMPLERS:
