@@ -280,7 +280,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     file's own input scale. ``edges`` adds, per network, the split of :func:`edge_masks` (distance to GT depth edges).
     """
     from optstereo.api import load_model, predict
-    from optstereo.inference import model_input_scale
+    from optstereo.inference import model_input_scale, model_scale_refs
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.dense import dense_sgm
@@ -292,7 +292,9 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     name = name or dataset
     loaded = dict(parse_checkpoint(arg) for arg in checkpoints)  # checkpoint label -> spec, in order
     cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in loaded.items()}
-    resolved = {tag: [model_input_scale(models[tag]) if s is None else s for s in scales] for tag in loaded}
+    # None stays None for a file with an adaptive input scale: its scale is chosen per pair (optstereo.inference)
+    resolved = {tag: [s if s is not None or model_scale_refs(models[tag]) else model_input_scale(models[tag])
+                      for s in scales] for tag in loaded}
     runs = {scaled_tag(tag, scale): (tag, scale) for tag in loaded for scale in resolved[tag]}  # table -> network
     named = {key: loaded[tag] for key, (tag, _) in runs.items()}
     color_norm = recipe_color_norm()  # L_R as the shipped model was trained with it
@@ -356,9 +358,10 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     return doc
 
 
-def scaled_tag(tag: str, scale: float) -> str:
-    """The table name of a network at an input scale: its label, with " x<scale>" unless the scale is 1."""
-    return tag if scale == 1.0 else f"{tag} x{scale:g}"
+def scaled_tag(tag: str, scale: float | None) -> str:
+    """The table name of a network at an input scale: its label, with " x<scale>" unless the scale is 1 or None (the
+    file's adaptive scale)."""
+    return tag if scale is None or scale == 1.0 else f"{tag} x{scale:g}"
 
 
 def _heading(label: str, spec: str) -> str:
