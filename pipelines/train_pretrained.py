@@ -17,7 +17,9 @@ GT set of ../shared/data against dense SGM, export the weights.
                                                       scale175_m, --input-scale 1.625; version 10: the same
                                                       weights, --refine wmedian; version 11: sgmfill_o,
                                                       --input-scale 1.625 --refine wmedian; version 12:
-                                                      sgmboth_p, the same flags)
+                                                      sgmboth_p, the same flags; version 13: version 12's
+                                                      file, the same flags + --scale-refs
+                                                      results/adaptive_scale/reference.json)
     python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
@@ -188,7 +190,8 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
      "wmedian filter (confidence 0.3), evaluated at 1.625 with wmedian: version 11 (shipped until version 12)", 4000,
      "scale175_m"),
     ("sgmboth_p", "+ 5000 steps, the same recipe, on labels with those fills in the right view too (weighed by "
-     "confidence_right), evaluated at 1.625 with wmedian: version 12, shipped", 5000, ""),
+     "confidence_right), evaluated at 1.625 with wmedian: version 12 (version 13, shipped: these weights + the "
+     "adaptive input scale for small pairs)", 5000, ""),
     ("sgmconf_q", "+ 4000 steps, the same recipe, the fills at confidence 0.6 instead of 0.3 (measured, not shipped: "
      "KITTI 2012 0.12 points over its rule)", 4000, ""),
     ("sgmleft_r", "`sgmfill_o` + 5000 steps, `sgmboth_p`'s control: the same seed and recipe on left-only fills "
