@@ -28,12 +28,13 @@ from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
 from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/adaptive_scale")
+REFERENCE = RESULTS / "reference.json"  # the shipped model's (version 13's) constants
 CANDIDATE = Path("out/adaptive_scale/candidate.safetensors")
 UNLABELLED = SHARED / "kitti_unlabelled"
 LABELS = Path("out/labels/kitti_unlabelled_k03")
 
 
-def step_reference(checkpoint: str = "pretrained") -> dict[str, Any]:
+def step_reference(checkpoint: str = "pretrained", out_path: Path = REFERENCE) -> dict[str, Any]:
     """Per unlabelled pair: the 95th percentile of the model's raw disparity (its own input scale, no post-filter)
     and the pair's pixel count; the constants are the medians over the pairs."""
     from optstereo.api import load_model
@@ -59,19 +60,19 @@ def step_reference(checkpoint: str = "pretrained") -> dict[str, Any]:
         "p95_quartiles": [float(q) for q in np.percentile([r["p95"] for r in rows], (25, 50, 75))],
         "seconds": time.perf_counter() - t_start, "frames": rows, **_machine(),
     }
-    _write(RESULTS / "reference.json", out)
+    _write(out_path, out)
     print(f"scale_ref_disp {out['scale_ref_disp']} px, scale_ref_pixels {out['scale_ref_pixels']}")
     return out
 
 
-def step_candidate(checkpoint: str = "pretrained") -> Path:
-    """The shipped weights, unchanged, recording reference.json's constants, written to CANDIDATE."""
+def step_candidate(checkpoint: str = "pretrained", refs_path: Path = REFERENCE) -> Path:
+    """``checkpoint``'s weights, unchanged, recording the constants of ``refs_path``, written to CANDIDATE."""
     from optstereo.api import load_model
     from optstereo.inference import model_input_scale, model_refine
     from optstereo.pretrained import resolve_checkpoint_spec
     from pipelines.train_pretrained import step_ship
 
-    refs = json.loads((RESULTS / "reference.json").read_text())
+    refs = json.loads(refs_path.read_text())
     model = load_model(checkpoint)
     step_ship(str(resolve_checkpoint_spec(checkpoint)), model_input_scale(model), model_refine(model),
               (float(refs["scale_ref_disp"]), int(refs["scale_ref_pixels"])), out=CANDIDATE)
@@ -125,11 +126,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("step", choices=("reference", "candidate", "check"))
     parser.add_argument("--checkpoint", default="pretrained")
+    parser.add_argument("--refs", type=Path, default=REFERENCE,
+                        help="reference: where to write the constants; candidate: where to read them")
     args = parser.parse_args(argv)
     if args.step == "reference":
-        step_reference(args.checkpoint)
+        step_reference(args.checkpoint, args.refs)
     elif args.step == "candidate":
-        print(step_candidate(args.checkpoint))
+        print(step_candidate(args.checkpoint, args.refs))
     else:
         step_check()
 
