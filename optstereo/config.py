@@ -45,7 +45,7 @@ FLAT_KEYS: dict[str, str] = {
     "analogy_start": "loss.analogy_start", "analogy_every": "loss.analogy_every",
     "labels": "data.labels", "supervision": "data.supervision", "batch_size": "data.batch_size",
     "crop": "data.crop", "flip_swap_p": "data.flip_swap_p", "photometric": "data.photometric",
-    "occlude_p": "data.occlude_p", "scale_range": "data.scale_range",
+    "occlude_p": "data.occlude_p", "scale_range": "data.scale_range", "cascade_p": "data.cascade_p",
     "max_disp": "data.max_disp", "workers": "data.workers", "shuffle_buffer": "data.shuffle_buffer",
     "steps": "optim.steps", "lr": "optim.lr", "weight_decay": "optim.weight_decay", "schedule": "optim.schedule",
     "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
@@ -206,6 +206,9 @@ class DataConfig(_Section):
         occlude_p: probability per sample that the network's right input gets L_T's pasted occluders
             (``optstereo.analogy.occlude_right``; sizes from loss.analogy); L_P supervises the occluded pixels with
             their PVM labels, L_R and L_S see the clean pair (with L_T on, its D0 is the occluded input's).
+        cascade_p: probability per batch that the GRU starts from a coarse pass (the batch at half size, no
+            gradient) instead of zero: a coarse-to-fine start (``optstereo.cascade``), which a model with
+            ``ModelConfig.cascade`` uses at test time.
         max_disp: labels >= max_disp (or < 0) are ignored in the loss, px. This is a mask on the TARGETS, not a
             search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt. The labeler's
             ``LabelerConfig.max_disp`` (192) is SGM's search range, so PVM labels never reach it; the two
@@ -225,6 +228,7 @@ class DataConfig(_Section):
     photometric: bool = False
     scale_range: tuple[float, float] = (1.0, 1.0)
     occlude_p: float = 0.0
+    cascade_p: float = 0.0
     max_disp: float = 256.0
     workers: int = 2
     shuffle_buffer: int = 16
@@ -237,6 +241,7 @@ class DataConfig(_Section):
             (self.batch_size >= 1, f"--batch-size must be >= 1, got {self.batch_size}"),
             (0 <= self.flip_swap_p <= 1, f"--flip-swap-p must be in [0, 1], got {self.flip_swap_p}"),
             (0 <= self.occlude_p <= 1, f"--occlude-p must be in [0, 1], got {self.occlude_p}"),
+            (0 <= self.cascade_p <= 1, f"--cascade-p must be in [0, 1], got {self.cascade_p}"),
             (self.max_disp > 0, f"max_disp must be > 0, got {self.max_disp}"),
             (self.workers >= 0, f"--workers must be >= 0, got {self.workers}"),
             (self.shuffle_buffer >= 1, f"shuffle_buffer must be >= 1, got {self.shuffle_buffer}"),

@@ -81,6 +81,9 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     reason = getattr(model, "not_exportable", None)
     if reason:
         raise ValueError(f"{type(model).__name__} cannot be exported: {reason}")
+    if getattr(getattr(model, "config", None), "cascade", False):
+        raise ValueError("a model with a coarse-to-fine start (ModelConfig.cascade) cannot be exported yet: the graph "
+                         "takes no start disparity; rebuild it with cascade=False to export its zero-start graph")
     model = model.cpu().eval()
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):

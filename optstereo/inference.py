@@ -203,29 +203,42 @@ def infer_scaled(
                         scale, scale * gain)
             scale *= gain
             disp = _network_at(model, left, right, scale, iters, device, amp)
+    if getattr(getattr(model, "config", None), "cascade", False):  # the final pass starts from one at half scale
+        coarse = _network_at(model, left, right, scale / 2, iters, device, amp)
+        disp = _network_at(model, left, right, scale, iters, device, amp, start=coarse)
     return Inference(apply_refine(disp, left, refine, device), scale)
 
 
 def _network_at(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
-                iters: int | None, device: torch.device, amp: str) -> npt.NDArray[np.float32]:
-    """The network's (H, W) disparity of a pair resized by ``scale``, brought back to the input's size and pixels."""
+                iters: int | None, device: torch.device, amp: str,
+                start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
+    """The network's (H, W) disparity of a pair resized by ``scale``, brought back to the input's size and pixels;
+    ``start``: an (H, W) disparity of the input to start the GRU from (optstereo.cascade), None = zero."""
     if scale == 1.0:
-        return _network(model, left, right, iters, device, amp)
+        return _network(model, left, right, iters, device, amp, start)
     left_s, right_s = rescaled_pair(left, right, scale)
-    return disparity_to_size(_network(model, left_s, right_s, iters, device, amp), left.shape[:2])
+    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
+    return disparity_to_size(_network(model, left_s, right_s, iters, device, amp, start_s), left.shape[:2])
 
 
 def _network(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], iters: int | None,
-             device: torch.device, amp: str) -> npt.NDArray[np.float32]:
-    """The network's (H, W) float32 disparity of a pair as given (padded to its multiple and un-padded)."""
+             device: torch.device, amp: str, start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
+    """The network's (H, W) float32 disparity of a pair as given (padded to its multiple and un-padded), its GRU
+    started from ``start`` ((H, W) disparity of the pair, padded like it and averaged onto the 1/8 grid) or zero."""
     was_training = model.training
     model.eval()
     try:
         left_t, right_t = to_batch(left, device), to_batch(right, device)
         padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
         left_t, right_t = padder.pad(left_t, right_t)
+        extra = {}
+        if start is not None:
+            from optstereo.cascade import grid_start
+
+            start_t = torch.from_numpy(np.ascontiguousarray(start, np.float32))[None, None].to(device)
+            extra["disp_init"] = grid_start(padder.pad(start_t)[0])
         with inference_autocast(amp, device):
-            _, full = model(left_t, right_t, iters=iters, test_mode=True)
+            _, full = model(left_t, right_t, iters=iters, test_mode=True, **extra)
         disp = padder.unpad(full)[0, 0]
     finally:
         model.train(was_training)

@@ -152,10 +152,26 @@ def _check_finite(total: torch.Tensor, terms: dict[str, torch.Tensor], step: int
 
 
 def _forward(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor,
-             right: torch.Tensor) -> list[torch.Tensor]:
+             right: torch.Tensor, disp_init: torch.Tensor | None = None) -> list[torch.Tensor]:
     with autocast_context(cfg, device):
-        preds = state.model(left, right, iters=cfg.model.iters)
+        if disp_init is None:
+            preds = state.model(left, right, iters=cfg.model.iters)
+        else:
+            preds = state.model(left, right, iters=cfg.model.iters, disp_init=disp_init)
     return [p.float() for p in preds]
+
+
+def cascade_init(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor,
+                 right: torch.Tensor) -> torch.Tensor | None:
+    """D_s^0 from a half-size pass (optstereo.cascade) with probability data.cascade_p, else None (zero start);
+    the draw comes from a generator seeded by (seed, step), so a resumed run repeats it."""
+    p = cfg.data.cascade_p
+    if p <= 0 or float(torch.rand(1, generator=_step_generator(cfg, state.step, stream=2))) >= p:
+        return None
+    from optstereo.cascade import coarse_start
+
+    with autocast_context(cfg, device):
+        return coarse_start(state.model, left, right, cfg.model.iters)
 
 
 def _step_generator(cfg: TrainConfig, step: int, stream: int = 0) -> torch.Generator:
@@ -196,7 +212,8 @@ def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainCo
     left, right, label, valid = (t.to(device, non_blocking=True) for t in batch[:4])
     weight = batch[4].to(device, non_blocking=True) if cfg.loss.conf_weight else None
     state.model.train()
-    preds = _forward(state, cfg, device, left, network_right(state, cfg, left, right))
+    right_in = network_right(state, cfg, left, right)
+    preds = _forward(state, cfg, device, left, right_in, cascade_init(state, cfg, device, left, right_in))
     total, terms = loss_fn(preds, left, right, label, valid, weight)  # L_R / L_S on the clean pair
     weighted_t, terms_t = analogy_term(state, cfg, device, left, right, preds[-1])
     total = total + weighted_t

@@ -48,6 +48,8 @@ class ModelConfig:
             first pass (at ``input_scale``) has smaller disparities than the model learned on, enlarged so that the
             95th percentile of its disparity reaches this many pixels (``optstereo.rescale.adaptive_factor``; the
             reference is the same percentile of the model's own predictions on its training pairs).
+        cascade: ``infer`` starts the GRU of its final pass from a pass at half that scale instead of from zero
+            (``optstereo.cascade``; for weights trained with ``data.cascade_p`` > 0).
         scale_ref_pixels: the pixel count (H x W) of the training pairs: the second pass never feeds the network
             more pixels than a training pair at ``input_scale`` (required when ``scale_ref_disp`` is set).
 
@@ -73,6 +75,7 @@ class ModelConfig:
     refine: str = "none"
     scale_ref_disp: float = 0.0
     scale_ref_pixels: int = 0
+    cascade: bool = False
 
     @property
     def corr_channels(self) -> int:

@@ -134,8 +134,11 @@ class OptStereo(nn.Module):
             )
 
     def forward(
-        self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False
+        self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False,
+        disp_init: torch.Tensor | None = None,
     ) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
+        """``disp_init``: (B, 1, H/8, W/8) start D_s^0 in 1/8-grid pixels (a coarse-to-fine start,
+        optstereo.cascade), detached; None = the paper's zero start."""
         self._check_inputs(left, right)
         iters = resolve_iters(iters, self.iters)
         image_left = normalize_image(left)
@@ -149,6 +152,10 @@ class OptStereo(nn.Module):
         b, _, h8, w8 = feat_left.shape
         # D_s is accumulated in float32 even under autocast: bf16 has ~3 significant digits.
         disp = torch.zeros(b, 1, h8, w8, device=left.device, dtype=torch.float32)  # D_s^0 = 0
+        if disp_init is not None:
+            if tuple(disp_init.shape) != (b, 1, h8, w8):
+                raise ValueError(f"disp_init must be (B, 1, H/8, W/8) = {(b, 1, h8, w8)}, got {tuple(disp_init.shape)}")
+            disp = disp_init.detach().float().to(left.device)  # no gradient into the pass that made it
 
         preds: list[torch.Tensor] = []
         for k in range(iters):

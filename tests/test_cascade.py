@@ -1,0 +1,123 @@
+"""The coarse-to-fine start (optstereo.cascade): grid units by hand, the model's disp_init, the trainer's draw and
+infer's two passes with fake networks whose outputs are known."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from test_eval_predict import TINY, Echo
+from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+
+from optstereo.cascade import coarse_start, grid_start, half_size
+from optstereo.inference import infer
+from optstereo.models import build_model
+
+
+class StartEcho(torch.nn.Module):
+    """Fake network: from zero it returns the left image's red channel (px of the pair it sees); from a start it
+    returns that start, back in full-resolution pixels (x 8, nearest), so a test can follow the units."""
+
+    def forward(self, left, right, iters=None, test_mode=False, disp_init=None):
+        if disp_init is None:
+            return left[:, :1, ::8, ::8] / 8, left[:, :1]
+        return disp_init, F.interpolate(disp_init * 8, scale_factor=8, mode="nearest")
+
+
+def test_grid_start_by_hand() -> None:
+    disp = torch.full((1, 1, 16, 24), 16.0)
+    disp[..., :8, :8] = torch.arange(64, dtype=torch.float32).reshape(8, 8)  # mean 31.5
+    grid = grid_start(disp)
+    assert grid.shape == (1, 1, 2, 3)
+    assert grid[0, 0, 0, 0] == pytest.approx(31.5 / 8) and torch.all(grid.flatten()[1:] == 2.0)
+    with pytest.raises(ValueError, match="divisible by 8"):
+        grid_start(torch.zeros(1, 1, 12, 16))
+
+
+def test_half_size() -> None:
+    assert half_size(256, 640) == (128, 320)
+    assert half_size(100, 300) == (48, 144)
+    assert half_size(10, 12) == (8, 8)
+
+
+def test_coarse_start_units() -> None:
+    # red 40 everywhere: the half-size pass (16 x 32) answers 40 px of ITS pair = 80 px of the 32 x 64 batch, which
+    # is 10 px on the 1/8 grid (hand-computed)
+    left = torch.full((2, 3, 32, 64), 40.0)
+    start = coarse_start(Echo(), left, left, iters=None)
+    assert start.shape == (2, 1, 4, 8)
+    torch.testing.assert_close(start, torch.full((2, 1, 4, 8), 10.0))
+
+
+class TestModel:
+    def test_zero_start_is_the_default(self) -> None:
+        torch.manual_seed(0)
+        model = build_model("optstereo", **TINY).eval()
+        left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
+        with torch.no_grad():
+            plain = model(left, right, test_mode=True)
+            zero = model(left, right, test_mode=True, disp_init=torch.zeros(1, 1, 8, 16))
+            moved = model(left, right, test_mode=True, disp_init=torch.full((1, 1, 8, 16), 3.0))
+        for a, b in zip(plain, zero, strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+        assert not torch.allclose(plain[1], moved[1])
+        with pytest.raises(ValueError, match="disp_init must be"):
+            model(left, right, test_mode=True, disp_init=torch.zeros(1, 1, 4, 16))
+
+    def test_no_gradient_into_the_start(self) -> None:
+        torch.manual_seed(0)
+        model = build_model("optstereo", **TINY)
+        left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
+        start = torch.full((1, 1, 8, 16), 2.0, requires_grad=True)
+        preds = model(left, right, iters=2, disp_init=start)
+        sum(p.mean() for p in preds).backward()
+        assert start.grad is None
+        assert any(p.grad is not None for p in model.parameters())
+
+
+def test_infer_cascade_follows_the_units() -> None:
+    # input scale 1: the coarse pass at 0.5 answers red R in half-size px = 2R px of the input; the final pass
+    # starts from that and StartEcho hands the start back: 2R, where the zero start answers R (hand-computed)
+    left = np.full((32, 64, 3), 12, np.uint8)
+    model = StartEcho()
+    model.config = SimpleNamespace(input_scale=1.0, refine="none", cascade=True)
+    np.testing.assert_allclose(infer(model, left, left), 24.0, rtol=1e-6)
+    model.config = SimpleNamespace(input_scale=1.0, refine="none", cascade=False)
+    np.testing.assert_allclose(infer(model, left, left), 12.0, rtol=1e-6)
+    # a pair that needs padding: the start is padded like the pair (replicate); the half-size pair is 30 of 61
+    # columns wide (round(30.5) = 30), so the start is R x 61 / 30 px of the input, everywhere
+    odd = np.full((30, 61, 3), 12, np.uint8)
+    model.config = SimpleNamespace(input_scale=1.0, refine="none", cascade=True)
+    np.testing.assert_allclose(infer(model, odd, odd), 12.0 * 61 / 30, rtol=1e-5)
+
+
+def test_trainer_draw(tmp_path: Path) -> None:
+    # cascade_p 0: never a start; 1: always, on the batch's 1/8 grid; the draw repeats for the same (seed, step)
+    from optstereo.train import cascade_init
+    from optstereo.train_config import TrainConfig
+
+    torch.manual_seed(0)
+    model = build_model("optstereo", **TINY)
+    left = torch.rand(2, 3, 64, 128) * 255
+    state = SimpleNamespace(model=model, step=3)
+    device = torch.device("cpu")
+    assert cascade_init(state, TrainConfig(), device, left, left) is None
+    always = TrainConfig.from_layers({"data": {"cascade_p": 1.0}})
+    assert cascade_init(state, always, device, left, left).shape == (2, 1, 8, 16)
+    half = TrainConfig.from_layers({"data": {"cascade_p": 0.5}})
+    draws = [cascade_init(SimpleNamespace(model=model, step=k), half, device, left, left) is None for k in range(40)]
+    again = [cascade_init(SimpleNamespace(model=model, step=k), half, device, left, left) is None for k in range(40)]
+    assert draws == again and 5 < sum(draws) < 35
+    with pytest.raises(Exception, match="cascade-p must be in"):
+        TrainConfig.from_layers({"data": {"cascade_p": 1.5}})
+
+
+def test_export_refuses_a_cascade_model(tmp_path: Path) -> None:
+    from optstereo.export import export
+
+    with pytest.raises(ValueError, match="coarse-to-fine"):
+        export(build_model("optstereo", cascade=True, **TINY), tmp_path / "m.onnx")
