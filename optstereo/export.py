@@ -13,8 +13,10 @@ ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimis
 graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper. The ONNX
 file's metadata records the model's input scale (``input_scale``), its adaptive-scale references (``scale_ref_disp``,
 ``scale_ref_pixels``, when set) and post-filter (``refine``), which :func:`infer_onnx` applies as ``infer`` does; a
-TorchScript file carries none of them, so its caller resizes by ``model.config.input_scale``
-and filters by ``model.config.refine`` (``optstereo.inference.apply_refine``) as ``infer`` does.
+TorchScript file carries none of them, so its caller resizes by ``model.config.input_scale`` and filters by
+``model.config.refine`` (``optstereo.inference.apply_refine``) as ``infer`` does. A model with a coarse-to-fine start
+(``ModelConfig.cascade``) exports a graph with a third input, ``start`` (1, 1, H, W): a full-resolution disparity of
+the pair, zeros for the zero start; :func:`infer_onnx` feeds it the pass at half the scale, as ``infer`` does.
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -59,15 +61,21 @@ FORMATS = ("onnx", "torchscript")
 
 
 class InferenceGraph(nn.Module):
-    """(left, right) -> full-resolution disparity of the last of ``iters`` GRU iterations (test mode)."""
+    """(left, right) -> full-resolution disparity of the last of ``iters`` GRU iterations (test mode); with a third
+    input ``start`` (1, 1, H, W), a full-resolution disparity of the pair (zeros = the zero start), the GRU starts
+    from it averaged onto the 1/8 grid (a model with ``ModelConfig.cascade``, optstereo.cascade)."""
 
     def __init__(self, model: nn.Module, iters: int | None = None) -> None:
         super().__init__()
         self.model = model
         self.iters = iters
 
-    def forward(self, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-        return self.model(left, right, iters=self.iters, test_mode=True)[1]
+    def forward(self, left: torch.Tensor, right: torch.Tensor, start: torch.Tensor | None = None) -> torch.Tensor:
+        if start is None:
+            return self.model(left, right, iters=self.iters, test_mode=True)[1]
+        from optstereo.cascade import grid_start
+
+        return self.model(left, right, iters=self.iters, test_mode=True, disp_init=grid_start(start))[1]
 
 
 def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = None,
@@ -81,9 +89,6 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     reason = getattr(model, "not_exportable", None)
     if reason:
         raise ValueError(f"{type(model).__name__} cannot be exported: {reason}")
-    if getattr(getattr(model, "config", None), "cascade", False):
-        raise ValueError("a model with a coarse-to-fine start (ModelConfig.cascade) cannot be exported yet: the graph "
-                         "takes no start disparity; rebuild it with cascade=False to export its zero-start graph")
     model = model.cpu().eval()
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):
@@ -91,33 +96,36 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     from optstereo.inference import model_input_scale, model_refine, model_scale_refs
 
     recorded = {"input_scale": repr(model_input_scale(model)), "refine": model_refine(model)}
+    cascade = bool(getattr(getattr(model, "config", None), "cascade", False))
     refs = model_scale_refs(model)
     if refs is not None:
         recorded.update(scale_ref_disp=repr(refs[0]), scale_ref_pixels=str(refs[1]))
     try:
-        return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch, recorded)
+        return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch, recorded, cascade)
     finally:
         if hasattr(model, "image_chunk"):
             model.image_chunk = saved_chunk
 
 
 def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], batch: bool,
-            recorded: dict[str, str]) -> Path:
+            recorded: dict[str, str], cascade: bool = False) -> Path:
     h, w = example_hw
     gen = torch.Generator().manual_seed(0)
     left = torch.rand(1, 3, h, w, generator=gen) * 255
     right = torch.roll(left, shifts=-2, dims=-1)
+    inputs = (left, right, torch.full((left.shape[0], 1, h, w), 2.0)) if cascade else (left, right)
+    names = ["left", "right", "start"][:len(inputs)]
     with atomic_path(out) as tmp, torch.no_grad():
         if fmt == "onnx":
             dims = {0: "batch", 2: "height", 3: "width"} if batch else {2: "height", 3: "width"}
-            program = torch.onnx.export(graph, (left, right), dynamo=True, input_names=["left", "right"],
-                                        output_names=["disparity"], dynamic_shapes={"left": dims, "right": dims},
+            program = torch.onnx.export(graph, inputs, dynamo=True, input_names=names,
+                                        output_names=["disparity"], dynamic_shapes={n: dims for n in names},
                                         opset_version=OPSET, optimize=False, verbose=False)
             # the model's input scale and post-filter travel in the file: infer_onnx applies them, as infer does
             program.model.metadata_props.update(recorded)
             program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
-            torch.jit.save(torch.jit.trace(graph, (left, right), check_trace=False), str(tmp))
+            torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), str(tmp))
     return out
 
 
@@ -150,21 +158,28 @@ def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8
     if adaptive:  # the second pass of optstereo.inference.infer_scaled
         gain = adaptive_factor(disp, float(recorded["scale_ref_disp"]), int(recorded["scale_ref_pixels"]))
         if gain > 1.0:
-            disp = _run_onnx_at(session, left, right, scale * gain)
+            scale *= gain
+            disp = _run_onnx_at(session, left, right, scale)
+    if len(session.get_inputs()) == 3:  # a cascade graph: the final pass starts from one at half its scale
+        disp = _run_onnx_at(session, left, right, scale, start=_run_onnx_at(session, left, right, scale / 2))
     return apply_refine(disp, left, refine)
 
 
-def _run_onnx_at(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-                 scale: float) -> npt.NDArray[np.float32]:
-    """The session's disparity of a pair resized by ``scale``, at the input's size and in its pixels."""
+def _run_onnx_at(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
+                 start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
+    """The session's disparity of a pair resized by ``scale``, at the input's size and in its pixels (``start``: an
+    (H, W) disparity of the input for a cascade graph's start, None = zeros)."""
     from optstereo.rescale import disparity_to_size, rescaled_pair
 
     if scale == 1.0:
-        return _run_onnx(session, left, right)
-    return disparity_to_size(_run_onnx(session, *rescaled_pair(left, right, scale)), left.shape[:2])
+        return _run_onnx(session, left, right, start)
+    left_s, right_s = rescaled_pair(left, right, scale)
+    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
+    return disparity_to_size(_run_onnx(session, left_s, right_s, start_s), left.shape[:2])
 
 
-def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:
+def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+              start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
     from optstereo.inference import to_batch
     from optstereo.padding import InputPadder
 
@@ -172,5 +187,9 @@ def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]
     left_t, right_t = to_batch(left, cpu), to_batch(right, cpu)
     padder = InputPadder(left_t.shape, divis_by=8)
     left_t, right_t = padder.pad(left_t, right_t)
-    disp = session.run(["disparity"], {"left": left_t.numpy(), "right": right_t.numpy()})[0]
+    feed = {"left": left_t.numpy(), "right": right_t.numpy()}
+    if len(session.get_inputs()) == 3:
+        start_t = torch.zeros(1, 1, *left.shape[:2]) if start is None else torch.from_numpy(start)[None, None]
+        feed["start"] = padder.pad(start_t.float())[0].numpy()
+    disp = session.run(["disparity"], feed)[0]
     return padder.unpad(torch.from_numpy(disp))[0, 0].numpy().astype(np.float32)

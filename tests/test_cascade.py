@@ -116,8 +116,21 @@ def test_trainer_draw(tmp_path: Path) -> None:
         TrainConfig.from_layers({"data": {"cascade_p": 1.5}})
 
 
-def test_export_refuses_a_cascade_model(tmp_path: Path) -> None:
-    from optstereo.export import export
+def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> None:
+    # a cascade model exports a graph with a third input, the start; infer_onnx runs the coarse pass and the final
+    # one from it as infer does: the two agree at the export tests' tolerance, and differ from the zero start
+    from test_export import _kitti_crop
 
-    with pytest.raises(ValueError, match="coarse-to-fine"):
-        export(build_model("optstereo", cascade=True, **TINY), tmp_path / "m.onnx")
+    from optstereo.export import export, infer_onnx, onnx_session
+
+    torch.manual_seed(0)
+    model = build_model("optstereo", cascade=True, **{**TINY, "iters": 3}).eval()
+    session = onnx_session(export(model, tmp_path / "cascade.onnx"))
+    assert [i.name for i in session.get_inputs()] == ["left", "right", "start"]
+    left, right = _kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
+    ref, got = infer(model, left, right), infer_onnx(session, left, right)
+    diff = np.abs(got - ref)
+    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+    plain = build_model("optstereo", **{**TINY, "iters": 3}).eval()
+    plain.load_state_dict(model.state_dict())
+    assert not np.allclose(ref, infer(plain, left, right), atol=0.1)  # the start changed the answer
