@@ -199,6 +199,9 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
      "KITTI 2012 0.12 points over its rule)", 4000, ""),
     ("sgmleft_r", "`sgmfill_o` + 5000 steps, `sgmboth_p`'s control: the same seed and recipe on left-only fills "
      "(measured, not shipped: KITTI 2015 0.04 points over its rule)", 5000, "sgmfill_o"),
+    ("cascade_t", "version 13 (`sgmboth_p`'s weights) + 2800 steps, the same recipe with coarse-to-fine starts in half "
+     "the batches, evaluated with that start and version 13's settings (measured, not shipped: Middlebury 0.22 points "
+     "over its rule)", 2800, "sgmboth_p"),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
