@@ -186,7 +186,8 @@ def infer_scaled(
     With ``scale`` None and a model that records ``scale_ref_disp`` (:func:`model_scale_refs`), the first pass at
     the model's input scale decides whether a second, larger one runs (:func:`optstereo.rescale.adaptive_factor`):
     a small pair with small disparities is enlarged until they match the model's training pairs. A given ``scale``
-    is always used as it is.
+    is always used as it is. A model with ``ModelConfig.cascade`` starts the final pass's GRU from a pass at half its
+    scale (optstereo.cascade) instead of zero.
     """
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")

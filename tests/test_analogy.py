@@ -152,9 +152,9 @@ def test_training_step_occludes_only_the_network_input(tmp_path: Path, monkeypat
     seen: dict[str, torch.Tensor] = {}
     forward = train._forward
 
-    def spy_forward(state, cfg, device, left, right):  # noqa: ANN001, ANN202
+    def spy_forward(state, cfg, device, left, right, disp_init=None):  # noqa: ANN001, ANN202
         seen["net_right"] = right.clone()
-        return forward(state, cfg, device, left, right)
+        return forward(state, cfg, device, left, right, disp_init)
 
     monkeypatch.setattr(train, "_forward", spy_forward)
     model = train.build_model(cfg)
