@@ -145,37 +145,21 @@ def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8
     input ``scale`` and with post-filter ``refine``, None = the ones the file records, as ``infer`` at the model's
     own)."""
     from optstereo.inference import apply_refine, check_refine
-    from optstereo.rescale import adaptive_factor
+    from optstereo.rescale import scaled_passes
 
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     recorded = session.get_modelmeta().custom_metadata_map
-    adaptive = scale is None and float(recorded.get("scale_ref_disp", 0.0)) > 0
+    refs = None
+    if scale is None and float(recorded.get("scale_ref_disp", 0.0)) > 0:
+        refs = (float(recorded["scale_ref_disp"]), int(recorded["scale_ref_pixels"]))
     scale = float(recorded.get("input_scale", 1.0)) if scale is None else scale
     refine = recorded.get("refine", "none") if refine is None else refine
     check_refine(refine)
-    disp = _run_onnx_at(session, left, right, scale)
-    if adaptive:  # the second pass of optstereo.inference.infer_scaled
-        gain = adaptive_factor(disp, float(recorded["scale_ref_disp"]), int(recorded["scale_ref_pixels"]))
-        if gain > 1.0:
-            scale *= gain
-            disp = _run_onnx_at(session, left, right, scale)
-    if len(session.get_inputs()) == 3:  # a cascade graph: the final pass starts from one at half its scale
-        disp = _run_onnx_at(session, left, right, scale, start=_run_onnx_at(session, left, right, scale / 2))
+    cascade = len(session.get_inputs()) == 3  # a graph with a start input (ModelConfig.cascade)
+    disp, _ = scaled_passes(lambda l_s, r_s, start: _run_onnx(session, l_s, r_s, start), left, right, scale, refs,
+                            cascade)
     return apply_refine(disp, left, refine)
-
-
-def _run_onnx_at(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
-                 start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
-    """The session's disparity of a pair resized by ``scale``, at the input's size and in its pixels (``start``: an
-    (H, W) disparity of the input for a cascade graph's start, None = zeros)."""
-    from optstereo.rescale import disparity_to_size, rescaled_pair
-
-    if scale == 1.0:
-        return _run_onnx(session, left, right, start)
-    left_s, right_s = rescaled_pair(left, right, scale)
-    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
-    return disparity_to_size(_run_onnx(session, left_s, right_s, start_s), left.shape[:2])
 
 
 def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],

@@ -22,7 +22,7 @@ import torch
 from torch import nn
 
 from optstereo.padding import InputPadder, divisor_of
-from optstereo.rescale import adaptive_factor, disparity_to_size, rescaled_pair
+from optstereo.rescale import scaled_passes
 from optstereo.submission import write_submission
 from pvm_labeler.common.version import cpuinfo_flags
 
@@ -196,30 +196,17 @@ def infer_scaled(
     refine = model_refine(model) if refine is None else refine
     check_refine(refine)  # before the network runs, not after
     device = torch.device(device)
-    disp = _network_at(model, left, right, scale, iters, device, amp)
-    if refs is not None:
-        gain = adaptive_factor(disp, *refs)
-        if gain > 1.0:
-            logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0],
-                        scale, scale * gain)
-            scale *= gain
-            disp = _network_at(model, left, right, scale, iters, device, amp)
-    if getattr(getattr(model, "config", None), "cascade", False):  # the final pass starts from one at half scale
-        coarse = _network_at(model, left, right, scale / 2, iters, device, amp)
-        disp = _network_at(model, left, right, scale, iters, device, amp, start=coarse)
-    return Inference(apply_refine(disp, left, refine, device), scale)
+    cascade = bool(getattr(getattr(model, "config", None), "cascade", False))
 
+    def run(left_s: npt.NDArray[np.uint8], right_s: npt.NDArray[np.uint8],
+            start: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
+        return _network(model, left_s, right_s, iters, device, amp, start)
 
-def _network_at(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
-                iters: int | None, device: torch.device, amp: str,
-                start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
-    """The network's (H, W) disparity of a pair resized by ``scale``, brought back to the input's size and pixels;
-    ``start``: an (H, W) disparity of the input to start the GRU from (optstereo.cascade), None = zero."""
-    if scale == 1.0:
-        return _network(model, left, right, iters, device, amp, start)
-    left_s, right_s = rescaled_pair(left, right, scale)
-    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
-    return disparity_to_size(_network(model, left_s, right_s, iters, device, amp, start_s), left.shape[:2])
+    disp, final = scaled_passes(run, left, right, scale, refs, cascade)
+    if final != scale:
+        logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0], scale,
+                    final)
+    return Inference(apply_refine(disp, left, refine, device), final)
 
 
 def _network(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], iters: int | None,
