@@ -9,6 +9,9 @@ draws coarse starts with probability ``data.cascade_p`` and ``ModelConfig.cascad
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -43,3 +46,38 @@ def coarse_start(model: nn.Module, left: torch.Tensor, right: torch.Tensor, iter
     _, full = model(small_l, small_r, iters=iters, test_mode=True)
     up = F.interpolate(full.float(), size=left.shape[-2:], mode="bilinear", align_corners=False)
     return grid_start(up * (left.shape[-1] / w))
+
+
+#: Side of the box window :func:`photometric_select` averages each candidate's per-pixel photometric error over (on
+#: top of SSIM's own 3x3): 9x9 pixels of support in all, the size of a census window, fixed before any scoring.
+SELECT_WINDOW = 7
+
+
+@torch.no_grad()
+def photometric_select(left: np.ndarray, right: np.ndarray, candidates: Sequence[np.ndarray],
+                       window: int = SELECT_WINDOW) -> np.ndarray:
+    """Per pixel, the candidate disparity whose right-to-left warp matches the left view best; no ground truth.
+
+    ``left``, ``right``: (H, W, 3) uint8; ``candidates``: (H, W) float32 disparities of that pair (an exact tie goes
+    to the first). The error is the reconstruction loss's own per-pixel form
+    (``optstereo.losses.photometric_error``: 0.85 (1 - SSIM 3x3) / 2 + 0.15 L1), 1 where the warp leaves the image,
+    then averaged over a ``window`` x ``window`` box so that one pixel's noise does not decide. Returns (H, W) float32.
+    """
+    from optstereo.losses import photometric_error, warp_right_to_left
+
+    if not candidates:
+        raise ValueError("photometric_select needs at least one candidate")
+    shape = left.shape[:2]
+    if right.shape[:2] != shape or any(c.shape != shape for c in candidates):
+        raise ValueError(f"photometric_select: the pair and every candidate must be {shape}, got right "
+                         f"{right.shape[:2]} and candidates {[c.shape for c in candidates]}")
+    left_t = torch.from_numpy(np.ascontiguousarray(left)).permute(2, 0, 1)[None].float() / 255.0
+    right_t = torch.from_numpy(np.ascontiguousarray(right)).permute(2, 0, 1)[None].float() / 255.0
+    disps = torch.from_numpy(np.stack(candidates).astype(np.float32))[:, None]  # (K, 1, H, W)
+    costs = []
+    for disp in disps:
+        warped, valid = warp_right_to_left(right_t, disp[None])
+        cost = torch.where(valid, photometric_error(left_t, warped), torch.ones(()))
+        costs.append(F.avg_pool2d(cost, window, 1, window // 2, count_include_pad=False))
+    best = torch.cat(costs).argmin(dim=0)  # argmin takes the first of equal minima: the preferred candidate
+    return torch.gather(disps, 0, best[None]).squeeze(0).squeeze(0).numpy().astype(np.float32)

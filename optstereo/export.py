@@ -16,7 +16,9 @@ file's metadata records the model's input scale (``input_scale``), its adaptive-
 TorchScript file carries none of them, so its caller resizes by ``model.config.input_scale`` and filters by
 ``model.config.refine`` (``optstereo.inference.apply_refine``) as ``infer`` does. A model with a coarse-to-fine start
 (``ModelConfig.cascade``) exports a graph with a third input, ``start`` (1, 1, H, W): a full-resolution disparity of
-the pair, zeros for the zero start; :func:`infer_onnx` feeds it the pass at half the scale, as ``infer`` does.
+the pair, zeros for the zero start; :func:`infer_onnx` feeds it the pass at half the scale, as ``infer`` does, and
+with ``cascade_select`` in the metadata (``ModelConfig.cascade_select``) keeps per pixel the better matching of that
+pass and the zero-start one.
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -97,6 +99,8 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
 
     recorded = {"input_scale": repr(model_input_scale(model)), "refine": model_refine(model)}
     cascade = bool(getattr(getattr(model, "config", None), "cascade", False))
+    if getattr(getattr(model, "config", None), "cascade_select", False):
+        recorded["cascade_select"] = "1"
     refs = model_scale_refs(model)
     if refs is not None:
         recorded.update(scale_ref_disp=repr(refs[0]), scale_ref_pixels=str(refs[1]))
@@ -157,8 +161,9 @@ def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8
     refine = recorded.get("refine", "none") if refine is None else refine
     check_refine(refine)
     cascade = len(session.get_inputs()) == 3  # a graph with a start input (ModelConfig.cascade)
+    select = recorded.get("cascade_select") == "1"
     disp, _ = scaled_passes(lambda l_s, r_s, start: _run_onnx(session, l_s, r_s, start), left, right, scale, refs,
-                            cascade)
+                            cascade, select)
     return apply_refine(disp, left, refine)
 
 

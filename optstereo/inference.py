@@ -187,7 +187,8 @@ def infer_scaled(
     the model's input scale decides whether a second, larger one runs (:func:`optstereo.rescale.adaptive_factor`):
     a small pair with small disparities is enlarged until they match the model's training pairs. A given ``scale``
     is always used as it is. A model with ``ModelConfig.cascade`` starts the final pass's GRU from a pass at half its
-    scale (optstereo.cascade) instead of zero.
+    scale (optstereo.cascade) instead of zero; with ``ModelConfig.cascade_select``, per pixel the better matching of
+    that pass and the zero-start one.
     """
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
@@ -196,13 +197,15 @@ def infer_scaled(
     refine = model_refine(model) if refine is None else refine
     check_refine(refine)  # before the network runs, not after
     device = torch.device(device)
-    cascade = bool(getattr(getattr(model, "config", None), "cascade", False))
+    config = getattr(model, "config", None)
+    cascade = bool(getattr(config, "cascade", False))
+    select = bool(getattr(config, "cascade_select", False))
 
     def run(left_s: npt.NDArray[np.uint8], right_s: npt.NDArray[np.uint8],
             start: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
         return _network(model, left_s, right_s, iters, device, amp, start)
 
-    disp, final = scaled_passes(run, left, right, scale, refs, cascade)
+    disp, final = scaled_passes(run, left, right, scale, refs, cascade, select)
     if final != scale:
         logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0], scale,
                     final)

@@ -101,11 +101,15 @@ def run_at_scale(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[n
 
 def scaled_passes(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
                   refs: tuple[float, int] | None = None,
-                  cascade: bool = False) -> tuple[npt.NDArray[np.float32], float]:
+                  cascade: bool = False, select: bool = False) -> tuple[npt.NDArray[np.float32], float]:
     """(disparity, final scale) of the passes a model's settings ask for, shared by ``infer`` and ``infer_onnx``:
     one at ``scale``; with ``refs`` (scale_ref_disp, scale_ref_pixels) a second one enlarged by
     :func:`adaptive_factor` when that is above 1; with ``cascade`` the final one started from a pass at half its
-    scale (optstereo.cascade)."""
+    scale (optstereo.cascade); with ``select`` as well, per pixel the better matching (photometric error) of that
+    final pass and the zero-start pass at the same scale, which the passes before it already ran
+    (``optstereo.cascade.photometric_select``)."""
+    if select and not cascade:
+        raise ValueError("select needs cascade: it chooses between the coarse-start pass and the zero-start one")
     disp = run_at_scale(run, left, right, scale)
     if refs is not None:
         gain = adaptive_factor(disp, *refs)
@@ -113,5 +117,10 @@ def scaled_passes(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[
             scale *= gain
             disp = run_at_scale(run, left, right, scale)
     if cascade:
+        zero = disp
         disp = run_at_scale(run, left, right, scale, start=run_at_scale(run, left, right, scale / 2))
+        if select:
+            from optstereo.cascade import photometric_select
+
+            disp = photometric_select(left, right, (disp, zero))
     return disp, scale

@@ -13,9 +13,11 @@ import torch.nn.functional as F
 from test_eval_predict import TINY, Echo
 from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
 
-from optstereo.cascade import coarse_start, grid_start, half_size
+from optstereo.cascade import coarse_start, grid_start, half_size, photometric_select
 from optstereo.inference import infer
 from optstereo.models import build_model
+from optstereo.models.config import ModelConfig
+from optstereo.rescale import scaled_passes
 
 
 class StartEcho(torch.nn.Module):
@@ -124,9 +126,10 @@ def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> 
     from optstereo.export import export, infer_onnx, onnx_session
 
     torch.manual_seed(0)
-    model = build_model("optstereo", cascade=True, **{**TINY, "iters": 3}).eval()
+    model = build_model("optstereo", cascade=True, cascade_select=True, **{**TINY, "iters": 3}).eval()
     session = onnx_session(export(model, tmp_path / "cascade.onnx"))
     assert [i.name for i in session.get_inputs()] == ["left", "right", "start"]
+    assert session.get_modelmeta().custom_metadata_map["cascade_select"] == "1"
     left, right = _kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     diff = np.abs(got - ref)
@@ -134,3 +137,62 @@ def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> 
     plain = build_model("optstereo", **{**TINY, "iters": 3}).eval()
     plain.load_state_dict(model.state_dict())
     assert not np.allclose(ref, infer(plain, left, right), atol=0.1)  # the start changed the answer
+
+
+def _shifted_pair(shift: int, h: int = 40, w: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    """A textured (H, W, 3) uint8 pair whose true disparity is ``shift`` everywhere: left(x) = right(x - shift)."""
+    rng = np.random.default_rng(0)
+    right = rng.integers(0, 256, (h, w + shift, 3)).astype(np.uint8)
+    right = (right.astype(np.float32) * 0.5 + np.roll(right, 1, axis=1) * 0.5).astype(np.uint8)  # some correlation
+    return right[:, :w].copy(), right[:, shift:shift + w].copy()  # left(x) = wide(x), right(x) = wide(x + shift)
+
+
+class TestPhotometricSelect:
+    def test_keeps_the_true_disparity(self) -> None:
+        left, right = _shifted_pair(5)
+        true, wrong = np.full(left.shape[:2], 5.0, np.float32), np.full(left.shape[:2], 2.0, np.float32)
+        for order in ((wrong, true), (true, wrong)):
+            got = photometric_select(left, right, order)
+            assert np.all(got[:, 12:] == 5.0)  # away from the left border, where a shift of 5 leaves the image
+
+    def test_per_pixel(self) -> None:
+        # each candidate is right on one half: the choice follows the halves, away from the seam (the box window)
+        left, right = _shifted_pair(5)
+        a, b = np.full(left.shape[:2], 5.0, np.float32), np.full(left.shape[:2], 5.0, np.float32)
+        a[:, 48:], b[:, :48] = 9.0, 1.0
+        got = photometric_select(left, right, (a, b))
+        assert np.all(got[:, 12:42] == 5.0) and np.all(got[:, 54:] == 5.0)
+
+    def test_one_answer_comes_back(self) -> None:
+        left, right = _shifted_pair(5)
+        ramp = np.tile(np.linspace(0.0, 8.0, left.shape[1], dtype=np.float32), (left.shape[0], 1))
+        np.testing.assert_array_equal(photometric_select(left, right, (ramp,)), ramp)
+        np.testing.assert_array_equal(photometric_select(left, right, (ramp, ramp.copy())), ramp)
+
+    def test_shapes_checked(self) -> None:
+        left, right = _shifted_pair(5)
+        with pytest.raises(ValueError, match="every candidate"):
+            photometric_select(left, right, (np.zeros((4, 4), np.float32),))
+        with pytest.raises(ValueError, match="at least one"):
+            photometric_select(left, right, ())
+
+
+def test_scaled_passes_select() -> None:
+    # a fake network: from zero it answers the true 5 px, from a start a wrong 2 px; the cascade alone keeps 2, the
+    # selection puts back 5 (x >= 12, clear of the left border), and select without cascade is an error
+    left, right = _shifted_pair(5)
+    calls = []
+
+    def run(l_s, r_s, start):
+        calls.append(start is not None)
+        return np.full(l_s.shape[:2], 2.0 * l_s.shape[1] / left.shape[1] if start is not None else 5.0 * l_s.shape[1]
+                       / left.shape[1], np.float32)
+
+    plain, _ = scaled_passes(run, left, right, 1.0, cascade=True)
+    assert np.allclose(plain, 2.0) and calls == [False, False, True]
+    chosen, _ = scaled_passes(run, left, right, 1.0, cascade=True, select=True)
+    assert np.all(chosen[:, 12:] == 5.0)
+    with pytest.raises(ValueError, match="select needs cascade"):
+        scaled_passes(run, left, right, 1.0, select=True)
+    with pytest.raises(ValueError, match="cascade_select needs cascade"):
+        ModelConfig(cascade_select=True).validate()

@@ -50,6 +50,10 @@ class ModelConfig:
             reference is the same percentile of the model's own predictions on its training pairs).
         cascade: ``infer`` starts the GRU of its final pass from a pass at half that scale instead of from zero
             (``optstereo.cascade``; for weights trained with ``data.cascade_p`` > 0).
+        cascade_select: with ``cascade``, keep per pixel whichever of that final pass and the zero-start pass at the
+            same scale matches the pair better photometrically (``optstereo.cascade.photometric_select``): the
+            coarse start where the walk from zero stops at a wrong period, the zero start where the half-size pass
+            lost a thin structure.
         scale_ref_pixels: the pixel count (H x W) of the training pairs: the second pass never feeds the network
             more pixels than a training pair at ``input_scale`` (required when ``scale_ref_disp`` is set).
 
@@ -76,6 +80,7 @@ class ModelConfig:
     scale_ref_disp: float = 0.0
     scale_ref_pixels: int = 0
     cascade: bool = False
+    cascade_select: bool = False
 
     @property
     def corr_channels(self) -> int:
@@ -94,6 +99,8 @@ class ModelConfig:
                              f"{self.scale_ref_disp} and {self.scale_ref_pixels}")
         if self.scale_ref_disp > 0 and self.scale_ref_pixels == 0:
             raise ValueError("model option scale_ref_disp needs scale_ref_pixels (the training pairs' pixel count)")
+        if self.cascade_select and not self.cascade:
+            raise ValueError("model option cascade_select needs cascade (it chooses between the two starts' passes)")
         if self.corr_radius < 0:
             raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
         if self.upsampler not in UPSAMPLERS:
