@@ -64,7 +64,8 @@ WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
 #: Dense SGM through the weighted median the shipped model applies (``pipelines.refine_study score``).
 FILTERED_SGM = Path("results/refine/score_r5_s51.json")
 #: Committed weights a CONTINUE run starts from when its parent run is gone (a fresh checkout): the lineage's
-#: unshipped heads, and version 11 (sgmfill_o, the start of sgmboth_p and its control sgmleft_r).
+#: unshipped heads (cascade_u: the cascade line's head), and version 11 (sgmfill_o, the start of sgmboth_p and its
+#: control sgmleft_r).
 HEADS = RESULTS / "weights"
 TEST_ITERS = 8  # the run trains with N_s = 4; RAFT-style refinement keeps improving with more test iterations
 
@@ -205,6 +206,9 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("cascade_t", "version 13 (`sgmboth_p`'s weights) + 2800 steps, the same recipe with coarse-to-fine starts in half "
      "the batches, evaluated with that start and version 13's settings (measured, not shipped: Middlebury 0.22 points "
      "over its rule)", 2800, "sgmboth_p"),
+    ("cascade_u", "+ 2400 steps, the same recipe, evaluated with the coarse start (measured, not shipped: Motorcycle "
+     "0.15 points over dense SGM; with the per-pixel choice between the starts, `cascade_u_select`, KITTI 2012 0.02 "
+     "points over it)", 2400, ""),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
