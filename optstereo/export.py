@@ -98,8 +98,9 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     from optstereo.inference import model_input_scale, model_refine, model_scale_refs
 
     recorded = {"input_scale": repr(model_input_scale(model)), "refine": model_refine(model)}
-    cascade = bool(getattr(getattr(model, "config", None), "cascade", False))
-    if getattr(getattr(model, "config", None), "cascade_select", False):
+    config = getattr(model, "config", None)
+    cascade = bool(getattr(config, "cascade", False))
+    if getattr(config, "cascade_select", False):
         recorded["cascade_select"] = "1"
     refs = model_scale_refs(model)
     if refs is not None:

@@ -22,7 +22,7 @@ import torch
 from torch import nn
 
 from optstereo.padding import InputPadder, divisor_of
-from optstereo.rescale import scaled_passes
+from optstereo.rescale import PairRun, scaled_passes
 from optstereo.submission import write_submission
 from pvm_labeler.common.version import cpuinfo_flags
 
@@ -200,16 +200,25 @@ def infer_scaled(
     config = getattr(model, "config", None)
     cascade = bool(getattr(config, "cascade", False))
     select = bool(getattr(config, "cascade_select", False))
-
-    def run(left_s: npt.NDArray[np.uint8], right_s: npt.NDArray[np.uint8],
-            start: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
-        return _network(model, left_s, right_s, iters, device, amp, start)
-
-    disp, final = scaled_passes(run, left, right, scale, refs, cascade, select)
+    disp, final = scaled_passes(network_run(model, iters, device, amp), left, right, scale, refs, cascade, select)
     if final != scale:
         logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0], scale,
                     final)
     return Inference(apply_refine(disp, left, refine, device), final)
+
+
+def network_run(model: nn.Module, iters: int | None = None, device: torch.device | str = "cpu",
+                amp: str = "none") -> PairRun:
+    """The network as an ``optstereo.rescale.PairRun``: (left, right, start or None) -> (H, W) float32 disparity of
+    the pair as given, without gradients; the building block of ``infer``'s passes (``scaled_passes``)."""
+    device = torch.device(device)
+
+    def run(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+            start: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
+        with torch.inference_mode():
+            return _network(model, left, right, iters, device, amp, start)
+
+    return run
 
 
 def _network(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], iters: int | None,

@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = ["ADAPTIVE_MIN_GAIN", "ADAPTIVE_PERCENTILE", "adaptive_factor", "disparity_to_size", "rescaled_pair",
-           "run_at_scale", "scaled_passes", "scaled_size", "sparse_to_size"]
+           "coarse_started", "run_at_scale", "scaled_passes", "scaled_size", "sparse_to_size"]
 
 #: A network run on a pair as given: (left, right, start or None) -> (H, W) disparity in that pair's pixels.
 PairRun = Callable[[npt.NDArray[np.uint8], npt.NDArray[np.uint8], "npt.NDArray[np.float32] | None"],
@@ -99,6 +99,13 @@ def run_at_scale(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[n
     return disparity_to_size(run(left_s, right_s, start_s), left.shape[:2])
 
 
+def coarse_started(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+                   scale: float) -> npt.NDArray[np.float32]:
+    """The pass at ``scale`` whose GRU starts from the pass at half that scale (optstereo.cascade), at the input's
+    (H, W) and pixels."""
+    return run_at_scale(run, left, right, scale, start=run_at_scale(run, left, right, scale / 2))
+
+
 def scaled_passes(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
                   refs: tuple[float, int] | None = None,
                   cascade: bool = False, select: bool = False) -> tuple[npt.NDArray[np.float32], float]:
@@ -118,7 +125,7 @@ def scaled_passes(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[
             disp = run_at_scale(run, left, right, scale)
     if cascade:
         zero = disp
-        disp = run_at_scale(run, left, right, scale, start=run_at_scale(run, left, right, scale / 2))
+        disp = coarse_started(run, left, right, scale)
         if select:
             from optstereo.cascade import photometric_select
 

@@ -29,21 +29,15 @@ def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
     """Every ``every``-th labelled training pair at the model's input scale (no adaptive pass: these are KITTI-size
     pairs, which never get one): the zero-start pass, the coarse-start pass and their per-pixel choice, each scored
     against the pair's PVM labels (no post-filter, so the three differ only by the start)."""
-    import torch
-
     from optstereo.api import load_model
     from optstereo.cascade import photometric_select
-    from optstereo.inference import _network, model_input_scale
-    from optstereo.rescale import run_at_scale
+    from optstereo.inference import model_input_scale, network_run
+    from optstereo.rescale import coarse_started, run_at_scale
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     model = load_model(checkpoint)
     scale = model_input_scale(model)
-
-    def run(left, right, start):
-        with torch.no_grad():
-            return _network(model, left, right, None, "cpu", "none", start)
-
+    run = network_run(model)
     accs = {answer: MetricAccumulator() for answer in ANSWERS}
     rows = []
     index = read_index(LABELS)
@@ -52,7 +46,7 @@ def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
             sample = read_sample(h5, frame_id)
         left, right = sample.left, sample.right
         zero = run_at_scale(run, left, right, scale)
-        coarse = run_at_scale(run, left, right, scale, start=run_at_scale(run, left, right, scale / 2))
+        coarse = coarse_started(run, left, right, scale)
         answers = {"zero": zero, "coarse": coarse, "select": photometric_select(left, right, (coarse, zero))}
         row: dict[str, Any] = {"frame_id": str(frame_id)}
         for name, disp in answers.items():
