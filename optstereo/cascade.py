@@ -53,19 +53,32 @@ def coarse_start(model: nn.Module, left: torch.Tensor, right: torch.Tensor, iter
 SELECT_WINDOW = 7
 
 
-@torch.no_grad()
 def photometric_select(left: np.ndarray, right: np.ndarray, candidates: Sequence[np.ndarray],
-                       window: int = SELECT_WINDOW) -> np.ndarray:
+                       window: int = SELECT_WINDOW, max_jump: float = 0.0) -> np.ndarray:
     """Per pixel, the candidate disparity whose right-to-left warp matches the left view best; no ground truth.
 
     ``left``, ``right``: (H, W, 3) uint8; ``candidates``: (H, W) float32 disparities of that pair (an exact tie goes
-    to the first). The error is the reconstruction loss's own per-pixel form
-    (``optstereo.losses.photometric_error``: 0.85 (1 - SSIM 3x3) / 2 + 0.15 L1), 1 where the warp leaves the image,
-    then averaged over a ``window`` x ``window`` box so that one pixel's noise does not decide. Returns (H, W) float32.
+    to the first). The error is :func:`photometric_costs`. ``max_jump`` > 0: another candidate is only chosen where
+    it lies within that many pixels of the first (a repeating structure matches as well one period away, and there
+    the first candidate, the coarse start, is the one to trust: :func:`jump_limit`). Returns (H, W) float32.
+    """
+    disps = np.stack(candidates).astype(np.float32) if len(candidates) else np.zeros((0, 0, 0), np.float32)
+    return choose(disps, photometric_costs(left, right, candidates, window), max_jump)
+
+
+@torch.no_grad()
+def photometric_costs(left: np.ndarray, right: np.ndarray, candidates: Sequence[np.ndarray],
+                      window: int = SELECT_WINDOW) -> np.ndarray:
+    """(K, H, W) float32: per candidate disparity, how badly the right view warped by it matches the left.
+
+    ``left``, ``right``: (H, W, 3) uint8; ``candidates``: K (H, W) float32 disparities. The error is the
+    reconstruction loss's own per-pixel form (``optstereo.losses.photometric_error``: 0.85 (1 - SSIM 3x3) / 2 + 0.15
+    L1), 1 where the warp leaves the image, then averaged over a ``window`` x ``window`` box so that one pixel's
+    noise does not decide.
     """
     from optstereo.losses import photometric_error, warp_right_to_left
 
-    if not candidates:
+    if not len(candidates):
         raise ValueError("photometric_select needs at least one candidate")
     shape = left.shape[:2]
     if right.shape[:2] != shape or any(c.shape != shape for c in candidates):
@@ -73,11 +86,29 @@ def photometric_select(left: np.ndarray, right: np.ndarray, candidates: Sequence
                          f"{right.shape[:2]} and candidates {[c.shape for c in candidates]}")
     left_t = torch.from_numpy(np.ascontiguousarray(left)).permute(2, 0, 1)[None].float() / 255.0
     right_t = torch.from_numpy(np.ascontiguousarray(right)).permute(2, 0, 1)[None].float() / 255.0
-    disps = torch.from_numpy(np.stack(candidates).astype(np.float32))[:, None]  # (K, 1, H, W)
     costs = []
-    for disp in disps:
-        warped, valid = warp_right_to_left(right_t, disp[None])
+    for disp in candidates:
+        warped, valid = warp_right_to_left(right_t, torch.from_numpy(np.asarray(disp, np.float32))[None, None])
         cost = torch.where(valid, photometric_error(left_t, warped), torch.ones(()))
-        costs.append(F.avg_pool2d(cost, window, 1, window // 2, count_include_pad=False))
-    best = torch.cat(costs).argmin(dim=0)  # argmin takes the first of equal minima: the preferred candidate
-    return torch.gather(disps, 0, best[None]).squeeze(0).squeeze(0).numpy().astype(np.float32)
+        costs.append(F.avg_pool2d(cost, window, 1, window // 2, count_include_pad=False)[0, 0])
+    return torch.stack(costs).numpy()
+
+
+def choose(disps: np.ndarray, costs: np.ndarray, max_jump: float = 0.0) -> np.ndarray:
+    """(K, H, W) candidate disparities and their (K, H, W) costs -> (H, W) float32: per pixel the lowest-cost
+    candidate (the first of equal ones), a candidate other than the first only within ``max_jump`` pixels of it
+    when ``max_jump`` > 0."""
+    costs = costs.copy()
+    if max_jump > 0:
+        costs[1:][np.abs(disps[1:] - disps[:1]) > max_jump] = np.inf
+    best = costs.argmin(axis=0)  # argmin takes the first of equal minima: the preferred candidate
+    return np.take_along_axis(disps, best[None], axis=0)[0].astype(np.float32)
+
+
+def jump_limit(width: int, jump: float) -> float:
+    """The ``max_jump`` of :func:`photometric_select` in pixels for a pair ``width`` pixels wide and
+    ``ModelConfig.cascade_select_jump`` = ``jump`` (a fraction of the width, so that the choice does not change when
+    the pair is resized; 0 = no limit)."""
+    if not 0 <= jump < float("inf"):
+        raise ValueError(f"cascade_select_jump must be >= 0 and finite, got {jump}")
+    return jump * width

@@ -18,7 +18,7 @@ TorchScript file carries none of them, so its caller resizes by ``model.config.i
 (``ModelConfig.cascade``) exports a graph with a third input, ``start`` (1, 1, H, W): a full-resolution disparity of
 the pair, zeros for the zero start; :func:`infer_onnx` feeds it the pass at half the scale, as ``infer`` does, and
 with ``cascade_select`` in the metadata (``ModelConfig.cascade_select``) keeps per pixel the better matching of that
-pass and the zero-start one.
+pass and the zero-start one (within ``cascade_select_jump`` of the width, when that is recorded and > 0).
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -102,6 +102,7 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     cascade = bool(getattr(config, "cascade", False))
     if getattr(config, "cascade_select", False):
         recorded["cascade_select"] = "1"
+        recorded["cascade_select_jump"] = repr(float(getattr(config, "cascade_select_jump", 0.0)))
     refs = model_scale_refs(model)
     if refs is not None:
         recorded.update(scale_ref_disp=repr(refs[0]), scale_ref_pixels=str(refs[1]))
@@ -163,8 +164,9 @@ def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8
     check_refine(refine)
     cascade = len(session.get_inputs()) == 3  # a graph with a start input (ModelConfig.cascade)
     select = recorded.get("cascade_select") == "1"
+    jump = float(recorded.get("cascade_select_jump", 0.0))
     disp, _ = scaled_passes(lambda l_s, r_s, start: _run_onnx(session, l_s, r_s, start), left, right, scale, refs,
-                            cascade, select)
+                            cascade, select, jump)
     return apply_refine(disp, left, refine)
 
 

@@ -188,7 +188,7 @@ def infer_scaled(
     a small pair with small disparities is enlarged until they match the model's training pairs. A given ``scale``
     is always used as it is. A model with ``ModelConfig.cascade`` starts the final pass's GRU from a pass at half its
     scale (optstereo.cascade) instead of zero; with ``ModelConfig.cascade_select``, per pixel the better matching of
-    that pass and the zero-start one.
+    that pass and the zero-start one (within ``ModelConfig.cascade_select_jump`` of it, when set).
     """
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
@@ -200,7 +200,9 @@ def infer_scaled(
     config = getattr(model, "config", None)
     cascade = bool(getattr(config, "cascade", False))
     select = bool(getattr(config, "cascade_select", False))
-    disp, final = scaled_passes(network_run(model, iters, device, amp), left, right, scale, refs, cascade, select)
+    jump = float(getattr(config, "cascade_select_jump", 0.0))
+    disp, final = scaled_passes(network_run(model, iters, device, amp), left, right, scale, refs, cascade, select,
+                                jump)
     if final != scale:
         logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0], scale,
                     final)

@@ -108,13 +108,15 @@ def coarse_started(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray
 
 def scaled_passes(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
                   refs: tuple[float, int] | None = None,
-                  cascade: bool = False, select: bool = False) -> tuple[npt.NDArray[np.float32], float]:
+                  cascade: bool = False, select: bool = False,
+                  select_jump: float = 0.0) -> tuple[npt.NDArray[np.float32], float]:
     """(disparity, final scale) of the passes a model's settings ask for, shared by ``infer`` and ``infer_onnx``:
     one at ``scale``; with ``refs`` (scale_ref_disp, scale_ref_pixels) a second one enlarged by
     :func:`adaptive_factor` when that is above 1; with ``cascade`` the final one started from a pass at half its
     scale (optstereo.cascade); with ``select`` as well, per pixel the better matching (photometric error) of that
     final pass and the zero-start pass at the same scale, which the passes before it already ran
-    (``optstereo.cascade.photometric_select``)."""
+    (``optstereo.cascade.photometric_select``), the zero start only within ``select_jump`` x width pixels of the
+    coarse one when that is > 0 (``ModelConfig.cascade_select_jump``)."""
     if select and not cascade:
         raise ValueError("select needs cascade: it chooses between the coarse-start pass and the zero-start one")
     disp = run_at_scale(run, left, right, scale)
@@ -127,7 +129,7 @@ def scaled_passes(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[
         zero = disp
         disp = coarse_started(run, left, right, scale)
         if select:
-            from optstereo.cascade import photometric_select
+            from optstereo.cascade import jump_limit, photometric_select
 
-            disp = photometric_select(left, right, (disp, zero))
+            disp = photometric_select(left, right, (disp, zero), max_jump=jump_limit(left.shape[1], select_jump))
     return disp, scale

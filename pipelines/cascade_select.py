@@ -8,6 +8,15 @@ their PVM labels, which no GT touched:
     .venv/bin/python -m pipelines.cascade_select check --checkpoint out/pretrained/cascade_t/candidate.safetensors
 
 Output: ``results/cascade_select/check.json`` (pooled EPE / bad-1 / bad-3 per answer, and per pair).
+
+``calibrate`` picks the choice's jump limit (``ModelConfig.cascade_select_jump``) the same GT-free way: on every
+third labelled training pair, the choice at each limit of :data:`JUMP_GRID` is scored against the PVM labels and
+the one with the lowest pooled bad-3 wins (ties to the tighter limit):
+
+    .venv/bin/python -m pipelines.cascade_select calibrate --checkpoint out/pretrained/cascade_u/candidate.safetensors \
+        --name cascade_u
+
+Output: ``results/cascade_select/calibrate_<name>.json`` (each limit's pooled metrics and the chosen one).
 """
 
 from __future__ import annotations
@@ -17,12 +26,17 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pipelines.adaptive_scale import LABELS
 from pipelines.train_pretrained import _machine
 from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/cascade_select")
 ANSWERS = ("zero", "coarse", "select")
+#: The jump limits ``calibrate`` tries, as fractions of the pair's width (0 = no limit; 0.01 = 12.4 px on a KITTI
+#: frame), fixed before any run of it.
+JUMP_GRID = (0.0, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03)
 
 
 def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
@@ -65,13 +79,57 @@ def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
     return out
 
 
+def step_calibrate(checkpoint: str, name: str, every: int = 3,
+                   grid: tuple[float, ...] = JUMP_GRID) -> dict[str, Any]:
+    """Every ``every``-th labelled training pair at the model's input scale: the choice between the coarse and the
+    zero start at each jump limit of ``grid`` (``optstereo.cascade.choose``, the code ``infer`` runs), scored against
+    the PVM labels; returns (and writes) each limit's pooled EPE / bad-1 / bad-3 and ``jump``, the one with the
+    lowest bad-3 (an exact tie goes to the tighter limit, 0 = no limit being the loosest)."""
+    from optstereo.api import load_model
+    from optstereo.cascade import choose, jump_limit, photometric_costs
+    from optstereo.inference import model_input_scale, network_run
+    from optstereo.rescale import coarse_started, run_at_scale
+    from pvm_labeler.shards import open_shard, read_index, read_sample
+
+    model = load_model(checkpoint)
+    scale = model_input_scale(model)
+    run = network_run(model)
+    accs = {jump: MetricAccumulator() for jump in grid}
+    index = read_index(LABELS)
+    pairs = [(p, f) for p, ids in index.shards for f in ids][::every]
+    for i, (path, frame_id) in enumerate(pairs):
+        with open_shard(Path(path)) as h5:
+            sample = read_sample(h5, frame_id)
+        left, right = sample.left, sample.right
+        disps = np.stack([coarse_started(run, left, right, scale), run_at_scale(run, left, right, scale)])
+        costs = photometric_costs(left, right, disps)
+        for jump, acc in accs.items():
+            acc.update(choose(disps, costs, jump_limit(left.shape[1], jump)), sample.label)
+        print(f"[{i + 1}/{len(pairs)}] {frame_id}", flush=True)
+    rows = {repr(jump): {k: acc.compute()[k] for k in ("epe", "bad1", "bad3", "n_valid")} for jump, acc in accs.items()}
+    chosen = min(grid, key=lambda j: (rows[repr(j)]["bad3"], j if j > 0 else float("inf")))
+    out = {"checkpoint": checkpoint, "input_scale": scale, "every": every, "labels": str(LABELS), "pairs": len(pairs),
+           "grid": rows, "jump": chosen, **_machine()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"calibrate_{name}.json").write_text(json.dumps(out, indent=1, default=float))
+    for jump in grid:
+        m = rows[repr(jump)]
+        print(f"jump {jump:g}: EPE {m['epe']:.4f} px, bad-1 {m['bad1']:.3f} %, bad-3 {m['bad3']:.4f} %"
+              + (" <- chosen" if jump == chosen else ""))
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("step", choices=("check",))
+    parser.add_argument("step", choices=("check", "calibrate"))
     parser.add_argument("--checkpoint", required=True, help="a model trained with coarse starts (--cascade-p)")
-    parser.add_argument("--every", type=int, default=6, help="score every N-th labelled pair")
+    parser.add_argument("--every", type=int, help="score every N-th labelled pair (default: 6 check, 3 calibrate)")
+    parser.add_argument("--name", default="model", help="calibrate: the output's name")
     args = parser.parse_args(argv)
-    step_check(args.checkpoint, args.every)
+    if args.step == "check":
+        step_check(args.checkpoint, args.every or 6)
+    else:
+        step_calibrate(args.checkpoint, args.name, args.every or 3)
 
 
 if __name__ == "__main__":

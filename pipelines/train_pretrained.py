@@ -151,6 +151,9 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     # the longer cascade run cascade_t's outcome asked for: its weights + 2400 steps of the same recipe
     ("cascade_u", "cascade_t", LABELS_SGMWM2, ["--steps", "2400", "--lr", "1e-4", "--seed", "34", "--amp", "bf16",
                                                "--iters", "8", "--scale-range", "1.5,1.75", "--cascade-p", "0.5"]),
+    # the cascade line continued again (stop 40's note: "a longer cascade run")
+    ("cascade_v", "cascade_u", LABELS_SGMWM2, ["--steps", "2800", "--lr", "1e-4", "--seed", "35", "--amp", "bf16",
+                                               "--iters", "8", "--scale-range", "1.5,1.75", "--cascade-p", "0.5"]),
 )
 #: Weight averages ("soups") of continuation end points: name -> the runs averaged (RESULTS.md, pre-registered).
 SOUPS: dict[str, tuple[str, ...]] = {"soup_567": ("long_conf5", "long_conf6", "long_conf7")}
@@ -385,11 +388,12 @@ def step_eval(run: str, name: str | None = None, iters: int = TEST_ITERS, scale:
 
 
 def step_ship(run: str, input_scale: float = 1.0, refine: str = "none", scale_refs: tuple[float, int] | None = None,
-              out: Path = WEIGHTS, cascade: bool = False, select: bool = False) -> None:
+              out: Path = WEIGHTS, cascade: bool = False, select: bool = False, select_jump: float = 0.0) -> None:
     """Export the run's final weights (a RUN under out/pretrained, or a checkpoint path; float32 safetensors, model
     config in the metadata) as the shipped model, recording ``input_scale``, ``refine`` and the adaptive scale's
     ``scale_refs`` (scale_ref_disp, scale_ref_pixels; None = off), ``cascade`` (a coarse-to-fine start) and ``select``
-    (with it, the per-pixel photometric choice between the two starts) as what ``infer`` does by default; ``out``
+    (with it, the per-pixel photometric choice between the two starts, limited to ``select_jump`` of the width when
+    that is > 0) as what ``infer`` does by default; ``out``
     another file than the shipped one (a candidate)."""
     from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 
@@ -398,7 +402,7 @@ def step_ship(run: str, input_scale: float = 1.0, refine: str = "none", scale_re
     # the shipped defaults: 8 iterations at test time, and the input scale and post-filter its rules were judged at
     model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS, input_scale=input_scale, refine=refine,
                                         scale_ref_disp=ref_disp, scale_ref_pixels=ref_pixels, cascade=cascade,
-                                        cascade_select=select)
+                                        cascade_select=select, cascade_select_jump=select_jump)
     out.parent.mkdir(parents=True, exist_ok=True)
     export_safetensors(out, model, step=ckpt.step)
     out.chmod(0o644)  # safetensors writes 0600; the package file is read by every user
@@ -596,6 +600,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--cascade", action="store_true", help="ship: record the coarse-to-fine start")
     parser.add_argument("--select", action="store_true",
                         help="ship: with --cascade, record the per-pixel photometric choice between the two starts")
+    parser.add_argument("--select-jump", type=float, default=0.0,
+                        help="ship: with --select, choose the zero start only within this fraction of the width of "
+                             "the coarse start (pipelines.cascade_select calibrate)")
     parser.add_argument("--out", type=Path, default=WEIGHTS, help="ship: write this file instead of the shipped one")
     args = parser.parse_args(argv)
     if args.step == "label":
@@ -620,7 +627,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.scale_refs is not None:
             doc = json.loads(args.scale_refs.read_text())
             refs = (float(doc["scale_ref_disp"]), int(doc["scale_ref_pixels"]))
-        step_ship(args.run or "arm_no_lt", args.input_scale, args.refine, refs, args.out, args.cascade, args.select)
+        step_ship(args.run or "arm_no_lt", args.input_scale, args.refine, refs, args.out, args.cascade, args.select,
+                  args.select_jump)
     elif args.step == "soup":
         if args.run is None:
             parser.error(f"soup needs a name: one of {', '.join(SOUPS)}")

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from test_eval_predict import TINY, Echo
 from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
 
-from optstereo.cascade import coarse_start, grid_start, half_size, photometric_select
+from optstereo.cascade import choose, coarse_start, grid_start, half_size, jump_limit, photometric_select
 from optstereo.inference import infer
 from optstereo.models import build_model
 from optstereo.models.config import ModelConfig
@@ -127,10 +127,12 @@ def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> 
     from optstereo.export import export, infer_onnx, onnx_session
 
     torch.manual_seed(0)
-    model = build_model("optstereo", cascade=True, cascade_select=True, **{**TINY, "iters": 3}).eval()
+    model = build_model("optstereo", cascade=True, cascade_select=True, cascade_select_jump=0.02,
+                        **{**TINY, "iters": 3}).eval()
     session = onnx_session(export(model, tmp_path / "cascade.onnx"))
     assert [i.name for i in session.get_inputs()] == ["left", "right", "start"]
-    assert session.get_modelmeta().custom_metadata_map["cascade_select"] == "1"
+    recorded = session.get_modelmeta().custom_metadata_map
+    assert recorded["cascade_select"] == "1" and float(recorded["cascade_select_jump"]) == 0.02
     left, right = _kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     diff = np.abs(got - ref)
@@ -170,12 +172,38 @@ class TestPhotometricSelect:
         np.testing.assert_array_equal(photometric_select(left, right, (ramp,)), ramp)
         np.testing.assert_array_equal(photometric_select(left, right, (ramp, ramp.copy())), ramp)
 
+    def test_jump_limit(self) -> None:
+        # the zero start (second) is the true 5 px, the coarse start (first) a wrong 2 px, 3 px away: a limit of 3
+        # px keeps the choice as it was, one of 2.9 px keeps the coarse start everywhere
+        left, right = _shifted_pair(5)
+        coarse, zero = np.full(left.shape[:2], 2.0, np.float32), np.full(left.shape[:2], 5.0, np.float32)
+        assert np.all(photometric_select(left, right, (coarse, zero), max_jump=3.0)[:, 12:] == 5.0)
+        np.testing.assert_array_equal(photometric_select(left, right, (coarse, zero), max_jump=2.9), coarse)
+
     def test_shapes_checked(self) -> None:
         left, right = _shifted_pair(5)
         with pytest.raises(ValueError, match="every candidate"):
             photometric_select(left, right, (np.zeros((4, 4), np.float32),))
         with pytest.raises(ValueError, match="at least one"):
             photometric_select(left, right, ())
+
+
+def test_choose_by_hand() -> None:
+    # costs favour the second candidate everywhere but the last pixel (a tie: the first); the jumps from the first
+    # are 1, 5, 20, 20, 0 px
+    disps = np.array([[[0.0, 0.0, 0.0, 0.0, 3.0]], [[1.0, 5.0, 20.0, -20.0, 3.0]]], np.float32)
+    costs = np.array([[[0.5, 0.5, 0.5, 0.5, 0.2]], [[0.1, 0.1, 0.1, 0.1, 0.2]]], np.float32)
+    np.testing.assert_array_equal(choose(disps, costs), [[1.0, 5.0, 20.0, -20.0, 3.0]])
+    np.testing.assert_array_equal(choose(disps, costs, max_jump=5.0), [[1.0, 5.0, 0.0, 0.0, 3.0]])
+    np.testing.assert_array_equal(choose(disps, costs, max_jump=4.99), [[1.0, 0.0, 0.0, 0.0, 3.0]])
+    assert np.all(costs[1, 0, :4] == 0.1)  # the caller's costs are left as they were
+    assert jump_limit(1242, 0.01) == pytest.approx(12.42) and jump_limit(1242, 0.0) == 0.0
+    with pytest.raises(ValueError, match="cascade_select_jump"):
+        jump_limit(100, -0.1)
+    with pytest.raises(ValueError, match="cascade_select_jump needs cascade_select"):
+        ModelConfig(cascade=True, cascade_select_jump=0.01).validate()
+    with pytest.raises(ValueError, match="cascade_select_jump must be"):
+        ModelConfig(cascade=True, cascade_select=True, cascade_select_jump=float("inf")).validate()
 
 
 def test_scaled_passes_select() -> None:
@@ -193,6 +221,11 @@ def test_scaled_passes_select() -> None:
     assert np.allclose(plain, 2.0) and calls == [False, False, True]
     chosen, _ = scaled_passes(run, left, right, 1.0, cascade=True, select=True)
     assert np.all(chosen[:, 12:] == 5.0)
+    # the 3 px jump is over 0.02 of the 96 px width (1.92 px) and within 0.04 of it (3.84 px)
+    limited, _ = scaled_passes(run, left, right, 1.0, cascade=True, select=True, select_jump=0.02)
+    assert np.allclose(limited, 2.0)
+    limited, _ = scaled_passes(run, left, right, 1.0, cascade=True, select=True, select_jump=0.04)
+    assert np.all(limited[:, 12:] == 5.0)
     with pytest.raises(ValueError, match="select needs cascade"):
         scaled_passes(run, left, right, 1.0, select=True)
     with pytest.raises(ValueError, match="cascade_select needs cascade"):
@@ -235,3 +268,11 @@ def test_pipeline_check_on_real_pairs(tmp_path: Path, monkeypatch: pytest.Monkey
         for name, disp in (("zero", zero), ("coarse", coarse)):
             assert row[name]["epe"] == pytest.approx(MetricAccumulator().update(disp, rec.label)["epe"], rel=1e-5)
     assert (tmp_path / "results" / "check.json").exists() and doc["select"]["n_valid"] == 2 * 64 * 100
+    # calibrate: with no limit its choice is the check's; the chosen limit is the grid's lowest bad-3, ties tighter
+    cal = check.step_calibrate(str(source), "tiny", every=1, grid=(0.0, 0.05, 0.2))
+    assert cal["grid"]["0.0"]["epe"] == pytest.approx(doc["select"]["epe"], rel=1e-6)
+    best = min(row["bad3"] for row in cal["grid"].values())
+    assert cal["grid"][repr(cal["jump"])]["bad3"] == best
+    assert cal["jump"] == min((j for j in (0.05, 0.2, 0.0) if cal["grid"][repr(j)]["bad3"] == best),
+                              key=lambda j: j if j > 0 else float("inf"))
+    assert (tmp_path / "results" / "calibrate_tiny.json").exists()

@@ -54,6 +54,10 @@ class ModelConfig:
             same scale matches the pair better photometrically (``optstereo.cascade.photometric_select``): the
             coarse start where the walk from zero stops at a wrong period, the zero start where the half-size pass
             lost a thin structure.
+        cascade_select_jump: with ``cascade_select``, > 0: the zero start is only chosen where it lies within this
+            fraction of the pair's width of the coarse start (``optstereo.cascade.jump_limit``; a wrong period of a
+            repeating structure matches as well as the right one, and the coarse start is the one that sees it
+            whole). 0 = no limit.
         scale_ref_pixels: the pixel count (H x W) of the training pairs: the second pass never feeds the network
             more pixels than a training pair at ``input_scale`` (required when ``scale_ref_disp`` is set).
 
@@ -81,6 +85,7 @@ class ModelConfig:
     scale_ref_pixels: int = 0
     cascade: bool = False
     cascade_select: bool = False
+    cascade_select_jump: float = 0.0
 
     @property
     def corr_channels(self) -> int:
@@ -101,6 +106,11 @@ class ModelConfig:
             raise ValueError("model option scale_ref_disp needs scale_ref_pixels (the training pairs' pixel count)")
         if self.cascade_select and not self.cascade:
             raise ValueError("model option cascade_select needs cascade (it chooses between the two starts' passes)")
+        if not 0 <= self.cascade_select_jump < float("inf"):
+            raise ValueError(f"model option cascade_select_jump must be >= 0 and finite, "
+                             f"got {self.cascade_select_jump}")
+        if self.cascade_select_jump > 0 and not self.cascade_select:
+            raise ValueError("model option cascade_select_jump needs cascade_select (it limits that choice)")
         if self.corr_radius < 0:
             raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
         if self.upsampler not in UPSAMPLERS:
