@@ -209,9 +209,9 @@ LINEAGE: tuple[tuple[str, str, int, str], ...] = (
     ("cascade_t", "version 13 (`sgmboth_p`'s weights) + 2800 steps, the same recipe with coarse-to-fine starts in half "
      "the batches, evaluated with that start and version 13's settings (measured, not shipped: Middlebury 0.22 points "
      "over its rule)", 2800, "sgmboth_p"),
-    ("cascade_u", "+ 2400 steps, the same recipe, evaluated with the coarse start (measured, not shipped: Motorcycle "
-     "0.15 points over dense SGM; with the per-pixel choice between the starts, `cascade_u_select`, KITTI 2012 0.02 "
-     "points over it)", 2400, ""),
+    ("cascade_u", "+ 2400 steps, the same recipe, evaluated with the coarse start (Motorcycle 0.15 points over dense "
+     "SGM; with the per-pixel choice between the starts, `cascade_u_select`, KITTI 2012 0.02 points over it; with "
+     "that choice limited to 0.015 of the width, `cascade_u_jump`: version 14, shipped)", 2400, ""),
 )
 #: The last LINEAGE row of the same recipe: the extrapolation follows its ancestors. Rows that change the recipe
 #: (scale_f, iters8_g) branch off it and are plotted, not extrapolated (a new recipe starts a new curve).
