@@ -62,8 +62,8 @@ def photometric_select(left: np.ndarray, right: np.ndarray, candidates: Sequence
     it lies within that many pixels of the first (a repeating structure matches as well one period away, and there
     the first candidate, the coarse start, is the one to trust: :func:`jump_limit`). Returns (H, W) float32.
     """
-    disps = np.stack(candidates).astype(np.float32) if len(candidates) else np.zeros((0, 0, 0), np.float32)
-    return choose(disps, photometric_costs(left, right, candidates, window), max_jump)
+    costs = photometric_costs(left, right, candidates, window)  # checks the shapes first
+    return choose(np.stack(candidates).astype(np.float32), costs, max_jump)
 
 
 @torch.no_grad()

@@ -184,6 +184,8 @@ class TestPhotometricSelect:
         left, right = _shifted_pair(5)
         with pytest.raises(ValueError, match="every candidate"):
             photometric_select(left, right, (np.zeros((4, 4), np.float32),))
+        with pytest.raises(ValueError, match="every candidate"):
+            photometric_select(left, right, (np.zeros(left.shape[:2], np.float32), np.zeros((4, 4), np.float32)))
         with pytest.raises(ValueError, match="at least one"):
             photometric_select(left, right, ())
 
