@@ -19,7 +19,9 @@ GT set of ../shared/data against dense SGM, export the weights.
                                                       --input-scale 1.625 --refine wmedian; version 12:
                                                       sgmboth_p, the same flags; version 13: version 12's
                                                       file, the same flags + --scale-refs
-                                                      results/adaptive_scale/reference.json)
+                                                      results/adaptive_scale/reference.json; version 14:
+                                                      HEADS/cascade_u, the same flags + --cascade --select
+                                                      --select-jump 0.015)
     python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
     python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
 
@@ -64,8 +66,8 @@ WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
 #: Dense SGM through the weighted median the shipped model applies (``pipelines.refine_study score``).
 FILTERED_SGM = Path("results/refine/score_r5_s51.json")
 #: Committed weights a CONTINUE run starts from when its parent run is gone (a fresh checkout): the lineage's
-#: unshipped heads (cascade_u: the cascade line's head), and version 11 (sgmfill_o, the start of sgmboth_p and its
-#: control sgmleft_r).
+#: heads (cascade_u: the cascade line's head, version 14's weights), and version 11 (sgmfill_o, the start of
+#: sgmboth_p and its control sgmleft_r).
 HEADS = RESULTS / "weights"
 TEST_ITERS = 8  # the run trains with N_s = 4; RAFT-style refinement keeps improving with more test iterations
 
