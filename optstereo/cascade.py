@@ -98,8 +98,8 @@ def choose(disps: np.ndarray, costs: np.ndarray, max_jump: float = 0.0) -> np.nd
     """(K, H, W) candidate disparities and their (K, H, W) costs -> (H, W) float32: per pixel the lowest-cost
     candidate (the first of equal ones), a candidate other than the first only within ``max_jump`` pixels of it
     when ``max_jump`` > 0."""
-    costs = costs.copy()
     if max_jump > 0:
+        costs = costs.copy()  # the caller's costs serve other limits (pipelines.cascade_select calibrate)
         costs[1:][np.abs(disps[1:] - disps[:1]) > max_jump] = np.inf
     best = costs.argmin(axis=0)  # argmin takes the first of equal minima: the preferred candidate
     return np.take_along_axis(disps, best[None], axis=0)[0].astype(np.float32)

@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from pipelines.adaptive_scale import LABELS
 from pipelines.train_pretrained import _machine
@@ -34,17 +36,19 @@ from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/cascade_select")
 ANSWERS = ("zero", "coarse", "select")
+#: One training pair's two starts: (frame id, the shard's sample, coarse-start pass, zero-start pass).
+Starts = tuple[str, Any, npt.NDArray[np.float32], npt.NDArray[np.float32]]
 #: The jump limits ``calibrate`` tries, as fractions of the pair's width (0 = no limit; 0.01 = 12.4 px on a KITTI
 #: frame), fixed before any run of it.
 JUMP_GRID = (0.0, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03)
 
 
-def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
-    """Every ``every``-th labelled training pair at the model's input scale (no adaptive pass: these are KITTI-size
-    pairs, which never get one): the zero-start pass, the coarse-start pass and their per-pixel choice, each scored
-    against the pair's PVM labels (no post-filter, so the three differ only by the start)."""
+def _starts(checkpoint: str, every: int) -> tuple[float, int, Iterator[Starts]]:
+    """(the model's input scale, the number of pairs, an iterator over them): every ``every``-th labelled training
+    pair at that scale (no adaptive pass: these are KITTI-size pairs, which never get one) as
+    (frame id, the shard's sample, the coarse-start pass, the zero-start pass), the passes (H, W) float32 at the
+    pair's size, no post-filter; the model is loaded once, the passes run as the iterator goes."""
     from optstereo.api import load_model
-    from optstereo.cascade import photometric_select
     from optstereo.inference import model_input_scale, network_run
     from optstereo.rescale import coarse_started, run_at_scale
     from pvm_labeler.shards import open_shard, read_index, read_sample
@@ -52,17 +56,31 @@ def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
     model = load_model(checkpoint)
     scale = model_input_scale(model)
     run = network_run(model)
+    pairs = [(p, f) for p, ids in read_index(LABELS).shards for f in ids][::every]
+
+    def passes() -> Iterator[Starts]:
+        for i, (path, frame_id) in enumerate(pairs):
+            with open_shard(Path(path)) as h5:
+                sample = read_sample(h5, frame_id)
+            print(f"[{i + 1}/{len(pairs)}] {frame_id}", flush=True)
+            yield (str(frame_id), sample, coarse_started(run, sample.left, sample.right, scale),
+                   run_at_scale(run, sample.left, sample.right, scale))
+
+    return scale, len(pairs), passes()
+
+
+def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
+    """The pairs of :func:`_starts`: the zero-start pass, the coarse-start pass and their per-pixel choice, each
+    scored against the pair's PVM labels (no post-filter, so the three differ only by the start)."""
+    from optstereo.cascade import photometric_select
+
     accs = {answer: MetricAccumulator() for answer in ANSWERS}
     rows = []
-    index = read_index(LABELS)
-    for path, frame_id in [(p, f) for p, ids in index.shards for f in ids][::every]:
-        with open_shard(Path(path)) as h5:
-            sample = read_sample(h5, frame_id)
-        left, right = sample.left, sample.right
-        zero = run_at_scale(run, left, right, scale)
-        coarse = coarse_started(run, left, right, scale)
-        answers = {"zero": zero, "coarse": coarse, "select": photometric_select(left, right, (coarse, zero))}
-        row: dict[str, Any] = {"frame_id": str(frame_id)}
+    scale, _, pairs = _starts(checkpoint, every)
+    for frame_id, sample, coarse, zero in pairs:
+        answers = {"zero": zero, "coarse": coarse,
+                   "select": photometric_select(sample.left, sample.right, (coarse, zero))}
+        row: dict[str, Any] = {"frame_id": frame_id}
         for name, disp in answers.items():
             metrics = accs[name].update(disp, sample.label)
             row[name] = {k: metrics[k] for k in ("epe", "bad1", "bad3")}
@@ -81,34 +99,22 @@ def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
 
 def step_calibrate(checkpoint: str, name: str, every: int = 3,
                    grid: tuple[float, ...] = JUMP_GRID) -> dict[str, Any]:
-    """Every ``every``-th labelled training pair at the model's input scale: the choice between the coarse and the
-    zero start at each jump limit of ``grid`` (``optstereo.cascade.choose``, the code ``infer`` runs), scored against
-    the PVM labels; returns (and writes) each limit's pooled EPE / bad-1 / bad-3 and ``jump``, the one with the
-    lowest bad-3 (an exact tie goes to the tighter limit, 0 = no limit being the loosest)."""
-    from optstereo.api import load_model
+    """The pairs of :func:`_starts`: the choice between the coarse and the zero start at each jump limit of
+    ``grid`` (``optstereo.cascade.choose``, the code ``infer`` runs), scored against the PVM labels; returns (and
+    writes) each limit's pooled EPE / bad-1 / bad-3 and ``jump``, the one with the lowest bad-3 (an exact tie goes
+    to the tighter limit, 0 = no limit being the loosest)."""
     from optstereo.cascade import choose, jump_limit, photometric_costs
-    from optstereo.inference import model_input_scale, network_run
-    from optstereo.rescale import coarse_started, run_at_scale
-    from pvm_labeler.shards import open_shard, read_index, read_sample
 
-    model = load_model(checkpoint)
-    scale = model_input_scale(model)
-    run = network_run(model)
     accs = {jump: MetricAccumulator() for jump in grid}
-    index = read_index(LABELS)
-    pairs = [(p, f) for p, ids in index.shards for f in ids][::every]
-    for i, (path, frame_id) in enumerate(pairs):
-        with open_shard(Path(path)) as h5:
-            sample = read_sample(h5, frame_id)
-        left, right = sample.left, sample.right
-        disps = np.stack([coarse_started(run, left, right, scale), run_at_scale(run, left, right, scale)])
-        costs = photometric_costs(left, right, disps)
+    scale, n_pairs, pairs = _starts(checkpoint, every)
+    for _, sample, coarse, zero in pairs:
+        disps = np.stack([coarse, zero])
+        costs = photometric_costs(sample.left, sample.right, disps)  # once per pair, for every limit
         for jump, acc in accs.items():
-            acc.update(choose(disps, costs, jump_limit(left.shape[1], jump)), sample.label)
-        print(f"[{i + 1}/{len(pairs)}] {frame_id}", flush=True)
+            acc.update(choose(disps, costs, jump_limit(sample.left.shape[1], jump)), sample.label)
     rows = {repr(jump): {k: acc.compute()[k] for k in ("epe", "bad1", "bad3", "n_valid")} for jump, acc in accs.items()}
     chosen = min(grid, key=lambda j: (rows[repr(j)]["bad3"], j if j > 0 else float("inf")))
-    out = {"checkpoint": checkpoint, "input_scale": scale, "every": every, "labels": str(LABELS), "pairs": len(pairs),
+    out = {"checkpoint": checkpoint, "input_scale": scale, "every": every, "labels": str(LABELS), "pairs": n_pairs,
            "grid": rows, "jump": chosen, **_machine()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"calibrate_{name}.json").write_text(json.dumps(out, indent=1, default=float))
