@@ -26,6 +26,7 @@ from optstereo.cli_options import (
     reader_options,
 )
 from optstereo.config import COLOR_NORMS, PHOTOMETRIC_ITERS, SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS
+from optstereo.predict_more import MoreOptions, frames_of, more_options, predict_frames
 from optstereo.train_config import AMP_MODES, DEVICES, SCHEDULES, SUPERVISIONS, TrainConfig, read_yaml
 from pvm_labeler.common.errors import ConfigError, PVMError
 
@@ -278,9 +279,11 @@ def _load_model(checkpoint: Path, device: str):
 @click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
-              type=click.Choice(("png", "pfm", "npy", "color", "depth-png", "depth-pfm", "depth-npy", "ply")),
+              type=click.Choice(("png", "pfm", "npy", "color", "depth-png", "depth-pfm", "depth-npy", "ply",
+                                 "conf-png", "conf-npy")),
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm), "
-                   "depth-pfm / depth-npy (m), ply (coloured point cloud) (repeatable).")
+                   "depth-pfm / depth-npy (m), ply (coloured point cloud); conf-png (16-bit, confidence x 65535) / "
+                   "conf-npy (float32 in [0, 1]) (repeatable).")
 @click.option("--calib", type=EXISTING,
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
                    "(fx, cx, cy, baseline [m], doffs).")
@@ -291,11 +294,13 @@ def _load_model(checkpoint: Path, device: str):
               help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
 @device_option
 @infer_options
+@more_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
                  calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
-                 amp: str, scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
+                 amp: str, scale: float | None, refine: str | None, quiet: bool, sequence: bool,
+                 sequence_iters: int, min_confidence: float, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
     from optstereo import inference
@@ -316,6 +321,17 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
 
         rig = _run_guarded(read_calibration, calib)
     model, dev = _load_model(checkpoint, device)
+    more = MoreOptions(sequence, sequence_iters, min_confidence)
+    if more.active(formats):  # optstereo.predict_more: --sequence, confidence formats, --min-confidence
+        if geometry or submission is not None:
+            raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
+                                   "--submission outputs")
+        frames = _run_guarded(frames_of, left, right, dataset, root, split, limit, collect_reader_options(**reader))
+        written = _run_guarded(predict_frames, model, frames, out, more, formats=formats, iters=iters, device=dev,
+                               amp=amp, scale=scale, refine=refine, progress=not quiet,
+                               kitti_layout=bool(dataset and dataset.startswith("kitti")))
+        click.echo(f"wrote {len(written)} frames into {out}")
+        return
     if dataset is None:
         paths = _run_guarded(inference.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),

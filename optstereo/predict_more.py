@@ -1,0 +1,122 @@
+"""``optstereo-predict``'s video and confidence outputs: ``--sequence``, ``--format conf-png|conf-npy`` and
+``--min-confidence``, a per-frame loop beside ``optstereo.inference.predict_dataset`` that writes the same files.
+
+Options (click decorators) live here too, so that the predict command gains them in one line.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from optstereo.sequence import DEFAULT_SEQUENCE_ITERS
+
+logger = logging.getLogger(__name__)
+
+CONF_FORMATS = ("conf-png", "conf-npy")
+
+
+@dataclass(frozen=True)
+class MoreOptions:
+    """What the loop does beyond the plain path: sequence starts, confidence files, a semi-dense cut."""
+
+    sequence: bool = False
+    sequence_iters: int = DEFAULT_SEQUENCE_ITERS
+    min_confidence: float = 0.0
+
+    def active(self, formats: Iterable[str]) -> bool:
+        """True when the plain path (``predict_pair`` / ``predict_dataset``) cannot serve the request."""
+        return self.sequence or self.min_confidence > 0 or any(f in CONF_FORMATS for f in formats)
+
+
+def more_options(fn):
+    """--sequence, --sequence-iters and --min-confidence for optstereo-predict."""
+    fn = click.option("--min-confidence", type=click.FloatRange(0, 1), default=0.0,
+                      help="Semi-dense output: pixels whose confidence (optstereo.confidence) is below this get no "
+                           "value (0 in png, NaN in pfm/npy). 0 = dense.")(fn)
+    fn = click.option("--sequence-iters", type=click.IntRange(min=1), default=DEFAULT_SEQUENCE_ITERS,
+                      help="--sequence: GRU iterations of every frame after the first.")(fn)
+    return click.option("--sequence", is_flag=True,
+                        help="--dataset frames are a video in frame-id order: each frame's GRU starts from the "
+                             "previous frame's answer with --sequence-iters iterations (the first runs the plain "
+                             "path).")(fn)
+
+
+def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], out_dir: Path, more: MoreOptions, *,
+                   formats: Iterable[str], kitti_layout: bool = False, iters: int | None = None,
+                   device: torch.device | str = "cpu", amp: str = "none", scale: float | None = None,
+                   refine: str | None = None, progress: bool = True) -> list[dict[str, Path]]:
+    """Predict (name, left path, right path) frames in order and write each one's files; returns format -> path
+    per frame. With ``more.sequence`` each frame after the first starts from the one before (optstereo.sequence)."""
+    from optstereo.inference import infer
+    from optstereo.sequence import SequenceState, infer_next
+    from pvm_labeler.common.io import read_image
+
+    formats = tuple(formats)
+    frames = list(frames)
+    state = SequenceState()
+    written = []
+    for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):
+        left, right = read_image(left_path), read_image(right_path)
+        if left.shape != right.shape:
+            raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, "
+                             f"{right_path}")
+        t0 = time.perf_counter()
+        if more.sequence:
+            disp = infer_next(model, left, right, state, iters=iters, sequence_iters=more.sequence_iters,
+                              device=device, amp=amp, scale=scale, refine=refine)
+        else:
+            disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale, refine=refine)
+        conf = _confidence(model, left, right, disp, more, formats, device, amp)
+        logger.info("%s: %.2f s", name, time.perf_counter() - t0)
+        written.append(_write(out_dir, name, disp, conf, more, formats, kitti_layout))
+    return written
+
+
+def _confidence(model: nn.Module, left: np.ndarray, right: np.ndarray, disp: npt.NDArray[np.float32],
+                more: MoreOptions, formats: tuple[str, ...], device: torch.device | str,
+                amp: str) -> npt.NDArray[np.float32] | None:
+    if more.min_confidence <= 0 and not any(f in CONF_FORMATS for f in formats):
+        return None
+    from optstereo.confidence import confidence_of
+
+    return confidence_of(model, left, right, disp, device=device, amp=amp)
+
+
+def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,
+           more: MoreOptions, formats: tuple[str, ...], kitti_layout: bool) -> dict[str, Path]:
+    from optstereo.inference import write_disparity
+
+    if conf is not None and more.min_confidence > 0:
+        disp = np.where(conf >= more.min_confidence, disp, np.nan).astype(np.float32)
+    paths = write_disparity(out_dir, name, disp, [f for f in formats if f not in CONF_FORMATS],
+                            kitti_layout=kitti_layout)
+    if conf is not None:
+        from optstereo.confidence import write_confidence
+
+        paths.update(write_confidence(Path(out_dir) / ("conf" if kitti_layout else ""), name, conf,
+                                      [f for f in formats if f in CONF_FORMATS]))
+    return paths
+
+
+def frames_of(left: Path | None, right: Path | None, dataset: str | None, root: Path | None, split: str,
+              limit: int | None, reader_options: dict[str, Any]) -> list[tuple[str, Path, Path]]:
+    """(name, left, right) of the one given pair, or of the dataset's pairs in frame-id order."""
+    if dataset is None:
+        assert left is not None and right is not None
+        return [(Path(left).stem, Path(left), Path(right))]
+    from pvm_labeler.common.datasets import discover
+
+    refs = discover(dataset, root, split=split, **reader_options)[:limit]
+    return [(ref.frame_id, Path(ref.left), Path(ref.right)) for ref in refs]

@@ -1,0 +1,130 @@
+"""Stereo video: each frame's GRU starts from the previous frame's answer, with fewer iterations.
+
+The first frame runs the plain path (``optstereo.inference.infer_scaled``: the model's own passes, scale and
+post-filter), so a one-frame sequence equals it exactly. Every later frame runs one network pass at the first
+frame's final input scale, its D_s^0 the previous frame's disparity averaged onto the 1/8 grid
+(``optstereo.cascade.grid_start``, inside ``optstereo.inference._network``) and ``sequence_iters`` GRU iterations,
+then the same post-filter. Between consecutive frames of a video most disparities move by a fraction of a 1/8-grid
+cell, so a few iterations finish the walk that a zero start needs all of its iterations for.
+
+:func:`temporal_change` is the stability measure of ``results/sequence.json``: the mean |d_t - d_{t-1}| on pixels
+whose previous value can be followed into the current frame (dense optical flow between the two left images,
+forward-backward consistent and photometrically consistent).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+Image = npt.NDArray[np.uint8]
+Disparity = npt.NDArray[np.float32]
+
+#: GRU iterations of every frame after the first (the shipped model's own is 8): the start is already within a
+#: fraction of a grid cell for most pixels. results/sequence.json measures 4 against independent frames.
+DEFAULT_SEQUENCE_ITERS = 4
+#: Pixels whose flow-warped previous left image differs from the current one by more than this (mean |RGB| / 255)
+#: are left out of :func:`temporal_change`: occlusions, moving objects, flow failures.
+PHOTO_TOLERANCE = 0.04
+#: ... and those whose forward and backward flows disagree by more than this many pixels.
+FLOW_TOLERANCE = 1.0
+
+
+@dataclass
+class SequenceState:
+    """What a sequence carries from one frame to the next: the last disparity (input size and pixels) and the input
+    scale of the network's pass (the first frame's final one)."""
+
+    disparity: Disparity | None = None
+    scale: float | None = None
+
+
+def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState, *, iters: int | None = None,
+               sequence_iters: int = DEFAULT_SEQUENCE_ITERS, device: torch.device | str = "cpu", amp: str = "none",
+               scale: float | None = None, refine: str | None = None) -> Disparity:
+    """(H, W) float32 disparity of one frame of a sequence; updates ``state`` in place.
+
+    Args:
+        model: OptStereo-like model (``disp_init`` accepted by its forward).
+        left, right: (H, W, 3) uint8 RGB of the frame.
+        state: the sequence so far (a fresh :class:`SequenceState` for the first frame, which runs the plain path).
+        iters: GRU iterations of the first frame (None = the model's own).
+        sequence_iters: GRU iterations of every later frame, started from the previous answer.
+        scale, refine: as ``optstereo.inference.infer``; later frames reuse the first frame's final scale.
+    """
+    from optstereo.inference import apply_refine, infer_scaled, model_refine, network_run
+    from optstereo.rescale import run_at_scale
+
+    if sequence_iters < 1:
+        raise ValueError(f"sequence_iters must be >= 1, got {sequence_iters}")
+    prev = state.disparity
+    if prev is None or prev.shape != left.shape[:2] or state.scale is None:
+        result = infer_scaled(model, left, right, iters, device, amp, scale, refine)
+        state.disparity, state.scale = result.disparity, result.input_scale
+        return result.disparity
+    refine = model_refine(model) if refine is None else refine
+    run = network_run(model, sequence_iters, device, amp)
+    disp = run_at_scale(run, left, right, state.scale, start=np.nan_to_num(prev, nan=0.0).astype(np.float32))
+    state.disparity = apply_refine(disp, left, refine, device)
+    return state.disparity
+
+
+def infer_sequence(model: nn.Module, frames: Iterable[tuple[Image, Image]], **kwargs) -> Iterator[Disparity]:
+    """Disparities of an ordered iterable of (left, right) frames (:func:`infer_next`'s keyword arguments); a frame
+    of another size than the one before restarts the sequence from the plain path."""
+    state = SequenceState()
+    for left, right in frames:
+        yield infer_next(model, left, right, state, **kwargs)
+
+
+def _flow(source: Image, target: Image) -> npt.NDArray[np.float32]:
+    """(H, W, 2) dense optical flow (OpenCV DIS, medium preset) from ``source`` to ``target`` (H, W, 3) uint8."""
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    grey = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in (source, target)]
+    return dis.calc(grey[0], grey[1], None).astype(np.float32)
+
+
+def _remap(image: np.ndarray, flow: npt.NDArray[np.float32], nearest: bool = False) -> np.ndarray:
+    h, w = flow.shape[:2]
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.remap(image, xs + flow[..., 0], ys + flow[..., 1], interp, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=np.nan if image.dtype == np.float32 else 0)
+
+
+def followable(prev_left: Image, left: Image) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.float32]]:
+    """Where a pixel of ``left`` (frame t) can be followed back into ``prev_left`` (frame t - 1), and the flow.
+
+    Returns (mask (H, W) bool, flow (H, W, 2) float32 from t to t - 1). A pixel is kept when it lands inside frame
+    t - 1, the backward flow there leads back within FLOW_TOLERANCE px, and the warped previous image matches the
+    current one within PHOTO_TOLERANCE (mean |RGB| / 255).
+    """
+    back = _flow(left, prev_left)
+    fwd = _flow(prev_left, left)
+    fwd_at = _remap(fwd, back)
+    loop = np.linalg.norm(back + fwd_at, axis=2)
+    warped = _remap(prev_left.astype(np.float32), back)
+    photo = np.abs(warped - left.astype(np.float32)).mean(axis=2) / 255.0
+    h, w = left.shape[:2]
+    xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+    inside = (xs + back[..., 0] >= 0) & (xs + back[..., 0] <= w - 1) & (ys + back[..., 1] >= 0) & (
+        ys + back[..., 1] <= h - 1)
+    return inside & (loop < FLOW_TOLERANCE) & (photo < PHOTO_TOLERANCE), back
+
+
+def temporal_change(prev_left: Image, left: Image, prev_disp: Disparity, disp: Disparity) -> tuple[float, float]:
+    """(mean |d_t - d_{t-1} warped to t| in px, fraction of pixels measured) on :func:`followable` pixels where both
+    disparities are finite and positive. The warp follows the left images' optical flow; a disparity's true change
+    under the camera's motion is part of the number, the same for any two methods compared on the same frames."""
+    mask, back = followable(prev_left, left)
+    prev_at = _remap(prev_disp.astype(np.float32), back, nearest=True)
+    ok = mask & np.isfinite(prev_at) & np.isfinite(disp) & (prev_at > 0) & (disp > 0)
+    if not ok.any():
+        return float("nan"), 0.0
+    return float(np.abs(disp[ok] - prev_at[ok]).mean()), float(ok.mean())
