@@ -36,6 +36,8 @@ logger = logging.getLogger(__name__)
 #: The default budget: 150 steps of batch 1 on 320x736 crops, about 4 s each on 2 CPU cores (docs/training.md:
 #: 3.9 s/step), so about 10 minutes of training, plus labeling and the two scoring passes.
 DEFAULT_STEPS = 150
+#: lzf, built into h5py: an adaptation's shards are few and read anywhere without the Blosc plugin.
+SHARD_COMPRESSION = "lzf"
 #: Fine-tuning moves the weights a little: a tenth of the paper's 1e-4.
 DEFAULT_LR = 1e-5
 
@@ -75,7 +77,8 @@ class AdaptConfig:
 def label(cfg: AdaptConfig) -> Path:
     """Step 1: ``pvm-label run`` into OUT/labels (resumes a finished or half-finished job)."""
     out = cfg.out / "labels"
-    cmd = [sys.executable, "-m", "pvm_labeler.cli", "run", "--dataset", cfg.dataset, "--out", str(out)]
+    cmd = [sys.executable, "-m", "pvm_labeler.cli", "run", "--dataset", cfg.dataset, "--out", str(out),
+           "--compression", SHARD_COMPRESSION]
     if cfg.root is not None:
         cmd += ["--root", str(cfg.root)]
     flags = {"left": "--left", "right": "--right", "gt": "--gt", "pass_": "--sceneflow-pass"}
@@ -141,7 +144,8 @@ def split_holdout(cfg: AdaptConfig, labels: Path) -> dict[str, npt.NDArray[np.bo
     train = cfg.out / "train_labels"
     if train.exists():
         shutil.rmtree(train)
-    write_shard_dir(train, records, config=index.config, dataset={**index.dataset, "holdout": cfg.holdout})
+    write_shard_dir(train, records, config=index.config, dataset={**index.dataset, "holdout": cfg.holdout},
+                    compression=SHARD_COMPRESSION)
     np.savez_compressed(cfg.out / "holdout.npz", **masks)
     return masks
 
