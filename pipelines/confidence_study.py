@@ -119,6 +119,7 @@ def main() -> None:
         "methods": {name: {"curve": [round(float(x), 3) for x in c], "auc": round(curve_area(c), 4),
                            "bad3_at_50pct": round(float(c[half]), 3)} for name, c in curves.items()},
         "seconds_per_frame": {k: round(float(np.mean(v)), 3) for k, v in seconds.items()},
+        "seconds_per_frame_median": {k: round(float(np.median(v)), 3) for k, v in seconds.items()},
         "threads": torch.get_num_threads(),
     }
     dense = report["dense_bad3"]["network"]

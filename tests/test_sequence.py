@@ -104,3 +104,15 @@ def test_predict_cli_sequence_on_a_folder(tmp_path) -> None:
     ind = [np.load(tmp_path / "plain" / f"{i:04d}.npy") for i in range(3)]
     np.testing.assert_array_equal(seq[0], ind[0])
     assert not np.allclose(seq[1], ind[1])
+
+
+@pytest.mark.slow
+def test_kitti15_frames_as_one_frame_sequences_equal_the_plain_path(shared_data) -> None:
+    from optstereo.api import load_model
+    from pvm_labeler.common.datasets import discover, load_pair
+
+    model = load_model("pretrained")
+    for ref in discover("kitti15", shared_data / "kitti15")[:2]:
+        sample = load_pair(ref)
+        (seq,) = list(infer_sequence(model, [(sample.left, sample.right)], scale=1.0))
+        np.testing.assert_array_equal(seq, infer(model, sample.left, sample.right, scale=1.0))
