@@ -8,7 +8,14 @@ from typing import Any
 import click
 
 from optstereo.adapt import DEFAULT_LR, DEFAULT_STEPS, AdaptConfig
-from optstereo.cli_options import EXISTING, collect_reader_options, dataset_option, device_option, reader_options
+from optstereo.cli_options import (
+    EXISTING,
+    _set_threads,
+    collect_reader_options,
+    dataset_option,
+    device_option,
+    reader_options,
+)
 
 
 @click.command(context_settings={"show_default": True})
@@ -29,6 +36,8 @@ from optstereo.cli_options import EXISTING, collect_reader_options, dataset_opti
               help="The labeler's search range in px (default: pvm-label's, 192; it must be below the width).")
 @click.option("--seed", type=int, default=0, help="Seed of the held-back tiles and of the training.")
 @device_option
+@click.option("--threads", type=click.IntRange(min=0), default=0, expose_value=False, callback=_set_threads,
+              help="torch CPU threads (0 = torch's default, one per core).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, steps: int, lr: float, holdout: float,
                limit: int | None, max_disp: int | None, seed: int, device: str, quiet: bool, **reader: Any) -> None:
