@@ -4,12 +4,14 @@
     model = load_model("pretrained")                 # or a checkpoint file / run directory
     disp = predict(model, left, right)               # (H, W, 3) uint8 RGB each -> (H, W) float32 px
     disps = predict(model, [(l1, r1), (l2, r2)])     # a list of pairs -> a list of maps (any sizes)
+    disp, conf = predict(model, left, right, confidence=True)  # + (H, W) float32 confidence in [0, 1]
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -46,7 +48,8 @@ def predict(
     iters: int | None = None,
     amp: str = "none",
     scale: float | None = None,
-) -> npt.NDArray[np.float32] | list[npt.NDArray[np.float32]]:
+    confidence: bool = False,
+) -> Any:
     """Disparity of the left view: positive, full resolution, left(x) matches right(x - d).
 
     Args:
@@ -58,15 +61,25 @@ def predict(
         scale: run the network on both images resized by this factor (e.g. 0.5 for a large Middlebury pair); the
             disparity comes back at the input's size, in its pixels. None = the model's own input scale (1 unless
             its checkpoint records another).
+        confidence: also return each map's confidence in [0, 1] (``optstereo.confidence``: photometric x LR, one
+            more network pass).
 
     Returns:
-        (H, W) float32, or a list of them for a list of pairs (each at its own size).
+        (H, W) float32, or a list of them for a list of pairs (each at its own size); with ``confidence`` a
+        (disparity, confidence) tuple in place of each map.
     """
+    from optstereo.confidence import infer_with_confidence
     from optstereo.inference import infer
 
     device = _device_of(model)
+
+    def one(lft: Image, rgt: Image) -> Any:
+        if confidence:
+            return infer_with_confidence(model, lft, rgt, iters=iters, device=device, amp=amp, scale=scale)
+        return infer(model, lft, rgt, iters=iters, device=device, amp=amp, scale=scale)
+
     if right is None:
         if isinstance(left, np.ndarray):
             raise ValueError("predict(model, left, right): give the right image, or a list of (left, right) pairs")
-        return [infer(model, lft, rgt, iters=iters, device=device, amp=amp, scale=scale) for lft, rgt in left]
-    return infer(model, np.asarray(left), np.asarray(right), iters=iters, device=device, amp=amp, scale=scale)
+        return [one(lft, rgt) for lft, rgt in left]
+    return one(np.asarray(left), np.asarray(right))

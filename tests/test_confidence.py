@@ -117,3 +117,15 @@ def test_predict_cli_conf_formats_and_min_confidence(tmp_path: Path) -> None:
     keep = conf >= cut
     np.testing.assert_array_equal(semi[keep], dense[keep])
     assert np.all(np.isnan(semi[~keep])) and 0 < keep.mean() < 1
+
+
+def test_api_predict_with_confidence() -> None:
+    from optstereo.api import predict
+
+    model = _tiny()
+    left, right = _pair(3)
+    disp, conf = predict(model, left, right, confidence=True)
+    np.testing.assert_array_equal(disp, predict(model, left, right))
+    assert conf.shape == disp.shape and 0 <= conf.min() and conf.max() <= 1
+    (pair,) = predict(model, [(left, right)], confidence=True)
+    np.testing.assert_array_equal(pair[1], conf)
