@@ -58,16 +58,19 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
                    device: torch.device | str = "cpu", amp: str = "none", scale: float | None = None,
                    refine: str | None = None, progress: bool = True) -> list[dict[str, Path]]:
     """Predict (name, left path, right path) frames in order and write each one's files; returns format -> path
-    per frame. With ``more.sequence`` each frame after the first starts from the one before (optstereo.sequence)."""
+    per frame. With ``more.sequence`` each frame after the first starts from the one before (optstereo.sequence);
+    a frame from another folder than the one before (another drive of ``kitti_unlabelled``) starts a new sequence."""
     from optstereo.inference import infer
     from optstereo.sequence import SequenceState, infer_next
     from pvm_labeler.common.io import read_image
 
     formats = tuple(formats)
     frames = list(frames)
-    state = SequenceState()
+    state, folder = SequenceState(), None
     written = []
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):
+        if Path(left_path).parent != folder:
+            state, folder = SequenceState(), Path(left_path).parent
         left, right = read_image(left_path), read_image(right_path)
         if left.shape != right.shape:
             raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, "
