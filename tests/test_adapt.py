@@ -40,10 +40,12 @@ def test_right_mask_follows_the_right_labels() -> None:
 
 
 def test_guard() -> None:
-    before = {"held_epe": 1.0, "held_bad3": 5.0}
-    assert guard(before, {"held_epe": 0.9, "held_bad3": 5.0})
-    assert not guard(before, {"held_epe": 1.1, "held_bad3": 4.0})
-    assert not guard(before, {"held_epe": 0.9, "held_bad3": 5.1})
+    # 8 bad pixels of 1000 before: up to 8 + 2 sqrt(9) = 14 allowed after, with EPE not higher
+    before = {"held_epe": 1.0, "held_bad3": 0.8, "held_pixels": 1000}
+    assert guard(before, {"held_epe": 0.9, "held_bad3": 0.8, "held_pixels": 1000})
+    assert guard(before, {"held_epe": 1.0, "held_bad3": 1.4, "held_pixels": 1000})
+    assert not guard(before, {"held_epe": 0.9, "held_bad3": 1.5, "held_pixels": 1000})
+    assert not guard(before, {"held_epe": 1.01, "held_bad3": 0.0, "held_pixels": 1000})
     with pytest.raises(ValueError, match="--holdout"):
         AdaptConfig(dataset="folder", root=None, out=Path("x"), holdout=1.0).check()
 
