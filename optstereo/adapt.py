@@ -245,6 +245,8 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
     kept = guard(before, after)
     source = trained if kept else init
     adapted = cfg.out / f"adapted{source.suffix or '.pt'}"
+    for stale in cfg.out.glob("adapted.*"):  # a resumed run's earlier decision
+        stale.unlink()
     shutil.copyfile(source, adapted)
     report = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
               "init": str(init), "pairs": len(masks), "before": before, "after": after,
