@@ -112,7 +112,12 @@ def test_kitti15_frames_as_one_frame_sequences_equal_the_plain_path(shared_data)
     from pvm_labeler.common.datasets import discover, load_pair
 
     model = load_model("pretrained")
-    for ref in discover("kitti15", shared_data / "kitti15")[:2]:
+    refs = discover("kitti15", shared_data / "kitti15")[:2]
+    # The process's first network call differs from the later ones (up to 0.43 px on 000000 at one thread: plain
+    # vs plain, seen 2026-11-27, torch's CPU kernels settling); warm up so that the comparison is like for like.
+    warm = load_pair(refs[0])
+    infer(model, warm.left, warm.right, scale=1.0)
+    for ref in refs:
         sample = load_pair(ref)
         (seq,) = list(infer_sequence(model, [(sample.left, sample.right)], scale=1.0))
         np.testing.assert_array_equal(seq, infer(model, sample.left, sample.right, scale=1.0))
