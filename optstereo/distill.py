@@ -118,11 +118,15 @@ def read_teacher_maps(maps_dir: Path, frame_id: str,
     return left, right
 
 
-def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float,
-                max_lr_diff: float) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """One shard sample's new arrays (both views' labels and confidences) and attributes (pixels filled)."""
+def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float, max_lr_diff: float,
+                allow_missing: bool = False) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """One shard sample's new arrays (both views' labels and confidences) and attributes (pixels filled). With
+    ``allow_missing`` a pair without a teacher map keeps its PVM labels as they are (attribute ``distill_missing``)."""
     if sample.gt is not None or sample.gt_noc is not None:
         raise ValueError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
+    if allow_missing and not map_path(maps_dir, sample.frame_id).is_file():
+        logger.warning("no teacher map for %s: its PVM labels stay as they are", sample.frame_id)
+        return {}, {"distill_missing": 1}
     teacher_left, teacher_right = consistent_views(*read_teacher_maps(maps_dir, sample.frame_id,
                                                                       sample.label.shape), max_lr_diff)
     label, conf, n_left = add_fills(sample.label, sample.confidence, teacher_left, fill_confidence)
@@ -134,7 +138,8 @@ def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float,
 
 
 def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CONFIDENCE,
-         max_lr_diff: float = MAX_LR_DIFF, compression: str | None = None, progress: bool = False) -> Path:
+         max_lr_diff: float = MAX_LR_DIFF, compression: str | None = None, progress: bool = False,
+         allow_missing: bool = False) -> Path:
     """Rewrite the PVM shard directory ``src`` into ``out`` with the teacher's left-right consistent disparities in
     both views' holes (:func:`fill_sample`); resumable and atomic like ``pvm_labeler.shards.rewrite``.
 
@@ -149,7 +154,7 @@ def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CON
                          f"and {max_lr_diff}")
     settings = {"maps": str(Path(maps_dir).resolve()), "fill_confidence": fill_confidence, "max_lr_diff": max_lr_diff}
     kwargs = {} if compression is None else {"compression": compression}
-    return rewrite(src, out, transform=lambda s: fill_sample(s, Path(maps_dir), fill_confidence, max_lr_diff),
+    return rewrite(src, out, transform=lambda s: fill_sample(s, Path(maps_dir), fill_confidence, max_lr_diff, allow_missing),
                    extra={"distilled_from": str(src), "distill": settings}, progress=progress, **kwargs)
 
 
@@ -189,9 +194,11 @@ def _cli() -> Any:
     @click.option("--fill-confidence", type=float, default=FILL_CONFIDENCE, show_default=True)
     @click.option("--max-lr-diff", type=float, default=MAX_LR_DIFF, show_default=True)
     @click.option("--compression", default=None, help="Shard compression (default: the labeler's).")
+    @click.option("--allow-missing", is_flag=True, help="A pair without a map keeps its PVM labels (else an error).")
     def fill_command(labels: Path, maps_dir: Path, out: Path, fill_confidence: float, max_lr_diff: float,
-                     compression: str | None) -> None:
-        fill(labels, maps_dir, out, fill_confidence, max_lr_diff, compression, progress=True)
+                     compression: str | None, allow_missing: bool) -> None:
+        fill(labels, maps_dir, out, fill_confidence, max_lr_diff, compression, progress=True,
+             allow_missing=allow_missing)
         click.echo(f"teacher-filled shards in {out}")
 
     return group
@@ -200,3 +207,7 @@ def _cli() -> Any:
 def main() -> None:
     """Entry point of ``optstereo-distill``."""
     _cli()()
+
+
+if __name__ == "__main__":
+    main()

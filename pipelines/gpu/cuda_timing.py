@@ -105,14 +105,16 @@ def graph_row(model: torch.nn.Module, label: str, precision: str, repeats: int, 
     return row
 
 
-def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int) -> dict[str, Any]:
-    """``infer`` on uint8 numpy arrays of KITTI size (host-to-device, padding, unpadding and the copy back)."""
+def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int, label: str = "shipped", amp: str = "bf16",
+                   iters: int | None = ITERS) -> dict[str, Any]:
+    """``infer`` on uint8 numpy arrays of KITTI size (host-to-device, the model's resizing and passes, padding,
+    unpadding, its post-filter and the copy back)."""
     rng = np.random.default_rng(0)
     left = rng.integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8)
     right = np.roll(left, -8, axis=1)
-    seconds = cuda_median_s(lambda: infer(model, left, right, iters=ITERS, device="cuda", amp="bf16"),
+    seconds = cuda_median_s(lambda: infer(model, left, right, iters=iters, device="cuda", amp=amp),
                             repeats, warmup)
-    row = {"model": "shipped", "precision": "bf16", "what": "infer() end to end", "ms": round(seconds * 1e3, 2)}
+    row = {"model": label, "precision": amp, "what": "infer() end to end", "ms": round(seconds * 1e3, 2)}
     print(row, flush=True)
     return row
 
@@ -142,9 +144,22 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--graphs-only", action="store_true", help="only the CUDA-graph rows")
+    parser.add_argument("--end-to-end", nargs="+", metavar="NAME=CHECKPOINT",
+                        help="only infer() end to end (bf16 and none) of these checkpoints, with their own settings")
     args = parser.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("cuda_timing: no CUDA device")
+    if args.end_to_end:
+        rows = []
+        for spec in args.end_to_end:
+            name, _, path = spec.partition("=")
+            model = load_model(path, device="cuda")
+            rows += [end_to_end_row(model, args.repeats, args.warmup, name, amp, None) for amp in ("bf16", "none")]
+        report = {"device": torch.cuda.get_device_name(), "torch": torch.__version__,
+                  "input": "x".join(map(str, KITTI_HW)), "synchronised": True, "rows": rows}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=2) + "\n")
+        return
     shipped = load_model("pretrained", device="cuda")
     torch.manual_seed(0)
     paper = build_model("optstereo", iters=ITERS).cuda().eval()  # the defaults are the paper's sizes
