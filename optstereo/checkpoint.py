@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import pickle
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -154,6 +155,9 @@ def resolve_checkpoint(path: Path) -> Path:
         return found[-1]
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    if path.suffix == ".onnx":
+        raise CheckpointError(f"checkpoint {path} is an exported ONNX graph, which the torch backend cannot load: "
+                              "run it with --backend onnxruntime, or give the .pt/.safetensors it was exported from")
     if path.suffix not in CHECKPOINT_SUFFIXES:
         raise CheckpointError(f"checkpoint {path} must end in one of {CHECKPOINT_SUFFIXES}")
     return path
@@ -164,6 +168,7 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Loa
     path = resolve_checkpoint(path)
     if path.suffix == ".safetensors":
         return _load_safetensors(path, map_location)
+    _check_torch_container(path)
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -188,6 +193,20 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Loa
         code_version=state.get("code_version"),
         rng=state.get("rng"),
     )
+
+
+def _check_torch_container(path: Path) -> None:
+    """Raise a CheckpointError naming ``path`` unless it is a whole zip archive, the container torch.save writes.
+
+    Without this a random file reaches the weights-only unpickler, whose refusal reads as "pickled objects", and a
+    truncated one gets miniz's internal message.
+    """
+    with path.open("rb") as fh:
+        head = fh.read(4)
+    if head[:1] != b"\x80" and not zipfile.is_zipfile(path):  # b"\x80": torch's legacy (pre-1.6) pickle format
+        size = path.stat().st_size
+        what = "truncated (its zip directory is missing)" if head == b"PK\x03\x04" else "not a torch checkpoint"
+        raise CheckpointError(f"cannot load checkpoint {path} ({size} bytes): {what}; torch.save writes zip archives")
 
 
 def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedCheckpoint:
@@ -220,6 +239,11 @@ def build_model_from_checkpoint(
     kwargs = {k: v for k, v in ckpt.model_config.items() if k != "name"}
     kwargs.update(overrides)
     model = build_model(ckpt.model_name, **kwargs)
+    missing = sorted(model.state_dict().keys() - ckpt.model_state.keys())
+    unexpected = sorted(ckpt.model_state.keys() - model.state_dict().keys())
+    if missing or unexpected:  # another model's weights: name a few keys, not torch's list of every one
+        raise CheckpointError(f"weights in {ckpt.path} do not fit model {ckpt.model_name!r}: {len(missing)} missing "
+                              f"keys {missing[:3]}, {len(unexpected)} unexpected keys {unexpected[:3]}")
     try:
         model.load_state_dict(ckpt.model_state)
     except RuntimeError as exc:

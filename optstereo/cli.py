@@ -19,6 +19,7 @@ import yaml
 from optstereo.checkpoint import CheckpointError, LoadedCheckpoint, load_checkpoint
 from optstereo.cli_options import (
     EXISTING,
+    check_out,
     collect_reader_options,
     dataset_option,
     device_option,
@@ -238,6 +239,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
 
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
+    check_out(out)
     if labels is not None:
         if scale is not None or refine is not None:
             raise click.UsageError("--scale and --refine act on a network's prediction; --labels evaluates stored "
@@ -304,6 +306,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    check_out(out)
     if backend == "onnxruntime":
         _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
         return
@@ -317,6 +320,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         rig = _run_guarded(read_calibration, calib)
     model, dev = _load_model(checkpoint, device)
     if dataset is None:
+        _check_memory(left, right, scale if scale is not None else inference.model_input_scale(model), dev.type)
         paths = _run_guarded(inference.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
                              scale=scale, refine=refine)
@@ -343,10 +347,26 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
         raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")
     if not Path(onnx_file).is_file():
         raise click.BadParameter(f"{onnx_file} does not exist", param_hint="--checkpoint")
+    _check_memory(left, right, 1.0 if scale is None else scale, "cpu")
     session = _run_guarded(onnx_session, onnx_file, threads=torch.get_num_threads())  # --threads, or one per core
     disp = _run_guarded(infer_onnx, session, read_image(left), read_image(right), scale=scale, refine=refine)
     paths = _run_guarded(inference.write_disparity, out, Path(left).stem, disp, formats)
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+def _check_memory(left: Path, right: Path, scale: float, device_type: str) -> None:
+    """Exit 1 naming LEFT when the pair's estimated peak memory exceeds the free memory (optstereo.memory); read
+    from the image headers, before either image is decoded. Pairs of different sizes are refused here too."""
+    from optstereo.memory import check_fits
+    from pvm_labeler.common.io import image_size
+
+    size = _run_guarded(image_size, left)
+    if _run_guarded(image_size, right) != size:
+        raise click.ClickException(f"left/right sizes differ: {size} vs {image_size(right)}: {left}, {right}")
+    try:
+        check_fits(str(left), *size, scale=scale, cuda=device_type == "cuda")
+    except MemoryError as exc:
+        raise click.ClickException(str(exc)) from exc
 
 
 # -- optstereo-export ----------------------------------------------------------------------------------------------
@@ -364,6 +384,7 @@ def export_main(checkpoint: Path, fmt: str, out: Path, iters: int | None, batch:
     _setup_logging(quiet)
     from optstereo.export import OPSET, export
 
+    check_out(out, is_file=True)
     model, _ = _load_model(checkpoint, "cpu")
     path = _run_guarded(export, model, out, fmt, iters, batch=batch)
     click.echo(f"wrote {path} ({fmt}{f', opset {OPSET}' if fmt == 'onnx' else ''}, "

@@ -12,6 +12,29 @@ from optstereo.train_config import DEVICES
 EXISTING = click.Path(exists=True, path_type=Path)
 
 
+def check_out(out: Path, is_file: bool = False, hint: str = "--out") -> None:
+    """Raise click.BadParameter naming ``hint`` when ``out`` (a folder, or a file with ``is_file``) cannot be written.
+
+    Checked before any model is loaded or image decoded: the nearest existing ancestor must be a directory that
+    takes a new file, and ``out`` itself must not be a file (a folder) or a directory (a file).
+    """
+    import tempfile
+
+    if out.exists() and out.is_dir() == is_file:
+        raise click.BadParameter(f"{out} is a {'directory' if is_file else 'file'}; give a "
+                                 f"{'file' if is_file else 'folder'} path", param_hint=hint)
+    probe = out.parent if is_file else out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise click.BadParameter(f"{out} cannot be written: {probe} is a file, not a directory", param_hint=hint)
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as exc:
+        raise click.BadParameter(f"{out} cannot be written: {probe}: {exc.strerror}", param_hint=hint) from exc
+
+
 def _set_threads(_ctx: click.Context, _param: click.Parameter, threads: int) -> int:
     """--threads' callback: set torch's intra-op threads as the option is parsed (0 leaves torch's default)."""
     if threads:

@@ -98,6 +98,24 @@ def plain(value: Any) -> Any:
     return value
 
 
+def _typed(cls: type, key: str, value: Any) -> Any:
+    """``value`` checked against the type of the field's scalar default (bool, int, float, str), else ConfigError
+    naming ``section.key``; a float field takes an int, or a string such as YAML's ``1e-4`` (which YAML reads as a
+    string), as a float. Fields whose default is None, a tuple or a list are checked by the section itself."""
+    default = next((f.default for f in dataclasses.fields(cls) if f.name == key), None)
+    kind = type(default) if isinstance(default, (bool, int, float, str)) else None
+    if kind is None or value is None or type(value) is kind:
+        return value
+    if kind is float and not isinstance(value, bool):
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            pass
+    if kind is int and isinstance(value, float) and value.is_integer():
+        return int(value)
+    raise ConfigError(f"{cls.NAME}.{key} must be of type {kind.__name__}, got {value!r} ({type(value).__name__})")
+
+
 class _Section:
     """from_dict / to_dict shared by the sections; subclasses validate in ``__post_init__``."""
 
@@ -109,7 +127,7 @@ class _Section:
         """Build from a plain dict (YAML/JSON), rejecting unknown keys; path fields become Path."""
         reject_unknown_keys(cls, values, f"{cls.NAME} config")
         values = {k: (Path(v) if k in cls.PATHS and v is not None else v) for k, v in values.items()}
-        return cls(**values)
+        return cls(**{k: _typed(cls, k, v) for k, v in values.items()})
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict in field order."""

@@ -33,6 +33,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.metrics import MetricAccumulator
 
 logger = logging.getLogger(__name__)
@@ -166,7 +167,6 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
             writer.writeheader()
             writer.writerows(result.rows)
     clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.summary.items()}
-    files["json"].write_text(json.dumps(clean, indent=2, default=str))
     keys = [k for k in SUMMARY_KEYS if k in result.summary]
     lines = [f"# {title}", "", f"{result.summary['n_frames']} frames; pixels pooled over frames. EPE in px, "
              "the others in %; F1 = bad3 (> 3 px, the paper's definition); D1 = > 3 px and > 5 % (KITTI).", "",
@@ -176,7 +176,10 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
     for row in result.rows:
         lines.append("| " + " | ".join(_fmt(row[k]) for k in ("frame_id", "epe", "bad3", "d1_all", "d1_noc",
                                                               "density")) + " |")
-    files["md"].write_text("\n".join(lines) + "\n")
+    atomic_write_text(files["md"], "\n".join(lines) + "\n")
+    # summary.json last, each file whole or absent: its presence marks a finished evaluation (a full disk or a
+    # crash midway leaves the streamed metrics.csv and no summary.json)
+    atomic_write_text(files["json"], json.dumps(clean, indent=2, default=str))
     return files
 
 

@@ -46,6 +46,7 @@ runtime.
 
 from __future__ import annotations
 
+import io
 import logging
 from pathlib import Path
 
@@ -131,7 +132,9 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
             program.model.metadata_props.update(recorded)
             program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
-            torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), str(tmp))
+            buffer = io.BytesIO()  # torch's file writer aborts the process on a full disk; Python's raises OSError
+            torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), buffer)
+            tmp.write_bytes(buffer.getvalue())
     return out
 
 

@@ -272,7 +272,7 @@ def write_disparity(
     With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
     ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders.
     """
-    from pvm_labeler.common.io import write_image, write_kitti_disp, write_pfm
+    from pvm_labeler.common.io import write_image, write_kitti_disp, write_npy, write_pfm
 
     formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
     unknown = sorted(set(formats) - set(FORMATS))
@@ -292,7 +292,7 @@ def write_disparity(
             write_pfm(paths[fmt], disp.astype(np.float32))
         elif fmt == "npy":
             paths[fmt] = folder / f"{name}.npy"
-            np.save(paths[fmt], disp.astype(np.float32))
+            write_npy(paths[fmt], disp.astype(np.float32))
         else:
             paths[fmt] = folder / f"{name}_color.png"
             write_image(paths[fmt], colorize(disp, max_disp))
@@ -305,7 +305,7 @@ def write_geometry(
 ) -> dict[str, Path]:
     """Depth (16-bit mm PNG, PFM/NPY in m) and a coloured PLY point cloud of one prediction; format -> path."""
     from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
-    from pvm_labeler.common.io import write_pfm
+    from pvm_labeler.common.io import write_npy, write_pfm
 
     wanted = [f for f in formats if f in GEOMETRY_FORMATS]
     if not wanted:
@@ -325,7 +325,7 @@ def write_geometry(
             write_pfm(paths[fmt], depth)
         elif fmt == "depth-npy":
             paths[fmt] = out_dir / f"{name}_depth.npy"
-            np.save(paths[fmt], depth)
+            write_npy(paths[fmt], depth)
         else:
             paths[fmt] = out_dir / f"{name}.ply"
             write_ply(paths[fmt], *depth_to_points(depth, calib, image))

@@ -20,8 +20,9 @@ from torch import nn
 
 from optstereo import distributed as ddp
 from optstereo.checkpoint import LAST, CheckpointError, LoadedCheckpoint, load_checkpoint, save_checkpoint, unwrap
-from optstereo.train_config import TrainConfig
+from optstereo.train_config import CONFIG_FILE, TrainConfig, read_yaml
 from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.errors import ConfigError
 
 if TYPE_CHECKING:
     from optstereo.train import TrainState
@@ -101,7 +102,24 @@ def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) ->
     ckpt = load_checkpoint(run_dir)
     if not ckpt.train_config:
         raise ValueError(f"checkpoint {ckpt.path} holds no training config; cannot resume from it")
-    return TrainConfig.from_layers(legacy_loss(ckpt.train_config), overrides, {"out": Path(run_dir)})
+    saved = TrainConfig.from_layers(legacy_loss(ckpt.train_config), {"out": Path(run_dir)})
+    cfg = TrainConfig.from_layers(legacy_loss(ckpt.train_config), overrides, {"out": Path(run_dir)})
+    _check_same_model(saved, cfg, f"--resume {run_dir}: the command line")
+    written = Path(run_dir) / CONFIG_FILE
+    if written.is_file():  # config.yaml of another run beside this last.pt (files copied between run dirs)
+        _check_same_model(saved, TrainConfig.from_layers(read_yaml(written)), f"--resume {run_dir}: {written}")
+    return cfg
+
+
+def _check_same_model(saved: TrainConfig, other: TrainConfig, who: str) -> None:
+    """Raise a ConfigError naming ``who`` and the model settings (N_s aside) where ``other`` leaves ``saved``."""
+    old, new = saved.to_dict()["model"], other.to_dict()["model"]
+    diff = {k: (old.get(k), new.get(k)) for k in sorted(old.keys() | new.keys()) if k != "iters" and
+            old.get(k) != new.get(k)}
+    if diff:
+        changes = ", ".join(f"model.{k}: {a!r} -> {b!r}" for k, (a, b) in diff.items())
+        raise ConfigError(f"{who} changes the model of the saved checkpoint ({changes}); a resumed run keeps its "
+                          "model: start a new run with --init RUN_DIR to take its weights into another model")
 
 
 def legacy_loss(saved: dict[str, Any]) -> dict[str, Any]:
