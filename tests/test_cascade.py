@@ -11,14 +11,15 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from test_eval_predict import TINY, Echo
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, Echo, kitti_crop
 
 from optstereo.cascade import choose, coarse_start, grid_start, half_size, jump_limit, photometric_select
 from optstereo.inference import infer
 from optstereo.models import build_model
 from optstereo.models.config import ModelConfig
 from optstereo.rescale import scaled_passes
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class StartEcho(torch.nn.Module):
@@ -59,7 +60,7 @@ def test_coarse_start_units() -> None:
 class TestModel:
     def test_zero_start_is_the_default(self) -> None:
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY).eval()
+        model = build_model("optstereo", **TINY, iters=2).eval()
         left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
         with torch.no_grad():
             plain = model(left, right, test_mode=True)
@@ -73,7 +74,7 @@ class TestModel:
 
     def test_no_gradient_into_the_start(self) -> None:
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY)
+        model = build_model("optstereo", **TINY, iters=2)
         left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
         start = torch.full((1, 1, 8, 16), 2.0, requires_grad=True)
         preds = model(left, right, iters=2, disp_init=start)
@@ -104,7 +105,7 @@ def test_trainer_draw(tmp_path: Path) -> None:
     from optstereo.train_config import TrainConfig
 
     torch.manual_seed(0)
-    model = build_model("optstereo", **TINY)
+    model = build_model("optstereo", **TINY, iters=2)
     left = torch.rand(2, 3, 64, 128) * 255
     state = SimpleNamespace(model=model, step=3)
     device = torch.device("cpu")
@@ -122,7 +123,6 @@ def test_trainer_draw(tmp_path: Path) -> None:
 def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> None:
     # a cascade model exports a graph with a third input, the start; infer_onnx runs the coarse pass and the final
     # one from it as infer does: the two agree at the export tests' tolerance, and differ from the zero start
-    from test_export import _kitti_crop
 
     from optstereo.export import export, infer_onnx, onnx_session
 
@@ -133,7 +133,7 @@ def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> 
     assert [i.name for i in session.get_inputs()] == ["left", "right", "start"]
     recorded = session.get_modelmeta().custom_metadata_map
     assert recorded["cascade_select"] == "1" and float(recorded["cascade_select_jump"]) == 0.02
-    left, right = _kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
+    left, right = kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())

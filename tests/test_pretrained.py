@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
-from test_train import TINY, tiny_config
+from conftest import TINY, make_shards, make_synthetic_pair, tiny_config
 
 import optstereo
 from optstereo import train
@@ -21,6 +20,8 @@ from optstereo.pretrained import WEIGHTS, resolve_checkpoint_spec
 from pvm_labeler import shards as shard_mod
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import ShardError
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # -- the unlabelled reader ----------------------------------------------------------------------------------------
@@ -52,11 +53,10 @@ def test_unlabelled_reader_on_shared_data(shared_data: Path) -> None:
 
 # -- --init --------------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def trained(tiny_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("init")
-    shards = make_shards(root / "shards", n=4, shard_size=2, height=32, width=72)
-    train.main(tiny_config(shards, root / "base", steps=2), progress=False)
-    return shards, root / "base"
+    train.main(tiny_config(tiny_shards, root / "base", steps=2), progress=False)
+    return tiny_shards, root / "base"
 
 
 def test_init_loads_weights_and_starts_a_new_schedule(trained: tuple[Path, Path], tmp_path: Path) -> None:
@@ -182,8 +182,6 @@ def test_gpu_continue_script_runs_on_cpu(tmp_path: Path, rng: np.random.Generato
     """pipelines/gpu/continue.sh end to end at toy size on the CPU: label, probe, size, train from the head, export."""
     import subprocess
     import sys
-
-    from conftest import make_synthetic_pair
 
     from optstereo.checkpoint import load_checkpoint
 
