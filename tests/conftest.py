@@ -27,8 +27,29 @@ TINY: dict[str, Any] = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "up
 TINY_HITNET: dict[str, Any] = {"feature_dim": 8, "hidden_dim": 16, "corr_levels": 2, "max_disp": 32, "iters": 2}
 
 
+#: The studies' tests (pipelines/studies/): collected only with --studies (make test-studies, make test-all).
+STUDIES = Path(__file__).resolve().parent / "studies"
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--runslow", action="store_true", default=False, help="run tests marked slow/perf")
+    parser.addoption("--studies", action="store_true", default=False,
+                     help="also collect tests/studies (the one-off studies of pipelines/studies; make test-studies)")
+
+
+def _studies_asked(config: pytest.Config) -> bool:
+    """--studies, or a command-line path inside tests/studies (``pytest tests/studies/test_vote_table.py``)."""
+    if config.getoption("--studies"):
+        return True
+    here = config.invocation_params.dir
+    return any((here / arg.split("::")[0]).resolve().is_relative_to(STUDIES) for arg in config.args)
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """Leave tests/studies out unless asked for: ``make test`` runs the product's tests only."""
+    if collection_path.resolve().is_relative_to(STUDIES) and not _studies_asked(config):
+        return True
+    return None
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -24,7 +24,7 @@ from pvm_labeler.common.errors import ConfigError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-# pipelines/recipes/cpu_main.yaml as it was written before the config had sections (flat keys)
+# pipelines/studies/recipes/cpu_main.yaml as it was written before the config had sections (flat keys)
 OLD_CPU_MAIN = {
     "model": "optstereo", "model_overrides": {"feature_dim": 128, "hidden_dim": 128, "head_dim": 128},
     "supervision": "pvm", "iters": 4, "gamma": 0.8, "lambda_r": 0.1, "lambda_s": 0.1, "lambda_t": 0.5,
@@ -34,7 +34,7 @@ OLD_CPU_MAIN = {
     "ckpt_every": 100, "keep_ckpts": 2, "tensorboard": False, "seed": 0,
     "color_norm": "mean",  # pinned in the recipe since the default became the paper's L1 norm (issue 15)
 }
-RECIPES = sorted(Path(__file__).resolve().parents[1].glob("pipelines/recipes/*.yaml"))
+RECIPES = sorted(Path(__file__).resolve().parents[1].glob("pipelines/studies/recipes/*.yaml"))
 
 
 def flatten(nested: dict) -> dict:

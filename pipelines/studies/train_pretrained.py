@@ -1,29 +1,25 @@
 """The shipped model, end to end: label the unlabelled KITTI pairs, train, branch the L_T ablation, evaluate on every
 GT set of ../shared/data against dense SGM, export the weights.
 
-    python -m pipelines.train_pretrained label       PVM labels of kitti_unlabelled (never a GT frame)
-    python -m pipelines.train_pretrained train       the main run (pipelines/recipes/cpu_main.yaml), resumable
-    python -m pipelines.train_pretrained branch      the ablation arms from the main run's checkpoint at analogy_start
-    python -m pipelines.train_pretrained finish      the arm without L_T continued to the full schedule (version 1)
-    python -m pipelines.train_pretrained continue    version 1 continued: --init, confidence-weighted L_P (CONTINUE)
-    python -m pipelines.train_pretrained continue R  only stage R of CONTINUE, from its parent's export or committed
-                                                      head (a fresh checkout has no out/)
-    python -m pipelines.train_pretrained baselines   dense SGM (the labeler's matcher, holes filled along rows)
-    python -m pipelines.train_pretrained eval RUN    a run (or 'pretrained') on every GT set -> results/pretrained/
-    python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/ (version 1:
-                                                      arm_no_lt: in the ablation L_T cost 1.5 points of KITTI 2015
-                                                      bad-3, so the shipped model is the recipe without it;
-                                                      version 5: long_conf7, a CONTINUE run; version 9:
-                                                      scale175_m, --input-scale 1.625; version 10: the same
-                                                      weights, --refine wmedian; version 11: sgmfill_o,
-                                                      --input-scale 1.625 --refine wmedian; version 12:
-                                                      sgmboth_p, the same flags; version 13: version 12's
-                                                      file, the same flags + --scale-refs
-                                                      results/adaptive_scale/reference.json; version 14:
-                                                      HEADS/cascade_u, the same flags + --cascade --select
-                                                      --select-jump 0.015)
-    python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
-    python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
+Steps (``python -m pipelines.studies.train_pretrained STEP``):
+
+    label        PVM labels of kitti_unlabelled (never a GT frame)
+    train        the main run (pipelines/studies/recipes/cpu_main.yaml), resumable
+    branch       the ablation arms from the main run's checkpoint at analogy_start
+    finish       the arm without L_T continued to the full schedule (version 1)
+    continue     version 1 continued: --init, confidence-weighted L_P (CONTINUE)
+    continue R   only stage R of CONTINUE, from its parent's export or committed head (a fresh checkout has no out/)
+    baselines    dense SGM (the labeler's matcher, holes filled along rows)
+    eval RUN     a run (or 'pretrained') on every GT set -> results/pretrained/
+    ship RUN     export RUN's weights to optstereo/weights/ (version 1: arm_no_lt: in the ablation L_T cost 1.5
+                 points of KITTI 2015 bad-3, so the shipped model is the recipe without it; version 5: long_conf7, a
+                 CONTINUE run; version 9: scale175_m, --input-scale 1.625; version 10: the same weights, --refine
+                 wmedian; version 11: sgmfill_o, --input-scale 1.625 --refine wmedian; version 12: sgmboth_p, the
+                 same flags; version 13: version 12's file, the same flags + --scale-refs
+                 results/adaptive_scale/reference.json; version 14: HEADS/cascade_u, the same flags + --cascade
+                 --select --select-jump 0.015)
+    soup NAME    the weight average of the runs SOUPS[NAME] lists
+    report       results/pretrained/report.md from the JSON files
 
 Every number goes to ``results/pretrained/<name>.json`` (committed) with the command, commit, CPU and seconds, so
 the report can be rebuilt after the run directories (git-ignored) are gone.
@@ -61,9 +57,9 @@ LABELS_SGMWM2 = Path("out/labels/kitti_unlabelled_k03_sgmwm2")
 LABELS_SGMWM6 = Path("out/labels/kitti_unlabelled_k03_sgmwm6")
 RUNS = Path("out/pretrained")
 RESULTS = Path("results/pretrained")
-RECIPE = Path("pipelines/recipes/cpu_main.yaml")
+RECIPE = Path("pipelines/studies/recipes/cpu_main.yaml")
 WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
-#: Dense SGM through the weighted median the shipped model applies (``pipelines.refine_study score``).
+#: Dense SGM through the weighted median the shipped model applies (``pipelines.studies.refine_study score``).
 FILTERED_SGM = Path("results/refine/score_r5_s51.json")
 #: Committed weights a CONTINUE run starts from when its parent run is gone (a fresh checkout): the lineage's
 #: heads (cascade_v: the cascade line's head; cascade_u: version 14's weights), and version 11 (sgmfill_o, the start of
@@ -95,7 +91,8 @@ ARM_STEPS = 200
 #: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
 #: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e; iters8_g
 #: became version 7; iters8_h continued it at N_s = 8 (measured, 0.21 points short of its rule). gpu_i (LINEAGE) is
-#: no CPU row: it ran on a lent H100 with `bash pipelines/gpu/session.sh` (RESULTS.md). scale8_j (N_s = 8 and scale
+#: no CPU row: it ran on a lent H100 with `bash pipelines/studies/gpu/session.sh` (RESULTS.md). scale8_j (N_s = 8 and
+#: scale
 #: augmentation, judged at input scale 1.25) became version 8, shipped with `ship scale8_j --input-scale 1.25`;
 #: scale15_k continues it with scale augmentation 1.25-1.5, judged at input scale 1.5 (measured, 0.06 points short of
 #: its rule; its weights are a committed head in HEADS); scale15_l continues it (measured, 0.15 points short);
@@ -442,7 +439,7 @@ def step_report() -> str:
     sgm = json.loads((RESULTS / "sgm_dense.json").read_text())
     docs = {p.stem: json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json")) if p.stem != "sgm_dense"}
     main = docs.get("shipped")
-    # the stronger baseline: dense SGM through the shipped model's own post-filter (pipelines/refine_study.py)
+    # the stronger baseline: dense SGM through the shipped model's own post-filter (pipelines/studies/refine_study.py)
     filtered = json.loads(FILTERED_SGM.read_text())["rows"] if FILTERED_SGM.exists() else {}
     lines = ["| GT set (dense, every GT-valid pixel, pooled) | frames | shipped bad-3 % | D1-all % | AEPE px | "
              "dense SGM bad-3 % | D1-all % | AEPE px | network / SGM bad-3 | dense SGM + wmedian bad-3 % | "
@@ -601,13 +598,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--refine", choices=("none", "wmedian"), default="none",
                         help="ship: the default post-filter to record")
     parser.add_argument("--scale-refs", type=Path,
-                        help="ship: record the adaptive input scale of this JSON (pipelines.adaptive_scale reference)")
+                        help="ship: record the adaptive input scale of this JSON "
+                             "(pipelines.studies.adaptive_scale reference)")
     parser.add_argument("--cascade", action="store_true", help="ship: record the coarse-to-fine start")
     parser.add_argument("--select", action="store_true",
                         help="ship: with --cascade, record the per-pixel photometric choice between the two starts")
     parser.add_argument("--select-jump", type=float, default=0.0,
                         help="ship: with --select, choose the zero start only within this fraction of the width of "
-                             "the coarse start (pipelines.cascade_select calibrate)")
+                             "the coarse start (pipelines.studies.cascade_select calibrate)")
     parser.add_argument("--out", type=Path, default=WEIGHTS, help="ship: write this file instead of the shipped one")
     args = parser.parse_args(argv)
     if args.step == "label":

@@ -11,7 +11,8 @@ Every run is a real ``optstereo-train`` command on ONE shared PVM label set of t
             full-resolution SGM (pvm_labeler.sgm.sgm_pair, left view, no filtering)
     report  results/training/*.json, the loss-curve and overview PNGs, results/training.md
 
-``python -m pipelines.train_studies all`` runs the four steps. Run dirs (config.yaml, metrics.jsonl, checkpoints,
+``python -m pipelines.studies.train_studies all`` runs the four steps. Run dirs (config.yaml, metrics.jsonl,
+checkpoints,
 command.json) live under out/studies/ (git-ignored); ``optstereo-eval --checkpoint out/studies/runs/NAME ...``
 re-evaluates any of them.
 
@@ -417,7 +418,7 @@ def step_report() -> None:
     if baselines["sgm_dense_nan_as_error"] is not None:
         baselines["sgm_dense_nan_as_error"]["epe"] = None  # NaN pixels were set to -1e4 px: EPE is meaningless
     baselines["commands"] = {"pvm_labels": _rel(_show(labels_eval_command())),
-                             "sgm_dense": ".venv/bin/python -m pipelines.train_studies eval (step_sgm_dense)"}
+                             "sgm_dense": ".venv/bin/python -m pipelines.studies.train_studies eval (step_sgm_dense)"}
     (RESULTS / "baselines.json").write_text(json.dumps(baselines, indent=2, default=str))
     # Curves of runs reported from JSONs of sessions before curves were stored are not redrawable: keep the full
     # plot drawn when they were live and draw the others beside it.
@@ -426,8 +427,8 @@ def step_report() -> None:
     if (LABELS / "index.json").exists():
         plot_overview(RESULTS / "overview.png")
     else:  # the committed figure stays; redrawing it needs the labels and the runs' checkpoints
-        print(f"overview.png kept: no labels at {LABELS} (python -m pipelines.train_studies label)", flush=True)
-    from pipelines.train_studies_report import render_markdown
+        print(f"overview.png kept: no labels at {LABELS} (python -m pipelines.studies.train_studies label)", flush=True)
+    from pipelines.studies.train_studies_report import render_markdown
 
     (Path("results") / "training.md").write_text(render_markdown(runs, baselines))
     print(f"wrote {RESULTS}/*.json, loss_curves.png, overview.png, results/training.md", flush=True)

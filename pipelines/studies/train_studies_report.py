@@ -1,6 +1,8 @@
-"""Rendering of results/training.md for ``pipelines.train_studies report``: tables and verdicts computed from the runs.
+"""Rendering of results/training.md for ``pipelines.studies.train_studies report``: tables and verdicts computed from
+the runs.
 
-The prose around the numbers is the template ``pipelines/templates/train_studies.md``; everything this module adds
+The prose around the numbers is the template ``pipelines/studies/templates/train_studies.md``; everything this module
+adds
 is computed from the runs' own files (no history of how or when they were run).
 """
 
@@ -11,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.train_studies import (
+from pipelines.studies.train_studies import (
     BY_NAME,
     DATA_ROOT,
     LABELS,
