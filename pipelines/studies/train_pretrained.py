@@ -61,10 +61,12 @@ RECIPE = Path("pipelines/studies/recipes/cpu_main.yaml")
 WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
 #: Dense SGM through the weighted median the shipped model applies (``pipelines.studies.refine_study score``).
 FILTERED_SGM = Path("results/refine/score_r5_s51.json")
-#: Committed weights a CONTINUE run starts from when its parent run is gone (a fresh checkout): the lineage's
-#: heads (cascade_v: the cascade line's head; cascade_u: version 14's weights), and version 11 (sgmfill_o, the start of
-#: sgmboth_p and its control sgmleft_r).
+#: Where a CONTINUE run finds its parent's weights when the parent run is gone (a fresh checkout): the lineage's heads
+#: (cascade_v: the cascade line's head; cascade_u: version 14's weights; long_bf16e, scale15_k) and version 11
+#: (sgmfill_o, the start of sgmboth_p and its control sgmleft_r). They left the tree (46 MB); commit HEADS_COMMIT holds
+#: them: ``git show cdca6f9:results/pretrained/weights/NAME.safetensors > results/pretrained/weights/NAME.safetensors``.
 HEADS = RESULTS / "weights"
+HEADS_COMMIT = "cdca6f9"
 TEST_ITERS = 8  # the run trains with N_s = 4; RAFT-style refinement keeps improving with more test iterations
 
 #: (name, reader, root under SHARED, SGM search range or None = 64 / the scene's calib ndisp)
@@ -88,14 +90,14 @@ ARM_STEPS = 200
 #: out/ of a session that ended. long_bf16 starts again from the shipped file ("pretrained"), bf16 autocast on a CPU
 #: with AVX512-BF16 (its rule in RESULTS.md); it became version 6. long_bf16b (2500 steps) never ran: its session was
 #: cut off; long_bf16c continues version 6 from the shipped file; long_bf16d and long_bf16e continue it (neither
-#: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
+#: met its rule; long_bf16e's weights are a head in HEADS). scale_f (scale augmentation) and iters8_g
 #: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e; iters8_g
 #: became version 7; iters8_h continued it at N_s = 8 (measured, 0.21 points short of its rule). gpu_i (LINEAGE) is
 #: no CPU row: it ran on a lent H100 with `bash pipelines/studies/gpu/session.sh` (RESULTS.md). scale8_j (N_s = 8 and
 #: scale
 #: augmentation, judged at input scale 1.25) became version 8, shipped with `ship scale8_j --input-scale 1.25`;
 #: scale15_k continues it with scale augmentation 1.25-1.5, judged at input scale 1.5 (measured, 0.06 points short of
-#: its rule; its weights are a committed head in HEADS); scale15_l continues it (measured, 0.15 points short);
+#: its rule; its weights are a head in HEADS); scale15_l continues it (measured, 0.15 points short);
 #: scale175_m continues scale15_k with scale augmentation 1.5-1.75, judged at input scale 1.625; it became version 9,
 #: shipped with `ship scale175_m --input-scale 1.625`; scale2_n continues it with scale augmentation 1.75-2.0, judged
 #: at input scale 1.875 (measured, 0.48 points short of its rule). seed_m29 repeats scale175_m with another seed: a
@@ -298,7 +300,7 @@ def step_finish() -> None:
 
 def init_weights(init: str) -> Path:
     """The weights a CONTINUE run starts from: the shipped file ("pretrained"), the init run's export under RUNS, or,
-    when that run's directory is gone (out/ is not committed), its committed copy in HEADS."""
+    when that run's directory is gone (out/ is not committed), its copy in HEADS (fetched from HEADS_COMMIT)."""
     if init == "pretrained":
         return WEIGHTS
     export = RUNS / init / "model.safetensors"
@@ -332,8 +334,10 @@ def step_continue(only: str | None = None) -> None:
         init = next(parent for run, parent, *_ in CONTINUE if run == only)
         start = init_weights(init)
         if "--resume" not in cmds[only] and not start.exists():
+            head = HEADS / f"{init}.safetensors"
             raise ValueError(f"continue {only!r}: its starting weights {start} do not exist; run `continue {init}` "
-                             f"first, or commit {init}'s weights as {HEADS / (init + '.safetensors')}")
+                             f"first, or fetch the head commit {HEADS_COMMIT} held: "
+                             f"`git show {HEADS_COMMIT}:{head} > {head}`")
         cmds = {only: cmds[only]}
     for run, cmd in cmds.items():
         if not (RUNS / run / "summary.json").exists():

@@ -9,9 +9,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from conftest import make_synthetic_pair
+from conftest import TINY, make_synthetic_pair
 
-from optstereo.checkpoint import load_checkpoint
+from optstereo.checkpoint import export_safetensors, load_checkpoint
+from optstereo.models import build_model
 from pipelines.studies.carry_pack import write_jpeg_folder
 from pvm_labeler.common.datasets import discover, load_pair
 
@@ -40,7 +41,8 @@ def test_gpu_continue_script_runs_on_cpu(tmp_path: Path, rng: np.random.Generato
         for view, img in (("left", left), ("right", right)):
             (tmp_path / "pack" / view).mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(tmp_path / "pack" / view / f"{i:06d}.png"), img)
-    init = repo / "results/pretrained/weights/long_bf16e.safetensors"
+    torch.manual_seed(0)
+    init = export_safetensors(tmp_path / "head.safetensors", build_model("optstereo", **TINY))  # a stand-in head
     env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "DEVICE": "cpu", "AMP": "none", "BATCH": "1",
            "CROP": "64x128", "ITERS": "1", "BUDGET_S": "1", "PROBE": "4", "WORKERS": "1", "THREADS": "1", "JOBS": "1",
            "PACK": str(tmp_path / "pack"), "WORK": str(tmp_path / "work"), "OUT": str(tmp_path / "out"),
