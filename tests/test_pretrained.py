@@ -17,9 +17,9 @@ from optstereo import train
 from optstereo.checkpoint import CheckpointError, load_checkpoint
 from optstereo.cli import predict_main, train_main
 from optstereo.pretrained import WEIGHTS, resolve_checkpoint_spec
-from pvm_labeler import shards as shard_mod
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import ShardError
+from pvm_labeler.shards import schema as shard_schema
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -130,7 +130,7 @@ def test_predict_cli_bad_checkpoint_exits_2(tmp_path: Path) -> None:
 
 # -- shards without the Blosc plugin ------------------------------------------------------------------------------
 def test_blosc_without_plugin_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(shard_mod, "hdf5plugin", None)
+    monkeypatch.setattr(shard_schema, "hdf5plugin", None)
     with pytest.raises(ShardError, match="needs the hdf5plugin package"):
         make_shards(tmp_path / "s", n=1, shard_size=1)
 
@@ -138,7 +138,7 @@ def test_blosc_without_plugin_is_a_clear_error(tmp_path: Path, monkeypatch: pyte
 def test_lzf_shards_need_no_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from pvm_labeler.shards import ShardRecord, open_shard, read_sample, write_shard_dir
 
-    monkeypatch.setattr(shard_mod, "hdf5plugin", None)
+    monkeypatch.setattr(shard_schema, "hdf5plugin", None)
     img = np.zeros((8, 16, 3), np.uint8)
     lab = np.full((8, 16), 2.0, np.float32)
     out = write_shard_dir(tmp_path / "lzf", [ShardRecord("a", img, img, lab, lab, np.ones_like(lab))],

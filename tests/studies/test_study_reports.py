@@ -12,7 +12,6 @@ import pytest
 
 from pipelines.studies import train_pretrained as tp
 from pipelines.studies import train_studies as ts
-from pipelines.studies import train_studies_report as tsr
 
 
 def test_feature_studies_report_falls_back_to_committed_json(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -33,18 +32,18 @@ def test_studies_trend_from_committed_curve(tmp_path: Path, monkeypatch: pytest.
     # results/training.md keeps the sentence. Hand-computed: records 0.70 before, 0.60 at the end -> still falling.
     monkeypatch.setattr(ts, "OUT", tmp_path / "out")
     curve = [[10 * (i + 1), 1.0, 0.70] for i in range(15)] + [[160 + 10 * i, 1.0, 0.60] for i in range(5)]
-    text = tsr._trend("ms_d4_onecycle", {"ms_d4_onecycle": {"curve": curve}})
+    text = ts._trend("ms_d4_onecycle", {"ms_d4_onecycle": {"curve": curve}})
     assert "from 0.70 px" in text and "to 0.60 px" in text and "still falling" in text
-    assert tsr._trend("ms_d4_onecycle", {"ms_d4_onecycle": {"curve": curve[:10]}}) == ""  # too short to say
+    assert ts._trend("ms_d4_onecycle", {"ms_d4_onecycle": {"curve": curve[:10]}}) == ""  # too short to say
 
 
 def test_feature_claim_uses_longest_evaluated_self_supervised_run() -> None:
-    assert tsr.claim_pair({"ms_d4_main": {}, "ms_d4_long": {}}) == ("ms_d4_long", "gt_long", ts.LONG_STEPS)
-    assert tsr.claim_pair({"ms_d4_long": {}, "ms_d4_onecycle": {}})[0] == "ms_d4_onecycle"
-    text = tsr.claim_text({"ms_d4_onecycle": {"bad3": 9.0}, "gt_long": {"bad3": 6.5}},
+    assert ts.claim_pair({"ms_d4_main": {}, "ms_d4_long": {}}) == ("ms_d4_long", "gt_long", ts.LONG_STEPS)
+    assert ts.claim_pair({"ms_d4_long": {}, "ms_d4_onecycle": {}})[0] == "ms_d4_onecycle"
+    text = ts.claim_text({"ms_d4_onecycle": {"bad3": 9.0}, "gt_long": {"bad3": 6.5}},
                          {"sgm_dense_nan_filled": {"bad3": 10.3}, "sgm_dense_nan_as_error": {"bad3": 10.56}})
     assert "**met**" in text and f"`gt_long`, {ts.LONG_STEPS} steps" in text
-    text = tsr.claim_text({"ms_d4_onecycle": {"bad3": 10.4}},
+    text = ts.claim_text({"ms_d4_onecycle": {"bad3": 10.4}},
                          {"sgm_dense_nan_filled": {"bad3": 10.3}, "sgm_dense_nan_as_error": {"bad3": 10.56}})
     assert "**not met**" in text
 
@@ -133,7 +132,7 @@ def test_studies_report_keeps_committed_baselines(tmp_path: Path, monkeypatch: p
     monkeypatch.setattr(ts, "load_runs", lambda: {})
     monkeypatch.setattr(ts, "eval_dir", lambda key: tmp_path / "gone" / key)
     monkeypatch.setattr(ts, "plot_curves", lambda runs, path: None)
-    monkeypatch.setattr(tsr, "render_markdown", lambda runs, baselines: json.dumps(baselines))
+    monkeypatch.setattr(ts, "render_markdown", lambda runs, baselines: json.dumps(baselines))
     ts.step_report()
     written = json.loads((results / "baselines.json").read_text())
     assert {k: written[k] for k in committed} == committed
