@@ -53,10 +53,11 @@ def test_gpu_continue_script_runs_on_cpu(tmp_path: Path, rng: np.random.Generato
     assert "-> 4 steps" in proc.stdout  # 1 s of budget rounds down to nothing: the floor of 4 steps
     out = load_checkpoint(tmp_path / "out" / "toy.safetensors")
     start = load_checkpoint(init)
-    assert out.step == 4 and out.model_config["feature_dim"] == start.model_config["feature_dim"]
+    # the run's --max-minutes is BUDGET_S too (1 s): on a busy machine it may stop before the 4 sized steps
+    assert 1 <= out.step <= 4 and out.model_config["feature_dim"] == start.model_config["feature_dim"]
     assert out.model_config["input_scale"] == 1.625  # the default U(1.5, 1.75): the export runs at its middle
     moved = [k for k in start.model_state if not torch.equal(start.model_state[k], out.model_state[k])]
-    assert moved, "the weights should have moved from the head after 4 steps"
+    assert moved, "the weights should have moved from the head"
     config = (tmp_path / "out" / "config.yaml").read_text()
     assert "lambda_t: 0.0" in config and "conf_weight: true" in config
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["config.yaml", "env.txt", "metrics.jsonl",
