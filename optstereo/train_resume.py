@@ -1,7 +1,8 @@
 """Checkpoints of a training run: periodic saving, ``--resume`` (state and config) and ``--init`` (weights only).
 
-``checkpoint_saver`` writes ``ckpt-<step>.pt`` and ``last.pt`` atomically on rank 0; ``restore`` puts a checkpoint's
-model/optimizer/scheduler/scaler/RNG states back into the loop's ``TrainState``; ``config_for_resume`` rebuilds the
+``TrainState`` is what the loop advances and a checkpoint holds; ``checkpoint_saver`` writes ``ckpt-<step>.pt`` and
+``last.pt`` atomically on rank 0; ``restore`` puts a checkpoint's model/optimizer/scheduler/scaler/RNG states back
+into it; ``config_for_resume`` rebuilds the
 run's TrainConfig from its last checkpoint (nested, or the flat dict of runs saved before the config had sections);
 ``init_settings`` and ``init_weights`` take the model settings and the weights of an ``--init`` checkpoint, which is
 read once (``load_checkpoint``) and passed to both.
@@ -12,8 +13,9 @@ from __future__ import annotations
 import logging
 import shutil
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import nn
@@ -24,10 +26,19 @@ from optstereo.train_config import CONFIG_FILE, TrainConfig, read_yaml
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.errors import ConfigError
 
-if TYPE_CHECKING:
-    from optstereo.train import TrainState
-
 logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainState:
+    """Mutable state the loop advances; ``step`` counts completed optimiser steps."""
+
+    model: nn.Module
+    optimizer: torch.optim.Optimizer
+    scheduler: Any | None
+    scaler: torch.amp.GradScaler
+    step: int = 0
+    history: list[dict[str, float]] = field(default_factory=list)
 
 
 def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Callable[[TrainState], None]:

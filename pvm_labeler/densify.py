@@ -3,7 +3,8 @@
 PVM keeps ~60 % of KITTI's pixels; the network's errors sit in the rest. Inside a superpixel (OpenCV's SLICO on
 Lab, ``region_size`` px) whose labelled pixels lie on a plane d = a x + b y + c (RMS residual <= ``max_rms`` px,
 at least ``MIN_LABELS`` labels making at least ``MIN_RATIO`` of it), the unlabelled pixels take the plane's
-disparity. Labelled pixels are never changed. On the 15 KITTI 2015 GT frames (``python -m pipelines.hole_targets``,
+disparity. Labelled pixels are never changed. On the 15 KITTI 2015 GT frames
+(``python -m pipelines.studies.hole_targets``,
 evaluation only) such fills are right more often than the shipped network on the same pixels, at every distance
 from the labels, yet 600 steps of training on densified labels left KITTI 2015 unchanged (RESULTS.md).
 

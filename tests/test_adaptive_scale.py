@@ -10,12 +10,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from test_eval_predict import TINY, Echo
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, Echo, kitti_crop
 
 from optstereo.inference import infer, infer_scaled, model_scale_refs
 from optstereo.models import build_model
 from optstereo.rescale import ADAPTIVE_MIN_GAIN, ADAPTIVE_PERCENTILE, adaptive_factor
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class TestRule:
@@ -90,27 +91,26 @@ class TestInfer:
 class TestConfig:
     def test_validated(self) -> None:
         with pytest.raises(ValueError, match="needs scale_ref_pixels"):
-            build_model("optstereo", scale_ref_disp=60.0, **TINY)
+            build_model("optstereo", scale_ref_disp=60.0, **TINY, iters=2)
         with pytest.raises(ValueError, match="must be >= 0 and finite"):
-            build_model("optstereo", scale_ref_disp=-1.0, scale_ref_pixels=10, **TINY)
+            build_model("optstereo", scale_ref_disp=-1.0, scale_ref_pixels=10, **TINY, iters=2)
         with pytest.raises(ValueError, match="must be >= 0 and finite"):
-            build_model("optstereo", scale_ref_disp=math.inf, scale_ref_pixels=10, **TINY)
+            build_model("optstereo", scale_ref_disp=math.inf, scale_ref_pixels=10, **TINY, iters=2)
 
     def test_survives_the_checkpoint(self, tmp_path: Path) -> None:
         from optstereo.api import load_model
         from optstereo.checkpoint import export_safetensors
 
-        model = build_model("optstereo", scale_ref_disp=61.5, scale_ref_pixels=465_750, **TINY)
+        model = build_model("optstereo", scale_ref_disp=61.5, scale_ref_pixels=465_750, **TINY, iters=2)
         loaded = load_model(export_safetensors(tmp_path / "m.safetensors", model))
         assert model_scale_refs(loaded) == (61.5, 465_750)
-        plain = load_model(export_safetensors(tmp_path / "p.safetensors", build_model("optstereo", **TINY)))
+        plain = load_model(export_safetensors(tmp_path / "p.safetensors", build_model("optstereo", **TINY, iters=2)))
         assert model_scale_refs(plain) is None  # the default: off
 
 
 def test_onnx_file_records_the_references(tmp_path: Path, shared_data: Path) -> None:
     # The references travel in the ONNX metadata and infer_onnx runs the same second pass as infer: a reference
     # disparity far above any output and a pixel cap of 4x the pair's pixels make both enlarge by exactly 2x.
-    from test_export import _kitti_crop
 
     from optstereo.export import export, infer_onnx, onnx_session
 
@@ -120,43 +120,9 @@ def test_onnx_file_records_the_references(tmp_path: Path, shared_data: Path) -> 
     session = onnx_session(export(model, tmp_path / "adaptive.onnx"))
     meta = session.get_modelmeta().custom_metadata_map
     assert float(meta["scale_ref_disp"]) == 1e6 and int(meta["scale_ref_pixels"]) == 4 * 64 * 120
-    left, right = _kitti_crop(shared_data, 64, 120)
+    left, right = kitti_crop(shared_data, 64, 120)
     assert infer_scaled(model, left, right).input_scale == pytest.approx(2.0)
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the second pass changed it
     diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
-
-
-def test_pipeline_reference_and_candidate(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shared_data: Path) -> None:
-    # pipelines.adaptive_scale on two real unlabelled pairs with a tiny network: the constants are the medians of
-    # each pair's 95th percentile (recomputed here from infer) and pixel count; the candidate keeps the weights
-    # byte for byte and records the constants.
-    from safetensors.torch import load_file
-
-    import pipelines.adaptive_scale as adaptive
-    import pvm_labeler.common.datasets as datasets
-    from optstereo.api import load_model
-    from optstereo.checkpoint import export_safetensors
-
-    torch.manual_seed(0)
-    source = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", input_scale=0.5, **TINY))
-    pairs = datasets.discover("kitti_unlabelled", shared_data / "kitti_unlabelled")[:2]
-    monkeypatch.setattr(datasets, "discover", lambda *args, **kwargs: pairs)
-    doc = adaptive.step_reference(str(source), tmp_path / "ref.json")
-    model = load_model(source)
-    p95 = []
-    for ref in pairs:
-        sample = datasets.load_pair(ref)
-        p95.append(np.percentile(infer(model, sample.left, sample.right, scale=0.5, refine="none"), 95))
-    assert [f["p95"] for f in doc["frames"]] == pytest.approx(p95, rel=1e-5)
-    assert doc["scale_ref_disp"] == round(float(np.median(p95)), 1)
-    assert doc["scale_ref_pixels"] == int(np.median([f["height"] * f["width"] for f in doc["frames"]]))
-    assert doc["input_scale"] == 0.5
-
-    monkeypatch.setattr(adaptive, "CANDIDATE", tmp_path / "candidate.safetensors")
-    out = adaptive.step_candidate(str(source), tmp_path / "ref.json")
-    refs = model_scale_refs(load_model(out))
-    assert refs == (doc["scale_ref_disp"], doc["scale_ref_pixels"])
-    before, after = load_file(source), load_file(out)
-    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)

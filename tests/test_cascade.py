@@ -3,7 +3,6 @@ infer's two passes with fake networks whose outputs are known."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -11,14 +10,15 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from test_eval_predict import TINY, Echo
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, Echo, kitti_crop
 
 from optstereo.cascade import choose, coarse_start, grid_start, half_size, jump_limit, photometric_select
 from optstereo.inference import infer
 from optstereo.models import build_model
 from optstereo.models.config import ModelConfig
 from optstereo.rescale import scaled_passes
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class StartEcho(torch.nn.Module):
@@ -59,7 +59,7 @@ def test_coarse_start_units() -> None:
 class TestModel:
     def test_zero_start_is_the_default(self) -> None:
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY).eval()
+        model = build_model("optstereo", **TINY, iters=2).eval()
         left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
         with torch.no_grad():
             plain = model(left, right, test_mode=True)
@@ -73,7 +73,7 @@ class TestModel:
 
     def test_no_gradient_into_the_start(self) -> None:
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY)
+        model = build_model("optstereo", **TINY, iters=2)
         left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
         start = torch.full((1, 1, 8, 16), 2.0, requires_grad=True)
         preds = model(left, right, iters=2, disp_init=start)
@@ -104,7 +104,7 @@ def test_trainer_draw(tmp_path: Path) -> None:
     from optstereo.train_config import TrainConfig
 
     torch.manual_seed(0)
-    model = build_model("optstereo", **TINY)
+    model = build_model("optstereo", **TINY, iters=2)
     left = torch.rand(2, 3, 64, 128) * 255
     state = SimpleNamespace(model=model, step=3)
     device = torch.device("cpu")
@@ -122,7 +122,6 @@ def test_trainer_draw(tmp_path: Path) -> None:
 def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> None:
     # a cascade model exports a graph with a third input, the start; infer_onnx runs the coarse pass and the final
     # one from it as infer does: the two agree at the export tests' tolerance, and differ from the zero start
-    from test_export import _kitti_crop
 
     from optstereo.export import export, infer_onnx, onnx_session
 
@@ -133,7 +132,7 @@ def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> 
     assert [i.name for i in session.get_inputs()] == ["left", "right", "start"]
     recorded = session.get_modelmeta().custom_metadata_map
     assert recorded["cascade_select"] == "1" and float(recorded["cascade_select_jump"]) == 0.02
-    left, right = _kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
+    left, right = kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
@@ -232,49 +231,3 @@ def test_scaled_passes_select() -> None:
         scaled_passes(run, left, right, 1.0, select=True)
     with pytest.raises(ValueError, match="cascade_select needs cascade"):
         ModelConfig(cascade_select=True).validate()
-
-
-def test_pipeline_check_on_real_pairs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shared_data: Path) -> None:
-    # pipelines.cascade_select on two real unlabelled pairs (cropped) with a tiny cascade network: its zero and
-    # coarse answers are infer's with the start off and on, each scored against the shard's labels
-    import pipelines.cascade_select as check
-    import pvm_labeler.common.datasets as datasets
-    from optstereo.api import load_model
-    from optstereo.checkpoint import export_safetensors
-    from pvm_labeler.common.metrics import MetricAccumulator
-    from pvm_labeler.shards import ShardRecord, write_shard_dir
-
-    torch.manual_seed(0)
-    source = export_safetensors(tmp_path / "m.safetensors",
-                                build_model("optstereo", cascade=True, **{**TINY, "iters": 2}))
-    records = []
-    for ref in datasets.discover("kitti_unlabelled", shared_data / "kitti_unlabelled")[:2]:
-        pair = datasets.load_pair(ref)
-        left, right = pair.left[-64:, 300:420].copy(), pair.right[-64:, 300:420].copy()
-        label = np.full(left.shape[:2], 2.0, np.float32)
-        label[:, :20] = np.nan
-        records.append(ShardRecord(frame_id=ref.frame_id, left=left, right=right, label=label,
-                                   label_right=label.copy(), confidence=np.ones(left.shape[:2], np.float32),
-                                   attrs={"sources": {}, "eps": np.zeros(1), "factors": np.ones(1), "seed": 0}))
-    labels = write_shard_dir(tmp_path / "labels", records)
-    monkeypatch.setattr(check, "LABELS", labels)
-    monkeypatch.setattr(check, "RESULTS", tmp_path / "results")
-    doc = check.step_check(str(source), every=1)
-    model = load_model(source)
-    config = model.config
-    for rec, row in zip(records, doc["frames"], strict=True):
-        model.config = dataclasses.replace(config, cascade=True)
-        coarse = infer(model, rec.left, rec.right, scale=1.0, refine="none")
-        model.config = dataclasses.replace(config, cascade=False)
-        zero = infer(model, rec.left, rec.right, scale=1.0, refine="none")
-        for name, disp in (("zero", zero), ("coarse", coarse)):
-            assert row[name]["epe"] == pytest.approx(MetricAccumulator().update(disp, rec.label)["epe"], rel=1e-5)
-    assert (tmp_path / "results" / "check.json").exists() and doc["select"]["n_valid"] == 2 * 64 * 100
-    # calibrate: with no limit its choice is the check's; the chosen limit is the grid's lowest bad-3, ties tighter
-    cal = check.step_calibrate(str(source), "tiny", every=1, grid=(0.0, 0.05, 0.2))
-    assert cal["grid"]["0.0"]["epe"] == pytest.approx(doc["select"]["epe"], rel=1e-6)
-    best = min(row["bad3"] for row in cal["grid"].values())
-    assert cal["grid"][repr(cal["jump"])]["bad3"] == best
-    assert cal["jump"] == min((j for j in (0.05, 0.2, 0.0) if cal["grid"][repr(j)]["bad3"] == best),
-                              key=lambda j: j if j > 0 else float("inf"))
-    assert (tmp_path / "results" / "calibrate_tiny.json").exists()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, Echo, make_shards
 
 from optstereo import inference as predict_mod
 from optstereo.checkpoint import save_checkpoint
@@ -23,15 +23,8 @@ from optstereo.models import build_model
 from pvm_labeler.common.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.common.metrics import disparity_metrics
 
-TINY = dict(feature_dim=16, hidden_dim=16, head_dim=16, upsample_dim=8, iters=2)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-
-class Echo(torch.nn.Module):
-    """Fake network: the disparity is the left image's red channel (checks padding/unpadding exactly)."""
-
-    def forward(self, left, right, iters=None, test_mode=False):
-        assert left.shape[-2] % 8 == 0 and left.shape[-1] % 8 == 0
-        return left[:, :1, ::8, ::8] / 8, left[:, :1]
 
 
 class TestMetrics:
@@ -119,7 +112,8 @@ class TestPredict:
         from optstereo.api import load_model
         from optstereo.checkpoint import export_safetensors
 
-        ckpt = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", input_scale=1.25, **TINY))
+        model = build_model("optstereo", input_scale=1.25, **TINY, iters=2)
+        ckpt = export_safetensors(tmp_path / "m.safetensors", model)
         assert model_input_scale(load_model(ckpt)) == 1.25
         with pytest.raises(ValueError, match="input_scale must be positive"):
             build_model("optstereo", input_scale=0.0)
@@ -147,7 +141,8 @@ class TestPredict:
         from optstereo.api import load_model
         from optstereo.checkpoint import export_safetensors
 
-        ckpt = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", refine="wmedian", **TINY))
+        model = build_model("optstereo", refine="wmedian", **TINY, iters=2)
+        ckpt = export_safetensors(tmp_path / "m.safetensors", model)
         assert model_refine(load_model(ckpt)) == "wmedian"
         with pytest.raises(ValueError, match="refine must be one of"):
             build_model("optstereo", refine="median")
@@ -156,7 +151,7 @@ class TestPredict:
         # bf16 autocast (--amp bf16) runs the convs in bf16 (8-bit mantissa) but keeps correlation, lookup and the
         # disparity accumulator in float32: the prediction stays within a few % of the float32 one, and is float32.
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY).eval()
+        model = build_model("optstereo", **TINY, iters=2).eval()
         left = rng.integers(0, 256, (40, 64, 3), dtype=np.uint8)
         right = np.roll(left, -3, axis=1)
         ref = infer(model, left, right)
@@ -217,7 +212,8 @@ class TestPredict:
 @pytest.fixture(scope="module")
 def tiny_ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
     torch.manual_seed(0)
-    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+    model = build_model("optstereo", **TINY, iters=2)
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", model=model, step=0)
 
 
 class TestCli:

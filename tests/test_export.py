@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_train import TINY
+from conftest import TINY, kitti_crop
 
 from optstereo.checkpoint import export_safetensors
 from optstereo.cli import export_main, predict_main
@@ -30,12 +30,6 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return ckpt, root / "tiny.onnx"
 
 
-def _kitti_crop(shared_data: Path, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    base = shared_data / "kitti15/training"
-    left, right = read_image(base / "image_2/000000_10.png"), read_image(base / "image_3/000000_10.png")
-    return left[-h:, 300:300 + w], right[-h:, 300:300 + w]
-
-
 def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_data: Path) -> None:
     from optstereo.api import load_model
     from optstereo.export import infer_onnx, onnx_session
@@ -44,7 +38,7 @@ def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_
     model = load_model(ckpt)
     session = onnx_session(onnx_file)
     for h, w in ((128, 256), (141, 389)):  # dynamic size, and one that needs padding outside the graph
-        left, right = _kitti_crop(shared_data, h, w)
+        left, right = kitti_crop(shared_data, h, w)
         ref = infer(model, left, right)
         got = infer_onnx(session, left, right)
         assert got.shape == (h, w)
@@ -61,7 +55,7 @@ def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Pa
     model = build_model("optstereo", iters=3, input_scale=1.5, **TINY).eval()
     session = onnx_session(export(model, tmp_path / "scaled.onnx"))
     assert session.get_modelmeta().custom_metadata_map["input_scale"] == "1.5"
-    left, right = _kitti_crop(shared_data, 96, 200)
+    left, right = kitti_crop(shared_data, 96, 200)
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     assert got.shape == (96, 200)
     assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the scale does change the output
@@ -81,7 +75,7 @@ def test_onnx_file_records_the_model_refine(tmp_path: Path, shared_data: Path) -
     model = build_model("optstereo", iters=3, refine="wmedian", **TINY).eval()
     session = onnx_session(export(model, tmp_path / "refined.onnx"))
     assert session.get_modelmeta().custom_metadata_map["refine"] == "wmedian"
-    left, right = _kitti_crop(shared_data, 96, 200)
+    left, right = kitti_crop(shared_data, 96, 200)
     raw = infer_onnx(session, left, right, refine="none")
     np.testing.assert_array_equal(infer_onnx(session, left, right), weighted_median(raw, left))
     diff = np.abs(raw - infer(model, left, right, refine="none"))
@@ -112,7 +106,7 @@ def test_dynamic_batch_export(tmp_path: Path, shared_data: Path) -> None:
     torch.manual_seed(0)
     model = build_model("optstereo", iters=2, **TINY).eval()
     session = onnx_session(export(model, tmp_path / "b.onnx", batch=True))
-    pairs = [_kitti_crop(shared_data, 64, 128), _kitti_crop(shared_data, 64, 128)[::-1]]
+    pairs = [kitti_crop(shared_data, 64, 128), kitti_crop(shared_data, 64, 128)[::-1]]
     to_t = lambda x: np.ascontiguousarray(x.transpose(2, 0, 1)).astype(np.float32)  # noqa: E731
     left = np.stack([to_t(p[0]) for p in pairs])
     right = np.stack([to_t(p[1]) for p in pairs])
@@ -134,7 +128,7 @@ def test_torchscript_export(exported: tuple[Path, Path], tmp_path: Path, shared_
 
     model = load_model(ckpt)
     for h, w in ((64, 128), (128, 256)):  # traced at 64 x 128: does another size still run through the graph?
-        left, right = _kitti_crop(shared_data, h, w)
+        left, right = kitti_crop(shared_data, h, w)
         with torch.no_grad():
             got = scripted(to_t(left), to_t(right))[0, 0].numpy()
         np.testing.assert_allclose(got, infer(model, left, right), atol=1e-3)

@@ -8,7 +8,7 @@ not depend on them), float32 / TF32 / bf16 / fp16 autocast; then the float32 and
 graphs and replayed (no Python or kernel-launch overhead); and the shipped post-filter (wmedian) on the CPU and on the
 GPU. "fp32" means TF32 off for convolutions too, which PyTorch leaves on by default.
 
-    python -m pipelines.gpu.cuda_timing --out $OUT/cuda_timing.json
+    python -m pipelines.studies.gpu.cuda_timing --out $OUT/cuda_timing.json
 """
 
 from __future__ import annotations

@@ -2,9 +2,9 @@
 
 kitti_unlabelled (87 pairs) and each sub-folder of unlabelled_more (57 pairs) go to ``OUT/{left,right}/<set>_<id>.jpg``
 at JPEG quality 92: ~44 MB, which with the tracked tree fits the lent GPU's 64 MiB carry (PNG: 200 MB). No GT file is
-read or copied. Used by ``pipelines/gpu/distill.sh``:
+read or copied. Used by ``pipelines/studies/gpu/distill.sh``:
 
-    python -m pipelines.gpu.distill_pack .carry/distill
+    python -m pipelines.studies.gpu.distill_pack .carry/distill
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Candidate L_T targets for PVM's holes, scored against KITTI 2015 GT (evaluation only: nothing here trains).
 
-The shipped network's errors sit inside PVM's holes (``pipelines.error_regions``), where only L_R and L_S reach it
+The shipped network's errors sit inside PVM's holes (``pipelines.studies.error_regions``), where only L_R and L_S
+reach it
 and L_R prefers the error at about half the bad pixels. A target for those pixels would have to be right far more
 often than the network already is. Each candidate below gives a target disparity map (NaN = no target):
 
@@ -14,9 +15,9 @@ often than the network already is. Each candidate below gives a target disparity
 For every region of ``error_regions`` (PVM labels at the labeler's defaults; GT frames never trained on) the table
 gives the share of pixels a candidate covers, its bad-3 there, and the network's bad-3 on the same pixels.
 
-    .venv/bin/python -m pipelines.hole_targets [--checkpoint pretrained] [--name hole_targets]
+    .venv/bin/python -m pipelines.studies.hole_targets [--checkpoint pretrained] [--name hole_targets]
                                              -> results/error_regions/NAME.{json,md}
-    .venv/bin/python -m pipelines.hole_targets --picture 000010_10
+    .venv/bin/python -m pipelines.studies.hole_targets --picture 000010_10
                                              -> results/error_regions/densify_000010_10.jpg
 
 The picture stacks, for one frame: the left image, PVM's label, the label plus ``pvm-label densify``'s plane fills,
@@ -34,8 +35,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipelines.error_regions import REGIONS, RESULTS, add_counts, bad3, lr_consistent, pct, region_masks
-from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
+from pipelines.studies.error_regions import REGIONS, RESULTS, add_counts, bad3, lr_consistent, pct, region_masks
+from pipelines.studies.train_pretrained import SHARED, TEST_ITERS, _machine
 from pvm_labeler.densify import FILL_CONFIDENCE, MAX_RMS, MIN_LABELS, MIN_RATIO, REGION_SIZE, densify_view
 
 SCALES = (1.0, 0.8, 0.64)

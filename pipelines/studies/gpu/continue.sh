@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Continue the shipped model (the lineage's head) on a lent GPU in ONE device call (a task gets ~15 min of device time, starts included).
 #
-# Here, once:  python -m pipelines.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl
+# Here, once:  python -m pipelines.studies.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl
 #              (87 pairs as JPEG q95, ~33 MB: the PNGs and their labels are too big to carry)
-# Device:      run(command="bash pipelines/gpu/continue.sh", carry=[".carry/unl"], timeout_s=600)
+# Device:      run(command="bash pipelines/studies/gpu/continue.sh", carry=[".carry/unl"], timeout_s=600)
 # Here, after: mkdir -p out/pretrained/NAME && cp FILES_AT/NAME.safetensors out/pretrained/NAME/model.safetensors
-#              python -m pipelines.train_pretrained eval NAME   (CPU, float32, the lineage's rule: RESULTS.md)
+#              python -m pipelines.studies.train_pretrained eval NAME   (CPU, float32, the lineage's rule: RESULTS.md)
 #
 # On the device it labels the pack with PVM (all cores, lzf shards: no hdf5plugin there), times 20 steps, sizes the
 # run to BUDGET_S seconds and trains it: the lineage's loss (L_P confidence-weighted + 0.1 L_R + 0.1 L_S, no L_T)
@@ -41,7 +41,7 @@ if [ ! -e "$W/labels.ok" ]; then  # session.sh labels while the GPU tests run, t
 fi
 
 train() {  # out dir, steps, extra args: the lineage's recipe at GPU size
-  $PY -m optstereo.cli train --config pipelines/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 --conf-weight \
+  $PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 --conf-weight \
     --labels "$W/labels" --out "$1" --steps "$2" --lr 1e-4 --seed "$SEED" --device "$DEVICE" --amp "$AMP" \
     --batch-size "$BATCH" --crop "$CROP" --iters "$ITERS" --workers "$WORKERS" --threads "$THREADS" \
     --scale-range "$SCALE_RANGE" --quiet "${@:3}"

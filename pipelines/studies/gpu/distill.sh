@@ -9,12 +9,12 @@
 #        student  OptStereo from version 14's weights, ONE pass from zero at input scale 1, no filter (the default);
 #        fast     PVM-HITNet from scratch (the fast model);
 #   5. KITTI-size infer() times of both on CUDA (bf16 and float32, synchronised).
-# Here, once: python -m pipelines.gpu.distill_pack .carry/distill   (144 unlabelled pairs as JPEG q92, ~43 MB)
-# Device:     run(command="bash pipelines/gpu/distill.sh", carry=[".carry/distill"], timeout_s=600)
+# Here, once: python -m pipelines.studies.gpu.distill_pack .carry/distill   (144 unlabelled pairs as JPEG q92, ~43 MB)
+# Device:     run(command="bash pipelines/studies/gpu/distill.sh", carry=[".carry/distill"], timeout_s=600)
 # $OUT: session.log, student.safetensors, fast.safetensors, their metrics (*.jsonl), distill.json (label/fill
 #       counts), cuda_times.json.
 # CPU smoke run of the same logic: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 STUDENT_STEPS=2 FAST_STEPS=2
-#   PACK=<small pack> TOTAL_S=100000 WORKERS=0 THREADS=1 bash pipelines/gpu/distill.sh
+#   PACK=<small pack> TOTAL_S=100000 WORKERS=0 THREADS=1 bash pipelines/studies/gpu/distill.sh
 set -uo pipefail
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
 T0=$(date +%s)
@@ -57,7 +57,7 @@ echo "training both for at most $minutes min from $(elapsed)"
 common=(--lambda-t 0 --conf-weight --labels "$W/distill" --device "$DEVICE" --amp "$AMP"
         --batch-size "$BATCH" --crop "$CROP" --workers "$WORKERS" --threads "$THREADS" --ckpt-every 500
         --schedule onecycle --max-minutes "$minutes" --quiet)
-$PY -m optstereo.cli train --config pipelines/recipes/cpu_main.yaml --init pretrained --out "$W/student" \
+$PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init pretrained --out "$W/student" \
   --steps "$STUDENT_STEPS" --lr 1e-4 --seed 40 --iters "$ITERS" --scale-range 1.0,1.0 "${common[@]}" \
   --model-opt input_scale=1.0 --model-opt refine=none --model-opt cascade=false --model-opt cascade_select=false \
   --model-opt cascade_select_jump=0 --model-opt scale_ref_disp=0 --model-opt scale_ref_pixels=0 \
@@ -74,7 +74,7 @@ for name in student fast; do
 done
 tail -n 3 "$W/student/metrics.jsonl" "$W/fast/metrics.jsonl" 2>/dev/null
 if [ "$DEVICE" = cuda ]; then
-  timeout 40 $PY -m pipelines.gpu.cuda_timing --out "$OUTD/cuda_times.json" --repeats 10 --warmup 3 \
+  timeout 40 $PY -m pipelines.studies.gpu.cuda_timing --out "$OUTD/cuda_times.json" --repeats 10 --warmup 3 \
     --end-to-end student="$W/student/model.safetensors" fast="$W/fast/model.safetensors" > "$W/timing.log" 2>&1
   echo "cuda timing: exit $? at $(elapsed)"; cat "$OUTD/cuda_times.json" 2>/dev/null
 fi

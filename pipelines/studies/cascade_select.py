@@ -5,7 +5,7 @@ pass at half that scale. ``optstereo.cascade.photometric_select`` keeps, per pix
 pair better. This script scores the three answers (zero start, coarse start, the choice) on training pairs against
 their PVM labels, which no GT touched:
 
-    .venv/bin/python -m pipelines.cascade_select check --checkpoint out/pretrained/cascade_t/candidate.safetensors
+    python -m pipelines.studies.cascade_select check --checkpoint out/pretrained/cascade_t/candidate.safetensors
 
 Output: ``results/cascade_select/check.json`` (pooled EPE / bad-1 / bad-3 per answer, and per pair).
 
@@ -13,7 +13,7 @@ Output: ``results/cascade_select/check.json`` (pooled EPE / bad-1 / bad-3 per an
 third labelled training pair, the choice at each limit of :data:`JUMP_GRID` is scored against the PVM labels and
 the one with the lowest pooled bad-3 wins (ties to the tighter limit):
 
-    .venv/bin/python -m pipelines.cascade_select calibrate --checkpoint out/pretrained/cascade_u/candidate.safetensors \
+    python -m pipelines.studies.cascade_select calibrate --checkpoint out/pretrained/cascade_u/candidate.safetensors \
         --name cascade_u
 
 Output: ``results/cascade_select/calibrate_<name>.json`` (each limit's pooled metrics and the chosen one).
@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipelines.adaptive_scale import LABELS
-from pipelines.train_pretrained import _machine
+from pipelines.studies.adaptive_scale import LABELS
+from pipelines.studies.train_pretrained import _machine
 from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/cascade_select")

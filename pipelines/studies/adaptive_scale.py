@@ -6,9 +6,9 @@ fall inside one. ``infer`` can run a first pass at the model's input scale and, 
 smaller than those the model learned on, a second pass enlarged so that they match (``ModelConfig.scale_ref_disp``),
 never past the pixel count of a KITTI frame at the model's input scale (``ModelConfig.scale_ref_pixels``).
 
-    .venv/bin/python -m pipelines.adaptive_scale reference   # the two constants, from the unlabelled training pairs
-    .venv/bin/python -m pipelines.adaptive_scale check       # GT-free: downsized training pairs vs their labels
-    .venv/bin/python -m pipelines.adaptive_scale candidate   # out/adaptive_scale/candidate.safetensors
+    .venv/bin/python -m pipelines.studies.adaptive_scale reference   # the two constants, from the training pairs
+    .venv/bin/python -m pipelines.studies.adaptive_scale check       # GT-free: downsized training pairs vs their labels
+    .venv/bin/python -m pipelines.studies.adaptive_scale candidate   # out/adaptive_scale/candidate.safetensors
 
 ``reference`` and ``check`` see no GT: the first reads the shipped model's own predictions on the 87 unlabelled
 pairs, the second scores predictions against those pairs' PVM labels. Outputs go to ``results/adaptive_scale/``.
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.train_pretrained import SHARED, TEST_ITERS, _machine
+from pipelines.studies.train_pretrained import SHARED, TEST_ITERS, _machine
 from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/adaptive_scale")
@@ -70,7 +70,7 @@ def step_candidate(checkpoint: str = "pretrained", refs_path: Path = REFERENCE) 
     from optstereo.api import load_model
     from optstereo.inference import model_input_scale, model_refine
     from optstereo.pretrained import resolve_checkpoint_spec
-    from pipelines.train_pretrained import step_ship
+    from pipelines.studies.train_pretrained import step_ship
 
     refs = json.loads(refs_path.read_text())
     model = load_model(checkpoint)

@@ -6,7 +6,7 @@ see the same machine load. This script evaluates each run's last checkpoint by o
 ``../shared/data`` (dense prediction, every GT-valid pixel, pooled; ``optstereo.evaluate``) and times a KITTI-size
 frame, then writes ``results/compare/<name>.json`` and ``results/compare/report.md``.
 
-    .venv/bin/python -m pipelines.compare_networks out/cmp/hitnet out/cmp/optstereo_l1 ...
+    .venv/bin/python -m pipelines.studies.compare_networks out/cmp/hitnet out/cmp/optstereo_l1 ...
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipelines.train_pretrained import EVAL_SETS, SHARED, _machine
+from pipelines.studies.train_pretrained import EVAL_SETS, SHARED, _machine
 
 RESULTS = Path("results/compare")
 SETS = ("kitti15", "kitti12", "middlebury")

@@ -1,4 +1,4 @@
-"""pipelines.refine_study's choice of settings without GT, on a hand-made frame whose labels are the truth."""
+"""pipelines.studies.refine_study's choice of settings without GT, on a hand-made frame whose labels are the truth."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipelines import refine_study
+from pipelines.studies import refine_study
 from pvm_labeler.refine import MedianParams
 
 

@@ -6,7 +6,7 @@ Their labels are 16-bit PNGs of noisy sub-pixel values (~0.5 MB per view), so th
 the 15 KITTI 2015 GT frames: PVM labels of JPEG q95 copies cover 58.0 % of GT pixels at 1.08 % bad-3, against
 60.1 % and 1.02 % from the PNGs; a network trained there trains on JPEG-decoded images, which its report says.
 
-    python -m pipelines.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl
+    python -m pipelines.studies.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ The stages and their order are :mod:`pvm_labeler.stages`; this pools them over a
 GT rule: noc where present). ``--set`` overrides a LabelerConfig field; ``--recipe paper`` starts from the paper's
 recipe.
 
-    .venv/bin/python -m pipelines.vote_table --root ../shared/data/kitti15 --out results/vote_table
+    .venv/bin/python -m pipelines.studies.vote_table --root ../shared/data/kitti15 --out results/vote_table
 """
 
 from __future__ import annotations

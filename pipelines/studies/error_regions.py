@@ -16,7 +16,7 @@ and the table gives each region's share of the pixels, the bad-3 of the network,
 matcher, holes filled along the row) and of the PVM label, and the region's share of all the network's bad pixels.
 It says whether the gap to the target sits where PVM supervises (fit) or where it is silent (what L_T is for).
 
-    .venv/bin/python -m pipelines.error_regions [--checkpoint [LABEL=]pretrained ...] [--dataset kitti15]
+    .venv/bin/python -m pipelines.studies.error_regions [--checkpoint [LABEL=]pretrained ...] [--dataset kitti15]
                                               [--name DATASET] [--photometric] [--lr-check] [--edges] [--scale S ...]
                                               -> results/error_regions/NAME.{json,md}
 
@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pipelines.train_pretrained import EVAL_SETS, RECIPE, SHARED, TEST_ITERS, _machine
+from pipelines.studies.train_pretrained import EVAL_SETS, RECIPE, SHARED, TEST_ITERS, _machine
 from pvm_labeler.common.metrics import MetricAccumulator
 
 RESULTS = Path("results/error_regions")

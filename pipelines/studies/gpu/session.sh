@@ -4,9 +4,9 @@
 #   1. PVM labels of the carried pack on 12 cores (lzf shards), in the background, while
 #   2. the gpu-marked tests run (tests/test_gpu.py: CUDA vs CPU, fp16 + GradScaler, bf16, L_T, predict; the
 #      wmedian filter on CUDA vs the CPU kernel, tests/test_refine_torch.py);
-#   3. KITTI-size inference time on CUDA, alone on the machine (pipelines/gpu/cuda_timing.py);
+#   3. KITTI-size inference time on CUDA, alone on the machine (pipelines/studies/gpu/cuda_timing.py);
 #   4. continue.sh: the lineage's continuation at GPU size, sized to end by T0 + TOTAL_S.
-# Device: run(command="bash pipelines/gpu/session.sh", carry=[".carry/unl"], timeout_s=600)
+# Device: run(command="bash pipelines/studies/gpu/session.sh", carry=[".carry/unl"], timeout_s=600)
 # $OUT receives session.log, gpu_tests.txt, cuda_timing.json and continue.sh's files (NAME.safetensors, ...).
 set -uo pipefail
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
@@ -28,7 +28,7 @@ echo "gpu tests: exit $? ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
 wait "$labeller"
 echo "labels: exit $? at +$(( $(date +%s) - T0 )) s; $(tail -n 1 "$W/labels.log")"
 
-timeout 120 $PY -m pipelines.gpu.cuda_timing --out "$OUTD/cuda_timing.json" > "$W/timing.log" 2>&1
+timeout 120 $PY -m pipelines.studies.gpu.cuda_timing --out "$OUTD/cuda_timing.json" > "$W/timing.log" 2>&1
 echo "cuda timing: exit $? at +$(( $(date +%s) - T0 )) s; $(tail -n 1 "$W/timing.log")"
 [ -f "$OUTD/cuda_timing.json" ] && cat "$OUTD/cuda_timing.json"
 

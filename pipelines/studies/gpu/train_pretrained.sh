@@ -2,10 +2,10 @@
 # The shipped model's recipe at paper size for a lent H100, written but NOT run yet (the one session lent a GPU had 15
 # minutes of device time, which session.sh used; its calls need more, RESULTS.md). Run with the device tool from the
 # repo root; .carry/unl carried:
-# `python -m pipelines.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl`.
-#   bash pipelines/gpu/train_pretrained.sh start    env, PVM labels (JPEG pack, 16 cores), gpu tests, probe, launch
-#   bash pipelines/gpu/train_pretrained.sh poll S   watch the runs for S seconds, then snapshot weights into $OUT
-#   bash pipelines/gpu/train_pretrained.sh finish   wait for the main run, snapshot
+# `python -m pipelines.studies.carry_pack --dataset kitti_unlabelled --root ../shared/data/kitti_unlabelled .carry/unl`.
+#   bash pipelines/studies/gpu/train_pretrained.sh start    env, PVM labels (JPEG pack, 16 cores), gpu tests, probe, launch
+#   bash pipelines/studies/gpu/train_pretrained.sh poll S   watch the runs for S seconds, then snapshot weights into $OUT
+#   bash pipelines/studies/gpu/train_pretrained.sh finish   wait for the main run, snapshot
 # Runs live in /root/pv on the machine (kept while it stays warm); every snapshot lands in $OUT.
 set -uo pipefail
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD OMP_NUM_THREADS=2
@@ -18,15 +18,15 @@ mkdir -p "$W" "$OUTD"
 
 train() {  # name, recipe, extra args...: launched in its own session so it outlives this device call
   local name=$1 recipe=$2; shift 2
-  echo "$PY -m optstereo.cli train --config pipelines/recipes/$recipe --labels $W/labels --out $W/runs/$name $*" \
+  echo "$PY -m optstereo.cli train --config pipelines/studies/recipes/$recipe --labels $W/labels --out $W/runs/$name $*" \
     | tee -a "$W/commands.txt"
-  setsid nohup $PY -m optstereo.cli train --config "pipelines/recipes/$recipe" --labels "$W/labels" \
+  setsid nohup $PY -m optstereo.cli train --config "pipelines/studies/recipes/$recipe" --labels "$W/labels" \
     --out "$W/runs/$name" --quiet "$@" > "$W/runs/$name.log" 2>&1 < /dev/null &
 }
 
 probe() {  # name, recipe, extra args...: seconds per step (mean of steps 11-30)
   local name=$1 recipe=$2; shift 2
-  $PY -m optstereo.cli train --config "pipelines/recipes/$recipe" --labels "$W/labels" --out "$W/probe/$name" \
+  $PY -m optstereo.cli train --config "pipelines/studies/recipes/$recipe" --labels "$W/labels" --out "$W/probe/$name" \
     --steps 30 --log-every 10 --ckpt-every 1000 --quiet "$@" > "$W/probe/$name.log" 2>&1
   $PY - "$W/probe/$name/metrics.jsonl" <<'PYEOF'
 import json, sys

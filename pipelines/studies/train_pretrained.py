@@ -1,29 +1,25 @@
 """The shipped model, end to end: label the unlabelled KITTI pairs, train, branch the L_T ablation, evaluate on every
 GT set of ../shared/data against dense SGM, export the weights.
 
-    python -m pipelines.train_pretrained label       PVM labels of kitti_unlabelled (never a GT frame)
-    python -m pipelines.train_pretrained train       the main run (pipelines/recipes/cpu_main.yaml), resumable
-    python -m pipelines.train_pretrained branch      the ablation arms from the main run's checkpoint at analogy_start
-    python -m pipelines.train_pretrained finish      the arm without L_T continued to the full schedule (version 1)
-    python -m pipelines.train_pretrained continue    version 1 continued: --init, confidence-weighted L_P (CONTINUE)
-    python -m pipelines.train_pretrained continue R  only stage R of CONTINUE, from its parent's export or committed
-                                                      head (a fresh checkout has no out/)
-    python -m pipelines.train_pretrained baselines   dense SGM (the labeler's matcher, holes filled along rows)
-    python -m pipelines.train_pretrained eval RUN    a run (or 'pretrained') on every GT set -> results/pretrained/
-    python -m pipelines.train_pretrained ship RUN    export RUN's weights to optstereo/weights/ (version 1:
-                                                      arm_no_lt: in the ablation L_T cost 1.5 points of KITTI 2015
-                                                      bad-3, so the shipped model is the recipe without it;
-                                                      version 5: long_conf7, a CONTINUE run; version 9:
-                                                      scale175_m, --input-scale 1.625; version 10: the same
-                                                      weights, --refine wmedian; version 11: sgmfill_o,
-                                                      --input-scale 1.625 --refine wmedian; version 12:
-                                                      sgmboth_p, the same flags; version 13: version 12's
-                                                      file, the same flags + --scale-refs
-                                                      results/adaptive_scale/reference.json; version 14:
-                                                      HEADS/cascade_u, the same flags + --cascade --select
-                                                      --select-jump 0.015)
-    python -m pipelines.train_pretrained soup NAME   the weight average of the runs SOUPS[NAME] lists
-    python -m pipelines.train_pretrained report      results/pretrained/report.md from the JSON files
+Steps (``python -m pipelines.studies.train_pretrained STEP``):
+
+    label        PVM labels of kitti_unlabelled (never a GT frame)
+    train        the main run (pipelines/studies/recipes/cpu_main.yaml), resumable
+    branch       the ablation arms from the main run's checkpoint at analogy_start
+    finish       the arm without L_T continued to the full schedule (version 1)
+    continue     version 1 continued: --init, confidence-weighted L_P (CONTINUE)
+    continue R   only stage R of CONTINUE, from its parent's export or committed head (a fresh checkout has no out/)
+    baselines    dense SGM (the labeler's matcher, holes filled along rows)
+    eval RUN     a run (or 'pretrained') on every GT set -> results/pretrained/
+    ship RUN     export RUN's weights to optstereo/weights/ (version 1: arm_no_lt: in the ablation L_T cost 1.5
+                 points of KITTI 2015 bad-3, so the shipped model is the recipe without it; version 5: long_conf7, a
+                 CONTINUE run; version 9: scale175_m, --input-scale 1.625; version 10: the same weights, --refine
+                 wmedian; version 11: sgmfill_o, --input-scale 1.625 --refine wmedian; version 12: sgmboth_p, the
+                 same flags; version 13: version 12's file, the same flags + --scale-refs
+                 results/adaptive_scale/reference.json; version 14: HEADS/cascade_u, the same flags + --cascade
+                 --select --select-jump 0.015)
+    soup NAME    the weight average of the runs SOUPS[NAME] lists
+    report       results/pretrained/report.md from the JSON files
 
 Every number goes to ``results/pretrained/<name>.json`` (committed) with the command, commit, CPU and seconds, so
 the report can be rebuilt after the run directories (git-ignored) are gone.
@@ -61,14 +57,16 @@ LABELS_SGMWM2 = Path("out/labels/kitti_unlabelled_k03_sgmwm2")
 LABELS_SGMWM6 = Path("out/labels/kitti_unlabelled_k03_sgmwm6")
 RUNS = Path("out/pretrained")
 RESULTS = Path("results/pretrained")
-RECIPE = Path("pipelines/recipes/cpu_main.yaml")
+RECIPE = Path("pipelines/studies/recipes/cpu_main.yaml")
 WEIGHTS = Path("optstereo/weights/optstereo_kitti_pvm.safetensors")
-#: Dense SGM through the weighted median the shipped model applies (``pipelines.refine_study score``).
+#: Dense SGM through the weighted median the shipped model applies (``pipelines.studies.refine_study score``).
 FILTERED_SGM = Path("results/refine/score_r5_s51.json")
-#: Committed weights a CONTINUE run starts from when its parent run is gone (a fresh checkout): the lineage's
-#: heads (cascade_v: the cascade line's head; cascade_u: version 14's weights), and version 11 (sgmfill_o, the start of
-#: sgmboth_p and its control sgmleft_r).
+#: Where a CONTINUE run finds its parent's weights when the parent run is gone (a fresh checkout): the lineage's heads
+#: (cascade_v: the cascade line's head; cascade_u: version 14's weights; long_bf16e, scale15_k) and version 11
+#: (sgmfill_o, the start of sgmboth_p and its control sgmleft_r). They left the tree (46 MB); commit HEADS_COMMIT holds
+#: them: ``git show cdca6f9:results/pretrained/weights/NAME.safetensors > results/pretrained/weights/NAME.safetensors``.
 HEADS = RESULTS / "weights"
+HEADS_COMMIT = "cdca6f9"
 TEST_ITERS = 8  # the run trains with N_s = 4; RAFT-style refinement keeps improving with more test iterations
 
 #: (name, reader, root under SHARED, SGM search range or None = 64 / the scene's calib ndisp)
@@ -92,13 +90,14 @@ ARM_STEPS = 200
 #: out/ of a session that ended. long_bf16 starts again from the shipped file ("pretrained"), bf16 autocast on a CPU
 #: with AVX512-BF16 (its rule in RESULTS.md); it became version 6. long_bf16b (2500 steps) never ran: its session was
 #: cut off; long_bf16c continues version 6 from the shipped file; long_bf16d and long_bf16e continue it (neither
-#: met its rule; long_bf16e's weights are the committed head in HEADS). scale_f (scale augmentation) and iters8_g
+#: met its rule; long_bf16e's weights are a head in HEADS). scale_f (scale augmentation) and iters8_g
 #: (N_s = 8 in training, the paper's value) each change one thing in the recipe, both from long_bf16e; iters8_g
 #: became version 7; iters8_h continued it at N_s = 8 (measured, 0.21 points short of its rule). gpu_i (LINEAGE) is
-#: no CPU row: it ran on a lent H100 with `bash pipelines/gpu/session.sh` (RESULTS.md). scale8_j (N_s = 8 and scale
+#: no CPU row: it ran on a lent H100 with `bash pipelines/studies/gpu/session.sh` (RESULTS.md). scale8_j (N_s = 8 and
+#: scale
 #: augmentation, judged at input scale 1.25) became version 8, shipped with `ship scale8_j --input-scale 1.25`;
 #: scale15_k continues it with scale augmentation 1.25-1.5, judged at input scale 1.5 (measured, 0.06 points short of
-#: its rule; its weights are a committed head in HEADS); scale15_l continues it (measured, 0.15 points short);
+#: its rule; its weights are a head in HEADS); scale15_l continues it (measured, 0.15 points short);
 #: scale175_m continues scale15_k with scale augmentation 1.5-1.75, judged at input scale 1.625; it became version 9,
 #: shipped with `ship scale175_m --input-scale 1.625`; scale2_n continues it with scale augmentation 1.75-2.0, judged
 #: at input scale 1.875 (measured, 0.48 points short of its rule). seed_m29 repeats scale175_m with another seed: a
@@ -301,7 +300,7 @@ def step_finish() -> None:
 
 def init_weights(init: str) -> Path:
     """The weights a CONTINUE run starts from: the shipped file ("pretrained"), the init run's export under RUNS, or,
-    when that run's directory is gone (out/ is not committed), its committed copy in HEADS."""
+    when that run's directory is gone (out/ is not committed), its copy in HEADS (fetched from HEADS_COMMIT)."""
     if init == "pretrained":
         return WEIGHTS
     export = RUNS / init / "model.safetensors"
@@ -335,8 +334,10 @@ def step_continue(only: str | None = None) -> None:
         init = next(parent for run, parent, *_ in CONTINUE if run == only)
         start = init_weights(init)
         if "--resume" not in cmds[only] and not start.exists():
+            head = HEADS / f"{init}.safetensors"
             raise ValueError(f"continue {only!r}: its starting weights {start} do not exist; run `continue {init}` "
-                             f"first, or commit {init}'s weights as {HEADS / (init + '.safetensors')}")
+                             f"first, or fetch the head commit {HEADS_COMMIT} held: "
+                             f"`git show {HEADS_COMMIT}:{head} > {head}`")
         cmds = {only: cmds[only]}
     for run, cmd in cmds.items():
         if not (RUNS / run / "summary.json").exists():
@@ -442,7 +443,7 @@ def step_report() -> str:
     sgm = json.loads((RESULTS / "sgm_dense.json").read_text())
     docs = {p.stem: json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json")) if p.stem != "sgm_dense"}
     main = docs.get("shipped")
-    # the stronger baseline: dense SGM through the shipped model's own post-filter (pipelines/refine_study.py)
+    # the stronger baseline: dense SGM through the shipped model's own post-filter (pipelines/studies/refine_study.py)
     filtered = json.loads(FILTERED_SGM.read_text())["rows"] if FILTERED_SGM.exists() else {}
     lines = ["| GT set (dense, every GT-valid pixel, pooled) | frames | shipped bad-3 % | D1-all % | AEPE px | "
              "dense SGM bad-3 % | D1-all % | AEPE px | network / SGM bad-3 | dense SGM + wmedian bad-3 % | "
@@ -601,13 +602,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--refine", choices=("none", "wmedian"), default="none",
                         help="ship: the default post-filter to record")
     parser.add_argument("--scale-refs", type=Path,
-                        help="ship: record the adaptive input scale of this JSON (pipelines.adaptive_scale reference)")
+                        help="ship: record the adaptive input scale of this JSON "
+                             "(pipelines.studies.adaptive_scale reference)")
     parser.add_argument("--cascade", action="store_true", help="ship: record the coarse-to-fine start")
     parser.add_argument("--select", action="store_true",
                         help="ship: with --cascade, record the per-pixel photometric choice between the two starts")
     parser.add_argument("--select-jump", type=float, default=0.0,
                         help="ship: with --select, choose the zero start only within this fraction of the width of "
-                             "the coarse start (pipelines.cascade_select calibrate)")
+                             "the coarse start (pipelines.studies.cascade_select calibrate)")
     parser.add_argument("--out", type=Path, default=WEIGHTS, help="ship: write this file instead of the shipped one")
     args = parser.parse_args(argv)
     if args.step == "label":

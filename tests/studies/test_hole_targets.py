@@ -1,12 +1,12 @@
-"""pipelines/hole_targets.py: multi-scale predictions and the counts, on hand-made maps."""
+"""pipelines/studies/hole_targets.py: multi-scale predictions and the counts, on hand-made maps."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipelines.error_regions import REGIONS
-from pipelines.hole_targets import count_targets, scale_predictions, targets_table
+from pipelines.studies.error_regions import REGIONS
+from pipelines.studies.hole_targets import count_targets, scale_predictions, targets_table
 
 N = np.nan
 
@@ -42,7 +42,7 @@ def test_count_targets_and_table_by_hand() -> None:
 
 
 def test_picture_names_an_unknown_frame(shared_data, tmp_path) -> None:
-    from pipelines.hole_targets import picture
+    from pipelines.studies.hole_targets import picture
 
     with pytest.raises(ValueError, match="not a KITTI 2015 GT frame.*000000_10"):
         picture("nope_10", tmp_path)
@@ -50,7 +50,7 @@ def test_picture_names_an_unknown_frame(shared_data, tmp_path) -> None:
 
 def test_plane_fills_are_what_densify_adds() -> None:
     """A constant image and a plane label with a hole: the fills are the hole's plane values, NaN elsewhere."""
-    from pipelines.hole_targets import plane_fills
+    from pipelines.studies.hole_targets import plane_fills
 
     ys, xs = np.mgrid[0:24, 0:32]
     plane = (12 + 0.3 * xs - 0.1 * ys).astype(np.float32)

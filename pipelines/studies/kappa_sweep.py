@@ -9,8 +9,8 @@ GT: the non-occluded map where the dataset has one (KITTI disp_noc), else the mo
 
 Usage::
 
-    .venv/bin/python -m pipelines.kappa_sweep --dataset kitti15 --root ../shared/data/kitti15 --out out/kappa_sweep
-    .venv/bin/python -m pipelines.kappa_sweep --dataset sample --k 4 --max-disp 64 --kappa1 0.5,1,2 --kappa2 0.05,0.1
+    python -m pipelines.studies.kappa_sweep --dataset kitti15 --root ../shared/data/kitti15 --out out/kappa_sweep
+    python -m pipelines.studies.kappa_sweep --dataset sample --k 4 --max-disp 64 --kappa1 0.5,1,2 --kappa2 0.05,0.1
 
 Writes ``sweep.json``, ``sweep.md`` and ``kappa_tradeoff.png`` into ``--out``.
 """
@@ -29,7 +29,7 @@ from pvm_labeler.common.datasets import DATASETS, discover, load_pair
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
 
-logger = logging.getLogger("pipelines.kappa_sweep")
+logger = logging.getLogger("pipelines.studies.kappa_sweep")
 
 DEFAULT_KAPPA1 = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0)
 DEFAULT_KAPPA2 = (0.02, 0.04, 0.08, 0.12, 0.2)

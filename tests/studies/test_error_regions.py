@@ -1,11 +1,12 @@
-"""pipelines/error_regions.py: the region split and the pooled table, on hand-made maps with hand-computed counts."""
+"""pipelines/studies/error_regions.py: the region split and the pooled table, on hand-made maps with hand-computed
+counts."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipelines.error_regions import (
+from pipelines.studies.error_regions import (
     EDGE_BANDS,
     REGIONS,
     add_counts,
@@ -168,7 +169,7 @@ def test_lr_consistent_mirrors_the_right_view(monkeypatch: pytest.MonkeyPatch) -
 
 
 def test_scaled_tables_and_flag(monkeypatch: pytest.MonkeyPatch) -> None:
-    import pipelines.error_regions as er
+    import pipelines.studies.error_regions as er
 
     assert er.scaled_tag("v6", 1.0) == "v6" and er.scaled_tag("v6", 1.125) == "v6 x1.125"
     seen = {}
@@ -191,7 +192,7 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
     import types
 
     import optstereo.api
-    import pipelines.error_regions as er
+    import pipelines.studies.error_regions as er
     import pvm_labeler.dense
     import pvm_labeler.multiscale
     from pvm_labeler.common.datasets import discover, load_pair

@@ -2,9 +2,9 @@
 shipped model's predictions, its settings chosen without GT, then scored on every GT set beside dense SGM with and
 without the same filter.
 
-    .venv/bin/python -m pipelines.refine_study dump     # the model's predictions: every GT set + the unlabelled pairs
-    .venv/bin/python -m pipelines.refine_study choose   # (radius, sigma) by agreement with the unlabelled pairs' labels
-    .venv/bin/python -m pipelines.refine_study score --radius R --sigma S   # net / net+wm / SGM / SGM+wm on GT
+    python -m pipelines.studies.refine_study dump     # the model's predictions: every GT set + the unlabelled pairs
+    python -m pipelines.studies.refine_study choose   # (radius, sigma) by agreement with the unlabelled pairs' labels
+    .venv/bin/python -m pipelines.studies.refine_study score --radius R --sigma S   # net / net+wm / SGM / SGM+wm on GT
 
 ``choose`` sees no GT: it scores each setting against the PVM labels (``out/labels/kitti_unlabelled_k03``, the
 training labels) of every 3rd unlabelled pair. Outputs: ``results/refine/*.json`` and ``.md``; predictions are cached
@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from pipelines.train_pretrained import EVAL_SETS, SHARED, _machine
+from pipelines.studies.train_pretrained import EVAL_SETS, SHARED, _machine
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.refine import MedianParams, weighted_median
 
