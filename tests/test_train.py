@@ -150,11 +150,10 @@ class TestRun:
 
     def test_run_on_enlarged_crops_exports_its_input_scale(self, tiny_shards: Path, tmp_path: Path) -> None:
         from optstereo.api import load_model
-        from optstereo.inference import model_input_scale
 
         train.main(tiny_config(tiny_shards, tmp_path / "run", steps=1, scale_range=(1.25, 1.5)))
-        assert model_input_scale(load_model(tmp_path / "run" / "model.safetensors")) == 1.375
-        assert model_input_scale(load_model(tmp_path / "run")) == 1.375
+        assert load_model(tmp_path / "run" / "model.safetensors").inference_config.scale == 1.375
+        assert load_model(tmp_path / "run").inference_config.scale == 1.375
 
     def test_gt_supervision_is_plain_l_p(self, tiny_shards: Path, tmp_path: Path) -> None:
         train.main(tiny_config(tiny_shards, tmp_path / "gt", steps=2, supervision="gt"))
