@@ -283,7 +283,7 @@ class TestCli:
                                                  "--set", "data.max_disp=192", "--print-config"])
         assert result.exit_code == 0, result.output
         printed = yaml.safe_load(result.output)
-        assert list(printed)[:5] == ["model", "loss", "data", "optim", "val"] and "lr" not in printed
+        assert list(printed)[:6] == ["model", "inference", "loss", "data", "optim", "val"] and "lr" not in printed
         assert (printed["model"]["feature_dim"], printed["model"]["iters"], printed["optim"]["steps"]) == (128, 4, 5)
         assert (printed["loss"]["alpha"], printed["loss"]["photometric_iters"], printed["loss"]["lambda_t"]) == (
             0.7, "all", 0.5)

@@ -32,7 +32,8 @@ def test_pipeline_check_on_real_pairs(tmp_path: Path, monkeypatch: pytest.Monkey
     records = []
     for ref in datasets.discover("kitti_unlabelled", shared_data / "kitti_unlabelled")[:2]:
         pair = datasets.load_pair(ref)
-        left, right = pair.left[-64:, 300:420].copy(), pair.right[-64:, 300:420].copy()
+        # 136 wide: the coarse start's half-size pair (68 -> 64 columns) keeps the 64 that 4 cost levels need
+        left, right = pair.left[-64:, 300:436].copy(), pair.right[-64:, 300:436].copy()
         label = np.full(left.shape[:2], 2.0, np.float32)
         label[:, :20] = np.nan
         records.append(ShardRecord(frame_id=ref.frame_id, left=left, right=right, label=label,
@@ -50,7 +51,7 @@ def test_pipeline_check_on_real_pairs(tmp_path: Path, monkeypatch: pytest.Monkey
         zero = infer(model, rec.left, rec.right, scale=1.0, refine="none")
         for name, disp in (("zero", zero), ("coarse", coarse)):
             assert row[name]["epe"] == pytest.approx(MetricAccumulator().update(disp, rec.label)["epe"], rel=1e-5)
-    assert (tmp_path / "results" / "check.json").exists() and doc["select"]["n_valid"] == 2 * 64 * 100
+    assert (tmp_path / "results" / "check.json").exists() and doc["select"]["n_valid"] == 2 * 64 * 116
     # calibrate: with no limit its choice is the check's; the chosen limit is the grid's lowest bad-3, ties tighter
     cal = check.step_calibrate(str(source), "tiny", every=1, grid=(0.0, 0.05, 0.2))
     assert cal["grid"]["0.0"]["epe"] == pytest.approx(doc["select"]["epe"], rel=1e-6)
