@@ -128,7 +128,8 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
 @click.option("--occlude-p", type=float, help="Probability of pasted occluders in the network's right input, "
               "supervised by L_P (L_R/L_S see the clean pair). [default: 0]")
 @click.option("--cascade-p", type=float, help="Probability per batch that the GRU starts from a coarse pass at half "
-              "size instead of zero (a coarse-to-fine start; ModelConfig.cascade uses it at test time). [default: 0]")
+              "size instead of zero (a coarse-to-fine start; inference.coarse_start uses it at test time). "
+              "[default: 0]")
 @click.option("--device", type=click.Choice(DEVICES), help=f"auto = cuda when available. [default: {_D.device}]")
 @click.option("--amp", type=click.Choice(AMP_MODES),
               help=f"Mixed precision: bf16 (CUDA; CPUs with AVX512-BF16/AMX), fp16 (CUDA). [default: {_D.amp}]")

@@ -228,7 +228,7 @@ class DataConfig(_Section):
             their PVM labels, L_R and L_S see the clean pair (with L_T on, its D0 is the occluded input's).
         cascade_p: probability per batch that the GRU starts from a coarse pass (the batch at half size, no
             gradient) instead of zero: a coarse-to-fine start (``optstereo.cascade``), which a model with
-            ``ModelConfig.cascade`` uses at test time.
+            ``InferenceConfig.coarse_start`` uses at test time.
         max_disp: labels >= max_disp (or < 0) are ignored in the loss, px. This is a mask on the TARGETS, not a
             search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt. The labeler's
             ``LabelerConfig.max_disp`` (192) is SGM's search range, so PVM labels never reach it; the two
