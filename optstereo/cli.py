@@ -128,7 +128,8 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
 @click.option("--occlude-p", type=float, help="Probability of pasted occluders in the network's right input, "
               "supervised by L_P (L_R/L_S see the clean pair). [default: 0]")
 @click.option("--cascade-p", type=float, help="Probability per batch that the GRU starts from a coarse pass at half "
-              "size instead of zero (a coarse-to-fine start; ModelConfig.cascade uses it at test time). [default: 0]")
+              "size instead of zero (a coarse-to-fine start; inference.coarse_start uses it at test time). "
+              "[default: 0]")
 @click.option("--device", type=click.Choice(DEVICES), help=f"auto = cuda when available. [default: {_D.device}]")
 @click.option("--amp", type=click.Choice(AMP_MODES),
               help=f"Mixed precision: bf16 (CUDA; CPUs with AVX512-BF16/AMX), fp16 (CUDA). [default: {_D.amp}]")
@@ -193,11 +194,14 @@ def _train_overrides(flags: dict[str, Any], model_opt: tuple[str, ...], analogy_
 
 
 def _init_layer(init: Path, overrides: dict[str, Any]) -> tuple[LoadedCheckpoint, dict[str, Any]]:
-    """(loaded checkpoint, its model settings as a config layer) for --init; the layer is empty under --model(-opt)."""
+    """(loaded checkpoint, its model and inference settings as a config layer) for --init; under --model(-opt) the
+    layer keeps only the inference settings (later layers override them key by key)."""
     from optstereo.train_resume import init_settings
 
     ckpt = _run_guarded(load_checkpoint, init)
-    layer = {} if "model" in overrides or "model_overrides" in overrides else init_settings(ckpt)
+    layer = init_settings(ckpt)
+    if "model" in overrides or "model_overrides" in overrides:
+        layer.pop("model")
     return ckpt, layer
 
 
@@ -300,7 +304,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                  amp: str, scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
-    from optstereo import inference
+    from optstereo import inference, outputs
 
     if dataset is None and (left is None or right is None):
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
@@ -310,7 +314,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if backend == "onnxruntime":
         _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
         return
-    geometry = [f for f in formats if f in inference.GEOMETRY_FORMATS]
+    geometry = [f for f in formats if f in outputs.GEOMETRY_FORMATS]
     if geometry and (calib is None or dataset is not None):
         raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
     rig = None
@@ -320,15 +324,16 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         rig = _run_guarded(read_calibration, calib)
     model, dev = _load_model(checkpoint, device)
     if dataset is None:
-        _check_memory(left, right, scale if scale is not None else inference.model_input_scale(model), dev.type)
-        paths = _run_guarded(inference.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
+        _check_memory(left, right, scale if scale is not None else inference.model_inference_config(model).scale,
+                      dev.type)
+        paths = _run_guarded(outputs.predict_pair, model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
                              scale=scale, refine=refine)
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
         if submission is not None and "png" not in formats:
             formats = (*formats, "png")
-        written = _run_guarded(inference.predict_dataset, model, dataset, root, out, split=split, iters=iters,
+        written = _run_guarded(outputs.predict_dataset, model, dataset, root, out, split=split, iters=iters,
                                formats=formats, device=dev, limit=limit, amp=amp, submission=submission,
                                reader_options=collect_reader_options(**reader), scale=scale, refine=refine)
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
@@ -339,7 +344,7 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
                   dataset: str | None, scale: float | None, refine: str | None) -> None:
     import torch
 
-    from optstereo import inference
+    from optstereo import outputs
     from optstereo.export import infer_onnx, onnx_session
     from pvm_labeler.common.io import read_image
 
@@ -350,7 +355,7 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
     _check_memory(left, right, 1.0 if scale is None else scale, "cpu")
     session = _run_guarded(onnx_session, onnx_file, threads=torch.get_num_threads())  # --threads, or one per core
     disp = _run_guarded(infer_onnx, session, read_image(left), read_image(right), scale=scale, refine=refine)
-    paths = _run_guarded(inference.write_disparity, out, Path(left).stem, disp, formats)
+    paths = _run_guarded(outputs.write_disparity, out, Path(left).stem, disp, formats)
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
 
 

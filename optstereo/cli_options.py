@@ -53,7 +53,7 @@ def infer_options(fn):
     fn = click.option("--scale", type=click.FloatRange(min=0, min_open=True),
                       help="Run the network on both images resized by this factor (e.g. 0.5 for large pairs, 1.5 "
                            "for small disparities); disparities come back at the input's size. Default: the "
-                           "model's own input scale (1 unless its checkpoint records another).")(fn)
+                           "model's own input scale (its checkpoint's InferenceConfig; 1 if it records none).")(fn)
     fn = click.option("--refine", type=click.Choice(("none", "wmedian")),
                       help="Post-filter of the disparity: wmedian = colour-weighted median (snaps blurred depth "
                            "edges to colour edges), none = the network's output as it is. Default: the model's own "

@@ -98,7 +98,7 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
     try:
         from pvm_labeler.common.viz import error_map
     except ImportError:
-        from optstereo.inference import colorize
+        from optstereo.outputs import colorize
 
         err = np.where(np.isfinite(gt), np.abs(pred - gt), np.nan).astype(np.float32)
         return colorize(err, max_disp=5.0)  # saturates at 5 px, past KITTI's 3 px outlier threshold
@@ -106,7 +106,7 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
 
 
 def _save_maps(out_dir: Path, frame: Frame) -> None:
-    from optstereo.inference import colorize
+    from optstereo.outputs import colorize
     from pvm_labeler.common.io import write_image
 
     maps = out_dir / "maps"
@@ -230,18 +230,18 @@ def evaluate_model(
     """Evaluate a network on a dataset's GT; summary also holds the mean seconds per frame.
 
     Frames stream through (one decoded pair and its prediction in memory at a time); the timing is a running mean.
-    ``scale`` / ``refine`` None = the model's own input scale / post-filter (recorded in the summary as
-    ``input_scale`` / ``refine``; a model's adaptive scale as ``scale_refs``, and each frame's final scale in its
-    row).
+    ``scale`` / ``refine`` None = the model's own (its InferenceConfig, recorded whole in the summary as
+    ``inference``, and as ``input_scale`` / ``refine`` / ``scale_refs`` (the adaptive pass's references); each
+    frame's final scale in its row).
     """
-    from optstereo.inference import model_input_scale, model_refine, model_scale_refs
+    from optstereo.inference import model_inference_config
 
-    refs = model_scale_refs(model) if scale is None else None
-    refine = model_refine(model) if refine is None else refine
-    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp,
-            "input_scale": model_input_scale(model) if scale is None else scale,
-            "scale_refs": None if refs is None else {"scale_ref_disp": refs[0], "scale_ref_pixels": refs[1]},
-            "refine": refine, "seconds_per_frame": math.nan, **(meta or {})}
+    config = model_inference_config(model, iters, scale, refine)
+    refs = {"scale_ref_disp": config.adaptive_ref_disp, "scale_ref_pixels": config.adaptive_ref_pixels} \
+        if config.adaptive else None
+    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp, "input_scale": config.scale,
+            "scale_refs": refs, "refine": config.refine, "inference": config.to_dict(),
+            "seconds_per_frame": math.nan, **(meta or {})}
     count = 0
 
     def timed() -> Iterator[Frame]:

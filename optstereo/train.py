@@ -42,10 +42,13 @@ class NonFiniteLossError(RuntimeError):
 
 # -- building blocks ------------------------------------------------------------------------------------------------
 def build_model(cfg: TrainConfig) -> nn.Module:
-    """The network of cfg.model (a resolved ModelConfig; its iters is N_s of training)."""
+    """The network of cfg.model (a resolved ModelConfig; its iters is N_s of training), carrying cfg.inference as
+    ``model.inference_config``: the run's checkpoints, exports and validation use it."""
     from optstereo.models import build_from_config
 
-    return build_from_config(cfg.model)
+    model = build_from_config(cfg.model)
+    model.inference_config = cfg.inference
+    return model
 
 
 def build_loss(cfg: TrainConfig) -> nn.Module:

@@ -97,12 +97,14 @@ def init_weights(model: nn.Module, source: Path | LoadedCheckpoint) -> None:
 
 
 def init_settings(source: Path | LoadedCheckpoint) -> dict[str, Any]:
-    """{"model": {name, feature_dim, ...}}: a config layer rebuilding a checkpoint's network for --init.
+    """{"model": {name, feature_dim, ...}, "inference": {...}}: a config layer rebuilding a checkpoint's network for
+    --init, with the inference settings its exports are run with (flags and --set inference.* override them).
 
     N_s (``iters``) is left out: it is a training choice of the new run (--iters or the recipe), not of the weights.
     """
     ckpt = _as_checkpoint(source)
-    return {"model": {**{k: v for k, v in ckpt.model_config.items() if k != "iters"}, "name": ckpt.model_name}}
+    return {"model": {**{k: v for k, v in ckpt.model_config.items() if k != "iters"}, "name": ckpt.model_name},
+            "inference": ckpt.inference_config.to_dict()}
 
 
 def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:

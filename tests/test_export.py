@@ -13,6 +13,7 @@ from conftest import TINY, kitti_crop
 from optstereo.checkpoint import export_safetensors
 from optstereo.cli import export_main, predict_main
 from optstereo.inference import infer
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 from pvm_labeler.common.io import read_image
 
@@ -47,14 +48,15 @@ def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_
 
 
 def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Path) -> None:
-    # A model trained for enlarged inputs (ModelConfig.input_scale) exports its scale into the file's metadata,
+    # A model trained for enlarged inputs (InferenceConfig.scale) exports its scale into the file's metadata,
     # and infer_onnx resizes by it as infer does: the two still agree at the issue's tolerance.
-    from optstereo.export import export, infer_onnx, onnx_session
+    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
 
     torch.manual_seed(0)
-    model = build_model("optstereo", iters=3, input_scale=1.5, **TINY).eval()
+    model = build_model("optstereo", iters=3, **TINY).eval()
+    model.inference_config = InferenceConfig(scale=1.5)
     session = onnx_session(export(model, tmp_path / "scaled.onnx"))
-    assert session.get_modelmeta().custom_metadata_map["input_scale"] == "1.5"
+    assert onnx_inference_config(session).scale == 1.5
     left, right = kitti_crop(shared_data, 96, 200)
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     assert got.shape == (96, 200)
@@ -68,13 +70,14 @@ def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Pa
 
 def test_onnx_file_records_the_model_refine(tmp_path: Path, shared_data: Path) -> None:
     # The post-filter travels in the metadata too: infer_onnx applies the file's, refine= overrides it.
-    from optstereo.export import export, infer_onnx, onnx_session
+    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
     from pvm_labeler.refine import weighted_median
 
     torch.manual_seed(0)
-    model = build_model("optstereo", iters=3, refine="wmedian", **TINY).eval()
+    model = build_model("optstereo", iters=3, **TINY).eval()
+    model.inference_config = InferenceConfig(refine="wmedian")
     session = onnx_session(export(model, tmp_path / "refined.onnx"))
-    assert session.get_modelmeta().custom_metadata_map["refine"] == "wmedian"
+    assert onnx_inference_config(session).refine == "wmedian"
     left, right = kitti_crop(shared_data, 96, 200)
     raw = infer_onnx(session, left, right, refine="none")
     np.testing.assert_array_equal(infer_onnx(session, left, right), weighted_median(raw, left))
@@ -141,19 +144,18 @@ def test_shipped_model_onnx_at_kitti_size(tmp_path: Path, shared_data: Path) -> 
     flips where their photometric costs tie to float precision (38 of 465,750 pixels on this frame, 2026-11-27), so
     there the bar is mean <= 0.01 px and at most 1 pixel in 2000 beyond 0.1 px."""
     from optstereo.api import load_model
-    from optstereo.export import _run_onnx, export, infer_onnx, onnx_session
-    from optstereo.inference import model_input_scale, network_run
-    from optstereo.rescale import scaled_passes
+    from optstereo.export import OnnxNetwork, export, infer_onnx, onnx_session
+    from optstereo.inference import run
 
     model = load_model("pretrained")
     session = onnx_session(export(model, tmp_path / "pretrained.onnx"))
     base = shared_data / "kitti15/training"
     left, right = read_image(base / "image_2/000005_10.png"), read_image(base / "image_3/000005_10.png")
-    runs = {"torch": network_run(model), "onnx": lambda l_s, r_s, start: _run_onnx(session, l_s, r_s, start)}
-    scale = model_input_scale(model)
-    for cascade in (False, True):  # the zero-start pass, then the coarse-started one: continuous in the weights
-        got, ref = (scaled_passes(runs[k], left, right, scale, cascade=cascade)[0] for k in ("onnx", "torch"))
+    nets = {"torch": model, "onnx": OnnxNetwork(session)}
+    for coarse in (False, True):  # the zero-start pass, then the coarse-started one: continuous in the weights
+        config = InferenceConfig(scale=model.inference_config.scale, coarse_start=coarse)
+        got, ref = (run(nets[k], left, right, config).disparity for k in ("onnx", "torch"))
         diff = np.abs(got - ref)
-        assert diff.mean() <= 0.01 and diff.max() <= 0.1, (cascade, diff.mean(), diff.max())
+        assert diff.mean() <= 0.01 and diff.max() <= 0.1, (coarse, diff.mean(), diff.max())
     diff = np.abs(infer_onnx(session, left, right) - infer(model, left, right))
     assert diff.mean() <= 0.01 and (diff > 0.1).mean() <= 5e-4, (diff.mean(), (diff > 0.1).sum())

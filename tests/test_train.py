@@ -150,11 +150,10 @@ class TestRun:
 
     def test_run_on_enlarged_crops_exports_its_input_scale(self, tiny_shards: Path, tmp_path: Path) -> None:
         from optstereo.api import load_model
-        from optstereo.inference import model_input_scale
 
         train.main(tiny_config(tiny_shards, tmp_path / "run", steps=1, scale_range=(1.25, 1.5)))
-        assert model_input_scale(load_model(tmp_path / "run" / "model.safetensors")) == 1.375
-        assert model_input_scale(load_model(tmp_path / "run")) == 1.375
+        assert load_model(tmp_path / "run" / "model.safetensors").inference_config.scale == 1.375
+        assert load_model(tmp_path / "run").inference_config.scale == 1.375
 
     def test_gt_supervision_is_plain_l_p(self, tiny_shards: Path, tmp_path: Path) -> None:
         train.main(tiny_config(tiny_shards, tmp_path / "gt", steps=2, supervision="gt"))
@@ -284,7 +283,7 @@ class TestCli:
                                                  "--set", "data.max_disp=192", "--print-config"])
         assert result.exit_code == 0, result.output
         printed = yaml.safe_load(result.output)
-        assert list(printed)[:5] == ["model", "loss", "data", "optim", "val"] and "lr" not in printed
+        assert list(printed)[:6] == ["model", "inference", "loss", "data", "optim", "val"] and "lr" not in printed
         assert (printed["model"]["feature_dim"], printed["model"]["iters"], printed["optim"]["steps"]) == (128, 4, 5)
         assert (printed["loss"]["alpha"], printed["loss"]["photometric_iters"], printed["loss"]["lambda_t"]) == (
             0.7, "all", 0.5)

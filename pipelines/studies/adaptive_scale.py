@@ -3,8 +3,9 @@
 The shipped network learned on KITTI frames enlarged 1.5-1.75x, whose disparities span tens of 1/8-grid cells; a
 small pair with small disparities (Middlebury's quarter-size scenes, Tsukuba) spans a few cells and its depth edges
 fall inside one. ``infer`` can run a first pass at the model's input scale and, when the pair's disparities are
-smaller than those the model learned on, a second pass enlarged so that they match (``ModelConfig.scale_ref_disp``),
-never past the pixel count of a KITTI frame at the model's input scale (``ModelConfig.scale_ref_pixels``).
+smaller than those the model learned on, a second pass enlarged so that they match
+(``InferenceConfig.adaptive_ref_disp``), never past the pixel count of a KITTI frame at the model's input scale
+(``InferenceConfig.adaptive_ref_pixels``).
 
     .venv/bin/python -m pipelines.studies.adaptive_scale reference   # the two constants, from the training pairs
     .venv/bin/python -m pipelines.studies.adaptive_scale check       # GT-free: downsized training pairs vs their labels
@@ -38,12 +39,12 @@ def step_reference(checkpoint: str = "pretrained", out_path: Path = REFERENCE) -
     """Per unlabelled pair: the 95th percentile of the model's raw disparity (its own input scale, no post-filter)
     and the pair's pixel count; the constants are the medians over the pairs."""
     from optstereo.api import load_model
-    from optstereo.inference import infer, model_input_scale
+    from optstereo.inference import infer, model_inference_config
     from optstereo.rescale import ADAPTIVE_PERCENTILE
     from pvm_labeler.common.datasets import discover, load_pair
 
     model = load_model(checkpoint)
-    base = model_input_scale(model)
+    base = model_inference_config(model).scale
     rows = []
     t_start = time.perf_counter()
     for ref in discover("kitti_unlabelled", UNLABELLED):
@@ -68,13 +69,14 @@ def step_reference(checkpoint: str = "pretrained", out_path: Path = REFERENCE) -
 def step_candidate(checkpoint: str = "pretrained", refs_path: Path = REFERENCE) -> Path:
     """``checkpoint``'s weights, unchanged, recording the constants of ``refs_path``, written to CANDIDATE."""
     from optstereo.api import load_model
-    from optstereo.inference import model_input_scale, model_refine
+    from optstereo.inference import model_inference_config
     from optstereo.pretrained import resolve_checkpoint_spec
     from pipelines.studies.train_pretrained import step_ship
 
     refs = json.loads(refs_path.read_text())
     model = load_model(checkpoint)
-    step_ship(str(resolve_checkpoint_spec(checkpoint)), model_input_scale(model), model_refine(model),
+    own = model_inference_config(model)
+    step_ship(str(resolve_checkpoint_spec(checkpoint)), own.scale, own.refine,
               (float(refs["scale_ref_disp"]), int(refs["scale_ref_pixels"])), out=CANDIDATE)
     return CANDIDATE
 
@@ -83,12 +85,12 @@ def step_check(candidate: Path = CANDIDATE, factor: float = 1 / 3, every: int = 
     """GT-free: every ``every``-th unlabelled pair shrunk by ``factor`` (a small pair with small disparities), its PVM
     labels shrunk with it; the candidate at its fixed input scale vs adaptive, both scored against those labels."""
     from optstereo.api import load_model
-    from optstereo.inference import infer_scaled, model_input_scale
+    from optstereo.inference import infer_scaled, model_inference_config
     from optstereo.rescale import rescaled_pair, sparse_to_size
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     model = load_model(candidate)
-    base = model_input_scale(model)
+    base = model_inference_config(model).scale
     accs = {"fixed": MetricAccumulator(), "adaptive": MetricAccumulator()}
     rows = []
     index = read_index(LABELS)

@@ -1,4 +1,4 @@
-"""GT-free check of the per-pixel choice between a cascade model's two starts (``ModelConfig.cascade_select``).
+"""GT-free check of the per-pixel choice between a cascade model's two starts (``InferenceConfig.select``).
 
 A model trained with coarse starts (``--cascade-p``) answers a pair twice at its final scale: from zero and from a
 pass at half that scale. ``optstereo.cascade.photometric_select`` keeps, per pixel, the one whose warp matches the
@@ -9,7 +9,7 @@ their PVM labels, which no GT touched:
 
 Output: ``results/cascade_select/check.json`` (pooled EPE / bad-1 / bad-3 per answer, and per pair).
 
-``calibrate`` picks the choice's jump limit (``ModelConfig.cascade_select_jump``) the same GT-free way: on every
+``calibrate`` picks the choice's jump limit (``InferenceConfig.select_jump``) the same GT-free way: on every
 third labelled training pair, the choice at each limit of :data:`JUMP_GRID` is scored against the PVM labels and
 the one with the lowest pooled bad-3 wins (ties to the tighter limit):
 
@@ -49,13 +49,13 @@ def _starts(checkpoint: str, every: int) -> tuple[float, int, Iterator[Starts]]:
     (frame id, the shard's sample, the coarse-start pass, the zero-start pass), the passes (H, W) float32 at the
     pair's size, no post-filter; the model is loaded once, the passes run as the iterator goes."""
     from optstereo.api import load_model
-    from optstereo.inference import model_input_scale, network_run
-    from optstereo.rescale import coarse_started, run_at_scale
+    from optstereo.inference import model_inference_config, run
+    from optstereo.inference_config import InferenceConfig
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     model = load_model(checkpoint)
-    scale = model_input_scale(model)
-    run = network_run(model)
+    scale = model_inference_config(model).scale
+    zero, coarse = InferenceConfig(scale=scale), InferenceConfig(scale=scale, coarse_start=True)
     pairs = [(p, f) for p, ids in read_index(LABELS).shards for f in ids][::every]
 
     def passes() -> Iterator[Starts]:
@@ -63,8 +63,8 @@ def _starts(checkpoint: str, every: int) -> tuple[float, int, Iterator[Starts]]:
             with open_shard(Path(path)) as h5:
                 sample = read_sample(h5, frame_id)
             print(f"[{i + 1}/{len(pairs)}] {frame_id}", flush=True)
-            yield (str(frame_id), sample, coarse_started(run, sample.left, sample.right, scale),
-                   run_at_scale(run, sample.left, sample.right, scale))
+            yield (str(frame_id), sample, run(model, sample.left, sample.right, coarse).disparity,
+                   run(model, sample.left, sample.right, zero).disparity)
 
     return scale, len(pairs), passes()
 

@@ -280,7 +280,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     file's own input scale. ``edges`` adds, per network, the split of :func:`edge_masks` (distance to GT depth edges).
     """
     from optstereo.api import load_model, predict
-    from optstereo.inference import model_input_scale, model_scale_refs
+    from optstereo.inference import model_inference_config
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.dense import dense_sgm
@@ -293,7 +293,8 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     loaded = dict(parse_checkpoint(arg) for arg in checkpoints)  # checkpoint label -> spec, in order
     cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in loaded.items()}
     # None stays None for a file with an adaptive input scale: its scale is chosen per pair (optstereo.inference)
-    resolved = {tag: [s if s is not None or model_scale_refs(models[tag]) else model_input_scale(models[tag])
+    resolved = {tag: [s if s is not None or model_inference_config(models[tag]).adaptive
+                      else model_inference_config(models[tag]).scale
                       for s in scales] for tag in loaded}
     runs = {scaled_tag(tag, scale): (tag, scale) for tag in loaded for scale in resolved[tag]}  # table -> network
     named = {key: loaded[tag] for key, (tag, _) in runs.items()}

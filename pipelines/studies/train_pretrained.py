@@ -402,15 +402,17 @@ def step_ship(run: str, input_scale: float = 1.0, refine: str = "none", scale_re
     that is > 0) as what ``infer`` does by default; ``out``
     another file than the shipped one (a candidate)."""
     from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
+    from optstereo.inference_config import InferenceConfig
 
     ckpt = load_checkpoint(Path(run) if Path(run).exists() else RUNS / run)
     ref_disp, ref_pixels = scale_refs or (0.0, 0)
     # the shipped defaults: 8 iterations at test time, and the input scale and post-filter its rules were judged at
-    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS, input_scale=input_scale, refine=refine,
-                                        scale_ref_disp=ref_disp, scale_ref_pixels=ref_pixels, cascade=cascade,
-                                        cascade_select=select, cascade_select_jump=select_jump)
+    model = build_model_from_checkpoint(ckpt, iters=TEST_ITERS)
+    inference = InferenceConfig(scale=input_scale, refine=refine, adaptive_ref_disp=ref_disp,
+                                adaptive_ref_pixels=ref_pixels, coarse_start=cascade, select=select,
+                                select_jump=select_jump).validate()
     out.parent.mkdir(parents=True, exist_ok=True)
-    export_safetensors(out, model, step=ckpt.step)
+    export_safetensors(out, model, step=ckpt.step, inference=inference)
     out.chmod(0o644)  # safetensors writes 0600; the package file is read by every user
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, step {ckpt.step})")
 

@@ -14,7 +14,8 @@ import pipelines.studies.adaptive_scale as adaptive
 import pvm_labeler.common.datasets as datasets
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors
-from optstereo.inference import infer, model_scale_refs
+from optstereo.inference import infer
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -25,7 +26,8 @@ def test_pipeline_reference_and_candidate(tmp_path: Path, monkeypatch: pytest.Mo
     # of each pair's 95th percentile (recomputed here from infer) and pixel count; the candidate keeps the weights
     # byte for byte and records the constants.
     torch.manual_seed(0)
-    source = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", input_scale=0.5, **TINY, iters=2))
+    source = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", **TINY, iters=2),
+                                inference=InferenceConfig(scale=0.5))
     pairs = datasets.discover("kitti_unlabelled", shared_data / "kitti_unlabelled")[:2]
     monkeypatch.setattr(datasets, "discover", lambda *args, **kwargs: pairs)
     doc = adaptive.step_reference(str(source), tmp_path / "ref.json")
@@ -41,7 +43,7 @@ def test_pipeline_reference_and_candidate(tmp_path: Path, monkeypatch: pytest.Mo
 
     monkeypatch.setattr(adaptive, "CANDIDATE", tmp_path / "candidate.safetensors")
     out = adaptive.step_candidate(str(source), tmp_path / "ref.json")
-    refs = model_scale_refs(load_model(out))
-    assert refs == (doc["scale_ref_disp"], doc["scale_ref_pixels"])
+    own = load_model(out).inference_config
+    assert (own.adaptive_ref_disp, own.adaptive_ref_pixels) == (doc["scale_ref_disp"], doc["scale_ref_pixels"])
     before, after = load_file(source), load_file(out)
     assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)

@@ -55,7 +55,7 @@ def test_gpu_continue_script_runs_on_cpu(tmp_path: Path, rng: np.random.Generato
     start = load_checkpoint(init)
     # the run's --max-minutes is BUDGET_S too (1 s): on a busy machine it may stop before the 4 sized steps
     assert 1 <= out.step <= 4 and out.model_config["feature_dim"] == start.model_config["feature_dim"]
-    assert out.model_config["input_scale"] == 1.625  # the default U(1.5, 1.75): the export runs at its middle
+    assert out.inference_config.scale == 1.625  # the default U(1.5, 1.75): the export runs at its middle
     moved = [k for k in start.model_state if not torch.equal(start.model_state[k], out.model_state[k])]
     assert moved, "the weights should have moved from the head"
     config = (tmp_path / "out" / "config.yaml").read_text()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ import pvm_labeler.common.datasets as datasets
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors
 from optstereo.inference import infer
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.shards import ShardRecord, write_shard_dir
@@ -27,11 +27,13 @@ def test_pipeline_check_on_real_pairs(tmp_path: Path, monkeypatch: pytest.Monkey
     # coarse answers are infer's with the start off and on, each scored against the shard's labels
     torch.manual_seed(0)
     source = export_safetensors(tmp_path / "m.safetensors",
-                                build_model("optstereo", cascade=True, **{**TINY, "iters": 2}))
+                                build_model("optstereo", **{**TINY, "iters": 2}),
+                                inference=InferenceConfig(coarse_start=True))
     records = []
     for ref in datasets.discover("kitti_unlabelled", shared_data / "kitti_unlabelled")[:2]:
         pair = datasets.load_pair(ref)
-        left, right = pair.left[-64:, 300:420].copy(), pair.right[-64:, 300:420].copy()
+        # 136 wide: the coarse start's half-size pair (68 -> 64 columns) keeps the 64 that 4 cost levels need
+        left, right = pair.left[-64:, 300:436].copy(), pair.right[-64:, 300:436].copy()
         label = np.full(left.shape[:2], 2.0, np.float32)
         label[:, :20] = np.nan
         records.append(ShardRecord(frame_id=ref.frame_id, left=left, right=right, label=label,
@@ -42,15 +44,14 @@ def test_pipeline_check_on_real_pairs(tmp_path: Path, monkeypatch: pytest.Monkey
     monkeypatch.setattr(check, "RESULTS", tmp_path / "results")
     doc = check.step_check(str(source), every=1)
     model = load_model(source)
-    config = model.config
     for rec, row in zip(records, doc["frames"], strict=True):
-        model.config = dataclasses.replace(config, cascade=True)
+        model.inference_config = InferenceConfig(coarse_start=True)
         coarse = infer(model, rec.left, rec.right, scale=1.0, refine="none")
-        model.config = dataclasses.replace(config, cascade=False)
+        model.inference_config = InferenceConfig()
         zero = infer(model, rec.left, rec.right, scale=1.0, refine="none")
         for name, disp in (("zero", zero), ("coarse", coarse)):
             assert row[name]["epe"] == pytest.approx(MetricAccumulator().update(disp, rec.label)["epe"], rel=1e-5)
-    assert (tmp_path / "results" / "check.json").exists() and doc["select"]["n_valid"] == 2 * 64 * 100
+    assert (tmp_path / "results" / "check.json").exists() and doc["select"]["n_valid"] == 2 * 64 * 116
     # calibrate: with no limit its choice is the check's; the chosen limit is the grid's lowest bad-3, ties tighter
     cal = check.step_calibrate(str(source), "tiny", every=1, grid=(0.0, 0.05, 0.2))
     assert cal["grid"]["0.0"]["epe"] == pytest.approx(doc["select"]["epe"], rel=1e-6)

@@ -199,7 +199,9 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
 
     if not (er.SHARED / "middlebury2001").is_dir():
         pytest.skip("../shared/data is not here")
-    model = types.SimpleNamespace(config=types.SimpleNamespace(input_scale=1.5))
+    from optstereo.inference_config import InferenceConfig
+
+    model = types.SimpleNamespace(inference_config=InferenceConfig(scale=1.5))
     scales = []
 
     def fake_predict(net, left, right, iters, scale):  # right on even columns, 5 px off on odd ones
