@@ -154,8 +154,11 @@ def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CON
                          f"and {max_lr_diff}")
     settings = {"maps": str(Path(maps_dir).resolve()), "fill_confidence": fill_confidence, "max_lr_diff": max_lr_diff}
     kwargs = {} if compression is None else {"compression": compression}
-    return rewrite(src, out, transform=lambda s: fill_sample(s, Path(maps_dir), fill_confidence, max_lr_diff, allow_missing),
-                   extra={"distilled_from": str(src), "distill": settings}, progress=progress, **kwargs)
+    def transform(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return fill_sample(sample, Path(maps_dir), fill_confidence, max_lr_diff, allow_missing)
+
+    return rewrite(src, out, transform=transform, extra={"distilled_from": str(src), "distill": settings},
+                   progress=progress, **kwargs)
 
 
 def _cli() -> Any:

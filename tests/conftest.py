@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 import torch
 
+from pvm_labeler.common.io import write_image, write_kitti_disp
+
 if TYPE_CHECKING:
     from optstereo.train_config import TrainConfig
 
@@ -197,3 +199,22 @@ def two_regions(height: int = 24, width: int = 32, edge: int = 15) -> tuple[np.n
     image[:, edge:] = 210
     disp = np.where(np.arange(width) < edge, 20.0, 5.0).astype(np.float32)
     return image, np.broadcast_to(disp, (height, width)).copy()
+
+
+#: pvm-label flags of the CLI tests' tiny runs (K = 2, a 16-px search).
+SMALL = ["--k", "2", "--max-disp", "16", "--quiet"]
+
+
+def make_folder(root: Path, n: int = 3, size: tuple[int, int] = (64, 128), seed: int = 0) -> Path:
+    """Folder dataset root/left, root/right with GT root/gt (constant disparity 4, KITTI PNG)."""
+    rng = np.random.default_rng(seed)
+    for view in ("left", "right", "gt"):
+        (root / view).mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        left, right = make_synthetic_pair(rng, *size, disp=4)
+        write_image(root / "left" / f"{i:03d}.png", left)
+        write_image(root / "right" / f"{i:03d}.png", right)
+        gt = np.full(size, 4.0, np.float32)
+        gt[:, :4] = np.nan
+        write_kitti_disp(root / "gt" / f"{i:03d}.png", gt)
+    return root

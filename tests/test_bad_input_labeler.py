@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 from click.testing import CliRunner, Result
-from test_cli import SMALL, make_folder
+from conftest import SMALL, make_folder
 
 from pvm_labeler.cli import main
 

@@ -18,7 +18,8 @@ import pytest
 import torch
 import yaml
 from click.testing import CliRunner, Result
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY as TINY_BASE
+from conftest import make_shards
 
 from optstereo import memory
 from optstereo.checkpoint import save_checkpoint
@@ -27,7 +28,8 @@ from optstereo.models import build_model
 from pvm_labeler.common.io import write_image
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = dict(feature_dim=16, hidden_dim=16, head_dim=16, upsample_dim=8, iters=1)
+TINY = {**TINY_BASE, "iters": 1}
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 TRAIN = ["--workers", "0", "--batch-size", "1", "--crop", "32x64", "--iters", "1", "--quiet", "--log-every", "1",
          *(f"--model-opt={k}={v}" for k, v in TINY.items() if k != "iters")]
 

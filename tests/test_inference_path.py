@@ -78,15 +78,24 @@ class TestLegacy:
         with pytest.raises(ConfigError, match=r"cascade -> inference\.coarse_start"):
             build_model("optstereo", cascade=True)
 
-    def test_the_shipped_file(self) -> None:
+    def test_the_old_shipped_file(self) -> None:
+        """Version 14's file (``pretrained-accurate``) predates InferenceConfig: settings come out of model_config."""
         from optstereo.api import load_model
         from optstereo.checkpoint import load_checkpoint
-        from optstereo.pretrained import WEIGHTS
+        from optstereo.pretrained import resolve_checkpoint_spec
 
-        ckpt = load_checkpoint(WEIGHTS)
+        ckpt = load_checkpoint(resolve_checkpoint_spec("pretrained-accurate"))
         assert ckpt.inference_config == SHIPPED
         assert not set(ckpt.model_config) & {"input_scale", "refine", "cascade", "scale_ref_disp"}
-        assert load_model("pretrained").inference_config == SHIPPED
+        assert load_model("pretrained-accurate").inference_config == SHIPPED
+
+    def test_the_default_file(self) -> None:
+        """Version 15 (``pretrained``): one pass at scale 1, no filter, the adaptive pass for small pairs only."""
+        from optstereo.api import load_model
+
+        config = load_model("pretrained").inference_config
+        assert config == InferenceConfig(scale=1.0, adaptive_ref_disp=60.1, adaptive_ref_pixels=465750)
+        assert config.passes == 1
 
     def test_old_files_load_and_new_files_keep_their_own_key(self, tmp_path: Path) -> None:
         from safetensors.torch import save_file
