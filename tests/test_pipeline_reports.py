@@ -7,6 +7,7 @@ import json
 import types
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipelines import bench
@@ -78,3 +79,36 @@ def test_demo_trains_in_bf16_only_where_the_cpu_has_it(tmp_path: Path, monkeypat
         demo.main(["--out", str(tmp_path), "--amp", choice])
     train = commands[-1]
     assert train[train.index("--amp") + 1] == expected
+
+
+def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """cpu_rows: the ratio is the median of per-frame (model / SGBM) times; a model of several passes is timed once."""
+    import itertools
+
+    from optstereo.inference_config import InferenceConfig
+    from pipelines import bench_models
+
+    clock = itertools.count()
+    calls: list[str] = []
+
+    class Fake:
+        def __init__(self, passes_config: InferenceConfig) -> None:
+            self.inference_config = passes_config
+
+    def fake_seconds(fn: object, repeats: int) -> float:
+        name = "sgbm" if getattr(fn, "func", None) is not bench_models_infer else "model"
+        calls.append(f"{name}:{repeats}")
+        return 2.0 if name == "sgbm" else 3.0 + next(clock)
+
+    def bench_models_infer(*args: object) -> None:  # stands for optstereo.inference.infer
+        raise AssertionError("timed through fake_seconds only")
+
+    monkeypatch.setattr("optstereo.inference.infer", bench_models_infer)
+    monkeypatch.setattr(bench_models, "_seconds", fake_seconds)
+    frames = [(np.zeros((8, 16, 3), np.uint8), np.zeros((8, 16, 3), np.uint8))] * 3
+    models = {"pretrained": Fake(InferenceConfig()), "accurate": Fake(InferenceConfig(coarse_start=True))}
+    rows = bench_models.cpu_rows(models, frames, repeats=3)
+    # model times 3, 4, 5 s against SGBM's 2 s: ratios 1.5, 2.0, 2.5 -> median 2.0; then 6, 7, 8 -> 3.5
+    assert [r["ratio"] for r in rows] == [2.0, 3.5]
+    assert rows[0]["verdict"] == "met" and rows[1]["target"] is None
+    assert calls[:2] == ["sgbm:3", "model:3"] and calls[-2:] == ["sgbm:1", "model:1"]
