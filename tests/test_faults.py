@@ -32,16 +32,17 @@ def _train_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "optstereo.cli", "train", *args]
 
 
-def _new_run(labels: Path, out: Path) -> list[str]:
-    """A tiny CPU run that uses every random draw the trainer has: shuffling, crop, flip-swap, photometric jitter,
-    occluders, the cascade start and the OneCycle LR position."""
+def _new_run(labels: Path, out: Path, workers: int = 0, ckpt_every: int = 2) -> list[str]:
+    """A tiny CPU run that uses every random draw the trainer has: shuffling, crop, scale, flip-swap, photometric
+    jitter, occluders, the cascade start, L_T's transformations, and the OneCycle LR position."""
     model_opts = [f"--model-opt={k}={v}" for k, v in TINY.items()]
     return _train_cmd(
         "--labels", str(labels), "--out", str(out), "--steps", str(STEPS), "--batch-size", "2", "--crop", "32x128",
         "--iters", "2", "--schedule", "onecycle", "--photometric", "--flip-swap-p", "0.5", "--occlude-p", "0.5",
-        "--cascade-p", "0.5", "--lambda-t", "0.1", "--scale-range", "0.95,1.05", "--seed", "7", "--workers", "0",
-        "--threads", "1", "--device", "cpu", "--log-every", "1", "--ckpt-every", "2", "--set", "data.shuffle_buffer=4",
-        "--set", "tensorboard=false", "--quiet", *model_opts,
+        "--cascade-p", "0.5", "--lambda-t", "0.1", "--scale-range", "0.95,1.05", "--seed", "7",
+        "--workers", str(workers), "--threads", "1", "--device", "cpu", "--log-every", "1",
+        "--ckpt-every", str(ckpt_every), "--set", "data.shuffle_buffer=4", "--set", "tensorboard=false", "--quiet",
+        *model_opts,
     )
 
 
@@ -92,6 +93,14 @@ def full_run(fault_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> Pa
     return out
 
 
+@pytest.fixture(scope="module")
+def full_run_workers(fault_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The same uninterrupted run with two DataLoader worker processes."""
+    out = tmp_path_factory.mktemp("full") / "run-workers"
+    _run(_new_run(fault_shards, out, workers=2, ckpt_every=3))
+    return out
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("kill_after, delay_s", [(2, 0.0), (5, 0.3), (8, 0.05)])
 def test_sigkill_then_resume_is_bit_identical(fault_shards: Path, full_run: Path, tmp_path: Path, kill_after: int,
@@ -111,6 +120,22 @@ def test_sigkill_then_resume_is_bit_identical(fault_shards: Path, full_run: Path
             assert torch.equal(state[key], b.optimizer["state"][pid][key]), (pid, key)
     assert a.scheduler["last_epoch"] == b.scheduler["last_epoch"] == STEPS
     assert LAST in {p.name for p in part.iterdir()}
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_is_bit_identical_with_loader_workers(fault_shards: Path, full_run_workers: Path,
+                                                                  tmp_path: Path) -> None:
+    """Two DataLoader workers, resumed at an odd step: the resumed loader asks worker 0 first, so the stream rotates
+    the workers' roles to make batch k come from the worker the uninterrupted run took it from."""
+    part = tmp_path / "part"
+    _kill_after_checkpoint(_new_run(fault_shards, part, workers=2, ckpt_every=3), part, 2, 0.0)
+    killed_at = load_checkpoint(part).step
+    assert killed_at in (3, 9), f"want a resume at an odd step, got last.pt at step {killed_at}"
+    _run(_train_cmd("--resume", str(part), "--quiet"))
+    a, b = load_checkpoint(full_run_workers), load_checkpoint(part)
+    assert a.step == b.step == STEPS
+    differing = [k for k in a.model_state if not torch.equal(a.model_state[k], b.model_state[k])]
+    assert not differing, f"resumed from step {killed_at}: {len(differing)} tensors differ, e.g. {differing[:3]}"
 
 
 #: A child process that rewrites one checkpoint forever: write i holds step i and every weight equal to i.
