@@ -31,7 +31,7 @@ from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.inference import warn_if_emulated_bf16
 from optstereo.train_config import TrainConfig
 from optstereo.train_log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
-from optstereo.train_resume import TrainState, checkpoint_saver, init_weights, restore
+from optstereo.train_resume import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
 
 logger = logging.getLogger(__name__)
 
@@ -338,6 +338,8 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg.save(run_dir)
+        if resume:
+            remove_stale_temps(run_dir)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
     if ckpt is None and cfg.init is not None:

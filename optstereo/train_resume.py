@@ -1,11 +1,11 @@
 """Checkpoints of a training run: periodic saving, ``--resume`` (state and config) and ``--init`` (weights only).
 
 ``TrainState`` is what the loop advances and a checkpoint holds; ``checkpoint_saver`` writes ``ckpt-<step>.pt`` and
-``last.pt`` atomically on rank 0; ``restore`` puts a checkpoint's model/optimizer/scheduler/scaler/RNG states back
-into it; ``config_for_resume`` rebuilds the
-run's TrainConfig from its last checkpoint (nested, or the flat dict of runs saved before the config had sections);
-``init_settings`` and ``init_weights`` take the model settings and the weights of an ``--init`` checkpoint, which is
-read once (``load_checkpoint``) and passed to both.
+``last.pt`` atomically on rank 0; ``remove_stale_temps`` deletes the temp files of a write a kill interrupted;
+``restore`` puts a checkpoint's model/optimizer/scheduler/scaler/RNG states back into it; ``config_for_resume``
+rebuilds the run's TrainConfig from its last checkpoint (nested, or the flat dict of runs saved before the config
+had sections); ``init_settings`` and ``init_weights`` take the model settings and the weights of an ``--init``
+checkpoint, which is read once (``load_checkpoint``) and passed to both.
 """
 
 from __future__ import annotations
@@ -58,6 +58,23 @@ def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Cal
         logger.info("checkpoint %s (step %d)", numbered, state.step)
 
     return save
+
+
+def remove_stale_temps(run_dir: Path) -> list[Path]:
+    """Delete the temp files a killed run left beside its checkpoints and return them.
+
+    A SIGKILL inside a checkpoint write leaves ``ckpt-<step>.pt.<random>.tmp`` or ``last.pt.<random>.tmp`` (the
+    atomic write's temp file, ``pvm_labeler.common.atomic``): never a checkpoint (loading picks ``last.pt`` or a
+    ``.pt`` file only), but as large as one. Only the run's own writer may call this (rank 0 of a resumed run): a
+    live writer's temp file would vanish under it.
+    """
+    stale = sorted(p for pattern in ("ckpt-*.pt.*.tmp", f"{LAST}.*.tmp") for p in Path(run_dir).glob(pattern))
+    for path in stale:
+        path.unlink(missing_ok=True)
+    if stale:
+        logger.warning("removed %d temp file(s) of an interrupted checkpoint write in %s: %s", len(stale), run_dir,
+                       ", ".join(p.name for p in stale))
+    return stale
 
 
 def restore(state: TrainState, ckpt: LoadedCheckpoint) -> None:
