@@ -12,7 +12,7 @@ OUT ?= out/labels/$(DATASET)
 JOBS ?= 2
 PYTEST_ARGS ?=
 
-.PHONY: install test test-slow test-all bench demo labels results lint clean
+.PHONY: install test test-slow test-all test-studies bench demo labels results lint clean
 
 install: $(STAMP)
 
@@ -32,7 +32,12 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -q --runslow -m "slow or perf" $(PYTEST_ARGS)
 
 test-all: $(STAMP)
-	$(PY) -m pytest -q --runslow $(PYTEST_ARGS)
+	$(PY) -m pytest -q --runslow --studies $(PYTEST_ARGS)
+
+# tests/studies (the one-off studies of pipelines/studies/): never collected by `make test`; PYTEST_ARGS=--runslow adds
+# their slow cases
+test-studies: $(STAMP)
+	$(PY) -m pytest -q --studies tests/studies $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	$(PY) -m pipelines.bench --shared $(SHARED) --out bench

@@ -59,8 +59,8 @@ def predict(
         iters: GRU iterations (None = the model's own).
         amp: ``none``, ``bf16`` or ``fp16`` (CUDA).
         scale: run the network on both images resized by this factor (e.g. 0.5 for a large Middlebury pair); the
-            disparity comes back at the input's size, in its pixels. None = the model's own input scale (1 unless
-            its checkpoint records another).
+            disparity comes back at the input's size, in its pixels. None = the model's own
+            (``model.inference_config``, the InferenceConfig its checkpoint records: optstereo.inference.run).
         confidence: also return each map's confidence in [0, 1] (``optstereo.confidence``: photometric x LR, one
             more network pass).
 

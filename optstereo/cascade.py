@@ -4,7 +4,8 @@ The paper's update operator starts every pair from D_s^0 = 0 and walks to the di
 (KITTI 2012's iron gate, RESULTS.md) it stops at the first period it meets. A pass at half size sees the structure
 as finer than the 1/8 grid and the surroundings as larger, and a start from its answer puts the walk near the right
 period. Weights trained from zero starts do not walk well from other starts (RESULTS.md: a probe), so the trainer
-draws coarse starts with probability ``data.cascade_p`` and ``ModelConfig.cascade`` turns them on at test time.
+draws coarse starts with probability ``data.cascade_p`` and ``InferenceConfig.coarse_start`` turns them on at test
+time: ``optstereo.inference.run`` calls the same :func:`coarse_start` on the resized, padded pair.
 """
 
 from __future__ import annotations
@@ -107,8 +108,8 @@ def choose(disps: np.ndarray, costs: np.ndarray, max_jump: float = 0.0) -> np.nd
 
 def jump_limit(width: int, jump: float) -> float:
     """The ``max_jump`` of :func:`photometric_select` in pixels for a pair ``width`` pixels wide and
-    ``ModelConfig.cascade_select_jump`` = ``jump`` (a fraction of the width, so that the choice does not change when
+    ``InferenceConfig.select_jump`` = ``jump`` (a fraction of the width, so that the choice does not change when
     the pair is resized; 0 = no limit)."""
     if not 0 <= jump < float("inf"):
-        raise ValueError(f"cascade_select_jump must be >= 0 and finite, got {jump}")
+        raise ValueError(f"select_jump must be >= 0 and finite, got {jump}")
     return jump * width

@@ -4,11 +4,14 @@ A training checkpoint (``.pt``/``.pth``/``.ckpt``) is a dict of tensors and plai
 
     {"format": CHECKPOINT_FORMAT, "step": int, "model": state_dict, "optimizer": state_dict,
      "scheduler": state_dict | None, "scaler": state_dict | None, "model_name": str,
-     "model_config": dict, "train_config": dict, "code_version": {"optstereo": str, "git_commit": str},
-     "rng": {"torch": ByteTensor}}
+     "model_config": dict, "inference_config": dict, "train_config": dict,
+     "code_version": {"optstereo": str, "git_commit": str}, "rng": {"torch": ByteTensor}}
 
 It is loaded with ``torch.load(weights_only=True)``, which refuses pickled classes/functions. A weights-only export
-``.safetensors`` stores the model state dict with the model name/config as JSON metadata.
+``.safetensors`` stores the model state dict with the model name/config and the inference settings
+(``inference_config``, ``optstereo.inference_config.InferenceConfig``) as JSON metadata. Files written before that
+key existed kept those settings inside ``model_config`` (``input_scale``, ``refine``, ...): loading moves them to
+``LoadedCheckpoint.inference_config`` (``optstereo.models.config.split_legacy_model_dict``).
 
 Writing goes to ``<name>.tmp`` in the same directory followed by ``os.replace`` (atomic on POSIX), so a crash never
 leaves a half-written file under the final name (TIMM ``checkpoint_saver.py`` does the same).
@@ -16,9 +19,11 @@ leaves a half-written file under the final name (TIMM ``checkpoint_saver.py`` do
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import pickle
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,7 +31,9 @@ from typing import Any
 import torch
 from torch import nn
 
-import optstereo
+from optstereo.inference_config import InferenceConfig
+from optstereo.models.config import split_legacy_model_dict
+from optstereo.version import __version__
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.version import git_commit
 
@@ -43,7 +50,7 @@ class CheckpointError(ValueError):
 
 def code_version() -> dict[str, str]:
     """Package version and git commit of the code (``unknown`` outside a git checkout)."""
-    return {"optstereo": optstereo.__version__, "git_commit": git_commit()}
+    return {"optstereo": __version__, "git_commit": git_commit()}
 
 
 def _atomic_torch_save(obj: Any, path: Path) -> None:
@@ -72,6 +79,13 @@ def model_spec(model: nn.Module) -> tuple[str, dict[str, Any]]:
     return str(name), values
 
 
+def model_inference(model: nn.Module) -> InferenceConfig:
+    """The InferenceConfig a model carries (``model.inference_config``, set by the builders of a checkpoint and of a
+    training run), ``InferenceConfig()`` for a model without one."""
+    config = getattr(unwrap(model), "inference_config", None)
+    return config if isinstance(config, InferenceConfig) else InferenceConfig()
+
+
 def save_checkpoint(
     path: Path,
     *,
@@ -81,8 +95,10 @@ def save_checkpoint(
     scheduler: Any | None = None,
     scaler: Any | None = None,
     train_config: dict[str, Any] | None = None,
+    inference: InferenceConfig | None = None,
 ) -> Path:
-    """Atomically write a full training checkpoint to ``path`` (suffix .pt/.pth/.ckpt) and return it."""
+    """Atomically write a full training checkpoint to ``path`` (suffix .pt/.pth/.ckpt) and return it; ``inference``
+    None = the model's own (:func:`model_inference`)."""
     path = Path(path)
     if path.suffix not in CHECKPOINT_SUFFIXES[:3]:
         raise CheckpointError(f"checkpoint name must end in .pt, .pth or .ckpt, got {path.name}")
@@ -96,6 +112,7 @@ def save_checkpoint(
         "scaler": None if scaler is None or not scaler.is_enabled() else scaler.state_dict(),
         "model_name": name,
         "model_config": model_config,
+        "inference_config": (inference or model_inference(model)).to_dict(),
         "train_config": train_config or {},
         "code_version": code_version(),
         "rng": {"torch": torch.get_rng_state()},
@@ -105,8 +122,10 @@ def save_checkpoint(
     return path
 
 
-def export_safetensors(path: Path, model: nn.Module, step: int | None = None) -> Path:
-    """Write the model weights as safetensors with the model name/config (JSON) in the metadata."""
+def export_safetensors(path: Path, model: nn.Module, step: int | None = None,
+                       inference: InferenceConfig | None = None) -> Path:
+    """Write the model weights as safetensors with the model name/config and the inference settings (JSON) in the
+    metadata; ``inference`` None = the model's own (:func:`model_inference`)."""
     from safetensors.torch import save_file
 
     path = Path(path)
@@ -117,6 +136,7 @@ def export_safetensors(path: Path, model: nn.Module, step: int | None = None) ->
         "format": CHECKPOINT_FORMAT,
         "model_name": name,
         "model_config": json.dumps(model_config),
+        "inference_config": json.dumps((inference or model_inference(model)).to_dict()),
         "step": str(step if step is not None else -1),
         "code_version": json.dumps(code_version()),
     }
@@ -127,13 +147,17 @@ def export_safetensors(path: Path, model: nn.Module, step: int | None = None) ->
 
 @dataclass
 class LoadedCheckpoint:
-    """What load_checkpoint returns; optimizer/scheduler states are None in a safetensors export."""
+    """What load_checkpoint returns; optimizer/scheduler states are None in a safetensors export.
+
+    ``model_config`` holds the architecture only and ``inference_config`` how to run it, in files of any age.
+    """
 
     path: Path
     step: int
     model_name: str
     model_config: dict[str, Any]
     model_state: dict[str, torch.Tensor]
+    inference_config: InferenceConfig = dataclasses.field(default_factory=InferenceConfig)
     optimizer: dict[str, Any] | None = None
     scheduler: dict[str, Any] | None = None
     scaler: dict[str, Any] | None = None
@@ -154,6 +178,9 @@ def resolve_checkpoint(path: Path) -> Path:
         return found[-1]
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    if path.suffix == ".onnx":
+        raise CheckpointError(f"checkpoint {path} is an exported ONNX graph, which the torch backend cannot load: "
+                              "run it with --backend onnxruntime, or give the .pt/.safetensors it was exported from")
     if path.suffix not in CHECKPOINT_SUFFIXES:
         raise CheckpointError(f"checkpoint {path} must end in one of {CHECKPOINT_SUFFIXES}")
     return path
@@ -164,6 +191,7 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Loa
     path = resolve_checkpoint(path)
     if path.suffix == ".safetensors":
         return _load_safetensors(path, map_location)
+    _check_torch_container(path)
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -175,12 +203,15 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Loa
         raise CheckpointError(f"{path} is not an optstereo checkpoint (no 'model' entry)")
     if state.get("format", CHECKPOINT_FORMAT) != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} has format {state.get('format')!r}, expected {CHECKPOINT_FORMAT!r}")
+    model_config, inference = split_configs(path, dict(state.get("model_config") or {}),
+                                            state.get("inference_config"))
     return LoadedCheckpoint(
         path=path,
         step=int(state.get("step", 0)),
         model_name=str(state.get("model_name", "optstereo")),
-        model_config=dict(state.get("model_config") or {}),
+        model_config=model_config,
         model_state=state["model"],
+        inference_config=inference,
         optimizer=state.get("optimizer"),
         scheduler=state.get("scheduler"),
         scaler=state.get("scaler"),
@@ -188,6 +219,20 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Loa
         code_version=state.get("code_version"),
         rng=state.get("rng"),
     )
+
+
+def _check_torch_container(path: Path) -> None:
+    """Raise a CheckpointError naming ``path`` unless it is a whole zip archive, the container torch.save writes.
+
+    Without this a random file reaches the weights-only unpickler, whose refusal reads as "pickled objects", and a
+    truncated one gets miniz's internal message.
+    """
+    with path.open("rb") as fh:
+        head = fh.read(4)
+    if head[:1] != b"\x80" and not zipfile.is_zipfile(path):  # b"\x80": torch's legacy (pre-1.6) pickle format
+        size = path.stat().st_size
+        what = "truncated (its zip directory is missing)" if head == b"PK\x03\x04" else "not a torch checkpoint"
+        raise CheckpointError(f"cannot load checkpoint {path} ({size} bytes): {what}; torch.save writes zip archives")
 
 
 def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedCheckpoint:
@@ -199,20 +244,39 @@ def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedChe
             tensors = {k: fh.get_tensor(k) for k in fh.keys()}
     except (SafetensorError, OSError) as exc:
         raise CheckpointError(f"cannot load safetensors checkpoint {path}: {exc}") from exc
+    stored = metadata.get("inference_config")
+    model_config, inference = split_configs(path, json.loads(metadata.get("model_config", "{}")),
+                                            None if stored is None else json.loads(stored))
     return LoadedCheckpoint(
         path=path,
         step=int(metadata.get("step", -1)),
         model_name=metadata.get("model_name", "optstereo"),
-        model_config=json.loads(metadata.get("model_config", "{}")),
+        model_config=model_config,
         model_state=tensors,
+        inference_config=inference,
         code_version=json.loads(metadata.get("code_version", "{}")),
     )
+
+
+def split_configs(path: Path, model_config: dict[str, Any],
+                  stored: dict[str, Any] | None) -> tuple[dict[str, Any], InferenceConfig]:
+    """(architecture dict, InferenceConfig) of a file's ``model_config`` and its ``inference_config`` (None in files
+    written before it existed, whose inference settings sit in ``model_config``: split_legacy_model_dict)."""
+    model_config, legacy = split_legacy_model_dict(model_config)
+    try:
+        return model_config, InferenceConfig.from_dict({**legacy, **(stored or {})})
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: bad inference settings: {exc}") from exc
 
 
 def build_model_from_checkpoint(
     ckpt: LoadedCheckpoint | Path, device: str | torch.device = "cpu", **overrides: Any
 ) -> nn.Module:
-    """Rebuild the registry model recorded in a checkpoint, load its weights, move to device, eval mode."""
+    """Rebuild the registry model recorded in a checkpoint, load its weights, move to device, eval mode.
+
+    ``overrides`` are ModelConfig fields (e.g. ``iters``). The model carries the file's inference settings as
+    ``model.inference_config`` (an InferenceConfig), which ``optstereo.inference.run`` uses by default.
+    """
     from optstereo.models import build_model
 
     if not isinstance(ckpt, LoadedCheckpoint):
@@ -220,10 +284,16 @@ def build_model_from_checkpoint(
     kwargs = {k: v for k, v in ckpt.model_config.items() if k != "name"}
     kwargs.update(overrides)
     model = build_model(ckpt.model_name, **kwargs)
+    missing = sorted(model.state_dict().keys() - ckpt.model_state.keys())
+    unexpected = sorted(ckpt.model_state.keys() - model.state_dict().keys())
+    if missing or unexpected:  # another model's weights: name a few keys, not torch's list of every one
+        raise CheckpointError(f"weights in {ckpt.path} do not fit model {ckpt.model_name!r}: {len(missing)} missing "
+                              f"keys {missing[:3]}, {len(unexpected)} unexpected keys {unexpected[:3]}")
     try:
         model.load_state_dict(ckpt.model_state)
     except RuntimeError as exc:
         raise CheckpointError(f"weights in {ckpt.path} do not fit model {ckpt.model_name!r}: {exc}") from exc
+    model.inference_config = ckpt.inference_config
     return model.to(device).eval()
 
 
@@ -252,7 +322,8 @@ def average_checkpoints(paths: list[Path]) -> LoadedCheckpoint:
         else:
             raise CheckpointError(f"non-float tensor {key!r} differs between {first.path} and the others")
     return LoadedCheckpoint(path=first.path, step=max(c.step for c in ckpts), model_name=first.model_name,
-                            model_config=dict(first.model_config), model_state=state)
+                            model_config=dict(first.model_config), model_state=state,
+                            inference_config=first.inference_config)
 
 
 def _check_same_model(a: LoadedCheckpoint, b: LoadedCheckpoint) -> None:

@@ -51,12 +51,11 @@ def right_view_disparity(model: nn.Module, left: Image, right: Image, device: to
                          amp: str = "none", iters: int | None = None, scale: float = 1.0) -> Map:
     """(H, W) float32 disparity of the RIGHT view (right(x) matches left(x + d)), from one network pass on the
     mirrored pair: flip both images left-right and swap them, so the right view becomes a left view."""
-    from optstereo.inference import network_run
-    from optstereo.rescale import run_at_scale
+    from optstereo.inference import pass_at_scale
 
     mirrored_left, mirrored_right = np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1])
-    run = network_run(model, iters, device, amp)
-    return np.ascontiguousarray(run_at_scale(run, mirrored_left, mirrored_right, scale)[:, ::-1])
+    mirrored = pass_at_scale(model, mirrored_left, mirrored_right, scale, None, iters, device, amp)
+    return np.ascontiguousarray(mirrored[:, ::-1])
 
 
 def lr_difference(disp_left: Map, disp_right: Map) -> Map:

@@ -17,12 +17,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from optstereo.models.config import ModelConfig
+from optstereo.inference_config import InferenceConfig
+from optstereo.models.config import ModelConfig, split_legacy_model_dict
 from pvm_labeler.common.configtools import reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
 __all__ = [
-    "FLAT_KEYS", "DataConfig", "LossConfig", "ModelConfig", "OptimConfig", "ValConfig", "merge", "nest", "parse_crop",
+    "FLAT_KEYS", "DataConfig", "InferenceConfig", "LossConfig", "ModelConfig",
+    "OptimConfig", "ValConfig", "merge", "nest", "parse_crop",
     "parse_scale_range",
 ]
 
@@ -51,7 +53,7 @@ FLAT_KEYS: dict[str, str] = {
     "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
     "val_dataset": "val.dataset", "val_root": "val.root", "val_limit": "val.limit",
 }
-SECTIONS = ("model", "loss", "data", "optim", "val")
+SECTIONS = ("model", "inference", "loss", "data", "optim", "val")
 
 
 def parse_crop(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
@@ -98,6 +100,24 @@ def plain(value: Any) -> Any:
     return value
 
 
+def _typed(cls: type, key: str, value: Any) -> Any:
+    """``value`` checked against the type of the field's scalar default (bool, int, float, str), else ConfigError
+    naming ``section.key``; a float field takes an int, or a string such as YAML's ``1e-4`` (which YAML reads as a
+    string), as a float. Fields whose default is None, a tuple or a list are checked by the section itself."""
+    default = next((f.default for f in dataclasses.fields(cls) if f.name == key), None)
+    kind = type(default) if isinstance(default, (bool, int, float, str)) else None
+    if kind is None or value is None or type(value) is kind:
+        return value
+    if kind is float and not isinstance(value, bool):
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            pass
+    if kind is int and isinstance(value, float) and value.is_integer():
+        return int(value)
+    raise ConfigError(f"{cls.NAME}.{key} must be of type {kind.__name__}, got {value!r} ({type(value).__name__})")
+
+
 class _Section:
     """from_dict / to_dict shared by the sections; subclasses validate in ``__post_init__``."""
 
@@ -109,7 +129,7 @@ class _Section:
         """Build from a plain dict (YAML/JSON), rejecting unknown keys; path fields become Path."""
         reject_unknown_keys(cls, values, f"{cls.NAME} config")
         values = {k: (Path(v) if k in cls.PATHS and v is not None else v) for k, v in values.items()}
-        return cls(**values)
+        return cls(**{k: _typed(cls, k, v) for k, v in values.items()})
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict in field order."""
@@ -208,7 +228,7 @@ class DataConfig(_Section):
             their PVM labels, L_R and L_S see the clean pair (with L_T on, its D0 is the occluded input's).
         cascade_p: probability per batch that the GRU starts from a coarse pass (the batch at half size, no
             gradient) instead of zero: a coarse-to-fine start (``optstereo.cascade``), which a model with
-            ``ModelConfig.cascade`` uses at test time.
+            ``InferenceConfig.coarse_start`` uses at test time.
         max_disp: labels >= max_disp (or < 0) are ignored in the loss, px. This is a mask on the TARGETS, not a
             search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt. The labeler's
             ``LabelerConfig.max_disp`` (192) is SGM's search range, so PVM labels never reach it; the two
@@ -309,6 +329,9 @@ def nest(values: dict[str, Any]) -> dict[str, Any]:
     Old flat keys go to their section (``FLAT_KEYS``), ``model_overrides`` spreads into ``model``; a section given as
     a mapping (``optim: {lr: ...}``) wins over flat keys of the same layer. Keys neither flat nor a section stay at
     the top level (run-level fields, or unknown keys that TrainConfig rejects). ``None`` sections mean empty.
+    The inference settings that older configs kept under ``model`` (``input_scale``, ``refine``, ``cascade``, ...:
+    ``optstereo.models.config.LEGACY_INFERENCE_KEYS``) move to their ``inference`` fields; an ``inference`` value of
+    the same layer wins over them.
     """
     out: dict[str, Any] = {}
     sections: dict[str, dict[str, Any]] = {}
@@ -323,7 +346,14 @@ def nest(values: dict[str, Any]) -> dict[str, Any]:
             out.setdefault(section, {})[name] = {} if key == "analogy" and value is None else value
         else:
             out[key] = value
-    return merge(out, sections)
+    nested = merge(out, sections)
+    if isinstance(nested.get("model"), dict):
+        model, legacy = split_legacy_model_dict(nested["model"])
+        if legacy:
+            inference = nested.get("inference")
+            nested = {**nested, "model": model,
+                      "inference": {**legacy, **(inference if isinstance(inference, dict) else {})}}
+    return nested
 
 
 def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

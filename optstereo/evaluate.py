@@ -33,6 +33,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.metrics import MetricAccumulator
 
 logger = logging.getLogger(__name__)
@@ -97,7 +98,7 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
     try:
         from pvm_labeler.common.viz import error_map
     except ImportError:
-        from optstereo.inference import colorize
+        from optstereo.outputs import colorize
 
         err = np.where(np.isfinite(gt), np.abs(pred - gt), np.nan).astype(np.float32)
         return colorize(err, max_disp=5.0)  # saturates at 5 px, past KITTI's 3 px outlier threshold
@@ -105,7 +106,7 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
 
 
 def _save_maps(out_dir: Path, frame: Frame) -> None:
-    from optstereo.inference import colorize
+    from optstereo.outputs import colorize
     from pvm_labeler.common.io import write_image
 
     maps = out_dir / "maps"
@@ -166,7 +167,6 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
             writer.writeheader()
             writer.writerows(result.rows)
     clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.summary.items()}
-    files["json"].write_text(json.dumps(clean, indent=2, default=str))
     keys = [k for k in SUMMARY_KEYS if k in result.summary]
     lines = [f"# {title}", "", f"{result.summary['n_frames']} frames; pixels pooled over frames. EPE in px, "
              "the others in %; F1 = bad3 (> 3 px, the paper's definition); D1 = > 3 px and > 5 % (KITTI).", "",
@@ -176,7 +176,10 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
     for row in result.rows:
         lines.append("| " + " | ".join(_fmt(row[k]) for k in ("frame_id", "epe", "bad3", "d1_all", "d1_noc",
                                                               "density")) + " |")
-    files["md"].write_text("\n".join(lines) + "\n")
+    atomic_write_text(files["md"], "\n".join(lines) + "\n")
+    # summary.json last, each file whole or absent: its presence marks a finished evaluation (a full disk or a
+    # crash midway leaves the streamed metrics.csv and no summary.json)
+    atomic_write_text(files["json"], json.dumps(clean, indent=2, default=str))
     return files
 
 
@@ -227,18 +230,18 @@ def evaluate_model(
     """Evaluate a network on a dataset's GT; summary also holds the mean seconds per frame.
 
     Frames stream through (one decoded pair and its prediction in memory at a time); the timing is a running mean.
-    ``scale`` / ``refine`` None = the model's own input scale / post-filter (recorded in the summary as
-    ``input_scale`` / ``refine``; a model's adaptive scale as ``scale_refs``, and each frame's final scale in its
-    row).
+    ``scale`` / ``refine`` None = the model's own (its InferenceConfig, recorded whole in the summary as
+    ``inference``, and as ``input_scale`` / ``refine`` / ``scale_refs`` (the adaptive pass's references); each
+    frame's final scale in its row).
     """
-    from optstereo.inference import model_input_scale, model_refine, model_scale_refs
+    from optstereo.inference import model_inference_config
 
-    refs = model_scale_refs(model) if scale is None else None
-    refine = model_refine(model) if refine is None else refine
-    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp,
-            "input_scale": model_input_scale(model) if scale is None else scale,
-            "scale_refs": None if refs is None else {"scale_ref_disp": refs[0], "scale_ref_pixels": refs[1]},
-            "refine": refine, "seconds_per_frame": math.nan, **(meta or {})}
+    config = model_inference_config(model, iters, scale, refine)
+    refs = {"scale_ref_disp": config.adaptive_ref_disp, "scale_ref_pixels": config.adaptive_ref_pixels} \
+        if config.adaptive else None
+    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp, "input_scale": config.scale,
+            "scale_refs": refs, "refine": config.refine, "inference": config.to_dict(),
+            "seconds_per_frame": math.nan, **(meta or {})}
     count = 0
 
     def timed() -> Iterator[Frame]:

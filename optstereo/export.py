@@ -11,14 +11,13 @@ The exported graph is the test-mode network: N_s GRU iterations unrolled, the fi
 
 ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimiser of onnxscript 0.7 fails on this
 graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper. The ONNX
-file's metadata records the model's input scale (``input_scale``), its adaptive-scale references (``scale_ref_disp``,
-``scale_ref_pixels``, when set) and post-filter (``refine``), which :func:`infer_onnx` applies as ``infer`` does; a
-TorchScript file carries none of them, so its caller resizes by ``model.config.input_scale`` and filters by
-``model.config.refine`` (``optstereo.inference.apply_refine``) as ``infer`` does. A model with a coarse-to-fine start
-(``ModelConfig.cascade``) exports a graph with a third input, ``start`` (1, 1, H, W): a full-resolution disparity of
-the pair, zeros for the zero start; :func:`infer_onnx` feeds it the pass at half the scale, as ``infer`` does, and
-with ``cascade_select`` in the metadata (``ModelConfig.cascade_select``) keeps per pixel the better matching of that
-pass and the zero-start one (within ``cascade_select_jump`` of the width, when that is recorded and > 0).
+file's metadata records the model's InferenceConfig (key ``inference_config``, JSON), and :func:`infer_onnx` runs
+the graph through ``optstereo.inference.run`` with it, the same sequence as the torch model's (resize, pad, passes,
+unpad, resize back, post-filter); files written before that key read the old per-key metadata (``input_scale``,
+``refine``, ``scale_ref_disp``/``scale_ref_pixels``, ``cascade_select``/``cascade_select_jump``). A TorchScript file
+carries none of it: its caller runs the model's settings itself. A model with ``InferenceConfig.coarse_start``
+exports a graph with a third input, ``start`` (1, 1, H, W): a full-resolution disparity of the padded pair, zeros
+for the zero start, which the graph averages onto the 1/8 grid (``optstereo.cascade.grid_start``).
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -46,14 +45,18 @@ runtime.
 
 from __future__ import annotations
 
+import io
+import json
 import logging
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from optstereo.inference_config import InferenceConfig
 from pvm_labeler.common.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
@@ -65,7 +68,7 @@ FORMATS = ("onnx", "torchscript")
 class InferenceGraph(nn.Module):
     """(left, right) -> full-resolution disparity of the last of ``iters`` GRU iterations (test mode); with a third
     input ``start`` (1, 1, H, W), a full-resolution disparity of the pair (zeros = the zero start), the GRU starts
-    from it averaged onto the 1/8 grid (a model with ``ModelConfig.cascade``, optstereo.cascade)."""
+    from it averaged onto the 1/8 grid (a model with ``InferenceConfig.coarse_start``, optstereo.cascade)."""
 
     def __init__(self, model: nn.Module, iters: int | None = None) -> None:
         super().__init__()
@@ -95,17 +98,12 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):
         model.image_chunk = 0 if batch else 1  # the same outputs either way (tests/test_model_optstereo.py)
-    from optstereo.inference import model_input_scale, model_refine, model_scale_refs
+    from optstereo.checkpoint import model_inference
 
-    recorded = {"input_scale": repr(model_input_scale(model)), "refine": model_refine(model)}
-    config = getattr(model, "config", None)
-    cascade = bool(getattr(config, "cascade", False))
-    if getattr(config, "cascade_select", False):
-        recorded["cascade_select"] = "1"
-        recorded["cascade_select_jump"] = repr(float(getattr(config, "cascade_select_jump", 0.0)))
-    refs = model_scale_refs(model)
-    if refs is not None:
-        recorded.update(scale_ref_disp=repr(refs[0]), scale_ref_pixels=str(refs[1]))
+    config = model_inference(model)
+    config = config if iters is None else config.replace(iters=iters)  # the graph's own, fixed here
+    recorded = {"inference_config": json.dumps(config.to_dict())}
+    cascade = config.coarse_start
     try:
         return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch, recorded, cascade)
     finally:
@@ -127,11 +125,13 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
             program = torch.onnx.export(graph, inputs, dynamo=True, input_names=names,
                                         output_names=["disparity"], dynamic_shapes={n: dims for n in names},
                                         opset_version=OPSET, optimize=False, verbose=False)
-            # the model's input scale and post-filter travel in the file: infer_onnx applies them, as infer does
+            # the model's InferenceConfig travels in the file: infer_onnx runs it, as infer does
             program.model.metadata_props.update(recorded)
             program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
-            torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), str(tmp))
+            buffer = io.BytesIO()  # torch's file writer aborts the process on a full disk; Python's raises OSError
+            torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), buffer)
+            tmp.write_bytes(buffer.getvalue())
     return out
 
 
@@ -147,41 +147,62 @@ def onnx_session(path: Path | str, threads: int = 0):
 
 def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
                scale: float | None = None, refine: str | None = None) -> npt.NDArray[np.float32]:
-    """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session (padding as ``infer``; at
-    input ``scale`` and with post-filter ``refine``, None = the ones the file records, as ``infer`` at the model's
-    own)."""
-    from optstereo.inference import apply_refine, check_refine
-    from optstereo.rescale import scaled_passes
+    """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session, by ``optstereo.inference.run``
+    with the InferenceConfig the file records (:func:`onnx_inference_config`); ``scale``/``refine`` override it as
+    ``infer``'s do (a given scale is final)."""
+    from optstereo.inference import check_refine, run
 
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
+    config = onnx_inference_config(session)
+    if scale is not None:
+        config = config.replace(scale=float(scale), adaptive_ref_disp=0.0, adaptive_ref_pixels=0)
+    if refine is not None:
+        check_refine(refine)
+        config = config.replace(refine=refine)
+    return run(OnnxNetwork(session), left, right, config).disparity
+
+
+def onnx_inference_config(session) -> InferenceConfig:
+    """The InferenceConfig an exported file records: its ``inference_config`` metadata, or in files written before
+    it, the old per-key metadata (and ``coarse_start`` from the graph's third input)."""
     recorded = session.get_modelmeta().custom_metadata_map
-    refs = None
-    if scale is None and float(recorded.get("scale_ref_disp", 0.0)) > 0:
-        refs = (float(recorded["scale_ref_disp"]), int(recorded["scale_ref_pixels"]))
-    scale = float(recorded.get("input_scale", 1.0)) if scale is None else scale
-    refine = recorded.get("refine", "none") if refine is None else refine
-    check_refine(refine)
-    cascade = len(session.get_inputs()) == 3  # a graph with a start input (ModelConfig.cascade)
-    select = recorded.get("cascade_select") == "1"
-    jump = float(recorded.get("cascade_select_jump", 0.0))
-    disp, _ = scaled_passes(lambda l_s, r_s, start: _run_onnx(session, l_s, r_s, start), left, right, scale, refs,
-                            cascade, select, jump)
-    return apply_refine(disp, left, refine)
+    if "inference_config" in recorded:
+        return InferenceConfig.from_dict(json.loads(recorded["inference_config"]))
+    legacy: dict = {"scale": float(recorded.get("input_scale", 1.0)), "refine": recorded.get("refine", "none"),
+                    "coarse_start": len(session.get_inputs()) == 3}
+    if float(recorded.get("scale_ref_disp", 0.0)) > 0:
+        legacy.update(adaptive_ref_disp=float(recorded["scale_ref_disp"]),
+                      adaptive_ref_pixels=int(recorded["scale_ref_pixels"]))
+    if recorded.get("cascade_select") == "1":
+        legacy.update(select=True, select_jump=float(recorded.get("cascade_select_jump", 0.0)))
+    return InferenceConfig.from_dict(legacy)
 
 
-def _run_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-              start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
-    from optstereo.inference import to_batch
-    from optstereo.padding import InputPadder
+class OnnxNetwork(nn.Module):
+    """An onnxruntime session with the model's forward contract, so that ``optstereo.inference.run`` runs it as it
+    runs the torch model: (left, right, iters, test_mode=True, disp_init) -> (None, (1, 1, H, W) disparity).
 
-    cpu = torch.device("cpu")
-    left_t, right_t = to_batch(left, cpu), to_batch(right, cpu)
-    padder = InputPadder(left_t.shape, divis_by=8)
-    left_t, right_t = padder.pad(left_t, right_t)
-    feed = {"left": left_t.numpy(), "right": right_t.numpy()}
-    if len(session.get_inputs()) == 3:
-        start_t = torch.zeros(1, 1, *left.shape[:2]) if start is None else torch.from_numpy(start)[None, None]
-        feed["start"] = padder.pad(start_t.float())[0].numpy()
-    disp = session.run(["disparity"], feed)[0]
-    return padder.unpad(torch.from_numpy(disp))[0, 0].numpy().astype(np.float32)
+    ``iters`` is the graph's own (fixed at export). ``disp_init`` (1, 1, H/8, W/8) in 1/8-grid pixels reaches a
+    graph with a ``start`` input as the full-resolution disparity whose 8x8 cell means it is (x8, each cell
+    repeated), which the graph averages back onto the grid; a graph without one refuses it.
+    """
+
+    divisor = 8  # the exported OptStereo's multiple (optstereo.padding.divisor_of)
+
+    def __init__(self, session) -> None:
+        super().__init__()
+        self.session = session
+        self.has_start = len(session.get_inputs()) == 3
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = True,
+                disp_init: torch.Tensor | None = None) -> tuple[None, torch.Tensor]:
+        feed = {"left": left.float().cpu().numpy(), "right": right.float().cpu().numpy()}
+        if disp_init is not None and not self.has_start:
+            raise ValueError("this ONNX graph has no start input: it was exported from a model without coarse_start")
+        if self.has_start:
+            start = torch.zeros(left.shape[0], 1, *left.shape[-2:]) if disp_init is None else \
+                F.interpolate(disp_init.float().cpu(), scale_factor=8, mode="nearest") * 8
+            feed["start"] = start.numpy()
+        disp = self.session.run(["disparity"], feed)[0]
+        return None, torch.from_numpy(disp).to(left.device)

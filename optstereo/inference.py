@@ -1,8 +1,14 @@
-"""Inference and disparity files in the field's formats: ``optstereo-predict``.
+"""The one inference path: a network and an ``InferenceConfig`` -> the disparity of a pair (``run``).
 
-Outputs per frame (``formats`` picks them): ``png`` KITTI 16-bit PNG (disparity x 256, 0 = invalid), ``pfm``
-(float32, Middlebury/Scene Flow), ``npy`` (float32), ``color`` (8-bit colour rendering for people). The KITTI form
-(``kitti_layout=True``) names files as the benchmark's submission expects: ``disp_0/<frame>_10.png``.
+``run`` resizes the pair once by ``InferenceConfig.scale``, pads it to the network's multiple, runs the network
+pass(es) in order, unpads, brings the disparity back to the input's size and pixels, and applies the post-filter.
+The passes: the zero-start one; with ``adaptive_ref_disp`` set, the same again on a small pair enlarged by
+``optstereo.rescale.adaptive_factor``; with ``coarse_start`` the final pass starts its GRU from
+``optstereo.cascade.coarse_start`` (the training's own function: a pass on the padded pair at half size), and with
+``select`` per pixel the better matching of it and the zero-start pass is kept. ``infer`` is the thin public
+wrapper (the model's own settings, with ``iters``/``scale``/``refine`` overrides); ``network_pass`` is one pass on a
+pair as given, optionally started from a disparity. ``optstereo.export.infer_onnx`` runs an ONNX graph through the
+same ``run``. Writing the results to files: ``optstereo.outputs``.
 """
 
 from __future__ import annotations
@@ -10,27 +16,25 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-import time
-from collections.abc import Iterable
+from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 import torch
 from torch import nn
 
+from optstereo.cascade import coarse_start, grid_start, jump_limit, photometric_select
+from optstereo.checkpoint import model_inference
+from optstereo.inference_config import REFINERS, InferenceConfig
 from optstereo.padding import InputPadder, divisor_of
-from optstereo.rescale import PairRun, scaled_passes
-from optstereo.submission import write_submission
+from optstereo.rescale import adaptive_factor, disparity_to_size, rescaled_pair
 from pvm_labeler.common.version import cpuinfo_flags
 
 logger = logging.getLogger(__name__)
 
-FORMATS = ("png", "pfm", "npy", "color")
-GEOMETRY_FORMATS = ("depth-png", "depth-pfm", "depth-npy", "ply")  # need a calibration (optstereo.geometry)
-DEFAULT_FORMATS = ("png", "color")
+Image = npt.NDArray[np.uint8]
+Disparity = npt.NDArray[np.float32]
 
 
 def to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor:
@@ -90,28 +94,16 @@ def inference_autocast(amp: str, device: torch.device) -> contextlib.AbstractCon
     return torch.autocast(device_type=device.type, dtype=torch.bfloat16 if amp == "bf16" else torch.float16)
 
 
-def model_input_scale(model: nn.Module) -> float:
-    """The input scale a model's config records (``ModelConfig.input_scale``), 1.0 for a model without one."""
-    return float(getattr(getattr(model, "config", None), "input_scale", 1.0))
-
-
-def model_refine(model: nn.Module) -> str:
-    """The post-filter a model's config records (``ModelConfig.refine``), "none" for a model without one."""
-    return str(getattr(getattr(model, "config", None), "refine", "none"))
-
-
 def check_refine(refine: str) -> None:
-    """Raise ValueError unless ``refine`` names a post-filter (ModelConfig.refine)."""
-    from optstereo.models.config import REFINERS
-
+    """Raise ValueError unless ``refine`` names a post-filter (InferenceConfig.refine)."""
     if refine not in REFINERS:
         raise ValueError(f"refine must be one of {REFINERS}, got {refine!r}")
 
 
 def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], refine: str,
                  device: torch.device | str = "cpu") -> npt.NDArray[np.float32]:
-    """The post-filter ``refine`` ("none" or "wmedian", see ModelConfig.refine) on an (H, W) float32 disparity of the
-    (H, W, 3) uint8 left image; on a CUDA ``device`` the median runs there (``optstereo.refine_torch``), on the CPU
+    """The post-filter ``refine`` ("none" or "wmedian", see InferenceConfig.refine) on an (H, W) float32 disparity of
+    the (H, W, 3) uint8 left image; on a CUDA ``device`` the median runs there (``optstereo.refine_torch``), on the CPU
     in the labeler's numba kernel."""
     check_refine(refine)
     if refine == "none":
@@ -125,44 +117,51 @@ def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], ref
     return weighted_median(disp, left)
 
 
-def model_scale_refs(model: nn.Module) -> tuple[float, int] | None:
-    """(scale_ref_disp, scale_ref_pixels) of a model whose config records an adaptive input scale, else None."""
-    config = getattr(model, "config", None)
-    ref_disp = float(getattr(config, "scale_ref_disp", 0.0))
-    return (ref_disp, int(getattr(config, "scale_ref_pixels", 0))) if ref_disp > 0 else None
-
-
 @dataclass(frozen=True)
 class Inference:
     """One pair's disparity and the factor its pair was resized by for the network's final pass."""
 
-    disparity: npt.NDArray[np.float32]
+    disparity: Disparity
     input_scale: float
+
+
+def model_inference_config(model: nn.Module, iters: int | None = None, scale: float | None = None,
+                           refine: str | None = None) -> InferenceConfig:
+    """The model's InferenceConfig (``model.inference_config``, else the defaults) with the caller's overrides: a
+    given ``scale`` is final (no adaptive pass), ``iters``/``refine`` None keep the model's."""
+    config = model_inference(model)
+    changes: dict = {}
+    if scale is not None:
+        changes.update(scale=float(scale), adaptive_ref_disp=0.0, adaptive_ref_pixels=0)
+    if iters is not None:
+        changes["iters"] = iters
+    if refine is not None:
+        check_refine(refine)
+        changes["refine"] = refine
+    return config.replace(**changes) if changes else config
 
 
 def infer(
     model: nn.Module,
-    left: npt.NDArray[np.uint8],
-    right: npt.NDArray[np.uint8],
+    left: Image,
+    right: Image,
     iters: int | None = None,
     device: torch.device | str = "cpu",
     amp: str = "none",
     scale: float | None = None,
     refine: str | None = None,
-) -> npt.NDArray[np.float32]:
-    """Full-resolution disparity of one pair.
+) -> Disparity:
+    """Full-resolution disparity of one pair, run as the model's InferenceConfig says (:func:`run`).
 
     Args:
         model: OptStereo-like model (test_mode=True returns (low, full)).
         left, right: (H, W, 3) uint8 RGB of equal shape (any H, W: padded to the model's multiple and un-padded).
-        iters: GRU iterations (None = the model's default).
+        iters: GRU iterations (None = the config's, else the model's default).
         amp: ``none`` (float32), ``bf16`` (CPU with AVX512-BF16/AMX, or CUDA) or ``fp16`` (CUDA).
-        scale: resize both images by this factor before the network (see :func:`rescaled_pair`) and bring the
-            disparity back to the input's size and pixel units; 1 = as given, None = the model's own
-            (:func:`model_input_scale`, enlarged further for a small pair when the model records an adaptive
-            scale: :func:`infer_scaled`).
-        refine: post-filter of the disparity at the input's size, guided by ``left``: "none", "wmedian"; None =
-            the model's own (:func:`model_refine`).
+        scale: resize both images by this factor before the network and bring the disparity back to the input's
+            size and pixels; 1 = as given, None = the model's own (``InferenceConfig.scale``, with its adaptive pass
+            for small pairs when set). A given scale is final.
+        refine: post-filter at the input's size, guided by ``left``: "none", "wmedian"; None = the model's own.
 
     Returns:
         (H, W) float32 disparity in pixels of the input (positive, left(x) matches right(x - d)).
@@ -170,208 +169,116 @@ def infer(
     return infer_scaled(model, left, right, iters, device, amp, scale, refine).disparity
 
 
-@torch.inference_mode()
 def infer_scaled(
     model: nn.Module,
-    left: npt.NDArray[np.uint8],
-    right: npt.NDArray[np.uint8],
+    left: Image,
+    right: Image,
     iters: int | None = None,
     device: torch.device | str = "cpu",
     amp: str = "none",
     scale: float | None = None,
     refine: str | None = None,
 ) -> Inference:
-    """:func:`infer`, also returning the input scale of the final pass.
-
-    With ``scale`` None and a model that records ``scale_ref_disp`` (:func:`model_scale_refs`), the first pass at
-    the model's input scale decides whether a second, larger one runs (:func:`optstereo.rescale.adaptive_factor`):
-    a small pair with small disparities is enlarged until they match the model's training pairs. A given ``scale``
-    is always used as it is. A model with ``ModelConfig.cascade`` starts the final pass's GRU from a pass at half its
-    scale (optstereo.cascade) instead of zero; with ``ModelConfig.cascade_select``, per pixel the better matching of
-    that pass and the zero-start one (within ``ModelConfig.cascade_select_jump`` of it, when set).
-    """
+    """:func:`infer`, also returning the input scale of the final pass (above the config's after an adaptive pass)."""
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
-    refs = model_scale_refs(model) if scale is None else None
-    scale = model_input_scale(model) if scale is None else scale
-    refine = model_refine(model) if refine is None else refine
-    check_refine(refine)  # before the network runs, not after
+    return run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
+
+
+@torch.inference_mode()
+def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | None = None,
+        device: torch.device | str = "cpu", amp: str = "none") -> Inference:
+    """The disparity of one (H, W, 3) uint8 pair as ``config`` says (None = the model's ``model.inference_config``).
+
+    In order: the zero-start pass at ``config.scale`` (unless only a coarse-started one is wanted); with
+    ``adaptive_ref_disp``, a second one at the enlarged scale when :func:`optstereo.rescale.adaptive_factor` asks for
+    it; with ``coarse_start`` the pass started from ``optstereo.cascade.coarse_start`` on the same resized, padded
+    pair, and with ``select`` the per-pixel choice between it and the zero-start pass; then the post-filter.
+    Returns the (H, W) float32 disparity in the input's pixels and the scale of the final pass.
+    """
+    config = (config or model_inference(model)).validate()
+    if left.shape != right.shape:
+        raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     device = torch.device(device)
-    config = getattr(model, "config", None)
-    cascade = bool(getattr(config, "cascade", False))
-    select = bool(getattr(config, "cascade_select", False))
-    jump = float(getattr(config, "cascade_select_jump", 0.0))
-    disp, final = scaled_passes(network_run(model, iters, device, amp), left, right, scale, refs, cascade, select,
-                                jump)
-    if final != scale:
-        logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0], scale,
-                    final)
-    return Inference(apply_refine(disp, left, refine, device), final)
+    scale = config.scale
+    zero = coarse = None
+    with _eval_mode(model):
+        if not config.coarse_start or config.select or config.adaptive:
+            zero = _pass_at(model, left, right, scale, config.iters, device, amp)
+            gain = adaptive_factor(zero, config.adaptive_ref_disp, config.adaptive_ref_pixels) if config.adaptive \
+                else 1.0
+            if gain > 1.0:
+                logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0],
+                            scale, scale * gain)
+                scale *= gain
+                zero = None if config.coarse_start and not config.select else \
+                    _pass_at(model, left, right, scale, config.iters, device, amp)
+        if config.coarse_start:
+            coarse = _pass_at(model, left, right, scale, config.iters, device, amp, coarse=True)
+    if coarse is None:
+        disp = zero
+    elif config.select:
+        disp = photometric_select(left, right, (coarse, zero), max_jump=jump_limit(left.shape[1], config.select_jump))
+    else:
+        disp = coarse
+    return Inference(apply_refine(disp, left, config.refine, device), scale)
 
 
-def network_run(model: nn.Module, iters: int | None = None, device: torch.device | str = "cpu",
-                amp: str = "none") -> PairRun:
-    """The network as an ``optstereo.rescale.PairRun``: (left, right, start or None) -> (H, W) float32 disparity of
-    the pair as given, without gradients; the building block of ``infer``'s passes (``scaled_passes``)."""
+def _pass_at(model: nn.Module, left: Image, right: Image, scale: float, iters: int | None, device: torch.device,
+             amp: str, coarse: bool = False) -> Disparity:
+    """The disparity of the pair resized by ``scale`` and padded, back at the input's (H, W) and pixels: its GRU
+    started from zero, or with ``coarse`` from ``optstereo.cascade.coarse_start`` of the same padded pair."""
+    left_s, right_s = (left, right) if scale == 1.0 else rescaled_pair(left, right, scale)
+    left_t, right_t = to_batch(left_s, device), to_batch(right_s, device)
+    padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
+    left_t, right_t = padder.pad(left_t, right_t)
+    with inference_autocast(amp, device):
+        extra = {"disp_init": coarse_start(model, left_t, right_t, iters)} if coarse else {}
+        _, full = model(left_t, right_t, iters=iters, test_mode=True, **extra)
+    disp = padder.unpad(full)[0, 0].float().cpu().numpy().astype(np.float32)
+    return disp if scale == 1.0 else disparity_to_size(disp, left.shape[:2])
+
+
+def pass_at_scale(model: nn.Module, left: Image, right: Image, scale: float = 1.0, start: Disparity | None = None,
+                  iters: int | None = None, device: torch.device | str = "cpu", amp: str = "none") -> Disparity:
+    """One :func:`network_pass` on the pair resized by ``scale`` (its GRU from ``start``, an (H, W) float32 disparity
+    of the input resized with it, or from zero), back at the input's (H, W) and pixels; no post-filter. The building
+    block of a sequence's started frames and of the mirrored pass of a confidence."""
+    if scale == 1.0:
+        return network_pass(model, left, right, start, iters, device, amp)
+    left_s, right_s = rescaled_pair(left, right, scale)
+    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
+    return disparity_to_size(network_pass(model, left_s, right_s, start_s, iters, device, amp), left.shape[:2])
+
+
+@torch.inference_mode()
+def network_pass(model: nn.Module, left: Image, right: Image, start: Disparity | None = None,
+                 iters: int | None = None, device: torch.device | str = "cpu", amp: str = "none") -> Disparity:
+    """One network pass on a pair as given: (H, W, 3) uint8 each -> (H, W) float32 disparity, no resizing, no filter.
+
+    The pair is padded to the model's multiple and the output un-padded; the GRU starts from ``start`` ((H, W)
+    float32 disparity of the pair, padded like it and averaged onto the 1/8 grid: ``optstereo.cascade.grid_start``)
+    or from zero.
+    """
     device = torch.device(device)
+    left_t, right_t = to_batch(left, device), to_batch(right, device)
+    padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
+    left_t, right_t = padder.pad(left_t, right_t)
+    extra = {}
+    if start is not None:
+        start_t = torch.from_numpy(np.ascontiguousarray(start, np.float32))[None, None].to(device)
+        extra["disp_init"] = grid_start(padder.pad(start_t)[0])
+    with _eval_mode(model), inference_autocast(amp, device):
+        _, full = model(left_t, right_t, iters=iters, test_mode=True, **extra)
+    return padder.unpad(full)[0, 0].float().cpu().numpy().astype(np.float32)
 
-    def run(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-            start: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
-        with torch.inference_mode():
-            return _network(model, left, right, iters, device, amp, start)
 
-    return run
-
-
-def _network(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], iters: int | None,
-             device: torch.device, amp: str, start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
-    """The network's (H, W) float32 disparity of a pair as given (padded to its multiple and un-padded), its GRU
-    started from ``start`` ((H, W) disparity of the pair, padded like it and averaged onto the 1/8 grid) or zero."""
+@contextlib.contextmanager
+def _eval_mode(model: nn.Module) -> Iterator[None]:
+    """``model`` in eval mode inside the block, its own mode restored after."""
     was_training = model.training
     model.eval()
     try:
-        left_t, right_t = to_batch(left, device), to_batch(right, device)
-        padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
-        left_t, right_t = padder.pad(left_t, right_t)
-        extra = {}
-        if start is not None:
-            from optstereo.cascade import grid_start
-
-            start_t = torch.from_numpy(np.ascontiguousarray(start, np.float32))[None, None].to(device)
-            extra["disp_init"] = grid_start(padder.pad(start_t)[0])
-        with inference_autocast(amp, device):
-            _, full = model(left_t, right_t, iters=iters, test_mode=True, **extra)
-        disp = padder.unpad(full)[0, 0]
+        yield
     finally:
         model.train(was_training)
-    return disp.float().cpu().numpy().astype(np.float32)
-
-
-def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
-    """(H, W, 3) uint8 colour rendering of a disparity map (NaN = black), via the labeler's viz module."""
-    try:
-        from pvm_labeler.common.viz import colorize_disparity
-    except ImportError:  # viz is optional for inference; fall back to OpenCV's turbo map
-        import cv2
-
-        finite = np.isfinite(disp)
-        vmax = max_disp or (float(disp[finite].max()) if finite.any() else 1.0)
-        grey = np.clip(np.nan_to_num(disp) / max(vmax, 1e-6) * 255.0, 0, 255).astype(np.uint8)
-        out = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)[..., ::-1].copy()
-        out[~finite] = 0
-        return out
-    return colorize_disparity(disp, max_disp=max_disp)
-
-
-def write_disparity(
-    out_dir: Path, name: str, disp: npt.NDArray[np.float32], formats: Iterable[str] = DEFAULT_FORMATS,
-    *, kitti_layout: bool = False, max_disp: float | None = None,
-) -> dict[str, Path]:
-    """Write one disparity map in the requested formats; returns format -> path.
-
-    With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
-    ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders.
-    """
-    from pvm_labeler.common.io import write_image, write_kitti_disp, write_pfm
-
-    formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
-    unknown = sorted(set(formats) - set(FORMATS))
-    if unknown:
-        raise ValueError(f"unknown output formats {unknown}; choose from {FORMATS}")
-    out_dir = Path(out_dir)
-    folders = {"png": "disp_0", "pfm": "pfm", "npy": "npy", "color": "color"} if kitti_layout else {}
-    paths: dict[str, Path] = {}
-    for fmt in formats:
-        folder = out_dir / folders.get(fmt, "")
-        folder.mkdir(parents=True, exist_ok=True)
-        if fmt == "png":
-            paths[fmt] = folder / f"{name}.png"
-            write_kitti_disp(paths[fmt], disp)
-        elif fmt == "pfm":
-            paths[fmt] = folder / f"{name}.pfm"
-            write_pfm(paths[fmt], disp.astype(np.float32))
-        elif fmt == "npy":
-            paths[fmt] = folder / f"{name}.npy"
-            np.save(paths[fmt], disp.astype(np.float32))
-        else:
-            paths[fmt] = folder / f"{name}_color.png"
-            write_image(paths[fmt], colorize(disp, max_disp))
-    return paths
-
-
-def write_geometry(
-    out_dir: Path, name: str, disp: npt.NDArray[np.float32], image: npt.NDArray[np.uint8], calib: Any,
-    formats: Iterable[str], max_depth: float = float("inf"),
-) -> dict[str, Path]:
-    """Depth (16-bit mm PNG, PFM/NPY in m) and a coloured PLY point cloud of one prediction; format -> path."""
-    from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
-    from pvm_labeler.common.io import write_pfm
-
-    wanted = [f for f in formats if f in GEOMETRY_FORMATS]
-    if not wanted:
-        return {}
-    if calib is None:
-        raise ValueError(f"formats {wanted} need a calibration: pass --calib FILE")
-    depth = disparity_to_depth(disp, calib, max_depth)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-    for fmt in wanted:
-        if fmt == "depth-png":
-            paths[fmt] = out_dir / f"{name}_depth.png"
-            write_depth_png(paths[fmt], depth)
-        elif fmt == "depth-pfm":
-            paths[fmt] = out_dir / f"{name}_depth.pfm"
-            write_pfm(paths[fmt], depth)
-        elif fmt == "depth-npy":
-            paths[fmt] = out_dir / f"{name}_depth.npy"
-            np.save(paths[fmt], depth)
-        else:
-            paths[fmt] = out_dir / f"{name}.ply"
-            write_ply(paths[fmt], *depth_to_points(depth, calib, image))
-    return paths
-
-
-def predict_pair(
-    model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
-    formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
-    calib: Any = None, max_depth: float = float("inf"), scale: float | None = None, refine: str | None = None,
-) -> dict[str, Path]:
-    """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
-    from pvm_labeler.common.io import read_image
-
-    left, right = read_image(left_path), read_image(right_path)
-    if left.shape != right.shape:
-        raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
-    t0 = time.perf_counter()
-    disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale, refine=refine)
-    logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
-    stem = Path(left_path).stem
-    return {**write_disparity(out_dir, stem, disp, formats),
-            **write_geometry(out_dir, stem, disp, left, calib, formats, max_depth)}
-
-
-def predict_dataset(
-    model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
-    iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
-    limit: int | None = None, amp: str = "none", submission: Path | None = None,
-    reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
-) -> list[dict[str, Path]]:
-    """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
-
-    With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server.
-    """
-    from pvm_labeler.common.datasets import discover, load_pair
-
-    refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
-    if submission is not None and not dataset.startswith("kitti"):
-        raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
-    written = []
-    for ref in refs:
-        sample = load_pair(ref)
-        disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
-                     refine=refine)
-        written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
-    if submission is not None:
-        write_submission(out_dir, submission, refs)
-    return written

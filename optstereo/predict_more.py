@@ -99,7 +99,7 @@ def _confidence(model: nn.Module, left: np.ndarray, right: np.ndarray, disp: npt
 
 def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,
            more: MoreOptions, formats: tuple[str, ...], kitti_layout: bool) -> dict[str, Path]:
-    from optstereo.inference import write_disparity
+    from optstereo.outputs import write_disparity
 
     if conf is not None and more.min_confidence > 0:
         disp = np.where(conf >= more.min_confidence, disp, np.nan).astype(np.float32)

@@ -1,5 +1,5 @@
 """Resizing a stereo pair and its disparities by one factor: inference at another input scale (``--scale``) and
-the training's spatial scale augmentation (``--scale-range``).
+the training's spatial scale augmentation (``--scale-range``); pure helpers, which ``optstereo.inference.run`` calls.
 
 A disparity is a horizontal distance in pixels of the image it was measured on, so resizing a pair's width from W
 to w multiplies its disparities by w / W. Rows stay aligned under a resize of both views, so the pair stays
@@ -9,18 +9,13 @@ rectified.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
 __all__ = ["ADAPTIVE_MIN_GAIN", "ADAPTIVE_PERCENTILE", "adaptive_factor", "disparity_to_size", "rescaled_pair",
-           "coarse_started", "run_at_scale", "scaled_passes", "scaled_size", "sparse_to_size"]
-
-#: A network run on a pair as given: (left, right, start or None) -> (H, W) disparity in that pair's pixels.
-PairRun = Callable[[npt.NDArray[np.uint8], npt.NDArray[np.uint8], "npt.NDArray[np.float32] | None"],
-                   npt.NDArray[np.float32]]
+           "scaled_size", "sparse_to_size"]
 
 #: The percentile of a first pass's disparity that :func:`adaptive_factor` compares with the model's reference: the
 #: top of the pair's disparity range, robust to a few wild pixels.
@@ -86,50 +81,3 @@ def adaptive_factor(disp: npt.NDArray[np.float32], ref_disp: float, ref_pixels: 
     by_pixels = math.sqrt(ref_pixels / (disp.shape[0] * disp.shape[1]))
     factor = min(by_disp, by_pixels)
     return factor if factor >= ADAPTIVE_MIN_GAIN else 1.0
-
-
-def run_at_scale(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
-                 start: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
-    """``run`` on the pair resized by ``scale`` (with ``start``, an (H, W) disparity of the input, resized with it),
-    its disparity brought back to the input's (H, W) and pixels."""
-    if scale == 1.0:
-        return run(left, right, start)
-    left_s, right_s = rescaled_pair(left, right, scale)
-    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
-    return disparity_to_size(run(left_s, right_s, start_s), left.shape[:2])
-
-
-def coarse_started(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
-                   scale: float) -> npt.NDArray[np.float32]:
-    """The pass at ``scale`` whose GRU starts from the pass at half that scale (optstereo.cascade), at the input's
-    (H, W) and pixels."""
-    return run_at_scale(run, left, right, scale, start=run_at_scale(run, left, right, scale / 2))
-
-
-def scaled_passes(run: PairRun, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], scale: float,
-                  refs: tuple[float, int] | None = None,
-                  cascade: bool = False, select: bool = False,
-                  select_jump: float = 0.0) -> tuple[npt.NDArray[np.float32], float]:
-    """(disparity, final scale) of the passes a model's settings ask for, shared by ``infer`` and ``infer_onnx``:
-    one at ``scale``; with ``refs`` (scale_ref_disp, scale_ref_pixels) a second one enlarged by
-    :func:`adaptive_factor` when that is above 1; with ``cascade`` the final one started from a pass at half its
-    scale (optstereo.cascade); with ``select`` as well, per pixel the better matching (photometric error) of that
-    final pass and the zero-start pass at the same scale, which the passes before it already ran
-    (``optstereo.cascade.photometric_select``), the zero start only within ``select_jump`` x width pixels of the
-    coarse one when that is > 0 (``ModelConfig.cascade_select_jump``)."""
-    if select and not cascade:
-        raise ValueError("select needs cascade: it chooses between the coarse-start pass and the zero-start one")
-    disp = run_at_scale(run, left, right, scale)
-    if refs is not None:
-        gain = adaptive_factor(disp, *refs)
-        if gain > 1.0:
-            scale *= gain
-            disp = run_at_scale(run, left, right, scale)
-    if cascade:
-        zero = disp
-        disp = coarse_started(run, left, right, scale)
-        if select:
-            from optstereo.cascade import jump_limit, photometric_select
-
-            disp = photometric_select(left, right, (disp, zero), max_jump=jump_limit(left.shape[1], select_jump))
-    return disp, scale

@@ -3,7 +3,7 @@
 The first frame runs the plain path (``optstereo.inference.infer_scaled``: the model's own passes, scale and
 post-filter), so a one-frame sequence equals it exactly. Every later frame runs one network pass at the first
 frame's final input scale, its D_s^0 the previous frame's disparity averaged onto the 1/8 grid
-(``optstereo.cascade.grid_start``, inside ``optstereo.inference._network``) and ``sequence_iters`` GRU iterations,
+(``optstereo.cascade.grid_start``, inside ``optstereo.inference.network_pass``) and ``sequence_iters`` GRU iterations,
 then the same post-filter. Between consecutive frames of a video most disparities move by a fraction of a 1/8-grid
 cell, so a few iterations finish the walk that a zero start needs all of its iterations for.
 
@@ -58,8 +58,7 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
         sequence_iters: GRU iterations of every later frame, started from the previous answer.
         scale, refine: as ``optstereo.inference.infer``; later frames reuse the first frame's final scale.
     """
-    from optstereo.inference import apply_refine, infer_scaled, model_refine, network_run
-    from optstereo.rescale import run_at_scale
+    from optstereo.inference import apply_refine, infer_scaled, model_inference_config, pass_at_scale
 
     if sequence_iters < 1:
         raise ValueError(f"sequence_iters must be >= 1, got {sequence_iters}")
@@ -68,9 +67,9 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
         result = infer_scaled(model, left, right, iters, device, amp, scale, refine)
         state.disparity, state.scale = result.disparity, result.input_scale
         return result.disparity
-    refine = model_refine(model) if refine is None else refine
-    run = network_run(model, sequence_iters, device, amp)
-    disp = run_at_scale(run, left, right, state.scale, start=np.nan_to_num(prev, nan=0.0).astype(np.float32))
+    refine = model_inference_config(model, refine=refine).refine
+    disp = pass_at_scale(model, left, right, state.scale, np.nan_to_num(prev, nan=0.0).astype(np.float32),
+                         sequence_iters, device, amp)
     state.disparity = apply_refine(disp, left, refine, device)
     return state.disparity
 

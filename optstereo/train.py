@@ -15,7 +15,6 @@ import logging
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +31,7 @@ from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.inference import warn_if_emulated_bf16
 from optstereo.train_config import TrainConfig
 from optstereo.train_log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
-from optstereo.train_resume import checkpoint_saver, init_weights, restore
+from optstereo.train_resume import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
 
 logger = logging.getLogger(__name__)
 
@@ -43,10 +42,13 @@ class NonFiniteLossError(RuntimeError):
 
 # -- building blocks ------------------------------------------------------------------------------------------------
 def build_model(cfg: TrainConfig) -> nn.Module:
-    """The network of cfg.model (a resolved ModelConfig; its iters is N_s of training)."""
+    """The network of cfg.model (a resolved ModelConfig; its iters is N_s of training), carrying cfg.inference as
+    ``model.inference_config``: the run's checkpoints, exports and validation use it."""
     from optstereo.models import build_from_config
 
-    return build_from_config(cfg.model)
+    model = build_from_config(cfg.model)
+    model.inference_config = cfg.inference
+    return model
 
 
 def build_loss(cfg: TrainConfig) -> nn.Module:
@@ -128,18 +130,6 @@ def autocast_context(cfg: TrainConfig, device: torch.device) -> contextlib.Abstr
 
 
 # -- the loop ------------------------------------------------------------------------------------------------------
-@dataclass
-class TrainState:
-    """Mutable state the loop advances; ``step`` counts completed optimiser steps."""
-
-    model: nn.Module
-    optimizer: torch.optim.Optimizer
-    scheduler: Any | None
-    scaler: torch.amp.GradScaler
-    step: int = 0
-    history: list[dict[str, float]] = field(default_factory=list)
-
-
 def _check_finite(total: torch.Tensor, terms: dict[str, torch.Tensor], step: int, device: torch.device) -> None:
     bad = torch.tensor([0.0 if torch.isfinite(total.detach()).item() else 1.0], device=device)
     if torch.distributed.is_available() and torch.distributed.is_initialized():
@@ -348,6 +338,8 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg.save(run_dir)
+        if resume:
+            remove_stale_temps(run_dir)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
     if ckpt is None and cfg.init is not None:

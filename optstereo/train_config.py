@@ -3,6 +3,7 @@
 Layout (one field, one place)::
 
     model:  ModelConfig  (optstereo.models.config: the network, including N_s = model.iters)
+    inference: InferenceConfig (optstereo.inference_config: how the run's exports are run; written into them)
     loss:   LossConfig   (L_P/L_R/L_S weights, alpha, photometric_iters, conf_weight, L_T)
     data:   DataConfig   (labels, supervision, batch, crop, augmentation, workers)
     optim:  OptimConfig  (steps, lr, schedule, clipping)
@@ -30,6 +31,7 @@ from optstereo.config import (
     SCHEDULES,
     SUPERVISIONS,
     DataConfig,
+    InferenceConfig,
     LossConfig,
     ModelConfig,
     OptimConfig,
@@ -48,20 +50,22 @@ AMP_MODES = ("none", "bf16", "fp16")
 DEVICES = ("auto", "cpu", "cuda")
 CONFIG_FILE = "config.yaml"
 _SECTIONS: dict[str, type] = {
-    "model": ModelConfig, "loss": LossConfig, "data": DataConfig, "optim": OptimConfig, "val": ValConfig,
+    "model": ModelConfig, "inference": InferenceConfig, "loss": LossConfig, "data": DataConfig,
+    "optim": OptimConfig, "val": ValConfig,
 }
 _PATHS = ("out", "init")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """All settings of a training run: five sections and the run-level fields below.
+    """All settings of a training run: six sections and the run-level fields below.
 
     Attributes:
-        model, loss, data, optim, val: the sections (see the module docstring and each class).
+        model, inference, loss, data, optim, val: the sections (see the module docstring and each class).
         out: run directory (checkpoints, metrics.jsonl, TensorBoard events, config.yaml).
         init: start from this checkpoint's weights (fine-tuning / continuing later) with a new optimizer and
-            schedule; the model settings are taken from the checkpoint. Unlike --resume it starts at step 0.
+            schedule; the model and inference settings are taken from the checkpoint (flags override them). Unlike
+            --resume it starts at step 0.
         device: "auto" (cuda if available), "cpu" or "cuda".
         amp: "none", "bf16" (CUDA or CPU) or "fp16" (CUDA only, with a GradScaler).
         seed: global seed (model init, shuffling, augmentation).
@@ -75,6 +79,7 @@ class TrainConfig:
     """
 
     model: ModelConfig = field(default_factory=ModelConfig)
+    inference: InferenceConfig = field(default_factory=InferenceConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     data: DataConfig = field(default_factory=DataConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -96,11 +101,11 @@ class TrainConfig:
         # Resolving here (the one place) keeps the recorded config explicit: a saved gt run says lambda_r: 0.0.
         object.__setattr__(self, "loss", self.loss.with_supervision_defaults(self.data.supervision))
         lo, hi = self.data.scale_range
-        if (lo, hi) != (1.0, 1.0) and self.model.input_scale == 1.0:
+        if (lo, hi) != (1.0, 1.0) and self.inference.scale == 1.0:
             # Weights trained on crops enlarged by U(lo, hi) run best near the middle of that range (RESULTS.md's
             # input-scale scans); recording it makes predict/eval of the run's exports default to it. A config that
-            # sets its own input_scale keeps it.
-            object.__setattr__(self, "model", dataclasses.replace(self.model, input_scale=(lo + hi) / 2))
+            # sets its own inference.scale keeps it.
+            object.__setattr__(self, "inference", dataclasses.replace(self.inference, scale=(lo + hi) / 2))
         try:
             self.model.validate()
         except ValueError as exc:
@@ -180,6 +185,11 @@ def _section_dict(value: Any) -> Any:
 
 
 def _build_section(name: str, values: dict[str, Any]) -> Any:
+    if name == "inference":
+        try:
+            return InferenceConfig.from_dict(values)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"inference: {exc}") from exc
     if name != "model":
         return _SECTIONS[name].from_dict(values)
     from optstereo.models import model_config  # the registry's variant defaults (optstereo_ss_d4: 1 level, ...)

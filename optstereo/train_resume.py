@@ -1,10 +1,11 @@
 """Checkpoints of a training run: periodic saving, ``--resume`` (state and config) and ``--init`` (weights only).
 
-``checkpoint_saver`` writes ``ckpt-<step>.pt`` and ``last.pt`` atomically on rank 0; ``restore`` puts a checkpoint's
-model/optimizer/scheduler/scaler/RNG states back into the loop's ``TrainState``; ``config_for_resume`` rebuilds the
-run's TrainConfig from its last checkpoint (nested, or the flat dict of runs saved before the config had sections);
-``init_settings`` and ``init_weights`` take the model settings and the weights of an ``--init`` checkpoint, which is
-read once (``load_checkpoint``) and passed to both.
+``TrainState`` is what the loop advances and a checkpoint holds; ``checkpoint_saver`` writes ``ckpt-<step>.pt`` and
+``last.pt`` atomically on rank 0; ``remove_stale_temps`` deletes the temp files of a write a kill interrupted;
+``restore`` puts a checkpoint's model/optimizer/scheduler/scaler/RNG states back into it; ``config_for_resume``
+rebuilds the run's TrainConfig from its last checkpoint (nested, or the flat dict of runs saved before the config
+had sections); ``init_settings`` and ``init_weights`` take the model settings and the weights of an ``--init``
+checkpoint, which is read once (``load_checkpoint``) and passed to both.
 """
 
 from __future__ import annotations
@@ -12,21 +13,32 @@ from __future__ import annotations
 import logging
 import shutil
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import nn
 
 from optstereo import distributed as ddp
 from optstereo.checkpoint import LAST, CheckpointError, LoadedCheckpoint, load_checkpoint, save_checkpoint, unwrap
-from optstereo.train_config import TrainConfig
+from optstereo.train_config import CONFIG_FILE, TrainConfig, read_yaml
 from pvm_labeler.common.atomic import atomic_path
-
-if TYPE_CHECKING:
-    from optstereo.train import TrainState
+from pvm_labeler.common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainState:
+    """Mutable state the loop advances; ``step`` counts completed optimiser steps."""
+
+    model: nn.Module
+    optimizer: torch.optim.Optimizer
+    scheduler: Any | None
+    scaler: torch.amp.GradScaler
+    step: int = 0
+    history: list[dict[str, float]] = field(default_factory=list)
 
 
 def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Callable[[TrainState], None]:
@@ -46,6 +58,23 @@ def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Cal
         logger.info("checkpoint %s (step %d)", numbered, state.step)
 
     return save
+
+
+def remove_stale_temps(run_dir: Path) -> list[Path]:
+    """Delete the temp files a killed run left beside its checkpoints and return them.
+
+    A SIGKILL inside a checkpoint write leaves ``ckpt-<step>.pt.<random>.tmp`` or ``last.pt.<random>.tmp`` (the
+    atomic write's temp file, ``pvm_labeler.common.atomic``): never a checkpoint (loading picks ``last.pt`` or a
+    ``.pt`` file only), but as large as one. Only the run's own writer may call this (rank 0 of a resumed run): a
+    live writer's temp file would vanish under it.
+    """
+    stale = sorted(p for pattern in ("ckpt-*.pt.*.tmp", f"{LAST}.*.tmp") for p in Path(run_dir).glob(pattern))
+    for path in stale:
+        path.unlink(missing_ok=True)
+    if stale:
+        logger.warning("removed %d temp file(s) of an interrupted checkpoint write in %s: %s", len(stale), run_dir,
+                       ", ".join(p.name for p in stale))
+    return stale
 
 
 def restore(state: TrainState, ckpt: LoadedCheckpoint) -> None:
@@ -85,12 +114,14 @@ def init_weights(model: nn.Module, source: Path | LoadedCheckpoint) -> None:
 
 
 def init_settings(source: Path | LoadedCheckpoint) -> dict[str, Any]:
-    """{"model": {name, feature_dim, ...}}: a config layer rebuilding a checkpoint's network for --init.
+    """{"model": {name, feature_dim, ...}, "inference": {...}}: a config layer rebuilding a checkpoint's network for
+    --init, with the inference settings its exports are run with (flags and --set inference.* override them).
 
     N_s (``iters``) is left out: it is a training choice of the new run (--iters or the recipe), not of the weights.
     """
     ckpt = _as_checkpoint(source)
-    return {"model": {**{k: v for k, v in ckpt.model_config.items() if k != "iters"}, "name": ckpt.model_name}}
+    return {"model": {**{k: v for k, v in ckpt.model_config.items() if k != "iters"}, "name": ckpt.model_name},
+            "inference": ckpt.inference_config.to_dict()}
 
 
 def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
@@ -101,7 +132,24 @@ def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) ->
     ckpt = load_checkpoint(run_dir)
     if not ckpt.train_config:
         raise ValueError(f"checkpoint {ckpt.path} holds no training config; cannot resume from it")
-    return TrainConfig.from_layers(legacy_loss(ckpt.train_config), overrides, {"out": Path(run_dir)})
+    saved = TrainConfig.from_layers(legacy_loss(ckpt.train_config), {"out": Path(run_dir)})
+    cfg = TrainConfig.from_layers(legacy_loss(ckpt.train_config), overrides, {"out": Path(run_dir)})
+    _check_same_model(saved, cfg, f"--resume {run_dir}: the command line")
+    written = Path(run_dir) / CONFIG_FILE
+    if written.is_file():  # config.yaml of another run beside this last.pt (files copied between run dirs)
+        _check_same_model(saved, TrainConfig.from_layers(read_yaml(written)), f"--resume {run_dir}: {written}")
+    return cfg
+
+
+def _check_same_model(saved: TrainConfig, other: TrainConfig, who: str) -> None:
+    """Raise a ConfigError naming ``who`` and the model settings (N_s aside) where ``other`` leaves ``saved``."""
+    old, new = saved.to_dict()["model"], other.to_dict()["model"]
+    diff = {k: (old.get(k), new.get(k)) for k in sorted(old.keys() | new.keys()) if k != "iters" and
+            old.get(k) != new.get(k)}
+    if diff:
+        changes = ", ".join(f"model.{k}: {a!r} -> {b!r}" for k, (a, b) in diff.items())
+        raise ConfigError(f"{who} changes the model of the saved checkpoint ({changes}); a resumed run keeps its "
+                          "model: start a new run with --init RUN_DIR to take its weights into another model")
 
 
 def legacy_loss(saved: dict[str, Any]) -> dict[str, Any]:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from pvm_labeler.common.version import cpuinfo_flags, git_commit
 
-SECTIONS = ("labeler", "job", "network", "train", "export")
+SECTIONS = ("models", "labeler", "job", "network", "train", "export")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -72,7 +72,7 @@ def _compare(model: Any, session: Any, left: np.ndarray, right: np.ndarray, scal
 def run(shared: Path) -> dict[str, Any]:
     from optstereo.api import load_model
     from optstereo.export import export, onnx_session
-    from optstereo.inference import model_input_scale
+    from optstereo.inference import model_inference_config
     from pvm_labeler.common.io import read_image
 
     torch.set_num_threads(THREADS)
@@ -81,7 +81,7 @@ def run(shared: Path) -> dict[str, Any]:
     model = load_model("pretrained")
     # The shipped model's own input scale is the predict path (the headline); scale 1 is the frame as it is, a
     # workload that stays put when a version with another input scale ships (the ratio depends on the frame size).
-    scales = dict.fromkeys((model_input_scale(model), 1.0))
+    scales = dict.fromkeys((model_inference_config(model).scale, 1.0))
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         onnx_file = export(model, Path(tmp) / "pretrained.onnx")

@@ -14,7 +14,8 @@ over pixels per dataset:
 * bad-3 of each curve interpolated at matched densities 30 / 50 / 70 %.
 
 Writes ``results/pvm_ablation.{json,md}``, ``results/pvm_ablation_<dataset>.png`` and rebuilds the generated blocks
-of ``RESULTS.md`` from that and ``results/training.md`` (studies 2-3, written by ``python -m pipelines.train_studies
+of ``RESULTS.md`` from that and ``results/training.md`` (studies 2-3, written by
+``python -m pipelines.studies.train_studies
 report``); the sections written by hand around them are kept.
 
 Usage: ``.venv/bin/python -m pipelines.results --shared ../shared/data --out results`` (about 5 min on 2 cores).
@@ -335,7 +336,8 @@ def assemble(out: Path, study1: str) -> Path:
     training = out / "training.md"
     text = replace_block(text, "study 1", study1)
     text = replace_block(text, "studies 2-3", training.read_text() if training.is_file() else
-                         "## Studies 2-3\n\nNot yet produced: run `.venv/bin/python -m pipelines.train_studies all`.\n")
+                         "## Studies 2-3\n\nNot yet produced: run "
+                          "`.venv/bin/python -m pipelines.studies.train_studies all`.\n")
     with atomic_path(path) as tmp:
         tmp.write_text(text)
     return path

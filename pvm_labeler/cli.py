@@ -78,6 +78,9 @@ def _load_yaml(path: Path | None) -> dict[str, Any]:
     unknown = sorted(set(doc) - known)
     if unknown:
         raise click.BadParameter(f"{path}: unknown keys {unknown}; known: {sorted(known)}", param_hint="--config")
+    for key in ("labeler", "dataset_options"):
+        if not isinstance(doc.get(key) or {}, dict):
+            raise click.BadParameter(f"{path}: {key} must be a mapping, got {doc[key]!r}", param_hint="--config")
     return doc
 
 
@@ -87,9 +90,21 @@ def _merged(ctx: click.Context, yaml_doc: dict[str, Any]) -> dict[str, Any]:
     for name, value in ctx.params.items():
         source = ctx.get_parameter_source(name)
         from_cli = source in (click.core.ParameterSource.COMMANDLINE, click.core.ParameterSource.ENVIRONMENT)
-        values[name] = value if from_cli or name not in yaml_doc else yaml_doc[name]
+        values[name] = value if from_cli or name not in yaml_doc else _yaml_value(ctx, name, yaml_doc[name])
         values[f"_{name}_given"] = from_cli or name in yaml_doc
     return values
+
+
+def _yaml_value(ctx: click.Context, name: str, value: Any) -> Any:
+    """A --config value converted and checked by its option's click type, as the flag's would be (``jobs: many``
+    is refused naming the key, not failed on later)."""
+    param = next((p for p in ctx.command.params if p.name == name), None)
+    if param is None or value is None or isinstance(param.type, click.types.Path):
+        return value  # paths are checked where they are used (the YAML may name ones made later)
+    try:
+        return param.type.convert(value, param, ctx)
+    except click.BadParameter as exc:
+        raise click.BadParameter(f"{name}: {exc.message}", ctx=ctx, param_hint="--config") from exc
 
 
 def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:

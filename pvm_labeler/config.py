@@ -29,6 +29,7 @@ S_MAX = 0xFFFF
 #: The WTA indexes disparities as uint16 lanes (0xFFFF = none) after padding D to a multiple of 32.
 MAX_DISP_LIMIT = 0xFFFF - 31
 _INT_FIELDS = ("k", "max_disp", "seed", "census_window", "paths", "p1", "p2", "min_texture")
+_FLOAT_FIELDS = ("kappa1", "kappa2", "lr_threshold", "c2_scale", "min_confidence")
 
 
 def census_max_cost(window: int) -> int:
@@ -103,6 +104,10 @@ class LabelerConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int):
                 raise ConfigError(f"{name} must be an integer, got {value!r}")
+        for name in _FLOAT_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{name} must be a number, got {value!r}")
         if self.k < 1:
             raise ConfigError(f"--k must be >= 1 (K = 1 is plain SGM + LR check), got {self.k}")
         if self.kappa1 < 0 or self.kappa2 < 0:

@@ -1,6 +1,7 @@
 """Dense left-view SGM: the labeler's matcher at full resolution, no LR check, no filtering, holes filled by the
 nearest valid value on their row. The baseline the network must beat (the evaluation's ``dense_sgm``, used by
-pipelines/train_pretrained.py, error_regions.py, refine_study.py, train_studies.py) and, filtered, the hole fill of
+pipelines/studies/: train_pretrained.py, error_regions.py, refine_study.py, train_studies.py) and, filtered, the hole
+fill of
 ``pvm-label densify --method sgm``."""
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 PVM keeps ~60 % of KITTI's pixels; the network's errors sit in the rest. Inside a superpixel (OpenCV's SLICO on
 Lab, ``region_size`` px) whose labelled pixels lie on a plane d = a x + b y + c (RMS residual <= ``max_rms`` px,
 at least ``MIN_LABELS`` labels making at least ``MIN_RATIO`` of it), the unlabelled pixels take the plane's
-disparity. Labelled pixels are never changed. On the 15 KITTI 2015 GT frames (``python -m pipelines.hole_targets``,
+disparity. Labelled pixels are never changed. On the 15 KITTI 2015 GT frames
+(``python -m pipelines.studies.hole_targets``,
 evaluation only) such fills are right more often than the shipped network on the same pixels, at every distance
 from the labels, yet 600 steps of training on densified labels left KITTI 2015 unchanged (RESULTS.md).
 
@@ -31,6 +32,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from pvm_labeler.shards.fills import add_fills, right_confidence
 
 MIN_LABELS = 10
 MIN_RATIO = 0.2
@@ -81,24 +84,6 @@ def densify_view(image: npt.NDArray[np.uint8], label: npt.NDArray[np.float32], c
                  ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int]:
     """One view: (label with the plane fills added, confidence with ``fill_confidence`` there, pixels filled)."""
     return add_fills(label, confidence, plane_fill(image, label, region_size, max_rms), fill_confidence)
-
-
-def add_fills(label: npt.NDArray[np.float32], confidence: npt.NDArray[np.float32], fills: npt.NDArray[np.float32],
-              fill_confidence: float) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int]:
-    """(label with ``fills`` in its holes, confidence with ``fill_confidence`` there, pixels filled); (H, W) float32.
-
-    Labelled pixels never change. Non-finite and non-positive fills (a plane extrapolated past the horizon, a
-    matcher's invalid value) are no disparity: their holes stay empty.
-    """
-    filled = ~np.isfinite(label) & np.isfinite(fills) & (fills > 0)
-    dense = np.where(filled, fills, label).astype(np.float32)
-    return dense, np.where(filled, np.float32(fill_confidence), confidence).astype(np.float32), int(filled.sum())
-
-
-def right_confidence(label_right: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-    """(H, W) float32: 1 on PVM's right-view labels, 0 in its holes. PVM keeps no right-view confidence; 1 is the
-    weight the trainer gave a flip-swapped sample before ``confidence_right`` existed, so PVM's labels keep it."""
-    return np.isfinite(label_right).astype(np.float32)
 
 
 def sgm_fill(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], cfg: Any) -> npt.NDArray[np.float32]:

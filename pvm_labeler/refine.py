@@ -23,7 +23,8 @@ class MedianParams:
     """Weighted-median settings: window radius (px), colour sigma (8-bit RGB units), disparity range (px) below which
     a window is left alone."""
 
-    # chosen without GT on the unlabelled training pairs' PVM labels (pipelines/refine_study.py choose; RESULTS.md)
+    # chosen without GT on the unlabelled training pairs' PVM labels (pipelines/studies/refine_study.py choose;
+    # RESULTS.md)
     radius: int = 5
     sigma: float = 51.0
     min_range: float = 1.0

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_eval_predict import TINY
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY
 
 from optstereo.adapt import AdaptConfig, guard, right_mask, tile_mask
 from optstereo.checkpoint import save_checkpoint
@@ -19,6 +18,7 @@ from optstereo.models import build_model
 from pvm_labeler.common.datasets import make_layered_scene
 from pvm_labeler.common.io import write_image, write_pfm
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def test_tile_mask_holds_back_whole_tiles() -> None:
     mask = tile_mask((10, 13), 0.5, 4, np.random.default_rng(0))
@@ -62,7 +62,7 @@ def _rig(root: Path, n: int = 2) -> None:
 
 @pytest.mark.slow
 def test_adapt_end_to_end(tmp_path: Path) -> None:
-    from optstereo.cli_adapt import adapt_main
+    from optstereo.cli import adapt_main
 
     _rig(tmp_path / "rig")
     torch.manual_seed(0)

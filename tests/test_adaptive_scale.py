@@ -1,21 +1,23 @@
 """The disparity-adaptive input scale: the rule by hand (optstereo.rescale.adaptive_factor), the second pass of
-``infer_scaled`` with a fake network whose output is known, the config, the checkpoint and the ONNX file."""
+``infer_scaled`` with a fake network whose output is known, the InferenceConfig, the checkpoint and the ONNX file."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-from test_eval_predict import TINY, Echo
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, Echo, kitti_crop
 
-from optstereo.inference import infer, infer_scaled, model_scale_refs
+from optstereo.inference import infer, infer_scaled
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 from optstereo.rescale import ADAPTIVE_MIN_GAIN, ADAPTIVE_PERCENTILE, adaptive_factor
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class TestRule:
@@ -57,7 +59,7 @@ class TestInfer:
     @staticmethod
     def echo(**config: float) -> Echo:
         model = Echo()
-        model.config = SimpleNamespace(input_scale=1.0, refine="none", **config)
+        model.inference_config = InferenceConfig(**config)
         return model
 
     def test_second_pass_runs_at_the_factor(self) -> None:
@@ -65,7 +67,7 @@ class TestInfer:
         # so the rule asks min(40 / 10, sqrt(4 * 40 * 80 / (40 * 80))) = 2x, and the second pass at scale 2 returns
         # 10 px of the doubled pair = 5 px of the input (hand-computed).
         left = np.full((40, 80, 3), 10, np.uint8)
-        model = self.echo(scale_ref_disp=40.0, scale_ref_pixels=4 * 40 * 80)
+        model = self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80)
         result = infer_scaled(model, left, left)
         assert result.input_scale == pytest.approx(2.0)
         np.testing.assert_allclose(result.disparity, 5.0, rtol=1e-5)
@@ -73,90 +75,54 @@ class TestInfer:
 
     def test_large_disparities_keep_one_pass(self) -> None:
         left = np.full((40, 80, 3), 50, np.uint8)  # 50 px > the reference 40 px: no enlargement
-        result = infer_scaled(self.echo(scale_ref_disp=40.0, scale_ref_pixels=4 * 40 * 80), left, left)
+        result = infer_scaled(self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80), left, left)
         assert result.input_scale == 1.0
         np.testing.assert_allclose(result.disparity, 50.0, rtol=1e-6)
 
     def test_a_given_scale_and_a_model_without_references_are_fixed(self) -> None:
         left = np.full((40, 80, 3), 10, np.uint8)
-        model = self.echo(scale_ref_disp=40.0, scale_ref_pixels=4 * 40 * 80)
+        model = self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80)
         assert infer_scaled(model, left, left, scale=1.0).input_scale == 1.0  # the caller's scale is final
         assert infer_scaled(model, left, left, scale=1.5).input_scale == 1.5
         assert infer_scaled(self.echo(), left, left).input_scale == 1.0  # no references: one pass
-        assert model_scale_refs(self.echo()) is None and model_scale_refs(Echo()) is None
-        assert model_scale_refs(model) == (40.0, 3 * 40 * 80 + 40 * 80)
 
 
 class TestConfig:
     def test_validated(self) -> None:
-        with pytest.raises(ValueError, match="needs scale_ref_pixels"):
-            build_model("optstereo", scale_ref_disp=60.0, **TINY)
-        with pytest.raises(ValueError, match="must be >= 0 and finite"):
-            build_model("optstereo", scale_ref_disp=-1.0, scale_ref_pixels=10, **TINY)
-        with pytest.raises(ValueError, match="must be >= 0 and finite"):
-            build_model("optstereo", scale_ref_disp=math.inf, scale_ref_pixels=10, **TINY)
+        with pytest.raises(ValueError, match="needs adaptive_ref_pixels"):
+            InferenceConfig(adaptive_ref_disp=60.0).validate()
+        with pytest.raises(ValueError, match="adaptive_ref_disp must be >= 0"):
+            InferenceConfig(adaptive_ref_disp=-1.0, adaptive_ref_pixels=10).validate()
+        with pytest.raises(ValueError, match="adaptive_ref_disp must be a finite number"):
+            InferenceConfig(adaptive_ref_disp=math.inf, adaptive_ref_pixels=10).validate()
 
     def test_survives_the_checkpoint(self, tmp_path: Path) -> None:
         from optstereo.api import load_model
         from optstereo.checkpoint import export_safetensors
 
-        model = build_model("optstereo", scale_ref_disp=61.5, scale_ref_pixels=465_750, **TINY)
-        loaded = load_model(export_safetensors(tmp_path / "m.safetensors", model))
-        assert model_scale_refs(loaded) == (61.5, 465_750)
-        plain = load_model(export_safetensors(tmp_path / "p.safetensors", build_model("optstereo", **TINY)))
-        assert model_scale_refs(plain) is None  # the default: off
+        model = build_model("optstereo", **TINY, iters=2)
+        refs = InferenceConfig(adaptive_ref_disp=61.5, adaptive_ref_pixels=465_750)
+        loaded = load_model(export_safetensors(tmp_path / "m.safetensors", model, inference=refs))
+        assert loaded.inference_config == refs
+        plain = load_model(export_safetensors(tmp_path / "p.safetensors", build_model("optstereo", **TINY, iters=2)))
+        assert not plain.inference_config.adaptive  # the default: off
 
 
 def test_onnx_file_records_the_references(tmp_path: Path, shared_data: Path) -> None:
     # The references travel in the ONNX metadata and infer_onnx runs the same second pass as infer: a reference
     # disparity far above any output and a pixel cap of 4x the pair's pixels make both enlarge by exactly 2x.
-    from test_export import _kitti_crop
 
     from optstereo.export import export, infer_onnx, onnx_session
 
     torch.manual_seed(0)
-    model = build_model("optstereo", scale_ref_disp=1e6, scale_ref_pixels=4 * 64 * 120, **{**TINY, "iters": 3})
-    model.eval()
+    model = build_model("optstereo", **{**TINY, "iters": 3}).eval()
+    model.inference_config = InferenceConfig(adaptive_ref_disp=1e6, adaptive_ref_pixels=4 * 64 * 120)
     session = onnx_session(export(model, tmp_path / "adaptive.onnx"))
-    meta = session.get_modelmeta().custom_metadata_map
-    assert float(meta["scale_ref_disp"]) == 1e6 and int(meta["scale_ref_pixels"]) == 4 * 64 * 120
-    left, right = _kitti_crop(shared_data, 64, 120)
+    meta = json.loads(session.get_modelmeta().custom_metadata_map["inference_config"])
+    assert meta["adaptive_ref_disp"] == 1e6 and meta["adaptive_ref_pixels"] == 4 * 64 * 120
+    left, right = kitti_crop(shared_data, 64, 120)
     assert infer_scaled(model, left, right).input_scale == pytest.approx(2.0)
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the second pass changed it
     diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
-
-
-def test_pipeline_reference_and_candidate(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shared_data: Path) -> None:
-    # pipelines.adaptive_scale on two real unlabelled pairs with a tiny network: the constants are the medians of
-    # each pair's 95th percentile (recomputed here from infer) and pixel count; the candidate keeps the weights
-    # byte for byte and records the constants.
-    from safetensors.torch import load_file
-
-    import pipelines.adaptive_scale as adaptive
-    import pvm_labeler.common.datasets as datasets
-    from optstereo.api import load_model
-    from optstereo.checkpoint import export_safetensors
-
-    torch.manual_seed(0)
-    source = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", input_scale=0.5, **TINY))
-    pairs = datasets.discover("kitti_unlabelled", shared_data / "kitti_unlabelled")[:2]
-    monkeypatch.setattr(datasets, "discover", lambda *args, **kwargs: pairs)
-    doc = adaptive.step_reference(str(source), tmp_path / "ref.json")
-    model = load_model(source)
-    p95 = []
-    for ref in pairs:
-        sample = datasets.load_pair(ref)
-        p95.append(np.percentile(infer(model, sample.left, sample.right, scale=0.5, refine="none"), 95))
-    assert [f["p95"] for f in doc["frames"]] == pytest.approx(p95, rel=1e-5)
-    assert doc["scale_ref_disp"] == round(float(np.median(p95)), 1)
-    assert doc["scale_ref_pixels"] == int(np.median([f["height"] * f["width"] for f in doc["frames"]]))
-    assert doc["input_scale"] == 0.5
-
-    monkeypatch.setattr(adaptive, "CANDIDATE", tmp_path / "candidate.safetensors")
-    out = adaptive.step_candidate(str(source), tmp_path / "ref.json")
-    refs = model_scale_refs(load_model(out))
-    assert refs == (doc["scale_ref_disp"], doc["scale_ref_pixels"])
-    before, after = load_file(source), load_file(out)
-    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)

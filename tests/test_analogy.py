@@ -8,8 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
-from test_train import tiny_config
+from conftest import make_shards, tiny_config
 
 from optstereo import train
 from optstereo.analogy import (
@@ -23,6 +22,8 @@ from optstereo.analogy import (
     reliable_mask,
     transform_batch,
 )
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 OFF = AnalogyConfig(spatial=False, appearance=False, occlusion=False)
 
@@ -117,9 +118,8 @@ def test_config_validation() -> None:
         AnalogyConfig.from_dict({"zoom": 2})
 
 
-def test_training_step_with_lambda_t(tmp_path: Path) -> None:
-    shards = make_shards(tmp_path / "shards", n=4, shard_size=2, height=32, width=72)
-    cfg = tiny_config(shards, tmp_path / "run", lambda_t=0.5, analogy_start=2, steps=4)
+def test_training_step_with_lambda_t(tiny_shards: Path, tmp_path: Path) -> None:
+    cfg = tiny_config(tiny_shards, tmp_path / "run", lambda_t=0.5, analogy_start=2, steps=4)
     train.main(cfg, progress=False)
     lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     logs = [json.loads(line) for line in lines]

@@ -1,6 +1,7 @@
 """The layering rules of docs/architecture.md, checked by reading every module's imports (static, AST-based).
 
-Function-local imports count: a rule holds for every import statement anywhere in the file, not only at the top.
+Function-local imports count, and so do imports under ``if TYPE_CHECKING:``: a rule holds for every import statement
+anywhere in the file, not only at the top.
 """
 
 from __future__ import annotations
@@ -15,6 +16,12 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: A module longer than this has more than one job (issue: "no module of either package over ~400 lines").
 MAX_MODULE_LINES = 420
+
+
+#: The three packages of the tree (the product, and pipelines/studies/, which ships with none of it).
+PACKAGES = ("pvm_labeler", "optstereo", "pipelines")
+#: Modules of tests/ that hold no tests: the slow pure-NumPy references (and conftest.py, pytest's own).
+TEST_HELPERS = ("conftest", "naive", "naive_pvm", "kernel_refs", "infer_reference")
 
 
 def _modules(package: str) -> list[Path]:
@@ -47,11 +54,12 @@ def imported_modules(path: Path) -> set[str]:
 
 
 def _offenders(package: str, forbidden: tuple[str, ...], allowed: tuple[str, ...] = (),
-               skip: tuple[str, ...] = ()) -> dict[str, list[str]]:
-    """{module: [forbidden imports]} for every module under ``package`` (files named in ``skip`` excepted)."""
+               skip: tuple[str, ...] = (), skip_dirs: tuple[str, ...] = ()) -> dict[str, list[str]]:
+    """{module: [forbidden imports]} for every module under ``package`` (files named in ``skip`` and those under the
+    folders ``skip_dirs``, relative to the repository root, excepted)."""
     out = {}
     for path in _modules(package):
-        if path.name in skip:
+        if path.name in skip or any(path.is_relative_to(ROOT / d) for d in skip_dirs):
             continue
         bad = sorted(n for n in imported_modules(path)
                      if any(n == f or n.startswith(f + ".") for f in forbidden)
@@ -71,6 +79,113 @@ def test_the_reader_sees_relative_and_local_imports(tmp_path: Path) -> None:
         assert "pvm_labeler/_architecture_probe.py" in _offenders("pvm_labeler", ("torch",))
     finally:
         probe.unlink()
+
+
+def import_graph(packages: tuple[str, ...] = PACKAGES) -> dict[str, set[str]]:
+    """{module: modules of ``packages`` it imports}, per import statement: ``import a.b`` points at ``a.b``;
+    ``from pkg import x`` at ``pkg.x`` when that is a module (a submodule import), else at ``pkg`` (the module or
+    ``__init__`` that defines the name)."""
+    paths = {_module_name(p): p for pkg in packages for p in _modules(pkg)}
+    graph: dict[str, set[str]] = {}
+    for name, path in paths.items():
+        package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        targets: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                targets.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    base = ".".join([*anchor, base] if base else anchor)
+                subs = {f"{base}.{alias.name}" for alias in node.names} & paths.keys()
+                targets.update(subs)
+                if len(subs) < len(node.names):
+                    targets.add(base)
+        graph[name] = {n for n in targets if n in paths and n != name}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every strongly connected component of more than one module (Tarjan), each sorted: the import cycles."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for nxt in sorted(graph.get(node, ())):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on_stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                top = stack.pop()
+                on_stack.discard(top)
+                component.append(top)
+                if top == node:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return sorted(cycles)
+
+
+def test_the_cycle_finder_finds_a_cycle() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": {"e"}}
+    assert import_cycles(graph) == [["a", "b", "c"]]
+    assert import_cycles({"a": {"b"}, "b": set()}) == []
+
+
+#: Import cycles allowed: none (optstereo.checkpoint reads the version from the leaf optstereo.version).
+KNOWN_CYCLES: list[list[str]] = []
+
+
+def test_no_import_cycle() -> None:
+    """No module of the three packages reaches itself through its imports (lazy and TYPE_CHECKING ones included)."""
+    graph = import_graph()
+    assert "optstereo.train_resume" in graph["optstereo.train"]  # the reader sees the edges it must
+    assert import_cycles(graph) == KNOWN_CYCLES
+
+
+def test_the_product_never_imports_a_study() -> None:
+    """pipelines/studies/ is not installed: neither package nor any flow of pipelines/ may import it, and the two
+    packages import no flow of pipelines/ either."""
+    assert _offenders("pvm_labeler", ("pipelines",)) == {}
+    assert _offenders("optstereo", ("pipelines",)) == {}
+    assert _offenders("pipelines", ("pipelines.studies",), skip_dirs=("pipelines/studies",)) == {}
+
+
+def test_test_modules_import_no_other_test_module() -> None:
+    """What tests share lives in conftest.py (fixtures, TINY, the builders) or in helper modules holding no tests."""
+    offenders = {}
+    for path in sorted((ROOT / "tests").rglob("test_*.py")):
+        bad = sorted(n for n in imported_modules(path)
+                     if n.split(".")[-1].startswith("test_") or n.startswith("tests.test_") or n.startswith("test_"))
+        if bad:
+            offenders[str(path.relative_to(ROOT))] = bad
+    assert offenders == {}
+    helpers = {p.stem for p in (ROOT / "tests").glob("*.py") if not p.stem.startswith("test_")}
+    assert helpers == set(TEST_HELPERS), "a new helper module of tests/: name it in TEST_HELPERS (it holds no tests)"
+
+
+def test_only_the_shipped_weights_are_committed() -> None:
+    """Candidate weights live in git history (the study JSON names the commit), not in the tree."""
+    if not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    tracked = subprocess.run(["git", "ls-files", "*.safetensors"], cwd=ROOT, capture_output=True, text=True,
+                             check=True).stdout.split()
+    assert tracked and all(Path(f).parent == Path("optstereo/weights") for f in tracked), tracked
 
 
 def test_the_labeler_never_imports_torch() -> None:

@@ -1,34 +1,22 @@
 """The coarse-to-fine start (optstereo.cascade): grid units by hand, the model's disp_init, the trainer's draw and
-infer's two passes with fake networks whose outputs are known."""
+infer's passes with fake networks whose outputs are known (the pass sequence itself: tests/test_inference_path.py)."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
-from test_eval_predict import TINY, Echo
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, Echo, StartEcho, kitti_crop
 
 from optstereo.cascade import choose, coarse_start, grid_start, half_size, jump_limit, photometric_select
 from optstereo.inference import infer
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
-from optstereo.models.config import ModelConfig
-from optstereo.rescale import scaled_passes
 
-
-class StartEcho(torch.nn.Module):
-    """Fake network: from zero it returns the left image's red channel (px of the pair it sees); from a start it
-    returns that start, back in full-resolution pixels (x 8, nearest), so a test can follow the units."""
-
-    def forward(self, left, right, iters=None, test_mode=False, disp_init=None):
-        if disp_init is None:
-            return left[:, :1, ::8, ::8] / 8, left[:, :1]
-        return disp_init, F.interpolate(disp_init * 8, scale_factor=8, mode="nearest")
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_grid_start_by_hand() -> None:
@@ -59,7 +47,7 @@ def test_coarse_start_units() -> None:
 class TestModel:
     def test_zero_start_is_the_default(self) -> None:
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY).eval()
+        model = build_model("optstereo", **TINY, iters=2).eval()
         left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
         with torch.no_grad():
             plain = model(left, right, test_mode=True)
@@ -73,7 +61,7 @@ class TestModel:
 
     def test_no_gradient_into_the_start(self) -> None:
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY)
+        model = build_model("optstereo", **TINY, iters=2)
         left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
         start = torch.full((1, 1, 8, 16), 2.0, requires_grad=True)
         preds = model(left, right, iters=2, disp_init=start)
@@ -83,19 +71,20 @@ class TestModel:
 
 
 def test_infer_cascade_follows_the_units() -> None:
-    # input scale 1: the coarse pass at 0.5 answers red R in half-size px = 2R px of the input; the final pass
-    # starts from that and StartEcho hands the start back: 2R, where the zero start answers R (hand-computed)
+    # input scale 1: the coarse pass (optstereo.cascade.coarse_start on the padded pair at half size) answers red R
+    # in half-size px = 2R px of the pair; the final pass starts from that and StartEcho hands the start back: 2R,
+    # where the zero start answers R (hand-computed)
     left = np.full((32, 64, 3), 12, np.uint8)
     model = StartEcho()
-    model.config = SimpleNamespace(input_scale=1.0, refine="none", cascade=True)
+    model.inference_config = InferenceConfig(coarse_start=True)
     np.testing.assert_allclose(infer(model, left, left), 24.0, rtol=1e-6)
-    model.config = SimpleNamespace(input_scale=1.0, refine="none", cascade=False)
+    model.inference_config = InferenceConfig()
     np.testing.assert_allclose(infer(model, left, left), 12.0, rtol=1e-6)
-    # a pair that needs padding: the start is padded like the pair (replicate); the half-size pair is 30 of 61
-    # columns wide (round(30.5) = 30), so the start is R x 61 / 30 px of the input, everywhere
+    # a pair that needs padding: the coarse start is taken from the padded pair (replicate: still red 12), 32 x 64,
+    # whose half is 16 x 32: the start is R x 64 / 32 px, everywhere
     odd = np.full((30, 61, 3), 12, np.uint8)
-    model.config = SimpleNamespace(input_scale=1.0, refine="none", cascade=True)
-    np.testing.assert_allclose(infer(model, odd, odd), 12.0 * 61 / 30, rtol=1e-5)
+    model.inference_config = InferenceConfig(coarse_start=True)
+    np.testing.assert_allclose(infer(model, odd, odd), 24.0, rtol=1e-5)
 
 
 def test_trainer_draw(tmp_path: Path) -> None:
@@ -104,7 +93,7 @@ def test_trainer_draw(tmp_path: Path) -> None:
     from optstereo.train_config import TrainConfig
 
     torch.manual_seed(0)
-    model = build_model("optstereo", **TINY)
+    model = build_model("optstereo", **TINY, iters=2)
     left = torch.rand(2, 3, 64, 128) * 255
     state = SimpleNamespace(model=model, step=3)
     device = torch.device("cpu")
@@ -122,18 +111,17 @@ def test_trainer_draw(tmp_path: Path) -> None:
 def test_onnx_cascade_graph_matches_infer(tmp_path: Path, shared_data: Path) -> None:
     # a cascade model exports a graph with a third input, the start; infer_onnx runs the coarse pass and the final
     # one from it as infer does: the two agree at the export tests' tolerance, and differ from the zero start
-    from test_export import _kitti_crop
 
-    from optstereo.export import export, infer_onnx, onnx_session
+    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
 
     torch.manual_seed(0)
-    model = build_model("optstereo", cascade=True, cascade_select=True, cascade_select_jump=0.02,
-                        **{**TINY, "iters": 3}).eval()
+    model = build_model("optstereo", **{**TINY, "iters": 3}).eval()
+    model.inference_config = InferenceConfig(coarse_start=True, select=True, select_jump=0.02)
     session = onnx_session(export(model, tmp_path / "cascade.onnx"))
     assert [i.name for i in session.get_inputs()] == ["left", "right", "start"]
-    recorded = session.get_modelmeta().custom_metadata_map
-    assert recorded["cascade_select"] == "1" and float(recorded["cascade_select_jump"]) == 0.02
-    left, right = _kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
+    assert onnx_inference_config(session) == InferenceConfig(coarse_start=True, select=True, select_jump=0.02,
+                                                             iters=None)
+    left, right = kitti_crop(shared_data, 96, 203)  # padding needed: the start is padded like the pair
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
@@ -200,81 +188,11 @@ def test_choose_by_hand() -> None:
     np.testing.assert_array_equal(choose(disps, costs, max_jump=4.99), [[1.0, 0.0, 0.0, 0.0, 3.0]])
     assert np.all(costs[1, 0, :4] == 0.1)  # the caller's costs are left as they were
     assert jump_limit(1242, 0.01) == pytest.approx(12.42) and jump_limit(1242, 0.0) == 0.0
-    with pytest.raises(ValueError, match="cascade_select_jump"):
+    with pytest.raises(ValueError, match="select_jump"):
         jump_limit(100, -0.1)
-    with pytest.raises(ValueError, match="cascade_select_jump needs cascade_select"):
-        ModelConfig(cascade=True, cascade_select_jump=0.01).validate()
-    with pytest.raises(ValueError, match="cascade_select_jump must be"):
-        ModelConfig(cascade=True, cascade_select=True, cascade_select_jump=float("inf")).validate()
+    with pytest.raises(ValueError, match="select_jump needs select"):
+        InferenceConfig(coarse_start=True, select_jump=0.01).validate()
+    with pytest.raises(ValueError, match="select_jump must be a finite number"):
+        InferenceConfig(coarse_start=True, select=True, select_jump=float("inf")).validate()
 
 
-def test_scaled_passes_select() -> None:
-    # a fake network: from zero it answers the true 5 px, from a start a wrong 2 px; the cascade alone keeps 2, the
-    # selection puts back 5 (x >= 12, clear of the left border), and select without cascade is an error
-    left, right = _shifted_pair(5)
-    calls = []
-
-    def run(l_s, r_s, start):
-        calls.append(start is not None)
-        return np.full(l_s.shape[:2], 2.0 * l_s.shape[1] / left.shape[1] if start is not None else 5.0 * l_s.shape[1]
-                       / left.shape[1], np.float32)
-
-    plain, _ = scaled_passes(run, left, right, 1.0, cascade=True)
-    assert np.allclose(plain, 2.0) and calls == [False, False, True]
-    chosen, _ = scaled_passes(run, left, right, 1.0, cascade=True, select=True)
-    assert np.all(chosen[:, 12:] == 5.0)
-    # the 3 px jump is over 0.02 of the 96 px width (1.92 px) and within 0.04 of it (3.84 px)
-    limited, _ = scaled_passes(run, left, right, 1.0, cascade=True, select=True, select_jump=0.02)
-    assert np.allclose(limited, 2.0)
-    limited, _ = scaled_passes(run, left, right, 1.0, cascade=True, select=True, select_jump=0.04)
-    assert np.all(limited[:, 12:] == 5.0)
-    with pytest.raises(ValueError, match="select needs cascade"):
-        scaled_passes(run, left, right, 1.0, select=True)
-    with pytest.raises(ValueError, match="cascade_select needs cascade"):
-        ModelConfig(cascade_select=True).validate()
-
-
-def test_pipeline_check_on_real_pairs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, shared_data: Path) -> None:
-    # pipelines.cascade_select on two real unlabelled pairs (cropped) with a tiny cascade network: its zero and
-    # coarse answers are infer's with the start off and on, each scored against the shard's labels
-    import pipelines.cascade_select as check
-    import pvm_labeler.common.datasets as datasets
-    from optstereo.api import load_model
-    from optstereo.checkpoint import export_safetensors
-    from pvm_labeler.common.metrics import MetricAccumulator
-    from pvm_labeler.shards import ShardRecord, write_shard_dir
-
-    torch.manual_seed(0)
-    source = export_safetensors(tmp_path / "m.safetensors",
-                                build_model("optstereo", cascade=True, **{**TINY, "iters": 2}))
-    records = []
-    for ref in datasets.discover("kitti_unlabelled", shared_data / "kitti_unlabelled")[:2]:
-        pair = datasets.load_pair(ref)
-        left, right = pair.left[-64:, 300:420].copy(), pair.right[-64:, 300:420].copy()
-        label = np.full(left.shape[:2], 2.0, np.float32)
-        label[:, :20] = np.nan
-        records.append(ShardRecord(frame_id=ref.frame_id, left=left, right=right, label=label,
-                                   label_right=label.copy(), confidence=np.ones(left.shape[:2], np.float32),
-                                   attrs={"sources": {}, "eps": np.zeros(1), "factors": np.ones(1), "seed": 0}))
-    labels = write_shard_dir(tmp_path / "labels", records)
-    monkeypatch.setattr(check, "LABELS", labels)
-    monkeypatch.setattr(check, "RESULTS", tmp_path / "results")
-    doc = check.step_check(str(source), every=1)
-    model = load_model(source)
-    config = model.config
-    for rec, row in zip(records, doc["frames"], strict=True):
-        model.config = dataclasses.replace(config, cascade=True)
-        coarse = infer(model, rec.left, rec.right, scale=1.0, refine="none")
-        model.config = dataclasses.replace(config, cascade=False)
-        zero = infer(model, rec.left, rec.right, scale=1.0, refine="none")
-        for name, disp in (("zero", zero), ("coarse", coarse)):
-            assert row[name]["epe"] == pytest.approx(MetricAccumulator().update(disp, rec.label)["epe"], rel=1e-5)
-    assert (tmp_path / "results" / "check.json").exists() and doc["select"]["n_valid"] == 2 * 64 * 100
-    # calibrate: with no limit its choice is the check's; the chosen limit is the grid's lowest bad-3, ties tighter
-    cal = check.step_calibrate(str(source), "tiny", every=1, grid=(0.0, 0.05, 0.2))
-    assert cal["grid"]["0.0"]["epe"] == pytest.approx(doc["select"]["epe"], rel=1e-6)
-    best = min(row["bad3"] for row in cal["grid"].values())
-    assert cal["grid"][repr(cal["jump"])]["bad3"] == best
-    assert cal["jump"] == min((j for j in (0.05, 0.2, 0.0) if cal["grid"][repr(j)]["bad3"] == best),
-                              key=lambda j: j if j > 0 else float("inf"))
-    assert (tmp_path / "results" / "calibrate_tiny.json").exists()

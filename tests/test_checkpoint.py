@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY
 
 from optstereo.checkpoint import (
     CheckpointError,
@@ -20,12 +20,13 @@ from optstereo.checkpoint import (
 )
 from optstereo.models import build_model
 
-TINY = dict(feature_dim=16, hidden_dim=16, head_dim=16, upsample_dim=8, iters=2)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 
 
 def tiny_model(seed: int = 0) -> torch.nn.Module:
     torch.manual_seed(seed)
-    return build_model("optstereo", **TINY)
+    return build_model("optstereo", **TINY, iters=2)
 
 
 def trained_parts() -> tuple:
@@ -155,7 +156,7 @@ class TestAverage:
     def test_different_configs_are_named(self, tmp_path: Path) -> None:
         a = export_safetensors(tmp_path / "a.safetensors", tiny_model())
         torch.manual_seed(0)
-        other = build_model("optstereo", **{**TINY, "feature_dim": 24})
+        other = build_model("optstereo", **{**TINY, "iters": 2, "feature_dim": 24})
         b = export_safetensors(tmp_path / "b.safetensors", other)
         with pytest.raises(CheckpointError, match="feature_dim"):
             average_checkpoints([a, b])

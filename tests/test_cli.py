@@ -15,13 +15,11 @@ import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner, Result
-from conftest import make_synthetic_pair
+from conftest import SMALL, make_folder
 
 from pvm_labeler.cli import main
 from pvm_labeler.common.io import write_image
 from pvm_labeler.shards import read_index
-
-SMALL = ["--k", "2", "--max-disp", "16", "--quiet"]
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -36,23 +34,6 @@ def _reset_logging() -> None:
     for handler in list(root.handlers):
         if not isinstance(handler, logging.NullHandler) and type(handler).__name__ != "LogCaptureHandler":
             root.removeHandler(handler)
-
-
-def make_folder(root: Path, n: int = 3, size: tuple[int, int] = (64, 128), seed: int = 0) -> Path:
-    """Folder dataset root/left, root/right with GT root/gt (constant disparity 4, KITTI PNG)."""
-    rng = np.random.default_rng(seed)
-    for view in ("left", "right", "gt"):
-        (root / view).mkdir(parents=True, exist_ok=True)
-    for i in range(n):
-        left, right = make_synthetic_pair(rng, *size, disp=4)
-        write_image(root / "left" / f"{i:03d}.png", left)
-        write_image(root / "right" / f"{i:03d}.png", right)
-        gt = np.full(size, 4.0, np.float32)
-        gt[:, :4] = np.nan
-        from pvm_labeler.common.io import write_kitti_disp
-
-        write_kitti_disp(root / "gt" / f"{i:03d}.png", gt)
-    return root
 
 
 def invoke(*args: str) -> Result:

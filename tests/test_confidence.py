@@ -4,15 +4,13 @@ the files and the CLI's conf formats / --min-confidence."""
 from __future__ import annotations
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_eval_predict import TINY
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY
 
 from optstereo.confidence import (
     METHODS,
@@ -25,14 +23,16 @@ from optstereo.confidence import (
     write_confidence,
 )
 from optstereo.inference import infer
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 from pvm_labeler.common.io import write_image
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def _tiny() -> torch.nn.Module:
     torch.manual_seed(0)
     model = build_model("optstereo", **TINY).eval()
-    model.config = SimpleNamespace(input_scale=1.0, refine="none")
+    model.inference_config = InferenceConfig()
     return model
 
 

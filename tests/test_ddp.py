@@ -13,9 +13,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import TINY, make_shards
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}
 
 
 def worker(shards: Path, out: Path) -> None:
@@ -38,7 +38,6 @@ def worker(shards: Path, out: Path) -> None:
 
 def test_two_ranks_disjoint_shards_weights_in_sync(tmp_path: Path) -> None:
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_stream import make_shards
 
     shards = make_shards(tmp_path / "shards", n=4, shard_size=1, height=32, width=64)
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", "OMP_NUM_THREADS": "1"}

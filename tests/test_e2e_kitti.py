@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
 
 from optstereo import train
 from optstereo.cli import eval_main, train_main
@@ -23,6 +22,8 @@ from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.train_config import TrainConfig
 from pvm_labeler.shards import read_index, verify
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 TINY_OPTS = ["--model-opt", "feature_dim=16", "--model-opt", "hidden_dim=16", "--model-opt", "head_dim=16",
              "--model-opt", "upsample_dim=8"]

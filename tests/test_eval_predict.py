@@ -6,32 +6,26 @@ import csv
 import json
 import math
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, Echo, make_shards
 
 from optstereo import inference as predict_mod
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
-from optstereo.inference import infer, model_input_scale, model_refine, warn_if_emulated_bf16, write_disparity
+from optstereo.inference import infer, model_inference_config, warn_if_emulated_bf16
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
+from optstereo.outputs import write_disparity
 from pvm_labeler.common.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.common.metrics import disparity_metrics
 
-TINY = dict(feature_dim=16, hidden_dim=16, head_dim=16, upsample_dim=8, iters=2)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-
-class Echo(torch.nn.Module):
-    """Fake network: the disparity is the left image's red channel (checks padding/unpadding exactly)."""
-
-    def forward(self, left, right, iters=None, test_mode=False):
-        assert left.shape[-2] % 8 == 0 and left.shape[-1] % 8 == 0
-        return left[:, :1, ::8, ::8] / 8, left[:, :1]
 
 
 class TestMetrics:
@@ -106,23 +100,24 @@ class TestPredict:
             infer(Echo(), left, left, scale=0.0)
 
     def test_model_input_scale_is_the_default(self) -> None:
-        # A model whose config records input_scale 0.5 runs at half size unless the caller says otherwise: a
+        # A model whose InferenceConfig records scale 0.5 runs at half size unless the caller says otherwise: a
         # constant red 40 is 40 px of the half-size pair, i.e. 80 px of the input (hand-computed, as above).
         echo = Echo()
-        echo.config = SimpleNamespace(input_scale=0.5)
+        echo.inference_config = InferenceConfig(scale=0.5)
         left = np.full((40, 80, 3), 40, np.uint8)
         np.testing.assert_allclose(infer(echo, left, left), 80.0, rtol=1e-6)
         np.testing.assert_allclose(infer(echo, left, left, scale=1.0), 40.0, rtol=1e-6)
-        assert model_input_scale(echo) == 0.5 and model_input_scale(Echo()) == 1.0
+        assert model_inference_config(echo).scale == 0.5 and model_inference_config(Echo()).scale == 1.0
 
     def test_input_scale_survives_the_checkpoint_and_is_validated(self, tmp_path: Path) -> None:
         from optstereo.api import load_model
         from optstereo.checkpoint import export_safetensors
 
-        ckpt = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", input_scale=1.25, **TINY))
-        assert model_input_scale(load_model(ckpt)) == 1.25
-        with pytest.raises(ValueError, match="input_scale must be positive"):
-            build_model("optstereo", input_scale=0.0)
+        model = build_model("optstereo", **TINY, iters=2)
+        ckpt = export_safetensors(tmp_path / "m.safetensors", model, inference=InferenceConfig(scale=1.25))
+        assert load_model(ckpt).inference_config.scale == 1.25
+        with pytest.raises(ValueError, match="scale must be positive"):
+            InferenceConfig(scale=0.0).validate()
 
     def test_model_refine_is_the_default_and_filters_at_the_input_size(self) -> None:
         # Echo at half size returns a blurred step (bilinear up-sampling of a two-valued red channel); a model whose
@@ -134,12 +129,12 @@ class TestPredict:
         left[:, :21, 0], left[:, 21:, 0] = 30, 10
         left[:, 21:, 1] = 200  # the colour edge at column 21
         echo = Echo()
-        echo.config = SimpleNamespace(input_scale=0.5, refine="wmedian")
+        echo.inference_config = InferenceConfig(scale=0.5, refine="wmedian")
         raw = infer(echo, left, left, refine="none")
         assert len(np.unique(raw)) > 2  # the up-sampling blurred the step
         np.testing.assert_array_equal(infer(echo, left, left), weighted_median(raw, left))
         assert len(np.unique(infer(echo, left, left)[:, 3:-3])) == 2  # and the median snapped it back
-        assert model_refine(echo) == "wmedian" and model_refine(Echo()) == "none"
+        assert model_inference_config(echo).refine == "wmedian" and model_inference_config(Echo()).refine == "none"
         with pytest.raises(ValueError, match="refine must be one of"):
             infer(echo, left, left, refine="bilateral")
 
@@ -147,16 +142,18 @@ class TestPredict:
         from optstereo.api import load_model
         from optstereo.checkpoint import export_safetensors
 
-        ckpt = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", refine="wmedian", **TINY))
-        assert model_refine(load_model(ckpt)) == "wmedian"
+        model = build_model("optstereo", **TINY, iters=2)
+        model.inference_config = InferenceConfig(refine="wmedian")  # what export_safetensors records by default
+        ckpt = export_safetensors(tmp_path / "m.safetensors", model)
+        assert load_model(ckpt).inference_config.refine == "wmedian"
         with pytest.raises(ValueError, match="refine must be one of"):
-            build_model("optstereo", refine="median")
+            InferenceConfig(refine="median").validate()
 
     def test_feature_bf16_inference_close_to_fp32(self, rng: np.random.Generator) -> None:
         # bf16 autocast (--amp bf16) runs the convs in bf16 (8-bit mantissa) but keeps correlation, lookup and the
         # disparity accumulator in float32: the prediction stays within a few % of the float32 one, and is float32.
         torch.manual_seed(0)
-        model = build_model("optstereo", **TINY).eval()
+        model = build_model("optstereo", **TINY, iters=2).eval()
         left = rng.integers(0, 256, (40, 64, 3), dtype=np.uint8)
         right = np.roll(left, -3, axis=1)
         ref = infer(model, left, right)
@@ -217,7 +214,8 @@ class TestPredict:
 @pytest.fixture(scope="module")
 def tiny_ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
     torch.manual_seed(0)
-    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+    model = build_model("optstereo", **TINY, iters=2)
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", model=model, step=0)
 
 
 class TestCli:

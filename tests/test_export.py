@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_train import TINY
+from conftest import TINY, kitti_crop
 
 from optstereo.checkpoint import export_safetensors
 from optstereo.cli import export_main, predict_main
 from optstereo.inference import infer
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 from pvm_labeler.common.io import read_image
 
@@ -30,12 +31,6 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return ckpt, root / "tiny.onnx"
 
 
-def _kitti_crop(shared_data: Path, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    base = shared_data / "kitti15/training"
-    left, right = read_image(base / "image_2/000000_10.png"), read_image(base / "image_3/000000_10.png")
-    return left[-h:, 300:300 + w], right[-h:, 300:300 + w]
-
-
 def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_data: Path) -> None:
     from optstereo.api import load_model
     from optstereo.export import infer_onnx, onnx_session
@@ -44,7 +39,7 @@ def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_
     model = load_model(ckpt)
     session = onnx_session(onnx_file)
     for h, w in ((128, 256), (141, 389)):  # dynamic size, and one that needs padding outside the graph
-        left, right = _kitti_crop(shared_data, h, w)
+        left, right = kitti_crop(shared_data, h, w)
         ref = infer(model, left, right)
         got = infer_onnx(session, left, right)
         assert got.shape == (h, w)
@@ -53,15 +48,16 @@ def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_
 
 
 def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Path) -> None:
-    # A model trained for enlarged inputs (ModelConfig.input_scale) exports its scale into the file's metadata,
+    # A model trained for enlarged inputs (InferenceConfig.scale) exports its scale into the file's metadata,
     # and infer_onnx resizes by it as infer does: the two still agree at the issue's tolerance.
-    from optstereo.export import export, infer_onnx, onnx_session
+    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
 
     torch.manual_seed(0)
-    model = build_model("optstereo", iters=3, input_scale=1.5, **TINY).eval()
+    model = build_model("optstereo", iters=3, **TINY).eval()
+    model.inference_config = InferenceConfig(scale=1.5)
     session = onnx_session(export(model, tmp_path / "scaled.onnx"))
-    assert session.get_modelmeta().custom_metadata_map["input_scale"] == "1.5"
-    left, right = _kitti_crop(shared_data, 96, 200)
+    assert onnx_inference_config(session).scale == 1.5
+    left, right = kitti_crop(shared_data, 96, 200)
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     assert got.shape == (96, 200)
     assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the scale does change the output
@@ -74,14 +70,15 @@ def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Pa
 
 def test_onnx_file_records_the_model_refine(tmp_path: Path, shared_data: Path) -> None:
     # The post-filter travels in the metadata too: infer_onnx applies the file's, refine= overrides it.
-    from optstereo.export import export, infer_onnx, onnx_session
+    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
     from pvm_labeler.refine import weighted_median
 
     torch.manual_seed(0)
-    model = build_model("optstereo", iters=3, refine="wmedian", **TINY).eval()
+    model = build_model("optstereo", iters=3, **TINY).eval()
+    model.inference_config = InferenceConfig(refine="wmedian")
     session = onnx_session(export(model, tmp_path / "refined.onnx"))
-    assert session.get_modelmeta().custom_metadata_map["refine"] == "wmedian"
-    left, right = _kitti_crop(shared_data, 96, 200)
+    assert onnx_inference_config(session).refine == "wmedian"
+    left, right = kitti_crop(shared_data, 96, 200)
     raw = infer_onnx(session, left, right, refine="none")
     np.testing.assert_array_equal(infer_onnx(session, left, right), weighted_median(raw, left))
     diff = np.abs(raw - infer(model, left, right, refine="none"))
@@ -112,7 +109,7 @@ def test_dynamic_batch_export(tmp_path: Path, shared_data: Path) -> None:
     torch.manual_seed(0)
     model = build_model("optstereo", iters=2, **TINY).eval()
     session = onnx_session(export(model, tmp_path / "b.onnx", batch=True))
-    pairs = [_kitti_crop(shared_data, 64, 128), _kitti_crop(shared_data, 64, 128)[::-1]]
+    pairs = [kitti_crop(shared_data, 64, 128), kitti_crop(shared_data, 64, 128)[::-1]]
     to_t = lambda x: np.ascontiguousarray(x.transpose(2, 0, 1)).astype(np.float32)  # noqa: E731
     left = np.stack([to_t(p[0]) for p in pairs])
     right = np.stack([to_t(p[1]) for p in pairs])
@@ -134,7 +131,7 @@ def test_torchscript_export(exported: tuple[Path, Path], tmp_path: Path, shared_
 
     model = load_model(ckpt)
     for h, w in ((64, 128), (128, 256)):  # traced at 64 x 128: does another size still run through the graph?
-        left, right = _kitti_crop(shared_data, h, w)
+        left, right = kitti_crop(shared_data, h, w)
         with torch.no_grad():
             got = scripted(to_t(left), to_t(right))[0, 0].numpy()
         np.testing.assert_allclose(got, infer(model, left, right), atol=1e-3)
@@ -147,19 +144,18 @@ def test_shipped_model_onnx_at_kitti_size(tmp_path: Path, shared_data: Path) -> 
     flips where their photometric costs tie to float precision (38 of 465,750 pixels on this frame, 2026-11-27), so
     there the bar is mean <= 0.01 px and at most 1 pixel in 2000 beyond 0.1 px."""
     from optstereo.api import load_model
-    from optstereo.export import _run_onnx, export, infer_onnx, onnx_session
-    from optstereo.inference import model_input_scale, network_run
-    from optstereo.rescale import scaled_passes
+    from optstereo.export import OnnxNetwork, export, infer_onnx, onnx_session
+    from optstereo.inference import run
 
     model = load_model("pretrained")
     session = onnx_session(export(model, tmp_path / "pretrained.onnx"))
     base = shared_data / "kitti15/training"
     left, right = read_image(base / "image_2/000005_10.png"), read_image(base / "image_3/000005_10.png")
-    runs = {"torch": network_run(model), "onnx": lambda l_s, r_s, start: _run_onnx(session, l_s, r_s, start)}
-    scale = model_input_scale(model)
-    for cascade in (False, True):  # the zero-start pass, then the coarse-started one: continuous in the weights
-        got, ref = (scaled_passes(runs[k], left, right, scale, cascade=cascade)[0] for k in ("onnx", "torch"))
+    nets = {"torch": model, "onnx": OnnxNetwork(session)}
+    for coarse in (False, True):  # the zero-start pass, then the coarse-started one: continuous in the weights
+        config = InferenceConfig(scale=model.inference_config.scale, coarse_start=coarse)
+        got, ref = (run(nets[k], left, right, config).disparity for k in ("onnx", "torch"))
         diff = np.abs(got - ref)
-        assert diff.mean() <= 0.01 and diff.max() <= 0.1, (cascade, diff.mean(), diff.max())
+        assert diff.mean() <= 0.01 and diff.max() <= 0.1, (coarse, diff.mean(), diff.max())
     diff = np.abs(infer_onnx(session, left, right) - infer(model, left, right))
     assert diff.mean() <= 0.01 and (diff > 0.1).mean() <= 5e-4, (diff.mean(), (diff > 0.1).sum())

@@ -96,7 +96,7 @@ def test_ply_round_trip(tmp_path: Path) -> None:
 
 def test_predict_cli_depth_and_ply(tmp_path: Path, shared_data: Path) -> None:
     import torch
-    from test_train import TINY
+    from conftest import TINY
 
     from optstereo.checkpoint import export_safetensors
     from optstereo.cli import predict_main
@@ -129,7 +129,7 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
 
     import cv2
     import torch
-    from test_train import TINY
+    from conftest import TINY
 
     from optstereo.checkpoint import export_safetensors
     from optstereo.cli import predict_main
@@ -156,7 +156,7 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
                  sorted(zf.namelist())]
     assert sizes == [(375, 1242), (370, 1224)]
     (tmp_path / "pred/disp_0/000002_10.png").unlink()
-    from optstereo.inference import write_submission
+    from optstereo.outputs import write_submission
     from pvm_labeler.common.datasets import discover
 
     with pytest.raises(ValueError, match="000002_10 missing"):

@@ -12,8 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_stream import make_shards
-from test_train import TINY, tiny_config
+from conftest import TINY, make_shards, tiny_config
 
 from optstereo import train
 from optstereo.analogy import AnalogyConfig, transform_batch

@@ -10,9 +10,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 from click.testing import CliRunner
-from conftest import make_synthetic_pair
-from test_model_optstereo import overfit_epe
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY_HITNET as TINY
+from conftest import make_shards, make_synthetic_pair, overfit_epe
 
 from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, save_checkpoint
@@ -32,8 +31,7 @@ from optstereo.models.tiles import (
 from optstereo.padding import InputPadder, divisor_of
 from pvm_labeler.common.io import read_pfm, write_image
 
-# Two resolutions, narrow layers, a 32 px search: wiring tests run in well under a second.
-TINY = {"feature_dim": 8, "hidden_dim": 16, "corr_levels": 2, "max_disp": 32, "iters": 2}
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _to_tensor(img: np.ndarray) -> torch.Tensor:

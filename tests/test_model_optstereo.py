@@ -5,15 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import make_synthetic_pair
+from conftest import TINY, make_synthetic_pair, overfit_epe
 
-from optstereo.losses import sequence_huber_loss
 from optstereo.models import OptStereo, build_from_config, build_model, list_models, register_model
 from optstereo.models.config import ModelConfig
 from optstereo.padding import InputPadder
 
 # Small widths for wiring tests; the paper's C = 256 is used where the test is about shapes.
-TINY = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}
 
 
 def _to_tensor(img: np.ndarray) -> torch.Tensor:
@@ -252,26 +250,6 @@ def _overfit(steps: int, iters: int, lr: float) -> tuple[float, float]:
     left, right, label = _two_plane_pair(np.random.default_rng(0))
     model = build_model("optstereo", iters=iters, feature_dim=32, hidden_dim=32, head_dim=32, upsample_dim=8)
     return overfit_epe(model, left, right, label, steps, lr)
-
-
-def overfit_epe(model: torch.nn.Module, left: torch.Tensor, right: torch.Tensor, label: torch.Tensor, steps: int,
-                lr: float) -> tuple[float, float]:
-    """Adam on L_P alone (gamma 0.8) over one pair; (EPE before, EPE after) on the finite label pixels."""
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    valid = torch.isfinite(label)
-
-    def epe() -> float:
-        with torch.no_grad():
-            _, full = model(left, right, test_mode=True)
-        return (full - label)[valid].abs().mean().item()
-
-    start = epe()
-    for _ in range(steps):
-        loss = sequence_huber_loss(model(left, right), label, None, gamma=0.8)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return start, epe()
 
 
 class TestOverfit:

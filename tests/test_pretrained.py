@@ -10,17 +10,18 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
-from test_train import TINY, tiny_config
+from conftest import TINY, make_shards, tiny_config
 
 import optstereo
 from optstereo import train
 from optstereo.checkpoint import CheckpointError, load_checkpoint
 from optstereo.cli import predict_main, train_main
 from optstereo.pretrained import WEIGHTS, resolve_checkpoint_spec
-from pvm_labeler import shards as shard_mod
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import ShardError
+from pvm_labeler.shards import schema as shard_schema
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # -- the unlabelled reader ----------------------------------------------------------------------------------------
@@ -52,11 +53,10 @@ def test_unlabelled_reader_on_shared_data(shared_data: Path) -> None:
 
 # -- --init --------------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def trained(tiny_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("init")
-    shards = make_shards(root / "shards", n=4, shard_size=2, height=32, width=72)
-    train.main(tiny_config(shards, root / "base", steps=2), progress=False)
-    return shards, root / "base"
+    train.main(tiny_config(tiny_shards, root / "base", steps=2), progress=False)
+    return tiny_shards, root / "base"
 
 
 def test_init_loads_weights_and_starts_a_new_schedule(trained: tuple[Path, Path], tmp_path: Path) -> None:
@@ -130,7 +130,7 @@ def test_predict_cli_bad_checkpoint_exits_2(tmp_path: Path) -> None:
 
 # -- shards without the Blosc plugin ------------------------------------------------------------------------------
 def test_blosc_without_plugin_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(shard_mod, "hdf5plugin", None)
+    monkeypatch.setattr(shard_schema, "hdf5plugin", None)
     with pytest.raises(ShardError, match="needs the hdf5plugin package"):
         make_shards(tmp_path / "s", n=1, shard_size=1)
 
@@ -138,31 +138,13 @@ def test_blosc_without_plugin_is_a_clear_error(tmp_path: Path, monkeypatch: pyte
 def test_lzf_shards_need_no_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from pvm_labeler.shards import ShardRecord, open_shard, read_sample, write_shard_dir
 
-    monkeypatch.setattr(shard_mod, "hdf5plugin", None)
+    monkeypatch.setattr(shard_schema, "hdf5plugin", None)
     img = np.zeros((8, 16, 3), np.uint8)
     lab = np.full((8, 16), 2.0, np.float32)
     out = write_shard_dir(tmp_path / "lzf", [ShardRecord("a", img, img, lab, lab, np.ones_like(lab))],
                           compression="lzf")
     with open_shard(out / "shard-00000.h5") as h5:
         assert np.array_equal(read_sample(h5, "a").label, lab)
-
-
-# -- the carry pack -------------------------------------------------------------------------------------------------
-def test_jpeg_folder_pack(tmp_path: Path) -> None:
-    from pipelines.carry_pack import write_jpeg_folder
-
-    smooth = np.add.outer(np.arange(32), np.arange(48)).astype(np.uint8)[..., None].repeat(3, axis=2) * 2
-    for i in range(2):
-        for view in ("image_2", "image_3"):
-            (tmp_path / "src" / view).mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(tmp_path / "src" / view / f"{i:06d}_10.png"), smooth + i)
-    n = write_jpeg_folder("kitti_unlabelled", tmp_path / "src", tmp_path / "pack", quality=95)
-    assert n == 2
-    refs = discover("folder", tmp_path / "pack")
-    assert [r.frame_id for r in refs] == ["000000_10", "000001_10"]
-    original = load_pair(discover("kitti_unlabelled", tmp_path / "src")[0]).left.astype(float)
-    packed = load_pair(refs[0]).left.astype(float)
-    assert packed.shape == original.shape and np.abs(packed - original).mean() < 2  # lossy, but the same image
 
 
 def test_blosc_shard_without_plugin_names_the_fix(tmp_path: Path) -> None:
@@ -176,38 +158,3 @@ def test_blosc_shard_without_plugin_names_the_fix(tmp_path: Path) -> None:
             f"print('\\n'.join(verify({str(shards)!r})))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "compressed with Blosc" in out and "pvm-label convert" in out and "pip install hdf5plugin" in out
-
-
-def test_gpu_continue_script_runs_on_cpu(tmp_path: Path, rng: np.random.Generator) -> None:
-    """pipelines/gpu/continue.sh end to end at toy size on the CPU: label, probe, size, train from the head, export."""
-    import subprocess
-    import sys
-
-    from conftest import make_synthetic_pair
-
-    from optstereo.checkpoint import load_checkpoint
-
-    repo = Path(__file__).resolve().parents[1]
-    for i in range(2):
-        left, right = make_synthetic_pair(rng, height=96, width=256, disp=6)
-        for view, img in (("left", left), ("right", right)):
-            (tmp_path / "pack" / view).mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(tmp_path / "pack" / view / f"{i:06d}.png"), img)
-    init = repo / "results/pretrained/weights/long_bf16e.safetensors"
-    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "DEVICE": "cpu", "AMP": "none", "BATCH": "1",
-           "CROP": "64x128", "ITERS": "1", "BUDGET_S": "1", "PROBE": "4", "WORKERS": "1", "THREADS": "1", "JOBS": "1",
-           "PACK": str(tmp_path / "pack"), "WORK": str(tmp_path / "work"), "OUT": str(tmp_path / "out"),
-           "PY": sys.executable, "NAME": "toy", "INIT": str(init)}
-    proc = subprocess.run(["bash", "pipelines/gpu/continue.sh"], cwd=repo, env=env, capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    assert "-> 4 steps" in proc.stdout  # 1 s of budget rounds down to nothing: the floor of 4 steps
-    out = load_checkpoint(tmp_path / "out" / "toy.safetensors")
-    start = load_checkpoint(init)
-    assert out.step == 4 and out.model_config["feature_dim"] == start.model_config["feature_dim"]
-    assert out.model_config["input_scale"] == 1.625  # the default U(1.5, 1.75): the export runs at its middle
-    moved = [k for k in start.model_state if not torch.equal(start.model_state[k], out.model_state[k])]
-    assert moved, "the weights should have moved from the head after 4 steps"
-    config = (tmp_path / "out" / "config.yaml").read_text()
-    assert "lambda_t: 0.0" in config and "conf_weight: true" in config
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["config.yaml", "env.txt", "metrics.jsonl",
-                                                                     "toy.safetensors"]

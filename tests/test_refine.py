@@ -4,17 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import two_regions
+from naive import naive_weighted_median
 
 from pvm_labeler.refine import MedianParams, edge_pixels, weighted_median
-from tests.naive import naive_weighted_median
-
-
-def two_regions(height: int = 24, width: int = 32, edge: int = 15) -> tuple[np.ndarray, np.ndarray]:
-    """An image dark left of column ``edge`` and bright from it on, and the true disparity (20 px / 5 px) there."""
-    image = np.full((height, width, 3), 40, np.uint8)
-    image[:, edge:] = 210
-    disp = np.where(np.arange(width) < edge, 20.0, 5.0).astype(np.float32)
-    return image, np.broadcast_to(disp, (height, width)).copy()
 
 
 @pytest.mark.parametrize("radius,sigma,min_range", [(1, 10.0, 0.0), (2, 25.5, 1.0), (3, 60.0, 0.5)])

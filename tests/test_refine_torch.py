@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_refine import two_regions
+from conftest import two_regions
+from naive import naive_weighted_median
 
 from optstereo.inference import apply_refine
 from optstereo.refine_torch import weighted_median_torch
 from pvm_labeler.refine import MedianParams, weighted_median
-from tests.naive import naive_weighted_median
 
 
 def noisy_scene(seed: int, height: int = 29, width: int = 41) -> tuple[np.ndarray, np.ndarray]:

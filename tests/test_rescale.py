@@ -106,9 +106,11 @@ def test_scale_range_config_and_flag(tmp_path: Path) -> None:
     assert TrainConfig.from_dict(printed).data.scale_range == (1.0, 1.25)  # a saved run's config reads back
     assert TrainConfig().data.scale_range == (1.0, 1.0)
     # The exports of a run on enlarged crops record the middle of the range as their input scale, unless set.
-    assert printed["model"]["input_scale"] == 1.125
-    assert TrainConfig().model.input_scale == 1.0
-    own = TrainConfig.from_dict({"data": {"scale_range": [1.5, 1.75]}, "model": {"input_scale": 1.5}})
-    assert own.model.input_scale == 1.5
+    assert printed["inference"]["scale"] == 1.125 and "input_scale" not in printed["model"]
+    assert TrainConfig().inference.scale == 1.0
+    own = TrainConfig.from_dict({"data": {"scale_range": [1.5, 1.75]}, "inference": {"scale": 1.5}})
+    assert own.inference.scale == 1.5
+    old = TrainConfig.from_dict({"data": {"scale_range": [1.5, 1.75]}, "model": {"input_scale": 1.5}})  # old YAML
+    assert old.inference.scale == 1.5
     bad = CliRunner().invoke(train_main, ["--scale-range", "2,1", "--print-config"])
     assert bad.exit_code == 2 and "0 < LO <= HI" in bad.output

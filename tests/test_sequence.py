@@ -3,24 +3,22 @@ the temporal-change measure on hand-made frames."""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 import torch
-from test_cascade import StartEcho
-from test_eval_predict import TINY
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, StartEcho
 
 from optstereo.inference import infer
+from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 from optstereo.sequence import SequenceState, infer_next, infer_sequence, temporal_change
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def _tiny(**config) -> torch.nn.Module:
     torch.manual_seed(0)
     model = build_model("optstereo", **TINY).eval()
-    model.config = SimpleNamespace(input_scale=1.0, refine="none", **config)
+    model.inference_config = InferenceConfig(**config)
     return model
 
 
@@ -30,7 +28,7 @@ def _frames(n: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
             for _ in range(n)]
 
 
-@pytest.mark.parametrize("config", [{}, {"cascade": True}])
+@pytest.mark.parametrize("config", [{}, {"coarse_start": True}])
 def test_one_frame_equals_the_plain_path(config: dict) -> None:
     model = _tiny(**config)
     (left, right), = _frames(1)
@@ -51,7 +49,7 @@ def test_the_start_is_the_previous_disparity_in_its_units() -> None:
     # StartEcho: zero start -> red channel (12 px); a start -> the start handed back. Frame 2 (red 40) therefore
     # answers frame 1's 12 px, at any input scale (the start is resized with the pair and back)
     model = StartEcho()
-    model.config = SimpleNamespace(input_scale=1.0, refine="none")
+    model.inference_config = InferenceConfig()
     frames = [(np.full((32, 64, 3), 12, np.uint8),) * 2, (np.full((32, 64, 3), 40, np.uint8),) * 2]
     for scale in (1.0, 0.5):
         first, second = list(infer_sequence(model, frames, scale=scale))

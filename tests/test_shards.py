@@ -199,7 +199,7 @@ class TestErrors:
 
 def test_convert_to_lzf_round_trips_every_array(tmp_path: Path) -> None:
     from click.testing import CliRunner
-    from test_stream import make_shards
+    from conftest import make_shards
 
     from pvm_labeler.cli import main as pvm_main
 

@@ -9,47 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import make_synthetic_pair
+from conftest import make_shards, make_synthetic_pair
 from torch.utils.data import DataLoader
 
 from optstereo.data import ShardStream, TrainTransform, collate_min_size, to_tensors
 from optstereo.data.stream import shuffle_buffer, skip_count
 from optstereo.data.transforms import crop_window, photometric_jitter
 from pvm_labeler.common.errors import ShardError
-from pvm_labeler.shards import DEFAULT_COMPRESSION, ShardRecord, write_shard_dir
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Tiny models and crops: a second intra-op thread costs more than it gains, and on a shared, busy CPU the
-    spinning threads oversubscribe it (measured 10x slower). Other test modules import this fixture."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
-def make_shards(
-    out: Path, n: int = 4, shard_size: int = 2, height: int = 32, width: int = 64, disp: int = 4,
-    with_gt: bool = True, seed: int = 0, compression: str = DEFAULT_COMPRESSION,
-) -> Path:
-    """Tiny shard dir of synthetic pairs (left(x) == right(x - disp)); sample i's label is disp + i / 100.
-
-    The label encodes the sample index so tests can tell samples apart after cropping; label_right is
-    disp + 0.5 + i / 100 so flip-swap (which must use the right-view label) is visible.
-    """
-    rng = np.random.default_rng(seed)
-    records = []
-    for i in range(n):
-        left, right = make_synthetic_pair(rng, height, width, disp)
-        label = np.full((height, width), disp + i / 100, np.float32)
-        label[:, :disp] = np.nan  # no match left of x = disp
-        label_right = np.full((height, width), disp + 0.5 + i / 100, np.float32)
-        label_right[:, width - disp :] = np.nan
-        gt = np.full((height, width), float(disp), np.float32) if with_gt else None
-        records.append(ShardRecord(f"frame-{i:03d}", left, right, label, label_right,
-                                   np.isfinite(label).astype(np.float32), gt=gt))
-    return write_shard_dir(out, records, config={"k": 1}, shard_size=shard_size, compression=compression)
+from pvm_labeler.shards import ShardRecord, write_shard_dir
 
 
 def ids_of(stream: ShardStream) -> list[str]:

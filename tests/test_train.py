@@ -12,7 +12,7 @@ import pytest
 import torch
 import yaml
 from click.testing import CliRunner
-from test_stream import make_shards, one_torch_thread  # noqa: F401 (autouse fixture)
+from conftest import TINY, tiny_config
 
 from optstereo import train
 from optstereo.checkpoint import load_checkpoint, save_checkpoint
@@ -22,8 +22,9 @@ from optstereo.train_config import TrainConfig, parse_crop
 from optstereo.train_resume import config_for_resume
 from pvm_labeler.common.errors import ConfigError
 
-TINY = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}
-# pipelines/recipes/cpu_main.yaml as it was written before the config had sections (flat keys)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+# pipelines/studies/recipes/cpu_main.yaml as it was written before the config had sections (flat keys)
 OLD_CPU_MAIN = {
     "model": "optstereo", "model_overrides": {"feature_dim": 128, "hidden_dim": 128, "head_dim": 128},
     "supervision": "pvm", "iters": 4, "gamma": 0.8, "lambda_r": 0.1, "lambda_s": 0.1, "lambda_t": 0.5,
@@ -33,14 +34,7 @@ OLD_CPU_MAIN = {
     "ckpt_every": 100, "keep_ckpts": 2, "tensorboard": False, "seed": 0,
     "color_norm": "mean",  # pinned in the recipe since the default became the paper's L1 norm (issue 15)
 }
-RECIPES = sorted(Path(__file__).resolve().parents[1].glob("pipelines/recipes/*.yaml"))
-
-
-def tiny_config(labels: Path, out: Path, **changes) -> TrainConfig:
-    """A tiny run; ``changes`` use the old flat keys (lr=, iters=, model_overrides=), as the CLI flags do."""
-    base = dict(labels=labels, out=out, steps=4, batch_size=2, crop=(32, 64), workers=0, iters=2,
-                model_overrides=TINY, log_every=1, ckpt_every=2, image_every=0, tensorboard=False, shuffle_buffer=4)
-    return TrainConfig.from_dict({**base, **changes})
+RECIPES = sorted(Path(__file__).resolve().parents[1].glob("pipelines/studies/recipes/*.yaml"))
 
 
 def flatten(nested: dict) -> dict:
@@ -53,11 +47,6 @@ def flatten(nested: dict) -> dict:
             out[flat] = nested[section][key]
     out["model_overrides"] = {k: v for k, v in nested["model"].items() if k not in ("name", "iters")}
     return out
-
-
-@pytest.fixture(scope="module")
-def shards(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return make_shards(tmp_path_factory.mktemp("train") / "shards", n=4, shard_size=2, height=32, width=72)
 
 
 class TestConfig:
@@ -143,8 +132,8 @@ class TestConfig:
 
 
 class TestRun:
-    def test_artefacts_and_finite_logs(self, shards: Path, tmp_path: Path) -> None:
-        cfg = tiny_config(shards, tmp_path / "run", schedule="onecycle")
+    def test_artefacts_and_finite_logs(self, tiny_shards: Path, tmp_path: Path) -> None:
+        cfg = tiny_config(tiny_shards, tmp_path / "run", schedule="onecycle")
         summary = train.main(cfg)
         run = tmp_path / "run"
         assert summary["step"] == 4 and (run / "last.pt").is_file() and (run / "model.safetensors").is_file()
@@ -159,33 +148,32 @@ class TestRun:
         with pytest.raises(ValueError, match="already holds a training run"):
             train.main(cfg)  # a second run into the same dir must not overwrite the first silently
 
-    def test_run_on_enlarged_crops_exports_its_input_scale(self, shards: Path, tmp_path: Path) -> None:
+    def test_run_on_enlarged_crops_exports_its_input_scale(self, tiny_shards: Path, tmp_path: Path) -> None:
         from optstereo.api import load_model
-        from optstereo.inference import model_input_scale
 
-        train.main(tiny_config(shards, tmp_path / "run", steps=1, scale_range=(1.25, 1.5)))
-        assert model_input_scale(load_model(tmp_path / "run" / "model.safetensors")) == 1.375
-        assert model_input_scale(load_model(tmp_path / "run")) == 1.375
+        train.main(tiny_config(tiny_shards, tmp_path / "run", steps=1, scale_range=(1.25, 1.5)))
+        assert load_model(tmp_path / "run" / "model.safetensors").inference_config.scale == 1.375
+        assert load_model(tmp_path / "run").inference_config.scale == 1.375
 
-    def test_gt_supervision_is_plain_l_p(self, shards: Path, tmp_path: Path) -> None:
-        train.main(tiny_config(shards, tmp_path / "gt", steps=2, supervision="gt"))
+    def test_gt_supervision_is_plain_l_p(self, tiny_shards: Path, tmp_path: Path) -> None:
+        train.main(tiny_config(tiny_shards, tmp_path / "gt", steps=2, supervision="gt"))
         records = [json.loads(line) for line in (tmp_path / "gt" / "metrics.jsonl").read_text().splitlines()]
         assert all(r["L_R"] == 0 and r["L_S"] == 0 and r["total"] == pytest.approx(r["L_P"]) for r in records)
 
-    def test_tensorboard_scalars_and_images(self, shards: Path, tmp_path: Path) -> None:
+    def test_tensorboard_scalars_and_images(self, tiny_shards: Path, tmp_path: Path) -> None:
         pytest.importorskip("tensorboard")
         from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-        train.main(tiny_config(shards, tmp_path / "tb", steps=2, tensorboard=True, image_every=2))
+        train.main(tiny_config(tiny_shards, tmp_path / "tb", steps=2, tensorboard=True, image_every=2))
         events = EventAccumulator(str(tmp_path / "tb" / "tb"))
         events.Reload()
         assert {"train/L_P", "train/L_R", "train/L_S", "train/lr", "train/label_epe"} <= set(events.Tags()["scalars"])
         assert {"images/prediction", "images/label"} <= set(events.Tags()["images"])
 
-    def test_resume_equals_uninterrupted(self, shards: Path, tmp_path: Path) -> None:
-        full = train.main(tiny_config(shards, tmp_path / "full", schedule="onecycle", photometric=True))
+    def test_resume_equals_uninterrupted(self, tiny_shards: Path, tmp_path: Path) -> None:
+        full = train.main(tiny_config(tiny_shards, tmp_path / "full", schedule="onecycle", photometric=True))
         # Interrupted run: stop at step 2 by asking for 2 steps, then resume with the original total.
-        first = tiny_config(shards, tmp_path / "part", schedule="onecycle", photometric=True)
+        first = tiny_config(tiny_shards, tmp_path / "part", schedule="onecycle", photometric=True)
         _run_until(first, stop_at=2)
         assert load_checkpoint(tmp_path / "part").step == 2
         resumed = train.main(config_for_resume(tmp_path / "part"), resume=True)
@@ -196,8 +184,8 @@ class TestRun:
             torch.testing.assert_close(b.model_state[key], a.model_state[key], rtol=1e-5, atol=1e-6)
         assert resumed["param_checksum"] == pytest.approx(full["param_checksum"], rel=1e-6)
 
-    def test_resume_drops_records_logged_after_the_checkpoint(self, shards: Path, tmp_path: Path) -> None:
-        first = tiny_config(shards, tmp_path / "part")
+    def test_resume_drops_records_logged_after_the_checkpoint(self, tiny_shards: Path, tmp_path: Path) -> None:
+        first = tiny_config(tiny_shards, tmp_path / "part")
         _run_until(first, stop_at=2)
         log = tmp_path / "part" / train.METRICS_FILE
         # A kill after step 3 was logged, before its checkpoint, and a kill in the middle of a write.
@@ -207,7 +195,7 @@ class TestRun:
         steps = [json.loads(line)["step"] for line in log.read_text().splitlines()]
         assert steps == [1, 2, 3, 4]
 
-    def test_non_finite_loss_names_the_step(self, shards: Path, tmp_path: Path,
+    def test_non_finite_loss_names_the_step(self, tiny_shards: Path, tmp_path: Path,
                                             monkeypatch: pytest.MonkeyPatch) -> None:
         real = train.build_loss
 
@@ -223,7 +211,7 @@ class TestRun:
 
         monkeypatch.setattr(train, "build_loss", lambda cfg: _Wrap(nan_after_two(cfg)))
         with pytest.raises(train.NonFiniteLossError, match="step 3"):
-            train.main(tiny_config(shards, tmp_path / "nan"))
+            train.main(tiny_config(tiny_shards, tmp_path / "nan"))
 
 
 class _Wrap(torch.nn.Module):
@@ -253,11 +241,11 @@ def _run_until(cfg: TrainConfig, stop_at: int) -> None:
 
 
 class TestCli:
-    def test_train_cli_with_config_file(self, shards: Path, tmp_path: Path) -> None:
+    def test_train_cli_with_config_file(self, tiny_shards: Path, tmp_path: Path) -> None:
         cfg_file = tmp_path / "train.yaml"
         cfg_file.write_text(yaml.safe_dump({"steps": 5, "crop": "32x64", "iters": 2, "model_overrides": TINY,
                                             "tensorboard": False, "log_every": 1}))
-        result = CliRunner().invoke(train_main, ["--labels", str(shards), "--out", str(tmp_path / "run"),
+        result = CliRunner().invoke(train_main, ["--labels", str(tiny_shards), "--out", str(tmp_path / "run"),
                                                  "--config", str(cfg_file), "--steps", "2", "--workers", "0",
                                                  "--batch-size", "1", "--quiet"])
         assert result.exit_code == 0, result.output
@@ -268,10 +256,10 @@ class TestCli:
         assert more.exit_code == 0, more.output
         assert "trained 2 -> 3 steps" in more.output
 
-    def test_resume_of_a_flat_config_run(self, shards: Path, tmp_path: Path) -> None:
+    def test_resume_of_a_flat_config_run(self, tiny_shards: Path, tmp_path: Path) -> None:
         """A run saved by the trainer before the config had sections (flat config.yaml and train_config) resumes."""
         run = tmp_path / "old"
-        train.main(tiny_config(shards, run, steps=2), progress=False)
+        train.main(tiny_config(tiny_shards, run, steps=2), progress=False)
         ckpt = load_checkpoint(run)
         flat = flatten(ckpt.train_config)
         model = train.build_model(TrainConfig.from_dict(flat))
@@ -295,7 +283,7 @@ class TestCli:
                                                  "--set", "data.max_disp=192", "--print-config"])
         assert result.exit_code == 0, result.output
         printed = yaml.safe_load(result.output)
-        assert list(printed)[:5] == ["model", "loss", "data", "optim", "val"] and "lr" not in printed
+        assert list(printed)[:6] == ["model", "inference", "loss", "data", "optim", "val"] and "lr" not in printed
         assert (printed["model"]["feature_dim"], printed["model"]["iters"], printed["optim"]["steps"]) == (128, 4, 5)
         assert (printed["loss"]["alpha"], printed["loss"]["photometric_iters"], printed["loss"]["lambda_t"]) == (
             0.7, "all", 0.5)
@@ -328,11 +316,12 @@ class TestCli:
         result = CliRunner().invoke(train_main, ["--labels", str(tmp_path / "nope"), "--out", str(tmp_path)])
         assert result.exit_code == 2 and "nope" in result.output
 
-    def test_bad_crop_is_usage_error(self, shards: Path, tmp_path: Path) -> None:
-        result = CliRunner().invoke(train_main, ["--labels", str(shards), "--out", str(tmp_path), "--crop", "30x60"])
+    def test_bad_crop_is_usage_error(self, tiny_shards: Path, tmp_path: Path) -> None:
+        args = ["--labels", str(tiny_shards), "--out", str(tmp_path), "--crop", "30x60"]
+        result = CliRunner().invoke(train_main, args)
         assert result.exit_code == 2 and "multiples of 8" in result.output
 
-    def test_wrong_schema_is_runtime_error(self, shards: Path, tmp_path: Path) -> None:
+    def test_wrong_schema_is_runtime_error(self, tiny_shards: Path, tmp_path: Path) -> None:
         bad = tmp_path / "bad"
         bad.mkdir()
         (bad / "index.json").write_text(json.dumps({"schema": {"name": "pvstereo-pvm-shards", "version": 0}}))
@@ -352,8 +341,8 @@ class TestAmp:
                 out = torch.nn.functional.linear(torch.ones(2, 4), torch.ones(3, 4))
             assert out.dtype == torch.float32
 
-    def test_bf16_run_trains_float32_weights(self, shards: Path, tmp_path: Path) -> None:
-        summary = train.main(tiny_config(shards, tmp_path / "run", amp="bf16"))
+    def test_bf16_run_trains_float32_weights(self, tiny_shards: Path, tmp_path: Path) -> None:
+        summary = train.main(tiny_config(tiny_shards, tmp_path / "run", amp="bf16"))
         records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
         assert summary["step"] == 4 and all(torch.isfinite(torch.tensor(r["total"])) for r in records)
         state = load_checkpoint(tmp_path / "run" / "last.pt")

@@ -8,10 +8,10 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from click.testing import CliRunner
-from test_stream import one_torch_thread  # noqa: F401 (autouse fixture)
-from test_train import TINY
+from conftest import TINY
 
 from optstereo.checkpoint import export_safetensors, load_checkpoint
 from optstereo.cli import eval_main, train_main
@@ -20,6 +20,8 @@ from optstereo.models import build_model
 from pvm_labeler.cli import main as pvm_main
 from pvm_labeler.common import io
 from pvm_labeler.common.datasets import make_layered_scene
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _rig(root: Path, n: int, height: int = 64, width: int = 128) -> None:

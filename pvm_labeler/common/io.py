@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from pvm_labeler.common.atomic import atomic_write_bytes
+from pvm_labeler.common.atomic import atomic_path, atomic_write_bytes
 from pvm_labeler.common.errors import InputError
 
 logger = logging.getLogger(__name__)
@@ -139,6 +139,15 @@ def read_pfm(path: Path | str) -> npt.NDArray[np.float32]:
     data = np.frombuffer(buf, dtype=dtype, count=count, offset=start).astype(np.float32)
     shape = (height, width, 3) if channels == 3 else (height, width)
     return np.ascontiguousarray(np.flipud(data.reshape(shape)))
+
+
+def write_npy(path: Path | str, array: np.ndarray) -> None:
+    """Write ``array`` as a NumPy ``.npy`` file, atomically (a full disk leaves no truncated file under ``path``)."""
+    try:
+        with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:
+            np.save(fh, array)
+    except OSError as exc:  # numpy's own message ("2048 requested and 1468 written") names no file
+        raise OSError(f"cannot write {path}: {exc} (disk full?)") from exc
 
 
 def write_pfm(path: Path | str, array: np.ndarray) -> None:

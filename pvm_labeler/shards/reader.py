@@ -111,6 +111,11 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
     missing = [name for name in REQUIRED if name not in arrays]
     if missing:
         raise ShardError(f"shard {h5.filename}: sample '{frame_id}' lacks {missing}")
+    size = arrays["left"].shape[:2]
+    off = {name: a.shape[:2] for name, a in arrays.items() if a.shape[:2] != size}
+    if off:  # a label of another size would be cropped against the wrong pixels, or fail deep in a transform
+        raise ShardError(f"shard {h5.filename}: sample '{frame_id}' has arrays of other sizes than its left image "
+                         f"{size}: {off}")
     return ShardSample(
         frame_id=frame_id,
         left=arrays["left"],

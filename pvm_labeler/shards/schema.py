@@ -48,11 +48,9 @@ HALF_ON_DISK: tuple[str, ...] = ("confidence", "confidence_right")
 
 
 def blosc_plugin() -> Any:
-    """The ``hdf5plugin`` module, or None without it; read from the package at call time (tests switch it off with
-    ``monkeypatch.setattr(pvm_labeler.shards, "hdf5plugin", None)``)."""
-    import pvm_labeler.shards as package
-
-    return package.hdf5plugin
+    """The ``hdf5plugin`` module, or None without it; read at call time (tests switch it off with
+    ``monkeypatch.setattr(pvm_labeler.shards.schema, "hdf5plugin", None)``)."""
+    return hdf5plugin
 
 
 def shard_name(index: int) -> str:

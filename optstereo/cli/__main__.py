@@ -1,0 +1,5 @@
+"""``python -m optstereo.cli COMMAND ...`` (and torchrun -m optstereo.cli)."""
+
+from optstereo.cli import cli
+
+cli()

@@ -1,0 +1,143 @@
+"""``optstereo-predict``: disparity files (KITTI PNG, PFM, NPY, colour, depth, confidence) of a pair or a dataset."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import click
+
+from optstereo.cli.common import (
+    EXISTING,
+    GuardedCommand,
+    _setup_logging,
+    check_out,
+    collect_reader_options,
+    dataset_option,
+    device_option,
+    infer_options,
+    load_model,
+    reader_options,
+)
+from optstereo.predict_more import MoreOptions, frames_of, more_options, predict_frames
+
+logger = logging.getLogger(__name__)
+
+
+@click.command(cls=GuardedCommand, context_settings={"show_default": True})
+@click.argument("left", type=EXISTING, required=False)
+@click.argument("right", type=EXISTING, required=False)
+@click.option("--checkpoint", type=click.Path(path_type=Path), required=True,
+              help="Checkpoint file, RUN_DIR, or 'pretrained' (the shipped model).")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@dataset_option
+@click.option("--root", type=EXISTING, help="Dataset root (predicts the whole dataset; KITTI: disp_0/<frame>.png).")
+@reader_options
+@click.option("--split", default="training", help="Dataset split.")
+@click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
+@click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
+@click.option("--format", "formats", multiple=True, default=("png", "color"),
+              type=click.Choice(("png", "pfm", "npy", "color", "depth-png", "depth-pfm", "depth-npy", "ply",
+                                 "conf-png", "conf-npy")),
+              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm), "
+                   "depth-pfm / depth-npy (m), ply (coloured point cloud); conf-png (16-bit, confidence x 65535) / "
+                   "conf-npy (float32 in [0, 1]) (repeatable).")
+@click.option("--calib", type=EXISTING,
+              help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
+                   "(fx, cx, cy, baseline [m], doffs).")
+@click.option("--max-depth", type=float, default=None, help="Drop depths beyond this many metres (depth and PLY).")
+@click.option("--backend", type=click.Choice(("torch", "onnxruntime")), default="torch",
+              help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats).")
+@click.option("--submission", type=click.Path(path_type=Path),
+              help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
+@device_option
+@infer_options
+@more_options
+@click.option("--quiet", is_flag=True, help="Only warnings and errors.")
+def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
+                 root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
+                 calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
+                 amp: str, scale: float | None, refine: str | None, quiet: bool, sequence: bool,
+                 sequence_iters: int, min_confidence: float, **reader: Any) -> None:
+    """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
+    _setup_logging(quiet)
+    from optstereo import inference, outputs
+
+    if dataset is None and (left is None or right is None):
+        raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
+    if dataset is not None and left is not None:
+        raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    check_out(out)
+    if backend == "onnxruntime":
+        _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
+        return
+    geometry = [f for f in formats if f in outputs.GEOMETRY_FORMATS]
+    if geometry and (calib is None or dataset is not None):
+        raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
+    rig = None
+    if calib is not None:
+        from optstereo.geometry import read_calibration
+
+        rig = read_calibration(calib)
+    model, dev = load_model(checkpoint, device)
+    more = MoreOptions(sequence, sequence_iters, min_confidence)
+    if more.active(formats):  # optstereo.predict_more: --sequence, confidence formats, --min-confidence
+        if geometry or submission is not None:
+            raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
+                                   "--submission outputs")
+        frames = frames_of(left, right, dataset, root, split, limit, collect_reader_options(**reader))
+        written = predict_frames(model, frames, out, more, formats=formats, iters=iters, device=dev,
+                               amp=amp, scale=scale, refine=refine, progress=not quiet,
+                               kitti_layout=bool(dataset and dataset.startswith("kitti")))
+        click.echo(f"wrote {len(written)} frames into {out}")
+        return
+    if dataset is None:
+        _check_memory(left, right, scale if scale is not None else inference.model_inference_config(model).scale,
+                      dev.type)
+        paths = outputs.predict_pair(model, left, right, out, iters=iters, formats=formats, device=dev,
+                             amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
+                             scale=scale, refine=refine)
+        click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+    else:
+        if submission is not None and "png" not in formats:
+            formats = (*formats, "png")
+        written = outputs.predict_dataset(model, dataset, root, out, split=split, iters=iters,
+                               formats=formats, device=dev, limit=limit, amp=amp, submission=submission,
+                               reader_options=collect_reader_options(**reader), scale=scale, refine=refine)
+        click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
+                                                                 if submission is not None else ""))
+
+
+def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...],
+                  dataset: str | None, scale: float | None, refine: str | None) -> None:
+    import torch
+
+    from optstereo import outputs
+    from optstereo.export import infer_onnx, onnx_session
+    from pvm_labeler.common.io import read_image
+
+    if dataset is not None or left is None or right is None or Path(onnx_file).suffix != ".onnx":
+        raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")
+    if not Path(onnx_file).is_file():
+        raise click.BadParameter(f"{onnx_file} does not exist", param_hint="--checkpoint")
+    _check_memory(left, right, 1.0 if scale is None else scale, "cpu")
+    session = onnx_session(onnx_file, threads=torch.get_num_threads())  # --threads, or one per core
+    disp = infer_onnx(session, read_image(left), read_image(right), scale=scale, refine=refine)
+    paths = outputs.write_disparity(out, Path(left).stem, disp, formats)
+    click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+def _check_memory(left: Path, right: Path, scale: float, device_type: str) -> None:
+    """Exit 1 naming LEFT when the pair's estimated peak memory exceeds the free memory (optstereo.memory); read
+    from the image headers, before either image is decoded. Pairs of different sizes are refused here too."""
+    from optstereo.memory import check_fits
+    from pvm_labeler.common.io import image_size
+
+    size = image_size(left)
+    if image_size(right) != size:
+        raise click.ClickException(f"left/right sizes differ: {size} vs {image_size(right)}: {left}, {right}")
+    try:
+        check_fits(str(left), *size, scale=scale, cuda=device_type == "cuda")
+    except MemoryError as exc:
+        raise click.ClickException(str(exc)) from exc

@@ -1,0 +1,216 @@
+"""Distillation targets: a teacher's dense disparities where PVM has no label (issue 42's one-pass student).
+
+A teacher (any checkpoint run through ``optstereo.inference.infer`` with its own settings, e.g. version 14's three
+passes at 1.625x and the weighted median) predicts both views of every training pair: the left view as given, the
+right view from the mirrored, swapped pair. Where the two agree (the labeler's left-right check,
+``pvm_labeler.voting.lr_check``, at ``max_lr_diff`` px) the teacher's disparity fills PVM's holes at weight
+``fill_confidence``; PVM's own labels never change. A student trained on these shards with the paper's losses and
+confidence-weighted L_P learns in one pass what the teacher gives with several.
+
+    optstereo-distill maps --checkpoint TEACHER --dataset folder --root PACK --out MAPS    one .npz per pair (resumable)
+    optstereo-distill fill LABELS MAPS OUT [--fill-confidence 0.5] [--max-lr-diff 1.0]      PVM shards + teacher fills
+
+No GT is read: the maps are made from the images alone, and ``fill`` refuses a shard directory whose samples carry GT
+(a GT frame must never enter a self-supervised training set).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from torch import nn
+from tqdm import tqdm
+
+from optstereo.inference import infer
+from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.shards.fills import add_fills, right_confidence
+
+logger = logging.getLogger(__name__)
+
+#: Weight of a teacher fill in the confidence-weighted L_P (PVM's labels have their vote confidence, ~1). Fixed before
+#: any GT number: between the 0.3 of the dense-SGM fills versions 12-14 trained on and a PVM label's 1, since the
+#: teacher is right more often than SGM inside PVM's holes.
+FILL_CONFIDENCE = 0.5
+#: The labeler's own left-right threshold (``LabelerConfig.lr_threshold``).
+MAX_LR_DIFF = 1.0
+MAP_SUFFIX = ".npz"
+
+
+def teacher_views(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
+                  device: str = "cpu", amp: str = "none") -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """(left-view, right-view) (H, W) float32 disparities of an (H, W, 3) uint8 pair by ``infer`` with the model's
+    own settings; the right view's is the mirrored, swapped pair's left view, mirrored back (right(x) matches
+    left(x + d))."""
+    disp_left = infer(model, left, right, device=device, amp=amp)
+    mirrored = infer(model, np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]),
+                     device=device, amp=amp)
+    return disp_left, np.ascontiguousarray(mirrored[:, ::-1])
+
+
+def consistent_views(disp_left: npt.NDArray[np.float32], disp_right: npt.NDArray[np.float32],
+                     max_lr_diff: float = MAX_LR_DIFF) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """Both (H, W) float32 views kept only where the other view agrees within ``max_lr_diff`` px, NaN elsewhere.
+
+    The labeler's rule (``pvm_labeler.voting.lr_check``) on dense maps, vectorised: a left pixel x with disparity d
+    reads the right view at the rounded column floor(x - d + 0.5), a right pixel at floor(x + d + 0.5); off the image
+    or non-finite = inconsistent.
+    """
+    if disp_left.ndim != 2 or disp_left.shape != disp_right.shape:
+        raise ValueError(f"views must be (H, W) of one shape, got {disp_left.shape} and {disp_right.shape}")
+    return (_agree(disp_left, disp_right, -1.0, max_lr_diff), _agree(disp_right, disp_left, 1.0, max_lr_diff))
+
+
+def _agree(disp: npt.NDArray[np.float32], other: npt.NDArray[np.float32], sign: float,
+           max_diff: float) -> npt.NDArray[np.float32]:
+    """``disp`` where ``other`` at column floor(x + sign * d + 0.5) is within ``max_diff``, else NaN."""
+    width = disp.shape[1]
+    with np.errstate(invalid="ignore"):
+        target = np.floor(np.arange(width, dtype=np.float32)[None, :] + sign * disp + 0.5)
+        inside = np.isfinite(disp) & (target >= 0) & (target < width)
+        looked = np.take_along_axis(other, np.where(inside, target, 0).astype(np.int64), axis=1)
+        keep = inside & (np.abs(disp - looked) <= max_diff)
+    return np.where(keep, disp, np.nan).astype(np.float32)
+
+
+def map_path(maps_dir: Path, frame_id: str) -> Path:
+    """Where :func:`write_teacher_maps` keeps one pair's two views."""
+    return Path(maps_dir) / f"{frame_id}{MAP_SUFFIX}"
+
+
+def write_teacher_maps(model: nn.Module, refs: list[Any], maps_dir: Path, device: str = "cpu", amp: str = "none",
+                       progress: bool = False) -> int:
+    """Write ``MAPS/<frame id>.npz`` (``left``, ``right``: (H, W) float32 teacher views) for every pair of ``refs``
+    (``pvm_labeler.common.datasets.PairRef``); a pair whose file exists is skipped (a re-run resumes). Each file is
+    written to a temporary name and renamed, so a killed run leaves no partial map. Returns the pairs written."""
+    from pvm_labeler.common.datasets import load_pair
+
+    maps_dir = Path(maps_dir)
+    maps_dir.mkdir(parents=True, exist_ok=True)
+    written = 0
+    for ref in tqdm(refs, desc="teacher", unit="pair", file=sys.stderr, disable=not (progress and sys.stderr.isatty())):
+        target = map_path(maps_dir, ref.frame_id)
+        if target.exists():
+            continue
+        sample = load_pair(ref)
+        disp_left, disp_right = teacher_views(model, sample.left, sample.right, device, amp)
+        with atomic_path(target) as tmp, open(tmp, "wb") as handle:
+            np.savez(handle, left=disp_left, right=disp_right)
+        written += 1
+    return written
+
+
+def read_teacher_maps(maps_dir: Path, frame_id: str,
+                      shape: tuple[int, int]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """(left, right) (H, W) float32 views of ``frame_id``; ValueError naming the file when it is missing or its size
+    is not ``shape``."""
+    path = map_path(maps_dir, frame_id)
+    if not path.is_file():
+        raise ValueError(f"teacher map {path} is missing: run `optstereo-distill maps` over the same pairs first")
+    with np.load(path) as data:
+        left, right = data["left"].astype(np.float32), data["right"].astype(np.float32)
+    if left.shape != shape or right.shape != shape:
+        raise ValueError(f"teacher map {path} is {left.shape}, its pair is {shape}: maps of other images?")
+    return left, right
+
+
+def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float, max_lr_diff: float,
+                allow_missing: bool = False) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """One shard sample's new arrays (both views' labels and confidences) and attributes (pixels filled). With
+    ``allow_missing`` a pair without a teacher map keeps its PVM labels as they are (attribute ``distill_missing``)."""
+    if sample.gt is not None or sample.gt_noc is not None:
+        raise ValueError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
+    if allow_missing and not map_path(maps_dir, sample.frame_id).is_file():
+        logger.warning("no teacher map for %s: its PVM labels stay as they are", sample.frame_id)
+        return {}, {"distill_missing": 1}
+    teacher_left, teacher_right = consistent_views(*read_teacher_maps(maps_dir, sample.frame_id,
+                                                                      sample.label.shape), max_lr_diff)
+    label, conf, n_left = add_fills(sample.label, sample.confidence, teacher_left, fill_confidence)
+    label_right, conf_right, n_right = add_fills(sample.label_right, right_confidence(sample.label_right),
+                                                 teacher_right, fill_confidence)
+    arrays = {"label": label, "confidence": conf.astype(np.float16), "label_right": label_right,
+              "confidence_right": conf_right.astype(np.float16)}
+    return arrays, {"distill_filled_left": n_left, "distill_filled_right": n_right}
+
+
+def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CONFIDENCE,
+         max_lr_diff: float = MAX_LR_DIFF, compression: str | None = None, progress: bool = False,
+         allow_missing: bool = False) -> Path:
+    """Rewrite the PVM shard directory ``src`` into ``out`` with the teacher's left-right consistent disparities in
+    both views' holes (:func:`fill_sample`); resumable and atomic like ``pvm_labeler.shards.rewrite``.
+
+    Raises:
+        ValueError: ``fill_confidence`` outside (0, 1], ``max_lr_diff`` < 0, a missing or mis-sized map, GT in a
+            sample.
+    """
+    from pvm_labeler.shards import rewrite
+
+    if not 0 < fill_confidence <= 1 or not max_lr_diff >= 0:
+        raise ValueError(f"distill fill: need 0 < fill_confidence <= 1 and max_lr_diff >= 0, got {fill_confidence} "
+                         f"and {max_lr_diff}")
+    settings = {"maps": str(Path(maps_dir).resolve()), "fill_confidence": fill_confidence, "max_lr_diff": max_lr_diff}
+    kwargs = {} if compression is None else {"compression": compression}
+    def transform(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return fill_sample(sample, Path(maps_dir), fill_confidence, max_lr_diff, allow_missing)
+
+    return rewrite(src, out, transform=transform, extra={"distilled_from": str(src), "distill": settings},
+                   progress=progress, **kwargs)
+
+
+def _cli() -> Any:
+    """The ``optstereo-distill`` click group (maps, fill)."""
+    import click
+
+    from optstereo.checkpoint import build_model_from_checkpoint
+    from optstereo.pretrained import resolve_checkpoint_spec
+    from pvm_labeler.common.datasets import discover
+
+    @click.group(help=__doc__.splitlines()[0])
+    def group() -> None:
+        logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+    @group.command("maps", help="The teacher's two views of every pair of a dataset, one .npz each (resumable).")
+    @click.option("--checkpoint", required=True, help="Teacher: a checkpoint file, run directory or 'pretrained'.")
+    @click.option("--dataset", default="folder", show_default=True, help="Dataset reader (pvm-label's names).")
+    @click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), help="Dataset root.")
+    @click.option("--left", default="left", show_default=True, help="folder reader: left images' sub-folder.")
+    @click.option("--right", default="right", show_default=True, help="folder reader: right images' sub-folder.")
+    @click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder of the .npz maps.")
+    @click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
+    @click.option("--amp", default="none", show_default=True, help="none, bf16 or fp16 (CUDA).")
+    def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str, out: Path, device: str,
+             amp: str) -> None:
+        kwargs = {"left": left, "right": right} if dataset == "folder" else {}
+        refs = discover(dataset, root, **kwargs)
+        model = build_model_from_checkpoint(resolve_checkpoint_spec(checkpoint), device=device)
+        written = write_teacher_maps(model, refs, out, device, amp, progress=True)
+        click.echo(f"{written} new teacher maps ({len(refs)} pairs) in {out}")
+
+    @group.command("fill", help="PVM shards + the teacher's left-right consistent views in their holes.")
+    @click.argument("labels", type=click.Path(exists=True, file_okay=False, path_type=Path))
+    @click.argument("maps_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+    @click.argument("out", type=click.Path(path_type=Path))
+    @click.option("--fill-confidence", type=float, default=FILL_CONFIDENCE, show_default=True)
+    @click.option("--max-lr-diff", type=float, default=MAX_LR_DIFF, show_default=True)
+    @click.option("--compression", default=None, help="Shard compression (default: the labeler's).")
+    @click.option("--allow-missing", is_flag=True, help="A pair without a map keeps its PVM labels (else an error).")
+    def fill_command(labels: Path, maps_dir: Path, out: Path, fill_confidence: float, max_lr_diff: float,
+                     compression: str | None, allow_missing: bool) -> None:
+        fill(labels, maps_dir, out, fill_confidence, max_lr_diff, compression, progress=True,
+             allow_missing=allow_missing)
+        click.echo(f"teacher-filled shards in {out}")
+
+    return group
+
+
+def main() -> None:
+    """Entry point of ``optstereo-distill``."""
+    _cli()()
+
+
+if __name__ == "__main__":
+    main()

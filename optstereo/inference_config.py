@@ -1,0 +1,118 @@
+"""Typed settings of how a network is run on a pair (no torch, no I/O): ``InferenceConfig``.
+
+``optstereo.inference.run`` reads one of these and runs, in order: resize the pair by ``scale``, pad, the network
+pass(es), unpad, resize the disparity back, the post-filter ``refine``. A weights file stores it under its own key
+(``inference_config``, JSON), apart from the architecture (``optstereo.models.config.ModelConfig``); files written
+before that key existed kept these settings among the model's, and ``optstereo.models.config.split_legacy_model_dict``
+reads them from there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Literal, get_args
+
+from pvm_labeler.common.configtools import reject_unknown_keys
+
+Refiner = Literal["none", "wmedian"]
+#: Post-filters ``run`` can apply to the disparity at the input's size (``pvm_labeler.refine`` for "wmedian").
+REFINERS: tuple[str, ...] = get_args(Refiner)
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """How ``optstereo.inference.run`` runs a network on one pair.
+
+    Attributes:
+        scale: factor both images are resized by before the network (weights trained on enlarged crops run best on
+            enlarged inputs); the disparity always comes back at the input's size and in its pixels. 1 = as given.
+        iters: GRU iterations of every pass; None = the model's own (``ModelConfig.iters``).
+        refine: post-filter of the disparity at the input's size, guided by the left image: "none", or "wmedian"
+            (the colour-weighted median of ``pvm_labeler.refine`` at its defaults, which snaps depth edges blurred
+            by the 1/8 grid to the colour edges).
+        adaptive_ref_disp: 0 = off; else a pair whose first pass (at ``scale``) has smaller disparities than the
+            model learned on is run again, enlarged so that the 95th percentile of its disparity reaches this many
+            pixels (``optstereo.rescale.adaptive_factor``): the second pass for small pairs.
+        adaptive_ref_pixels: the training pairs' pixel count (H x W): the adaptive pass never feeds the network more
+            pixels than that (required when ``adaptive_ref_disp`` is set).
+        coarse_start: the final pass's GRU starts from a pass at half its scale instead of from zero
+            (``optstereo.cascade.coarse_start``, the training's own; for weights trained with ``data.cascade_p``).
+        select: with ``coarse_start``, keep per pixel whichever of that pass and the zero-start pass at the same
+            scale matches the pair better photometrically (``optstereo.cascade.photometric_select``).
+        select_jump: with ``select``, > 0: the zero start is only chosen within this fraction of the pair's width
+            of the coarse start (``optstereo.cascade.jump_limit``); 0 = no limit.
+    """
+
+    scale: float = 1.0
+    iters: int | None = None
+    refine: Refiner = "none"
+    adaptive_ref_disp: float = 0.0
+    adaptive_ref_pixels: int = 0
+    coarse_start: bool = False
+    select: bool = False
+    select_jump: float = 0.0
+
+    @property
+    def adaptive(self) -> bool:
+        """True when a small pair may get a second, enlarged pass."""
+        return self.adaptive_ref_disp > 0
+
+    @property
+    def passes(self) -> int:
+        """Network passes on a pair that needs no adaptive pass: the zero-start one (unless only a coarse-started
+        one is wanted), plus the half-scale pass and the pass started from it with ``coarse_start``."""
+        zero = not self.coarse_start or self.select or self.adaptive
+        return int(zero) + 2 * int(self.coarse_start)
+
+    def validate(self) -> InferenceConfig:
+        """Raise ValueError naming the field if a value is out of range or of the wrong type; return self."""
+        for key in ("scale", "adaptive_ref_disp", "select_jump"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"inference option {key} must be a finite number, got {value!r}")
+        for key in ("coarse_start", "select"):
+            if not isinstance(getattr(self, key), bool):
+                raise ValueError(f"inference option {key} must be true or false, got {getattr(self, key)!r}")
+        if not self.scale > 0:
+            raise ValueError(f"inference option scale must be positive and finite, got {self.scale}")
+        if self.iters is not None and (isinstance(self.iters, bool) or not isinstance(self.iters, int)
+                                       or self.iters < 1):
+            raise ValueError(f"inference option iters must be None (the model's) or an integer >= 1, "
+                             f"got {self.iters!r}")
+        if self.refine not in REFINERS:
+            raise ValueError(f"inference option refine must be one of {REFINERS}, got {self.refine!r}")
+        if self.adaptive_ref_disp < 0:
+            raise ValueError(f"inference option adaptive_ref_disp must be >= 0, got {self.adaptive_ref_disp}")
+        if isinstance(self.adaptive_ref_pixels, bool) or not isinstance(self.adaptive_ref_pixels, int) \
+                or self.adaptive_ref_pixels < 0:
+            raise ValueError(f"inference option adaptive_ref_pixels must be an integer >= 0, "
+                             f"got {self.adaptive_ref_pixels!r}")
+        if self.adaptive_ref_disp > 0 and self.adaptive_ref_pixels == 0:
+            raise ValueError("inference option adaptive_ref_disp needs adaptive_ref_pixels (the training pairs' "
+                             "pixel count)")
+        if self.select and not self.coarse_start:
+            raise ValueError("inference option select needs coarse_start (it chooses between the two starts' passes)")
+        if self.select_jump < 0:
+            raise ValueError(f"inference option select_jump must be >= 0, got {self.select_jump}")
+        if self.select_jump > 0 and not self.select:
+            raise ValueError("inference option select_jump needs select (it limits that choice)")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (YAML/JSON-serialisable)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> InferenceConfig:
+        """Build from a dict (YAML/JSON, a weights file's metadata), rejecting unknown keys by name; an integer for a
+        float field is taken as that float."""
+        reject_unknown_keys(cls, values, "inference config")  # ConfigError, a ValueError
+        floats = {"scale", "adaptive_ref_disp", "select_jump"}
+        values = {k: float(v) if k in floats and type(v) is int else v for k, v in values.items()}
+        return cls(**values).validate()
+
+    def replace(self, **changes: Any) -> InferenceConfig:
+        """A validated copy with ``changes`` (InferenceConfig fields)."""
+        return dataclasses.replace(self, **changes).validate()

@@ -1,0 +1,159 @@
+"""Disparity files in the field's formats, and ``optstereo-predict``'s loops over pairs and datasets.
+
+Outputs per frame (``formats`` picks them): ``png`` KITTI 16-bit PNG (disparity x 256, 0 = invalid), ``pfm``
+(float32, Middlebury/Scene Flow), ``npy`` (float32), ``color`` (8-bit colour rendering for people). The KITTI form
+(``kitti_layout=True``) names files as the benchmark's submission expects: ``disp_0/<frame>_10.png``. The disparity
+itself comes from ``optstereo.inference.infer`` (the one inference path).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+from optstereo.inference import infer
+from optstereo.submission import write_submission
+
+logger = logging.getLogger(__name__)
+
+FORMATS = ("png", "pfm", "npy", "color")
+GEOMETRY_FORMATS = ("depth-png", "depth-pfm", "depth-npy", "ply")  # need a calibration (optstereo.geometry)
+DEFAULT_FORMATS = ("png", "color")
+
+
+def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
+    """(H, W, 3) uint8 colour rendering of a disparity map (NaN = black), via the labeler's viz module."""
+    try:
+        from pvm_labeler.common.viz import colorize_disparity
+    except ImportError:  # viz is optional for inference; fall back to OpenCV's turbo map
+        import cv2
+
+        finite = np.isfinite(disp)
+        vmax = max_disp or (float(disp[finite].max()) if finite.any() else 1.0)
+        grey = np.clip(np.nan_to_num(disp) / max(vmax, 1e-6) * 255.0, 0, 255).astype(np.uint8)
+        out = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)[..., ::-1].copy()
+        out[~finite] = 0
+        return out
+    return colorize_disparity(disp, max_disp=max_disp)
+
+
+def write_disparity(
+    out_dir: Path, name: str, disp: npt.NDArray[np.float32], formats: Iterable[str] = DEFAULT_FORMATS,
+    *, kitti_layout: bool = False, max_disp: float | None = None,
+) -> dict[str, Path]:
+    """Write one disparity map in the requested formats; returns format -> path.
+
+    With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
+    ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders.
+    """
+    from pvm_labeler.common.io import write_image, write_kitti_disp, write_npy, write_pfm
+
+    formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
+    unknown = sorted(set(formats) - set(FORMATS))
+    if unknown:
+        raise ValueError(f"unknown output formats {unknown}; choose from {FORMATS}")
+    out_dir = Path(out_dir)
+    folders = {"png": "disp_0", "pfm": "pfm", "npy": "npy", "color": "color"} if kitti_layout else {}
+    paths: dict[str, Path] = {}
+    for fmt in formats:
+        folder = out_dir / folders.get(fmt, "")
+        folder.mkdir(parents=True, exist_ok=True)
+        if fmt == "png":
+            paths[fmt] = folder / f"{name}.png"
+            write_kitti_disp(paths[fmt], disp)
+        elif fmt == "pfm":
+            paths[fmt] = folder / f"{name}.pfm"
+            write_pfm(paths[fmt], disp.astype(np.float32))
+        elif fmt == "npy":
+            paths[fmt] = folder / f"{name}.npy"
+            write_npy(paths[fmt], disp.astype(np.float32))
+        else:
+            paths[fmt] = folder / f"{name}_color.png"
+            write_image(paths[fmt], colorize(disp, max_disp))
+    return paths
+
+
+def write_geometry(
+    out_dir: Path, name: str, disp: npt.NDArray[np.float32], image: npt.NDArray[np.uint8], calib: Any,
+    formats: Iterable[str], max_depth: float = float("inf"),
+) -> dict[str, Path]:
+    """Depth (16-bit mm PNG, PFM/NPY in m) and a coloured PLY point cloud of one prediction; format -> path."""
+    from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
+    from pvm_labeler.common.io import write_npy, write_pfm
+
+    wanted = [f for f in formats if f in GEOMETRY_FORMATS]
+    if not wanted:
+        return {}
+    if calib is None:
+        raise ValueError(f"formats {wanted} need a calibration: pass --calib FILE")
+    depth = disparity_to_depth(disp, calib, max_depth)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    for fmt in wanted:
+        if fmt == "depth-png":
+            paths[fmt] = out_dir / f"{name}_depth.png"
+            write_depth_png(paths[fmt], depth)
+        elif fmt == "depth-pfm":
+            paths[fmt] = out_dir / f"{name}_depth.pfm"
+            write_pfm(paths[fmt], depth)
+        elif fmt == "depth-npy":
+            paths[fmt] = out_dir / f"{name}_depth.npy"
+            write_npy(paths[fmt], depth)
+        else:
+            paths[fmt] = out_dir / f"{name}.ply"
+            write_ply(paths[fmt], *depth_to_points(depth, calib, image))
+    return paths
+
+
+def predict_pair(
+    model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
+    formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
+    calib: Any = None, max_depth: float = float("inf"), scale: float | None = None, refine: str | None = None,
+) -> dict[str, Path]:
+    """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
+    from pvm_labeler.common.io import read_image
+
+    left, right = read_image(left_path), read_image(right_path)
+    if left.shape != right.shape:
+        raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
+    t0 = time.perf_counter()
+    disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale, refine=refine)
+    logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
+    stem = Path(left_path).stem
+    return {**write_disparity(out_dir, stem, disp, formats),
+            **write_geometry(out_dir, stem, disp, left, calib, formats, max_depth)}
+
+
+def predict_dataset(
+    model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
+    iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
+    limit: int | None = None, amp: str = "none", submission: Path | None = None,
+    reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
+) -> list[dict[str, Path]]:
+    """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
+
+    With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server.
+    """
+    from pvm_labeler.common.datasets import discover, load_pair
+
+    refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
+    if submission is not None and not dataset.startswith("kitti"):
+        raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
+    written = []
+    for ref in refs:
+        sample = load_pair(ref)
+        disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
+                     refine=refine)
+        written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
+    if submission is not None:
+        write_submission(out_dir, submission, refs)
+    return written

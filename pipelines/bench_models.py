@@ -1,0 +1,122 @@
+"""`make bench` section "models": each shipped model's seconds per KITTI frame against OpenCV's SGBM, same run.
+
+For every shipped name (``optstereo.pretrained.SHIPPED``) the end-to-end ``optstereo.inference.infer`` of the model
+with its own settings (resize, passes, post-filter; float32, 2 threads, model loaded once), timed on the same
+KITTI 2015 frames as OpenCV StereoSGBM (MODE_HH, 192 disparities, blockSize 5: the labeler bench's baseline), the
+two alternating frame by frame so that load on a shared machine hits both alike. The ratio is the median over frames
+of (model seconds / SGBM seconds on that frame); issue 42's targets are <= 3.0 for the default and <= 0.5 for the
+fast model. With CUDA present, a GPU row per model: ``infer`` in bf16 and float32, synchronised, median of 10 after 3
+warm-up calls (issue 42's target for the default: <= 15 ms in bf16).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from pipelines.bench_labeler import _opencv
+
+THREADS = 2
+FRAMES = ("000000", "000005", "000010")
+REPEATS = int(os.environ.get("PVS_BENCH_REPEATS", "3"))
+TARGETS = {"pretrained": 3.0, "pretrained-fast": 0.5}
+
+
+def _seconds(fn: Callable[[], Any], repeats: int) -> float:
+    """Median wall seconds of ``fn`` over ``repeats`` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _frames(shared: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    from pvm_labeler.common.io import read_image
+
+    base = Path(shared) / "kitti15/training"
+    return [(read_image(base / f"image_2/{f}_10.png"), read_image(base / f"image_3/{f}_10.png")) for f in FRAMES]
+
+
+def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, np.ndarray]],
+             repeats: int = REPEATS) -> list[dict[str, Any]]:
+    """Per model: median seconds per frame, SGBM's on the same frames, and the median per-frame ratio."""
+    from optstereo.inference import infer
+
+    sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
+    rows = []
+    for name, model in models.items():
+        ratios, model_s, sgbm_s = [], [], []
+        config = getattr(model, "inference_config", None)
+        runs = 1 if config is not None and config.passes > 1 else repeats  # a multi-pass model: one timed run each
+        for left, right in frames:
+            t_sgbm = _seconds(functools.partial(sgbm.compute, left, right), runs)
+            t_model = _seconds(functools.partial(infer, model, left, right), runs)
+            model_s.append(t_model)
+            sgbm_s.append(t_sgbm)
+            ratios.append(t_model / t_sgbm)
+        ratio = statistics.median(ratios)
+        target = TARGETS.get(name)
+        rows.append({"model": name, "s_per_frame": statistics.median(model_s), "sgbm_s": statistics.median(sgbm_s),
+                     "ratio": ratio, "target": target,
+                     "verdict": None if target is None else ("met" if ratio <= target else "not met")})
+    return rows
+
+
+def gpu_rows(models: dict[str, torch.nn.Module], left: np.ndarray, right: np.ndarray) -> list[dict[str, Any]]:
+    """Per model and precision: synchronised milliseconds of ``infer`` on CUDA (empty without CUDA)."""
+    if not torch.cuda.is_available():
+        return []
+    from optstereo.inference import infer
+
+    rows = []
+    for name, model in models.items():
+        model = model.cuda()
+        for amp in ("bf16", "none"):
+            def call(model: torch.nn.Module = model, amp: str = amp) -> None:
+                infer(model, left, right, device="cuda", amp=amp)
+                torch.cuda.synchronize()
+
+            for _ in range(2):
+                call()
+            rows.append({"model": name, "precision": amp, "ms": 1e3 * _seconds(call, 10),
+                         "device": torch.cuda.get_device_name()})
+        model.cpu()
+    return rows
+
+
+def run(shared: Path) -> dict[str, Any]:
+    from optstereo.api import load_model
+    from optstereo.pretrained import SHIPPED
+
+    torch.set_num_threads(THREADS)
+    frames = _frames(shared)
+    models = {name: load_model(name) for name in SHIPPED}
+    rows = cpu_rows(models, frames)
+    gpu = gpu_rows(models, *frames[0])
+    results = {"threads": THREADS, "repeats": REPEATS, "frames": [f"kitti15 {f}_10" for f in FRAMES], "cpu": rows,
+               "gpu": gpu, "load_avg": os.getloadavg()[0]}
+    lines = [f"Each shipped model with its own settings, end to end (`infer`: resize, passes, filter), float32, "
+             f"{THREADS} threads, beside OpenCV SGBM-HH (192 disparities) on the same {len(FRAMES)} KITTI 2015 "
+             f"frames, alternating; median of {REPEATS} runs per frame (1 for a multi-pass model), ratio = median "
+             "of the per-frame ratios.", "",
+             "| model | s / KITTI frame | OpenCV SGBM-HH s | x SGBM | target | |", "|---|---:|---:|---:|---:|---|"]
+    for r in rows:
+        lines.append(f"| `{r['model']}` | {r['s_per_frame']:.2f} | {r['sgbm_s']:.2f} | {r['ratio']:.2f} | "
+                     f"{'' if r['target'] is None else '<= ' + str(r['target'])} | {r['verdict'] or ''} |")
+    if gpu:
+        lines += ["", f"GPU ({gpu[0]['device']}), `infer` synchronised, median of 10:", "",
+                  "| model | precision | ms / KITTI frame |", "|---|---|---:|"]
+        lines += [f"| `{r['model']}` | {r['precision']} | {r['ms']:.1f} |" for r in gpu]
+    return {"title": "Shipped models against OpenCV SGBM (issue 42)", "results": results, "markdown": "\n".join(lines)}

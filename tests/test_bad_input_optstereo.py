@@ -1,0 +1,245 @@
+"""Bad input to optstereo-predict / -eval / -export / -train (issue 45): each gets a non-zero exit, a message naming
+the file or option and the problem, and leaves nothing half-written that looks complete. docs/bad_input.md lists
+every case with its message."""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+import torch
+import yaml
+from click.testing import CliRunner, Result
+from conftest import TINY as TINY_BASE
+from conftest import make_shards
+
+from optstereo import memory
+from optstereo.checkpoint import save_checkpoint
+from optstereo.cli import eval_main, export_main, predict_main, train_main
+from optstereo.models import build_model
+from pvm_labeler.common.io import write_image
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = {**TINY_BASE, "iters": 1}
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+TRAIN = ["--workers", "0", "--batch-size", "1", "--crop", "32x64", "--iters", "1", "--quiet", "--log-every", "1",
+         *(f"--model-opt={k}={v}" for k, v in TINY.items() if k != "iters")]
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    torch.manual_seed(0)
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+
+
+@pytest.fixture
+def pair(tmp_path: Path) -> tuple[Path, Path]:
+    rng = np.random.default_rng(0)
+    left = rng.integers(0, 256, (32, 64, 3), dtype=np.uint8)
+    write_image(tmp_path / "l.png", left)
+    write_image(tmp_path / "r.png", np.roll(left, -2, axis=1))
+    return tmp_path / "l.png", tmp_path / "r.png"
+
+
+def invoke(command, *args: object) -> Result:
+    return CliRunner().invoke(command, [str(a) for a in args])
+
+
+def predict(ckpt: Path, left: Path, right: Path, out: Path, *extra: object) -> Result:
+    return invoke(predict_main, "--checkpoint", ckpt, left, right, "--out", out, "--format", "npy", "--quiet", *extra)
+
+
+def with_file_limit(nbytes: int, *args: str) -> subprocess.CompletedProcess:
+    """Run ``python args`` with RLIMIT_FSIZE = nbytes: writes past it fail with EFBIG, as on a full disk."""
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
+
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, *args], cwd=REPO, env=env, preexec_fn=limit, capture_output=True,
+                          text=True, timeout=600)
+
+
+class TestPredictInputs:
+    def test_sizes_differ(self, ckpt: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        write_image(tmp_path / "wide.png", np.zeros((32, 72, 3), np.uint8))
+        result = predict(ckpt, pair[0], tmp_path / "wide.png", tmp_path / "o")
+        assert result.exit_code == 1
+        assert "sizes differ: (32, 64) vs (32, 72)" in result.output and "wide.png" in result.output
+        assert not (tmp_path / "o").exists()
+
+    @pytest.mark.parametrize("variant", ["grey", "rgba", "16bit"])
+    def test_grey_rgba_16bit_are_converted(self, variant: str, ckpt: Path, pair: tuple[Path, Path],
+                                           tmp_path: Path) -> None:
+        """Accepted and converted as pvm_labeler.common.io.read_image does: the disparity equals the RGB pair's."""
+        rgb = [cv2.imread(str(p)) for p in pair]  # BGR
+        if variant == "grey":
+            rgb = [np.repeat(im[..., :1], 3, axis=2) for im in rgb]
+            files = [im[..., 0] for im in rgb]
+        elif variant == "rgba":
+            files = [np.dstack([im, np.full(im.shape[:2], 255, np.uint8)]) for im in rgb]
+        else:
+            files = [im.astype(np.uint16) * 257 for im in rgb]  # full range to full range: / 257 gives them back
+        for i, (ref, other) in enumerate(zip(rgb, files, strict=True)):
+            cv2.imwrite(str(tmp_path / f"ref{i}.png"), ref)
+            cv2.imwrite(str(tmp_path / f"{variant}{i}.png"), other)
+        assert predict(ckpt, tmp_path / "ref0.png", tmp_path / "ref1.png", tmp_path / "a").exit_code == 0
+        result = predict(ckpt, tmp_path / f"{variant}0.png", tmp_path / f"{variant}1.png", tmp_path / "b")
+        assert result.exit_code == 0, result.output
+        np.testing.assert_array_equal(np.load(tmp_path / "b" / f"{variant}0.npy"), np.load(tmp_path / "a" / "ref0.npy"))
+
+    def test_too_large_for_memory_is_refused_before_decoding(self, ckpt: Path, pair: tuple[Path, Path],
+                                                             tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        need = memory.estimate_peak_bytes(32, 64)
+        monkeypatch.setattr(memory, "available_bytes", lambda: need / 2)
+        def decode(path: Path) -> None:
+            raise ValueError(f"{path} decoded")
+
+        monkeypatch.setattr("pvm_labeler.common.io.read_image", decode)
+        result = predict(ckpt, *pair, tmp_path / "o")
+        assert result.exit_code == 1 and "l.png: a 32 x 64 pair" in result.output
+        assert f"needs about {need / 1e9:.1f} GB of RAM" in result.output and "--scale 0.7" in result.output
+        assert not (tmp_path / "o").exists()
+        monkeypatch.setattr(memory, "available_bytes", lambda: need * 1.01)
+        result = predict(ckpt, *pair, tmp_path / "o")  # passes the check, then decodes
+        assert result.exit_code == 1 and "l.png decoded" in result.output
+
+    def test_memory_estimate_matches_the_measured_peaks(self) -> None:
+        # measured with the shipped model (optstereo/memory.py): 1.18 GB at 375 x 1242, 13.3 GB at 3000 x 4000 (CPU)
+        assert memory.estimate_peak_bytes(375, 1242) == pytest.approx(1.18e9, rel=0.05)
+        assert memory.estimate_peak_bytes(3000, 4000) == pytest.approx(13.3e9, rel=0.05)
+        assert memory.estimate_peak_bytes(3000, 4000, scale=0.5) == pytest.approx(0.7e9 + 1060 * 3e6)
+        assert memory.estimate_peak_bytes(3000, 4000, cuda=True) / 2**30 == pytest.approx(25.0, rel=0.05)
+
+
+class TestCheckpoints:
+    def test_truncated(self, ckpt: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        cut = tmp_path / "cut.pt"
+        cut.write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+        result = predict(cut, *pair, tmp_path / "o")
+        assert result.exit_code == 1 and f"{cut}" in result.output and "truncated" in result.output
+
+    def test_random_file(self, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        junk = tmp_path / "junk.pt"
+        junk.write_bytes(np.random.default_rng(0).bytes(5000))
+        result = invoke(eval_main, "--checkpoint", junk, "--dataset", "sample", "--out", tmp_path / "o")
+        assert result.exit_code == 1 and "junk.pt (5000 bytes): not a torch checkpoint" in result.output
+        assert not (tmp_path / "o").exists()
+
+    def test_another_models_weights(self, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        foreign = tmp_path / "resnet.pt"
+        torch.save({"model": {"conv1.weight": torch.zeros(8, 3, 7, 7)}, "model_name": "optstereo"}, foreign)
+        result = predict(foreign, *pair, tmp_path / "o")
+        assert result.exit_code == 1 and "resnet.pt do not fit model 'optstereo'" in result.output
+        assert "1 unexpected keys ['conv1.weight']" in result.output and "missing keys" in result.output
+
+    def test_onnx_given_to_the_torch_backend(self, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        graph = tmp_path / "model.onnx"
+        graph.write_bytes(b"\x08\x07")
+        result = invoke(export_main, "--checkpoint", graph, "--out", tmp_path / "x.onnx")
+        assert result.exit_code == 1 and "model.onnx is an exported ONNX graph" in result.output
+        assert "--backend onnxruntime" in result.output and not (tmp_path / "x.onnx").exists()
+
+
+class TestOutputs:
+    def test_predict_out_under_a_file(self, ckpt: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        (tmp_path / "f").write_text("x")
+        result = predict(ckpt, *pair, tmp_path / "f" / "o")
+        assert result.exit_code == 2 and "--out" in result.output and "is a file, not a directory" in result.output
+
+    def test_eval_out_is_a_file(self, ckpt: Path, tmp_path: Path) -> None:
+        (tmp_path / "f").write_text("x")
+        result = invoke(eval_main, "--checkpoint", ckpt, "--dataset", "sample", "--out", tmp_path / "f")
+        assert result.exit_code == 2 and "--out" in result.output and "f is a file; give a folder" in result.output
+
+    def test_export_out_is_a_directory(self, ckpt: Path, tmp_path: Path) -> None:
+        result = invoke(export_main, "--checkpoint", ckpt, "--out", tmp_path)
+        assert result.exit_code == 2 and "--out" in result.output and "is a directory; give a file" in result.output
+
+    def test_predict_disk_full_leaves_no_output(self, ckpt: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        # 32 x 64 float32 .npy = 8320 bytes; the colour PNG (first) fits under 6000, the .npy does not
+        out = tmp_path / "o"
+        proc = with_file_limit(6000, "-m", "optstereo.cli", "predict", "--checkpoint", str(ckpt), *map(str, pair),
+                               "--out", str(out), "--format", "color", "--format", "npy", "--quiet")
+        assert proc.returncode == 1, proc.stderr
+        assert f"cannot write {out / 'l.npy'}" in proc.stderr and "disk full?" in proc.stderr
+        assert [p.name for p in out.iterdir()] == ["l_color.png"]  # whole; no l.npy, no temp file
+
+    def test_eval_disk_full_leaves_no_summary(self, tmp_path: Path) -> None:
+        shards, out = make_shards(tmp_path / "s", n=3), tmp_path / "e"
+        proc = with_file_limit(300, "-m", "optstereo.cli", "eval", "--labels", str(shards), "--out", str(out),
+                               "--no-save-maps", "--quiet")
+        assert proc.returncode == 1 and "File too large" in proc.stderr
+        assert not (out / "summary.json").exists() and not list(out.glob("*.tmp"))
+
+    def test_export_disk_full_leaves_no_file(self, ckpt: Path, tmp_path: Path) -> None:
+        proc = with_file_limit(20_000, "-m", "optstereo.cli", "export", "--checkpoint", str(ckpt), "--format",
+                               "torchscript", "--out", str(tmp_path / "m.pt"), "--quiet")
+        assert proc.returncode == 1 and "File too large" in proc.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+class TestTrain:
+    def test_shard_of_another_schema_version(self, tmp_path: Path) -> None:
+        shards = make_shards(tmp_path / "s", n=4)
+        with h5py.File(shards / "shard-00001.h5", "r+") as h5:
+            h5.attrs["schema_version"] = 99
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "4", *TRAIN)
+        assert result.exit_code == 1 and "shard-00001.h5: schema" in result.output and "version 99" in result.output
+
+    def test_corrupt_shard_in_the_middle_stops_the_run_naming_it(self, tmp_path: Path) -> None:
+        shards = make_shards(tmp_path / "s", n=6)
+        bad = shards / "shard-00002.h5"
+        bad.write_bytes(bad.read_bytes()[:300])
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "6", *TRAIN)
+        assert result.exit_code == 1 and "corrupt or truncated shard" in result.output
+        assert "shard-00002.h5" in result.output
+
+    def test_label_of_another_size_than_its_images(self, tmp_path: Path) -> None:
+        shards = make_shards(tmp_path / "s", n=2)
+        with h5py.File(shards / "shard-00000.h5", "r+") as h5:
+            del h5["frame-001/label"]
+            h5["frame-001"].create_dataset("label", data=np.full((16, 64), 4.0, np.float32))
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "2", *TRAIN)
+        assert result.exit_code == 1 and "sample 'frame-001' has arrays of other sizes" in result.output
+        assert "(32, 64): {'label': (16, 64)}" in result.output
+
+    @pytest.mark.parametrize(("doc", "match"), [
+        ({"optim": {"lr": 1e-4, "momentum": 0.9}}, "momentum"),
+        ({"optim": {"lr": "fast"}}, "optim.lr must be of type float, got 'fast' (str)"),
+        ({"data": {"batch_size": [2]}}, "data.batch_size must be of type int, got [2] (list)"),
+    ])
+    def test_config_unknown_or_ill_typed_key(self, doc: dict, match: str, tmp_path: Path) -> None:
+        cfg = tmp_path / "train.yaml"
+        cfg.write_text(yaml.safe_dump(doc))
+        result = invoke(train_main, "--config", cfg, "--labels", tmp_path, "--out", tmp_path / "r")
+        assert result.exit_code == 2 and match in result.output, result.output
+        assert not (tmp_path / "r").exists()
+
+    def test_resume_with_another_model_is_named(self, tmp_path: Path) -> None:
+        shards, run = make_shards(tmp_path / "s", n=2), tmp_path / "r"
+        assert invoke(train_main, "--labels", shards, "--out", run, "--steps", "1", *TRAIN).exit_code == 0
+        result = invoke(train_main, "--resume", run, "--model", "hitnet", "--steps", "2")
+        assert result.exit_code == 2 and f"--resume {run}: the command line changes the model" in result.output
+        assert "model.name: 'optstereo' -> 'hitnet'" in result.output
+        result = invoke(train_main, "--resume", run, "--model-opt", "feature_dim=24", "--steps", "2")
+        assert result.exit_code == 2 and "model.feature_dim: 16 -> 24" in result.output
+
+    def test_resume_of_a_run_dir_holding_another_runs_config(self, tmp_path: Path) -> None:
+        shards, run = make_shards(tmp_path / "s", n=2), tmp_path / "r"
+        assert invoke(train_main, "--labels", shards, "--out", run, "--steps", "1", *TRAIN).exit_code == 0
+        doc = yaml.safe_load((run / "config.yaml").read_text())
+        doc["model"]["hidden_dim"] = 32
+        (run / "config.yaml").write_text(yaml.safe_dump(doc))
+        result = invoke(train_main, "--resume", run, "--steps", "2")
+        assert result.exit_code == 2 and f"{run / 'config.yaml'} changes the model" in result.output
+        assert "model.hidden_dim: 16 -> 32" in result.output
+        assert json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["step"] == 1  # nothing trained
