@@ -79,4 +79,4 @@ def test_recipe_from_flag_and_yaml_with_overrides(tmp_path) -> None:
     assert out.exit_code == 0 and labeler["min_texture"] == 2 and labeler["kappa2"] == RECIPES["paper"]["kappa2"]
     doc.write_text("recipe: papr\n")
     out = runner.invoke(pvm_main, ["run", "--config", str(doc), "--print-config"])
-    assert out.exit_code != 0 and "unknown recipe 'papr'" in out.output
+    assert out.exit_code != 0 and "recipe: 'papr' is not one of 'default', 'paper'" in out.output
