@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from optstereo.inference_config import InferenceConfig
-from optstereo.models.config import split_legacy_model_dict
+from optstereo.models.config import RENAMED_MODEL_KEYS, rename_keys, split_legacy_model_dict
 from optstereo.version import __version__
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.version import git_commit
@@ -261,8 +261,10 @@ def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedChe
 def split_configs(path: Path, model_config: dict[str, Any],
                   stored: dict[str, Any] | None) -> tuple[dict[str, Any], InferenceConfig]:
     """(architecture dict, InferenceConfig) of a file's ``model_config`` and its ``inference_config`` (None in files
-    written before it existed, whose inference settings sit in ``model_config``: split_legacy_model_dict)."""
+    written before it existed, whose inference settings sit in ``model_config``: split_legacy_model_dict). Renamed
+    model keys (``max_disp`` -> ``search_range``) take their new names."""
     model_config, legacy = split_legacy_model_dict(model_config)
+    model_config = rename_keys(model_config, RENAMED_MODEL_KEYS, f"{path}: model_config")
     try:
         return model_config, InferenceConfig.from_dict({**legacy, **(stored or {})})
     except (TypeError, ValueError) as exc:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from optstereo.inference_config import InferenceConfig
-from optstereo.models.config import ModelConfig, split_legacy_model_dict
+from optstereo.models.config import RENAMED_MODEL_KEYS, ModelConfig, rename_keys, split_legacy_model_dict
 from pvm_labeler.common.configtools import reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
@@ -48,12 +48,15 @@ FLAT_KEYS: dict[str, str] = {
     "labels": "data.labels", "supervision": "data.supervision", "batch_size": "data.batch_size",
     "crop": "data.crop", "flip_swap_p": "data.flip_swap_p", "photometric": "data.photometric",
     "occlude_p": "data.occlude_p", "scale_range": "data.scale_range", "cascade_p": "data.cascade_p",
-    "max_disp": "data.max_disp", "workers": "data.workers", "shuffle_buffer": "data.shuffle_buffer",
+    "max_disp": "data.max_label_disp", "workers": "data.workers", "shuffle_buffer": "data.shuffle_buffer",
     "steps": "optim.steps", "lr": "optim.lr", "weight_decay": "optim.weight_decay", "schedule": "optim.schedule",
     "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
     "val_dataset": "val.dataset", "val_root": "val.root", "val_limit": "val.limit",
 }
 SECTIONS = ("model", "inference", "loss", "data", "optim", "val")
+#: Section keys renamed since (issue 43): section -> {old key: field}. YAML files, saved run configs and
+#: ``--set data.max_disp=...`` written with the old name keep working: ``nest`` maps them quietly.
+RENAMED_KEYS: dict[str, dict[str, str]] = {"model": RENAMED_MODEL_KEYS, "data": {"max_disp": "max_label_disp"}}
 
 
 def parse_crop(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
@@ -229,10 +232,11 @@ class DataConfig(_Section):
         cascade_p: probability per batch that the GRU starts from a coarse pass (the batch at half size, no
             gradient) instead of zero: a coarse-to-fine start (``optstereo.cascade``), which a model with
             ``InferenceConfig.coarse_start`` uses at test time.
-        max_disp: labels >= max_disp (or < 0) are ignored in the loss, px. This is a mask on the TARGETS, not a
-            search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt. The labeler's
-            ``LabelerConfig.max_disp`` (192) is SGM's search range, so PVM labels never reach it; the two
-            differ on purpose and neither is derived from the other.
+        max_label_disp: labels >= max_label_disp (or < 0) are ignored in the loss, px. This is a mask on the
+            TARGETS, not a search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt.
+            The labeler's ``LabelerConfig.max_disp`` (192) is SGM's search range, so PVM labels never reach it; the
+            two differ on purpose and neither is derived from the other. Called ``data.max_disp`` before issue 43
+            (still read: ``RENAMED_KEYS``).
         workers: DataLoader worker processes per rank (0 = load in the main process).
         shuffle_buffer: size of the seeded shuffle buffer (in samples) of every worker.
     """
@@ -249,7 +253,7 @@ class DataConfig(_Section):
     scale_range: tuple[float, float] = (1.0, 1.0)
     occlude_p: float = 0.0
     cascade_p: float = 0.0
-    max_disp: float = 256.0
+    max_label_disp: float = 256.0
     workers: int = 2
     shuffle_buffer: int = 16
 
@@ -262,7 +266,7 @@ class DataConfig(_Section):
             (0 <= self.flip_swap_p <= 1, f"--flip-swap-p must be in [0, 1], got {self.flip_swap_p}"),
             (0 <= self.occlude_p <= 1, f"--occlude-p must be in [0, 1], got {self.occlude_p}"),
             (0 <= self.cascade_p <= 1, f"--cascade-p must be in [0, 1], got {self.cascade_p}"),
-            (self.max_disp > 0, f"max_disp must be > 0, got {self.max_disp}"),
+            (self.max_label_disp > 0, f"data.max_label_disp must be > 0, got {self.max_label_disp}"),
             (self.workers >= 0, f"--workers must be >= 0, got {self.workers}"),
             (self.shuffle_buffer >= 1, f"shuffle_buffer must be >= 1, got {self.shuffle_buffer}"),
         ])
@@ -331,7 +335,8 @@ def nest(values: dict[str, Any]) -> dict[str, Any]:
     the top level (run-level fields, or unknown keys that TrainConfig rejects). ``None`` sections mean empty.
     The inference settings that older configs kept under ``model`` (``input_scale``, ``refine``, ``cascade``, ...:
     ``optstereo.models.config.LEGACY_INFERENCE_KEYS``) move to their ``inference`` fields; an ``inference`` value of
-    the same layer wins over them.
+    the same layer wins over them. Renamed section keys (``RENAMED_KEYS``: data.max_disp, model.max_disp) take their
+    new names.
     """
     out: dict[str, Any] = {}
     sections: dict[str, dict[str, Any]] = {}
@@ -347,6 +352,9 @@ def nest(values: dict[str, Any]) -> dict[str, Any]:
         else:
             out[key] = value
     nested = merge(out, sections)
+    for name, renamed in RENAMED_KEYS.items():
+        if isinstance(nested.get(name), dict):
+            nested = {**nested, name: rename_keys(nested[name], renamed, f"training config section {name!r}")}
     if isinstance(nested.get("model"), dict):
         model, legacy = split_legacy_model_dict(nested["model"])
         if legacy:

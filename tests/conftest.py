@@ -27,7 +27,7 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: model's default (8) unless a test passes ``iters=`` beside it.
 TINY: dict[str, Any] = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}
 #: The tiny HITNet: two resolutions, narrow layers, a 32 px search (wiring tests run in well under a second).
-TINY_HITNET: dict[str, Any] = {"feature_dim": 8, "hidden_dim": 16, "corr_levels": 2, "max_disp": 32, "iters": 2}
+TINY_HITNET: dict[str, Any] = {"feature_dim": 8, "hidden_dim": 16, "corr_levels": 2, "search_range": 32, "iters": 2}
 
 
 #: The studies' tests (pipelines/studies/): collected only with --studies (make test-studies, make test-all).

@@ -123,6 +123,20 @@ class TestSafety:
         with pytest.raises(CheckpointError, match=r"\.pt, \.pth or \.ckpt"):
             save_checkpoint(tmp_path / "x.safetensors", model=tiny_model(), step=0)
 
+    @pytest.mark.parametrize("name", ["optstereo_kitti_pvm", "optstereo_pvm_distill"])
+    def test_shipped_weights_with_the_old_max_disp_key_load(self, name: str) -> None:
+        """Both shipped files record ``max_disp`` in model_config (HITNet's range, now ``search_range``)."""
+        path = Path(__file__).resolve().parents[1] / "optstereo" / "weights" / f"{name}.safetensors"
+        ckpt = load_checkpoint(path)
+        assert "max_disp" not in ckpt.model_config and ckpt.model_config["search_range"] == 192
+        model = build_model_from_checkpoint(ckpt)
+        assert model.config.search_range == 192 and model.config.feature_dim == 128
+
+    def test_old_and_new_model_key_together_are_named(self, tmp_path: Path) -> None:
+        with pytest.raises(ValueError, match="sets both 'max_disp' .* and 'search_range'"):
+            build_model("hitnet", max_disp=32, search_range=64)
+        assert build_model("hitnet", max_disp=32).config.search_range == 32
+
     def test_mismatched_weights(self, tmp_path: Path) -> None:
         path = save_checkpoint(tmp_path / "a.pt", model=tiny_model(), step=0)
         with pytest.raises(CheckpointError, match="do not fit"):

@@ -111,7 +111,7 @@ class TestRegistry:
         model = build_model("hitnet")
         cfg = model.config
         assert isinstance(model, HITNet) and cfg.name == "hitnet"
-        assert (cfg.feature_dim, cfg.hidden_dim, cfg.corr_levels, cfg.corr_radius, cfg.iters, cfg.max_disp) == (
+        assert (cfg.feature_dim, cfg.hidden_dim, cfg.corr_levels, cfg.corr_radius, cfg.iters, cfg.search_range) == (
             16, 32, 4, 1, 2, 192)
         assert divisor_of(model) == HITNet.divisor == 8 and divisor_of(build_model("optstereo", iters=1)) == 8
         assert sum(p.numel() for p in model.parameters()) == 500_010  # docs/optstereo.md quotes it
@@ -128,8 +128,8 @@ class TestRegistry:
                                        model(left, left.roll(-3, -1), test_mode=True)[1], rtol=0, atol=0)
 
     def test_exception(self) -> None:
-        with pytest.raises(ValueError, match="max_disp must be >= 1, got 0"):
-            build_model("hitnet", max_disp=0)
+        with pytest.raises(ValueError, match="search_range must be >= 1, got 0"):
+            build_model("hitnet", search_range=0)
 
 
 class TestForward:
@@ -222,7 +222,7 @@ class TestCli:
                                               "--config", str(tmp_path / "run.yaml"), "--quiet"])
         assert res.exit_code == 0, res.output
         model = load_model(run)
-        assert isinstance(model, HITNet) and model.config.max_disp == 32
+        assert isinstance(model, HITNet) and model.config.search_range == 32
         pair = np.random.default_rng(0).integers(0, 256, (30, 70, 3), dtype=np.uint8)
         write_image(tmp_path / "l.png", pair)
         write_image(tmp_path / "r.png", pair)
@@ -249,7 +249,7 @@ class TestCli:
                                               "--workers", "0", "--config", str(tmp_path / "run.yaml"), "--quiet"])
         assert res.exit_code == 0, res.output
         model = load_model(tmp_path / "run")
-        assert isinstance(model, HITNet) and model.config.max_disp == 32
+        assert isinstance(model, HITNet) and model.config.search_range == 32
         res = CliRunner().invoke(export_main, ["--checkpoint", str(tmp_path / "run"), "--out",
                                                str(tmp_path / "h.onnx"), "--quiet"])
         assert res.exit_code == 1 and "HITNet cannot be exported" in res.output, res.output

@@ -56,6 +56,20 @@ class TestConfig:
         cfg = TrainConfig.load(path, {"lr": 2e-4, "steps": None}, {"optim": {"lr": 5e-4}})
         assert (cfg.optim.steps, cfg.optim.lr, cfg.data.crop, cfg.data.batch_size) == (7, 5e-4, (64, 128), 4)
 
+    def test_renamed_max_disp_keys_still_load(self, tmp_path: Path) -> None:
+        """data.max_disp (the loss mask) is data.max_label_disp and model.max_disp (HITNet's range) is
+        model.search_range now; YAML with the old keys, flat or nested, loads to the same config (issue 43)."""
+        path = tmp_path / "old.yaml"
+        path.write_text(yaml.safe_dump({"max_disp": 128, "model": {"name": "hitnet", "max_disp": 64}}))
+        cfg = TrainConfig.load(path)
+        assert (cfg.data.max_label_disp, cfg.model.search_range) == (128.0, 64)
+        nested = TrainConfig.from_dict({"data": {"max_disp": 100}, "model": {"name": "hitnet", "max_disp": 48}})
+        assert (nested.data.max_label_disp, nested.model.search_range) == (100.0, 48)
+        assert "max_disp" not in nested.to_dict()["data"] and "max_disp" not in nested.to_dict()["model"]
+        assert TrainConfig.from_dict(nested.to_dict()) == nested
+        with pytest.raises(ConfigError, match="sets both 'max_disp' .* and 'max_label_disp'"):
+            TrainConfig.from_dict({"data": {"max_disp": 100, "max_label_disp": 200}})
+
     def test_resolved_loss_weights_follow_supervision(self) -> None:
         assert (TrainConfig().loss.lambda_r, TrainConfig().loss.lambda_s) == (0.1, 0.1)
         gt = TrainConfig(data=DataConfig(supervision="gt"))
@@ -287,7 +301,7 @@ class TestCli:
         assert (printed["model"]["feature_dim"], printed["model"]["iters"], printed["optim"]["steps"]) == (128, 4, 5)
         assert (printed["loss"]["alpha"], printed["loss"]["photometric_iters"], printed["loss"]["lambda_t"]) == (
             0.7, "all", 0.5)
-        assert printed["data"]["max_disp"] == 192 and printed["out"] == str(tmp_path / "run")
+        assert printed["data"]["max_label_disp"] == 192 and printed["out"] == str(tmp_path / "run")
         assert not (tmp_path / "run").exists()  # nothing trained, nothing written
         assert TrainConfig.from_dict(printed) == TrainConfig.load(recipe, {"steps": 5, "out": tmp_path / "run",
                                                                            "alpha": 0.7, "photometric_iters": "all"},

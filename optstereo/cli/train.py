@@ -40,7 +40,7 @@ _D = TrainConfig()
 @click.option("--print-config", is_flag=True,
               help="Print the resolved nested YAML (defaults < --config < flags) and exit without training.")
 @click.option("--set", "set_opts", multiple=True,
-              help="Any config field as SECTION.KEY=VALUE, e.g. data.max_disp=192, optim.weight_decay=1e-5 "
+              help="Any config field as SECTION.KEY=VALUE, e.g. data.max_label_disp=192, optim.weight_decay=1e-5 "
                    "(repeatable; overrides the flags).")
 @click.option("--model", help=f"Registry model name. [default: {_D.model.name}]")
 @click.option("--model-opt", multiple=True, help="Model override KEY=VALUE, e.g. feature_dim=128 (repeatable).")

@@ -15,7 +15,7 @@ from typing import Any
 
 from torch import nn
 
-from optstereo.models.config import ModelConfig
+from optstereo.models.config import RENAMED_MODEL_KEYS, ModelConfig, rename_keys
 from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.extractor import FeatureEncoder
 from optstereo.models.hitnet import HITNet, build_hitnet
@@ -82,6 +82,7 @@ def model_config(name: str = "optstereo", **overrides: Any) -> ModelConfig:
     if name not in _REGISTRY:
         raise ValueError(f"unknown model {name!r}; available: {list_models()}")
     overrides.pop("name", None)
+    overrides = rename_keys(overrides, RENAMED_MODEL_KEYS, "model options")  # old names (max_disp) still work
     _, defaults = _REGISTRY[name]
     return ModelConfig.from_dict({**defaults, **overrides, "name": name})
 

@@ -24,6 +24,9 @@ LEGACY_INFERENCE_KEYS: dict[str, str] = {
     "scale_ref_pixels": "adaptive_ref_pixels", "cascade": "coarse_start", "cascade_select": "select",
     "cascade_select_jump": "select_jump",
 }
+#: Model keys renamed since (issue 43): old key -> field. Checkpoints and YAML written before keep loading: the old
+#: key is mapped quietly (``rename_keys``).
+RENAMED_MODEL_KEYS: dict[str, str] = {"max_disp": "search_range"}
 
 
 @dataclass(frozen=True)
@@ -43,8 +46,9 @@ class ModelConfig:
         head_dim: width of the first conv of the Delta-D head (two convs on h).
         norm: normalisation in the feature extractor (RAFT's fnet uses instance norm).
         corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
-        max_disp: HITNet only: the initial local cost volumes search [0, max_disp) full-resolution pixels
-            (OptStereo has no search range and ignores it; 192 is the PVM labeler's default range).
+        search_range: HITNet only: the initial local cost volumes search [0, search_range) full-resolution pixels
+            (OptStereo has no search range and ignores it; 192 is the PVM labeler's default range). Called
+            ``max_disp`` in files written before issue 43, which still load (``RENAMED_MODEL_KEYS``).
 
     HITNet ("hitnet", optstereo.models.hitnet) reads the shared fields with its own meaning: feature_dim = channels
     of its finest (1/2) U-Net level, hidden_dim = width of the propagation CNNs, corr_levels = resolutions (one
@@ -63,7 +67,7 @@ class ModelConfig:
     head_dim: int = 128
     norm: str = "instance"
     corr_scale: bool = True
-    max_disp: int = 192
+    search_range: int = 192
 
     @property
     def corr_channels(self) -> int:
@@ -72,7 +76,7 @@ class ModelConfig:
 
     def validate(self) -> ModelConfig:
         """Raise ValueError naming the option if a value is out of range; return self."""
-        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim", "max_disp"):
+        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim", "search_range"):
             if getattr(self, key) < 1:
                 raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
         if self.corr_radius < 0:
@@ -89,7 +93,8 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> ModelConfig:
-        """Build from a dict, rejecting unknown keys with a clear message."""
+        """Build from a dict, rejecting unknown keys with a clear message; renamed keys are mapped quietly."""
+        values = rename_keys(values, RENAMED_MODEL_KEYS, "model config")
         legacy = sorted(set(values) & LEGACY_INFERENCE_KEYS.keys())
         if legacy:
             moved = ", ".join(f"{k} -> inference.{LEGACY_INFERENCE_KEYS[k]}" for k in legacy)
@@ -109,3 +114,21 @@ def split_legacy_model_dict(values: dict[str, Any]) -> tuple[dict[str, Any], dic
     model = {k: v for k, v in values.items() if k not in LEGACY_INFERENCE_KEYS}
     inference = {LEGACY_INFERENCE_KEYS[k]: v for k, v in values.items() if k in LEGACY_INFERENCE_KEYS}
     return model, inference
+
+
+def rename_keys(values: dict[str, Any], renamed: dict[str, str], where: str) -> dict[str, Any]:
+    """A copy of ``values`` with each old key of ``renamed`` (old -> new) under its new name.
+
+    Raises:
+        ConfigError: naming both keys when ``values`` holds an old key and its new one with different values.
+    """
+    out = dict(values)
+    for old, new in renamed.items():
+        if old not in out:
+            continue
+        value = out.pop(old)
+        if new in out and out[new] != value:
+            raise ConfigError(f"{where} sets both {old!r} (the old name) and {new!r} ({value!r} vs {out[new]!r}); "
+                              f"keep {new!r}")
+        out[new] = value
+    return out

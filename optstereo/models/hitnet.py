@@ -96,13 +96,13 @@ class TileInit(nn.Module):
             for HITNet's initialisation loss (argmin itself has no gradient).
     """
 
-    def __init__(self, channels: int, stride: int, max_disp: int) -> None:
+    def __init__(self, channels: int, stride: int, search_range: int) -> None:
         super().__init__()
         # One 4x4 kernel for both views: stride 4 on the left, (4, 1) on the right so every column stays a candidate.
         self.tile = nn.Conv2d(channels, channels, TILE)
         self.descriptor = nn.Sequential(conv_act(1 + channels, 16, kernel=1), nn.Conv2d(16, DESC_DIM, 1))
         self.stride = stride
-        self.num_disp = -(-max_disp // stride)
+        self.num_disp = -(-search_range // stride)
 
     def forward(self, feat_left: torch.Tensor, feat_right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         tile_left = F.leaky_relu(F.conv2d(feat_left, self.tile.weight, self.tile.bias, stride=TILE), LEAK)
@@ -236,13 +236,13 @@ def build_hitnet(cfg: ModelConfig) -> HITNet:
     widths = level_widths(cfg.feature_dim, cfg.corr_levels)
     cost_dim = TILE * TILE * (2 * cfg.corr_radius + 1)
     strides = [HITNet.stride(level) for level in range(cfg.corr_levels)]
-    inits = nn.ModuleList(TileInit(w, s, cfg.max_disp) for w, s in zip(widths, strides, strict=True))
+    inits = nn.ModuleList(TileInit(w, s, cfg.search_range) for w, s in zip(widths, strides, strict=True))
     # The coarsest level refines its init alone; every finer one weighs the upsampled coarse hypothesis against its own.
     steps = nn.ModuleList(
         PropagationStep(1 if level == cfg.corr_levels - 1 else 2, cost_dim, cfg.hidden_dim, stride=s,
-                        disp_scale=float(cfg.max_disp))
+                        disp_scale=float(cfg.search_range))
         for level, s in enumerate(strides)
     )
-    refine = PropagationStep(1, cost_dim, cfg.hidden_dim, stride=strides[0], disp_scale=float(cfg.max_disp))
+    refine = PropagationStep(1, cost_dim, cfg.hidden_dim, stride=strides[0], disp_scale=float(cfg.search_range))
     return HITNet(features=UNetFeatures(widths), inits=inits, steps=steps, refine=refine, radius=cfg.corr_radius,
                   iters=cfg.iters, config=cfg)
