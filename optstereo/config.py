@@ -17,6 +17,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+from optstereo.choices import (
+    COLOR_NORMS,
+    PHOTOMETRIC_ITERS,
+    SCHEDULES,
+    SMOOTHNESS_NORMS,
+    SMOOTHNESS_ORDERS,
+    SUPERVISIONS,
+    ColorNorm,
+    PhotometricIters,
+    Schedule,
+    SmoothnessNorm,
+    SmoothnessOrder,
+    Supervision,
+)
 from optstereo.inference_config import InferenceConfig
 from optstereo.models.config import RENAMED_MODEL_KEYS, ModelConfig, rename_keys, split_legacy_model_dict
 from pvm_labeler.common.configtools import reject_unknown_keys
@@ -28,12 +42,6 @@ __all__ = [
     "parse_scale_range",
 ]
 
-PHOTOMETRIC_ITERS = ("last", "all")
-SMOOTHNESS_NORMS = ("none", "mean")
-SMOOTHNESS_ORDERS = (1, 2)
-COLOR_NORMS = ("l1", "mean")
-SUPERVISIONS = ("pvm", "gt")
-SCHEDULES = ("constant", "onecycle")
 
 # old flat key -> "section.key" (the trainer's config before issue 17 was one flat dataclass). The CLI's flags use
 # the same flat names (--lr -> lr -> optim.lr). "model_overrides" spreads into model.* (see nest).
@@ -173,10 +181,10 @@ class LossConfig(_Section):
     lambda_r: float | None = None
     lambda_s: float | None = None
     alpha: float = 0.85
-    photometric_iters: str = "last"
-    smoothness_norm: str = "none"
-    smoothness_order: int = 1
-    color_norm: str = "l1"
+    photometric_iters: PhotometricIters = "last"
+    smoothness_norm: SmoothnessNorm = "none"
+    smoothness_order: SmoothnessOrder = 1
+    color_norm: ColorNorm = "l1"
     conf_weight: bool = False
     lambda_t: float = 0.0
     analogy_start: int = 0
@@ -202,7 +210,7 @@ class LossConfig(_Section):
             (self.analogy_every >= 1, f"--analogy-every must be >= 1, got {self.analogy_every}"),
         ])
 
-    def with_supervision_defaults(self, supervision: str) -> LossConfig:
+    def with_supervision_defaults(self, supervision: Supervision) -> LossConfig:
         """lambda_r/lambda_s left None take the supervision's default: 0.1 for pvm, 0 for gt (L_P alone)."""
         default = 0.1 if supervision == "pvm" else 0.0
         return dataclasses.replace(
@@ -245,7 +253,7 @@ class DataConfig(_Section):
     PATHS: ClassVar[tuple[str, ...]] = ("labels",)
 
     labels: Path | None = None
-    supervision: str = "pvm"
+    supervision: Supervision = "pvm"
     batch_size: int = 2
     crop: tuple[int, int] = (320, 736)
     flip_swap_p: float = 0.5
@@ -290,7 +298,7 @@ class OptimConfig(_Section):
     steps: int = 1000
     lr: float = 1e-4
     weight_decay: float = 0.0
-    schedule: str = "constant"
+    schedule: Schedule = "constant"
     pct_start: float = 0.05
     clip_grad: float = 1.0
 

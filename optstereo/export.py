@@ -56,13 +56,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from optstereo.choices import EXPORT_FORMATS as FORMATS
 from optstereo.inference_config import InferenceConfig
 from pvm_labeler.common.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
 
 OPSET = 18
-FORMATS = ("onnx", "torchscript")
 
 
 class InferenceGraph(nn.Module):

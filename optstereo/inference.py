@@ -26,7 +26,8 @@ from torch import nn
 
 from optstereo.cascade import coarse_start, grid_start, jump_limit, photometric_select
 from optstereo.checkpoint import model_inference
-from optstereo.inference_config import REFINERS, InferenceConfig
+from optstereo.choices import AMP_MODES, REFINERS, AmpMode
+from optstereo.inference_config import InferenceConfig
 from optstereo.padding import InputPadder, divisor_of
 from optstereo.rescale import adaptive_factor, disparity_to_size, rescaled_pair
 from pvm_labeler.common.version import cpuinfo_flags
@@ -44,7 +45,6 @@ def to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor
     return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float()[None].to(device)
 
 
-INFER_AMP = ("none", "bf16", "fp16")
 
 
 NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")  # x86 /proc/cpuinfo "flags"; aarch64 "Features"
@@ -70,7 +70,7 @@ def cpu_has_native_bf16() -> bool:
 _bf16_warned = False  # once per process: infer() enters inference_autocast for every frame
 
 
-def warn_if_emulated_bf16(amp: str, device: torch.device) -> None:
+def warn_if_emulated_bf16(amp: AmpMode, device: torch.device) -> None:
     """Log a warning (once per process) for ``--amp bf16`` on a CPU that would emulate bf16."""
     global _bf16_warned
     if amp == "bf16" and device.type == "cpu" and not _bf16_warned and not cpu_has_native_bf16():
@@ -79,13 +79,13 @@ def warn_if_emulated_bf16(amp: str, device: torch.device) -> None:
                        "slower than float32 here, use --amp none")
 
 
-def inference_autocast(amp: str, device: torch.device) -> contextlib.AbstractContextManager:
+def inference_autocast(amp: AmpMode, device: torch.device) -> contextlib.AbstractContextManager:
     """Autocast for inference: bf16 on CPU or CUDA, fp16 on CUDA only; ``none`` = float32.
 
     The model keeps the correlation volume, the lookup and the disparity accumulator in float32 either way.
     """
-    if amp not in INFER_AMP:
-        raise ValueError(f"amp must be one of {INFER_AMP}, got {amp!r}")
+    if amp not in AMP_MODES:
+        raise ValueError(f"amp must be one of {AMP_MODES}, got {amp!r}")
     if amp == "none":
         return contextlib.nullcontext()
     if amp == "fp16" and device.type != "cuda":
@@ -147,7 +147,7 @@ def infer(
     right: Image,
     iters: int | None = None,
     device: torch.device | str = "cpu",
-    amp: str = "none",
+    amp: AmpMode = "none",
     scale: float | None = None,
     refine: str | None = None,
 ) -> Disparity:
@@ -175,7 +175,7 @@ def infer_scaled(
     right: Image,
     iters: int | None = None,
     device: torch.device | str = "cpu",
-    amp: str = "none",
+    amp: AmpMode = "none",
     scale: float | None = None,
     refine: str | None = None,
 ) -> Inference:
@@ -187,7 +187,7 @@ def infer_scaled(
 
 @torch.inference_mode()
 def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | None = None,
-        device: torch.device | str = "cpu", amp: str = "none") -> Inference:
+        device: torch.device | str = "cpu", amp: AmpMode = "none") -> Inference:
     """The disparity of one (H, W, 3) uint8 pair as ``config`` says (None = the model's ``model.inference_config``).
 
     In order: the zero-start pass at ``config.scale`` (unless only a coarse-started one is wanted); with
@@ -225,7 +225,7 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
 
 
 def _pass_at(model: nn.Module, left: Image, right: Image, scale: float, iters: int | None, device: torch.device,
-             amp: str, coarse: bool = False) -> Disparity:
+             amp: AmpMode, coarse: bool = False) -> Disparity:
     """The disparity of the pair resized by ``scale`` and padded, back at the input's (H, W) and pixels: its GRU
     started from zero, or with ``coarse`` from ``optstereo.cascade.coarse_start`` of the same padded pair."""
     left_s, right_s = (left, right) if scale == 1.0 else rescaled_pair(left, right, scale)
@@ -240,7 +240,7 @@ def _pass_at(model: nn.Module, left: Image, right: Image, scale: float, iters: i
 
 
 def pass_at_scale(model: nn.Module, left: Image, right: Image, scale: float = 1.0, start: Disparity | None = None,
-                  iters: int | None = None, device: torch.device | str = "cpu", amp: str = "none") -> Disparity:
+                  iters: int | None = None, device: torch.device | str = "cpu", amp: AmpMode = "none") -> Disparity:
     """One :func:`network_pass` on the pair resized by ``scale`` (its GRU from ``start``, an (H, W) float32 disparity
     of the input resized with it, or from zero), back at the input's (H, W) and pixels; no post-filter. The building
     block of a sequence's started frames and of the mirrored pass of a confidence."""
@@ -253,7 +253,7 @@ def pass_at_scale(model: nn.Module, left: Image, right: Image, scale: float = 1.
 
 @torch.inference_mode()
 def network_pass(model: nn.Module, left: Image, right: Image, start: Disparity | None = None,
-                 iters: int | None = None, device: torch.device | str = "cpu", amp: str = "none") -> Disparity:
+                 iters: int | None = None, device: torch.device | str = "cpu", amp: AmpMode = "none") -> Disparity:
     """One network pass on a pair as given: (H, W, 3) uint8 each -> (H, W) float32 disparity, no resizing, no filter.
 
     The pair is padded to the model's multiple and the output un-padded; the GRU starts from ``start`` ((H, W)

@@ -12,13 +12,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, Literal, get_args
+from typing import Any
 
+from optstereo.choices import REFINERS, Refiner
 from pvm_labeler.common.configtools import reject_unknown_keys
-
-Refiner = Literal["none", "wmedian"]
-#: Post-filters ``run`` can apply to the disparity at the input's size (``pvm_labeler.refine`` for "wmedian").
-REFINERS: tuple[str, ...] = get_args(Refiner)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.config import SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS, LossConfig
+from optstereo.choices import SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS
+from optstereo.config import LossConfig
 
 # the LossConfig fields this module reads; the others (conf_weight, lambda_t, analogy*) are the trainer's
 TERM_FIELDS = (

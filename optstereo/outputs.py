@@ -19,13 +19,12 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
 from optstereo.inference import infer
 from optstereo.submission import write_submission
 
 logger = logging.getLogger(__name__)
 
-FORMATS = ("png", "pfm", "npy", "color")
-GEOMETRY_FORMATS = ("depth-png", "depth-pfm", "depth-npy", "ply")  # need a calibration (optstereo.geometry)
 DEFAULT_FORMATS = ("png", "color")
 
 
@@ -57,9 +56,9 @@ def write_disparity(
     from pvm_labeler.common.io import write_image, write_kitti_disp, write_npy, write_pfm
 
     formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
-    unknown = sorted(set(formats) - set(FORMATS))
+    unknown = sorted(set(formats) - set(DISPARITY_FORMATS))
     if unknown:
-        raise ValueError(f"unknown output formats {unknown}; choose from {FORMATS}")
+        raise ValueError(f"unknown output formats {unknown}; choose from {DISPARITY_FORMATS}")
     out_dir = Path(out_dir)
     folders = {"png": "disp_0", "pfm": "pfm", "npy": "npy", "color": "color"} if kitti_layout else {}
     paths: dict[str, Path] = {}

@@ -20,11 +20,11 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from optstereo.choices import CONF_FORMATS
 from optstereo.sequence import DEFAULT_SEQUENCE_ITERS
 
 logger = logging.getLogger(__name__)
 
-CONF_FORMATS = ("conf-png", "conf-npy")
 
 
 @dataclass(frozen=True)

@@ -26,10 +26,9 @@ from typing import Any
 
 import yaml
 
+from optstereo.choices import AMP_MODES, DEVICES, AmpMode, Device
 from optstereo.config import (
     FLAT_KEYS,
-    SCHEDULES,
-    SUPERVISIONS,
     DataConfig,
     InferenceConfig,
     LossConfig,
@@ -44,10 +43,8 @@ from optstereo.config import (
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.errors import ConfigError
 
-__all__ = ["AMP_MODES", "CONFIG_FILE", "DEVICES", "SCHEDULES", "SUPERVISIONS", "TrainConfig", "parse_crop"]
+__all__ = ["CONFIG_FILE", "TrainConfig", "parse_crop"]
 
-AMP_MODES = ("none", "bf16", "fp16")
-DEVICES = ("auto", "cpu", "cuda")
 CONFIG_FILE = "config.yaml"
 _SECTIONS: dict[str, type] = {
     "model": ModelConfig, "inference": InferenceConfig, "loss": LossConfig, "data": DataConfig,
@@ -86,8 +83,8 @@ class TrainConfig:
     val: ValConfig = field(default_factory=ValConfig)
     out: Path | None = None
     init: Path | None = None
-    device: str = "auto"
-    amp: str = "none"
+    device: Device = "auto"
+    amp: AmpMode = "none"
     seed: int = 0
     threads: int = 0
     max_minutes: float = 0.0

@@ -260,3 +260,37 @@ def test_the_readme_layout_names_every_module() -> None:
             if (is_module or is_package) and name not in section:
                 missing.append(f"{pkg}/{child.name}")
     assert missing == []
+
+
+def choice_list_copies(package: str = "optstereo") -> list[str]:
+    """'file:line repeats choices.NAME' for every literal tuple/list/set of strings, outside optstereo/choices.py,
+    that holds exactly the values of one of ``optstereo.choices``'s lists (a second home of that list)."""
+    from optstereo import choices
+
+    lists = {name: set(value) for name, value in vars(choices).items()
+             if name.isupper() and isinstance(value, tuple) and len(value) > 1
+             and all(isinstance(v, str) for v in value)}
+    found = []
+    for path in _modules(package):
+        if path.name == "choices.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if not isinstance(node, (ast.Tuple, ast.List, ast.Set)) or not node.elts:
+                continue
+            if all(isinstance(e, ast.Constant) and isinstance(e.value, str) for e in node.elts):
+                values = {e.value for e in node.elts}  # type: ignore[attr-defined]
+                found += [f"{path.relative_to(ROOT)}:{node.lineno} repeats choices.{name}"
+                          for name, choice in lists.items() if values == choice]
+    return found
+
+
+def test_each_choice_list_has_one_home() -> None:
+    """Issue 43: the amp modes, devices, refiners, norms, schedules, ... are defined once (optstereo/choices.py, a
+    Literal and its get_args tuple each); the configs, the CLI and inference import them."""
+    assert choice_list_copies() == []
+    probe = ROOT / "optstereo" / "_choices_probe.py"
+    probe.write_text('AMP = ("none", "bf16", "fp16")\n')
+    try:
+        assert choice_list_copies() == ["optstereo/_choices_probe.py:1 repeats choices.AMP_MODES"]
+    finally:
+        probe.unlink()

@@ -11,7 +11,7 @@ import click
 import yaml
 
 from optstereo.checkpoint import CheckpointError
-from optstereo.train_config import DEVICES
+from optstereo.choices import AMP_MODES, DEVICES, REFINERS
 from pvm_labeler.common.errors import ConfigError, PVMError
 
 EXISTING = click.Path(exists=True, path_type=Path)
@@ -59,11 +59,11 @@ def infer_options(fn):
                       help="Run the network on both images resized by this factor (e.g. 0.5 for large pairs, 1.5 "
                            "for small disparities); disparities come back at the input's size. Default: the "
                            "model's own input scale (its checkpoint's InferenceConfig; 1 if it records none).")(fn)
-    fn = click.option("--refine", type=click.Choice(("none", "wmedian")),
+    fn = click.option("--refine", type=click.Choice(REFINERS),
                       help="Post-filter of the disparity: wmedian = colour-weighted median (snaps blurred depth "
                            "edges to colour edges), none = the network's output as it is. Default: the model's own "
                            "(the shipped model: wmedian).")(fn)
-    return click.option("--amp", type=click.Choice(("none", "bf16", "fp16")), default="none", show_default=True,
+    return click.option("--amp", type=click.Choice(AMP_MODES), default="none", show_default=True,
                         help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from optstereo.choices import EXPORT_FORMATS
 from optstereo.cli.common import (
     GuardedCommand,
     _setup_logging,
@@ -20,7 +21,7 @@ logger = logging.getLogger(__name__)
 @click.command(cls=GuardedCommand, context_settings={"show_default": True})
 @click.option("--checkpoint", type=click.Path(path_type=Path), required=True,
               help="Checkpoint file, RUN_DIR, or 'pretrained'.")
-@click.option("--format", "fmt", type=click.Choice(("onnx", "torchscript")), default="onnx")
+@click.option("--format", "fmt", type=click.Choice(EXPORT_FORMATS), default="onnx")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output file (.onnx / .pt).")
 @click.option("--iters", type=int, default=None, help="GRU iterations unrolled in the graph (default: the model's).")
 @click.option("--batch", is_flag=True, help="Dynamic batch size (default: batch 1, per-image calls, faster on CPU).")

@@ -8,6 +8,7 @@ from typing import Any
 
 import click
 
+from optstereo.choices import GEOMETRY_FORMATS, PREDICT_FORMATS
 from optstereo.cli.common import (
     EXISTING,
     GuardedCommand,
@@ -38,8 +39,7 @@ logger = logging.getLogger(__name__)
 @click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
-              type=click.Choice(("png", "pfm", "npy", "color", "depth-png", "depth-pfm", "depth-npy", "ply",
-                                 "conf-png", "conf-npy")),
+              type=click.Choice(PREDICT_FORMATS),
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm), "
                    "depth-pfm / depth-npy (m), ply (coloured point cloud); conf-png (16-bit, confidence x 65535) / "
                    "conf-npy (float32 in [0, 1]) (repeatable).")
@@ -72,7 +72,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if backend == "onnxruntime":
         _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
         return
-    geometry = [f for f in formats if f in outputs.GEOMETRY_FORMATS]
+    geometry = [f for f in formats if f in GEOMETRY_FORMATS]
     if geometry and (calib is None or dataset is not None):
         raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
     rig = None

@@ -11,6 +11,16 @@ from typing import Any
 import click
 
 from optstereo.checkpoint import LoadedCheckpoint, load_checkpoint
+from optstereo.choices import (
+    AMP_MODES,
+    COLOR_NORMS,
+    DEVICES,
+    PHOTOMETRIC_ITERS,
+    SCHEDULES,
+    SMOOTHNESS_NORMS,
+    SMOOTHNESS_ORDERS,
+    SUPERVISIONS,
+)
 from optstereo.cli.common import (
     EXISTING,
     GuardedCommand,
@@ -18,8 +28,7 @@ from optstereo.cli.common import (
     _resolve_checkpoint,
     _setup_logging,
 )
-from optstereo.config import COLOR_NORMS, PHOTOMETRIC_ITERS, SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS
-from optstereo.train_config import AMP_MODES, DEVICES, SCHEDULES, SUPERVISIONS, TrainConfig, read_yaml
+from optstereo.train_config import TrainConfig, read_yaml
 from pvm_labeler.common.errors import ConfigError
 
 logger = logging.getLogger(__name__)

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
+from optstereo.choices import SUPERVISIONS, Supervision
 from optstereo.data.transforms import TrainTransform, to_tensors
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards import open_shard, read_index, read_sample
@@ -90,7 +91,7 @@ class ShardStream(IterableDataset):
         self,
         labels_dir: Path,
         *,
-        supervision: str = "pvm",
+        supervision: Supervision = "pvm",
         transform: TrainTransform | None = None,
         seed: int = 0,
         shuffle_size: int = 16,
@@ -105,8 +106,8 @@ class ShardStream(IterableDataset):
         with_confidence: bool = False,
     ) -> None:
         super().__init__()
-        if supervision not in ("pvm", "gt"):
-            raise ValueError(f"supervision must be 'pvm' or 'gt', got {supervision!r}")
+        if supervision not in SUPERVISIONS:
+            raise ValueError(f"supervision must be one of {SUPERVISIONS}, got {supervision!r}")
         self.labels_dir = Path(labels_dir)
         index = read_index(self.labels_dir)  # JSON only; raises ShardError naming index.json
         self.shards: list[tuple[str, list[str]]] = [(str(p), [str(i) for i in ids]) for p, ids in index.shards]

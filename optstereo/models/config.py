@@ -12,11 +12,10 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from optstereo.choices import NORMS, UPSAMPLERS, Norm, Upsampler
 from pvm_labeler.common.configtools import reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
-UPSAMPLERS = ("conv", "convex")
-NORMS = ("instance", "batch", "group", "none")
 #: Inference settings that files and YAML written before ``InferenceConfig`` kept among the model's: old model key ->
 #: InferenceConfig field (``split_legacy_model_dict``).
 LEGACY_INFERENCE_KEYS: dict[str, str] = {
@@ -62,10 +61,10 @@ class ModelConfig:
     corr_levels: int = 4
     corr_radius: int = 4
     iters: int = 8
-    upsampler: str = "conv"
+    upsampler: Upsampler = "conv"
     upsample_dim: int = 16
     head_dim: int = 128
-    norm: str = "instance"
+    norm: Norm = "instance"
     corr_scale: bool = True
     search_range: int = 192
 
