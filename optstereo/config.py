@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+from optstereo.analogy_config import AnalogyConfig
 from optstereo.choices import (
     COLOR_NORMS,
     PHOTOMETRIC_ITERS,
@@ -111,6 +112,11 @@ def plain(value: Any) -> Any:
     return value
 
 
+def _plain_value(value: Any) -> Any:
+    """``plain`` of a field's value; a nested config (LossConfig.analogy) by its own ``to_dict``."""
+    return value.to_dict() if hasattr(value, "to_dict") else plain(value)
+
+
 def _typed(cls: type, key: str, value: Any) -> Any:
     """``value`` checked against the type of the field's scalar default (bool, int, float, str), else ConfigError
     naming ``section.key``; a float field takes an int, or a string such as YAML's ``1e-4`` (which YAML reads as a
@@ -144,7 +150,7 @@ class _Section:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict in field order."""
-        return {f.name: plain(getattr(self, f.name)) for f in dataclasses.fields(self)}  # type: ignore[arg-type]
+        return {f.name: _plain_value(getattr(self, f.name)) for f in dataclasses.fields(self)}  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -172,7 +178,9 @@ class LossConfig(_Section):
             0 = off (it costs a second forward/backward per step).
         analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).
         analogy_every: apply L_T on every k-th step only (it doubles a step's cost; k = 2 costs ~1.5x).
-        analogy: AnalogyConfig overrides (spatial/appearance/occlusion switches, ranges, reliability test).
+        analogy: the AnalogyConfig of L_T and of data.occlude_p's occluders (spatial/appearance/occlusion
+            switches, ranges, reliability test); a mapping (YAML, --analogy-opt, --set loss.analogy.KEY=V) overrides
+            the defaults key by key, and an unknown key fails naming ``loss.analogy``.
     """
 
     NAME: ClassVar[str] = "loss"
@@ -189,9 +197,10 @@ class LossConfig(_Section):
     lambda_t: float = 0.0
     analogy_start: int = 0
     analogy_every: int = 1
-    analogy: dict[str, Any] = field(default_factory=dict)
+    analogy: AnalogyConfig = field(default_factory=AnalogyConfig)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "analogy", _analogy(self.analogy))
         weights = [w for w in (self.lambda_r, self.lambda_s) if w is not None]
         _require([
             (0.0 < self.gamma <= 1.0, f"--gamma must be in (0, 1], got {self.gamma}"),
@@ -218,6 +227,18 @@ class LossConfig(_Section):
             lambda_r=default if self.lambda_r is None else float(self.lambda_r),
             lambda_s=default if self.lambda_s is None else float(self.lambda_s),
         )
+
+
+def _analogy(value: AnalogyConfig | dict[str, Any] | None) -> AnalogyConfig:
+    """``loss.analogy`` as an AnalogyConfig: a mapping's keys override the defaults (None = the defaults)."""
+    if isinstance(value, AnalogyConfig):
+        return value.validate()
+    if value is not None and not isinstance(value, dict):
+        raise ConfigError(f"loss.analogy must be a mapping of AnalogyConfig fields, got {value!r}")
+    try:
+        return AnalogyConfig.from_dict(value or {}, where="loss.analogy")
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"loss.analogy: {exc}") from exc
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ from typing import Any
 
 import yaml
 
+from optstereo.analogy_config import AnalogyConfig
 from optstereo.choices import AMP_MODES, DEVICES, AmpMode, Device
 from optstereo.config import (
     FLAT_KEYS,
@@ -115,10 +116,6 @@ class TrainConfig:
         for ok, message in checks:
             if not ok:
                 raise ConfigError(message)
-        try:
-            self.analogy_config()
-        except ValueError as exc:
-            raise ConfigError(f"analogy: {exc}") from exc
 
     # -- construction -------------------------------------------------------------------------------------------
     @classmethod
@@ -144,11 +141,9 @@ class TrainConfig:
         return cls.from_layers(read_yaml(path), *overrides)
 
     # -- derived ------------------------------------------------------------------------------------------------
-    def analogy_config(self):
-        """The AnalogyConfig of this run (defaults with ``loss.analogy`` overrides)."""
-        from optstereo.analogy import AnalogyConfig
-
-        return AnalogyConfig.from_dict(dict(self.loss.analogy))
+    def analogy_config(self) -> AnalogyConfig:
+        """The AnalogyConfig of this run (``loss.analogy``, typed since issue 43)."""
+        return self.loss.analogy
 
     # -- serialisation ------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -15,6 +15,7 @@ from click.testing import CliRunner
 from conftest import TINY, tiny_config
 
 from optstereo import train
+from optstereo.analogy_config import AnalogyConfig
 from optstereo.checkpoint import load_checkpoint, save_checkpoint
 from optstereo.cli import train_main
 from optstereo.config import FLAT_KEYS, DataConfig
@@ -103,7 +104,29 @@ class TestConfig:
         cfg = TrainConfig.from_dict(flat)
         assert cfg.to_dict() == nested
         assert (cfg.model.iters, cfg.loss.lambda_r, cfg.val.dataset) == (2, 0.0, "sample")
-        assert cfg.loss.analogy == {"occlusion": False}
+        assert cfg.loss.analogy == AnalogyConfig(occlusion=False) and nested["loss"]["analogy"]["occlusion"] is False
+
+    def test_loss_analogy_is_a_typed_config(self, tmp_path: Path) -> None:
+        """loss.analogy is an AnalogyConfig (issue 43): YAML, --analogy-opt and --set loss.analogy.KEY set its keys,
+        the others keep their defaults; an unknown key fails naming loss.analogy."""
+        path = tmp_path / "cfg.yaml"
+        path.write_text(yaml.safe_dump({"loss": {"analogy": {"max_scale": 1.25, "patch_frac": [0.1, 0.2]}}}))
+        cfg = TrainConfig.load(path, {"analogy": {"occlusion": False}}, {"loss": {"analogy": {"noise_std": 2.0}}})
+        assert cfg.loss.analogy == AnalogyConfig(max_scale=1.25, patch_frac=(0.1, 0.2), occlusion=False, noise_std=2.0)
+        assert cfg.analogy_config() is cfg.loss.analogy and TrainConfig.from_dict(cfg.to_dict()) == cfg
+        assert TrainConfig().loss.analogy == AnalogyConfig()
+        assert TrainConfig.from_dict({"analogy": None}) == TrainConfig()
+        with pytest.raises(ConfigError, match="loss.analogy.*'zoom'"):
+            TrainConfig.load(path, {"analogy": {"zoom": 2}})
+        with pytest.raises(ConfigError, match="loss.analogy: analogy max_scale must be >= 1"):
+            TrainConfig.from_dict({"loss": {"analogy": {"max_scale": 0.5}}})
+        result = CliRunner().invoke(train_main, ["--analogy-opt", "occlusion=false", "--set", "loss.analogy.max_blur=0",
+                                                 "--print-config"])
+        assert result.exit_code == 0, result.output
+        printed = yaml.safe_load(result.output)["loss"]["analogy"]
+        assert (printed["occlusion"], printed["max_blur"], printed["spatial"]) == (False, 0.0, True)
+        bad = CliRunner().invoke(train_main, ["--set", "loss.analogy.zoom=2", "--print-config"])
+        assert bad.exit_code != 0 and "loss.analogy" in bad.output and "zoom" in bad.output
 
     def test_loss_knobs_from_yaml(self, tmp_path: Path) -> None:
         path = tmp_path / "cfg.yaml"
