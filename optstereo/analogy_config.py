@@ -1,7 +1,7 @@
 """Typed settings of the transformation self-supervision L_T (no torch, no I/O): ``AnalogyConfig``.
 
 The trainer's ``LossConfig.analogy`` (``optstereo.config``) holds one; ``optstereo.analogy`` applies it. YAML gives it
-as the mapping ``loss: {analogy: {occlusion: false, ...}}``, the command line as ``--analogy-opt KEY=V`` or
+as the mapping ``loss: {analogy: {occlusion: false, ...}}``, the command line as
 ``--set loss.analogy.KEY=V``; keys left out keep their defaults.
 """
 
@@ -65,7 +65,7 @@ class AnalogyConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any], where: str = "analogy config") -> AnalogyConfig:
-        """Build from a dict (YAML's ``loss.analogy``, --analogy-opt, --set loss.analogy.KEY=V): the keys it gives
+        """Build from a dict (YAML's ``loss.analogy``, --set loss.analogy.KEY=V): the keys it gives
         override the defaults; an unknown key raises ConfigError naming ``where`` and the known keys."""
         reject_unknown_keys(cls, values, where)
         values = dict(values)

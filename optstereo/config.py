@@ -179,7 +179,7 @@ class LossConfig(_Section):
         analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).
         analogy_every: apply L_T on every k-th step only (it doubles a step's cost; k = 2 costs ~1.5x).
         analogy: the AnalogyConfig of L_T and of data.occlude_p's occluders (spatial/appearance/occlusion
-            switches, ranges, reliability test); a mapping (YAML, --analogy-opt, --set loss.analogy.KEY=V) overrides
+            switches, ranges, reliability test); a mapping (YAML, --set loss.analogy.KEY=V) overrides
             the defaults key by key, and an unknown key fails naming ``loss.analogy``.
     """
 

@@ -107,7 +107,7 @@ def init_weights(model: nn.Module, source: Path | LoadedCheckpoint) -> None:
         raise CheckpointError(
             f"--init {ckpt.path} does not fit the model: missing keys {missing[:8]}, unexpected keys "
             f"{unexpected[:8]}, shape mismatches {shapes[:8]} (take the model settings from the checkpoint: "
-            "leave --model/--model-opt unset)"
+            "leave --model and --set model.* unset)"
         )
     unwrap(model).load_state_dict(ckpt.model_state)
     logger.info("initialised from %s (its step %d)", ckpt.path, ckpt.step)

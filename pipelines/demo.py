@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
     amp = training_amp(args.amp)
     print(f"== 2/5 self-supervised OptStereo training on CPU ({args.minutes:g} min budget, small demo model, "
           f"{'bf16 autocast' if amp == 'bf16' else 'float32'})", flush=True)
-    model_opts = [x for k, v in DEMO_MODEL.items() for x in ("--model-opt", f"{k}={v}")]
+    model_opts = [x for k, v in DEMO_MODEL.items() for x in ("--set", f"model.{k}={v}")]
     _run([str(BIN / "optstereo-train"), "--labels", str(out / "labels"), "--out", str(out / "run"),
           "--steps", str(args.steps), "--max-minutes", str(args.minutes), "--crop", "128x256", "--batch-size", "2",
           "--iters", "4", "--lr", "4e-4", "--schedule", "constant", "--workers", "1", "--threads", "1",

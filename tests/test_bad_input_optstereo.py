@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 TINY = {**TINY_BASE, "iters": 1}
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 TRAIN = ["--workers", "0", "--batch-size", "1", "--crop", "32x64", "--iters", "1", "--quiet", "--log-every", "1",
-         *(f"--model-opt={k}={v}" for k, v in TINY.items() if k != "iters")]
+         *(f"--set=model.{k}={v}" for k, v in TINY.items() if k != "iters")]
 
 
 @pytest.fixture(scope="module")
@@ -230,7 +230,7 @@ class TestTrain:
         result = invoke(train_main, "--resume", run, "--model", "hitnet", "--steps", "2")
         assert result.exit_code == 2 and f"--resume {run}: the command line changes the model" in result.output
         assert "model.name: 'optstereo' -> 'hitnet'" in result.output
-        result = invoke(train_main, "--resume", run, "--model-opt", "feature_dim=24", "--steps", "2")
+        result = invoke(train_main, "--resume", run, "--set", "model.feature_dim=24", "--steps", "2")
         assert result.exit_code == 2 and "model.feature_dim: 16 -> 24" in result.output
 
     def test_resume_of_a_run_dir_holding_another_runs_config(self, tmp_path: Path) -> None:

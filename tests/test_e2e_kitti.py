@@ -25,8 +25,8 @@ from pvm_labeler.shards import read_index, verify
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-TINY_OPTS = ["--model-opt", "feature_dim=16", "--model-opt", "hidden_dim=16", "--model-opt", "head_dim=16",
-             "--model-opt", "upsample_dim=8"]
+TINY_OPTS = ["--set", "model.feature_dim=16", "--set", "model.hidden_dim=16", "--set", "model.head_dim=16",
+             "--set", "model.upsample_dim=8"]
 
 
 @pytest.fixture(scope="module")

@@ -37,7 +37,7 @@ def _train_cmd(*args: str) -> list[str]:
 def _new_run(labels: Path, out: Path, workers: int = 0, ckpt_every: int = 2) -> list[str]:
     """A tiny CPU run that uses every random draw the trainer has: shuffling, crop, scale, flip-swap, photometric
     jitter, occluders, the cascade start, L_T's transformations, and the OneCycle LR position."""
-    model_opts = [f"--model-opt={k}={v}" for k, v in TINY.items()]
+    model_opts = [f"--set=model.{k}={v}" for k, v in TINY.items()]
     return _train_cmd(
         "--labels", str(labels), "--out", str(out), "--steps", str(STEPS), "--batch-size", "2", "--crop", "32x128",
         "--iters", "2", "--schedule", "onecycle", "--photometric", "--flip-swap-p", "0.5", "--occlude-p", "0.5",

@@ -249,13 +249,13 @@ def test_trainer_section_and_old_keys(tmp_path: Path) -> None:
     from optstereo.train_config import TrainConfig
 
     cfg = TrainConfig.from_layers({"model": {"input_scale": 1.5, "cascade": True}},  # an old YAML model section
-                                  {"model_overrides": {"refine": "wmedian"}})  # an old --model-opt
+                                  {"model_overrides": {"refine": "wmedian"}})  # an old flat YAML key
     assert cfg.inference == InferenceConfig(scale=1.5, refine="wmedian", coarse_start=True)
     assert "input_scale" not in cfg.to_dict()["model"]
     assert TrainConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ConfigError, match="inference: inference option scale"):
         TrainConfig.from_layers({"inference": {"scale": -1}})
-    for args in (["--set", "inference.scale=1.25"], ["--model-opt", "input_scale=1.25"]):
+    for args in (["--set", "inference.scale=1.25"], ["--set", "model.input_scale=1.25"]):
         out = CliRunner().invoke(train_main, [*args, "--print-config"])
         assert out.exit_code == 0, out.output
         assert yaml.safe_load(out.output)["inference"]["scale"] == 1.25

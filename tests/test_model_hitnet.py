@@ -214,7 +214,7 @@ class TestCli:
         """optstereo-train --model hitnet on shards, then optstereo-predict (and -eval on KITTI when present)."""
         shards = make_shards(tmp_path / "shards", n=2, shard_size=2, height=32, width=72)
         run = tmp_path / "run"
-        opts = [f"--model-opt={k}={v}" for k, v in TINY.items() if k != "iters"]
+        opts = [f"--set=model.{k}={v}" for k, v in TINY.items() if k != "iters"]
         (tmp_path / "run.yaml").write_text("tensorboard: false\nimage_every: 0\n")
         res = CliRunner().invoke(train_main, ["--labels", str(shards), "--out", str(run), "--model", "hitnet", *opts,
                                               "--supervision", supervision, "--iters", "2", "--steps", "2",

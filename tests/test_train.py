@@ -107,8 +107,8 @@ class TestConfig:
         assert cfg.loss.analogy == AnalogyConfig(occlusion=False) and nested["loss"]["analogy"]["occlusion"] is False
 
     def test_loss_analogy_is_a_typed_config(self, tmp_path: Path) -> None:
-        """loss.analogy is an AnalogyConfig (issue 43): YAML, --analogy-opt and --set loss.analogy.KEY set its keys,
-        the others keep their defaults; an unknown key fails naming loss.analogy."""
+        """loss.analogy is an AnalogyConfig (issue 43): YAML (nested or the flat key) and --set loss.analogy.KEY set
+        its keys, the others keep their defaults; an unknown key fails naming loss.analogy."""
         path = tmp_path / "cfg.yaml"
         path.write_text(yaml.safe_dump({"loss": {"analogy": {"max_scale": 1.25, "patch_frac": [0.1, 0.2]}}}))
         cfg = TrainConfig.load(path, {"analogy": {"occlusion": False}}, {"loss": {"analogy": {"noise_std": 2.0}}})
@@ -120,8 +120,8 @@ class TestConfig:
             TrainConfig.load(path, {"analogy": {"zoom": 2}})
         with pytest.raises(ConfigError, match="loss.analogy: analogy max_scale must be >= 1"):
             TrainConfig.from_dict({"loss": {"analogy": {"max_scale": 0.5}}})
-        result = CliRunner().invoke(train_main, ["--analogy-opt", "occlusion=false", "--set", "loss.analogy.max_blur=0",
-                                                 "--print-config"])
+        result = CliRunner().invoke(train_main, ["--set", "loss.analogy.occlusion=false", "--set",
+                                                 "loss.analogy.max_blur=0", "--print-config"])
         assert result.exit_code == 0, result.output
         printed = yaml.safe_load(result.output)["loss"]["analogy"]
         assert (printed["occlusion"], printed["max_blur"], printed["spatial"]) == (False, 0.0, True)
@@ -349,6 +349,35 @@ class TestCli:
         bad = CliRunner().invoke(train_main, ["--set", "optim.batch_size=4", "--print-config"])
         assert bad.exit_code == 2 and "it is now 'data.batch_size'" in bad.output
 
+    @pytest.mark.parametrize(("flag", "section"), [("--model-opt", "model"), ("--analogy-opt", "loss.analogy")])
+    def test_removed_key_value_flags_name_their_replacement(self, flag: str, section: str) -> None:
+        """Issue 43: a setting is a flag, --set or YAML; the old KEY=VALUE flags exit 2 naming the --set that
+        replaced them (our message, not click's "no such option"), and --help no longer lists them."""
+        result = CliRunner().invoke(train_main, [flag, "occlusion=false", "--print-config"])
+        assert result.exit_code == 2, result.output
+        assert f"{flag} KEY=VALUE was removed: use --set {section}.KEY=VALUE" in result.output
+        assert f"(here: --set {section}.occlusion=false)" in result.output
+        assert flag not in CliRunner().invoke(train_main, ["--help"]).output
+
+    @pytest.mark.parametrize("model_flag", [[], ["--model", "hitnet"]])
+    def test_set_model_key_equals_the_old_model_opt(self, tmp_path: Path, model_flag: list[str]) -> None:
+        """--set model.feature_dim=24 prints what --model-opt feature_dim=24 printed: the defaults (of --model's
+        network) with that one field changed, the same YAML as the old flag's flat key model_overrides; --model
+        NAME beside --set model.KEY keeps NAME."""
+        old = tmp_path / "old.yaml"
+        old.write_text(yaml.safe_dump({"model_overrides": {"feature_dim": 24}}))
+        runner = CliRunner()
+        new = runner.invoke(train_main, [*model_flag, "--set", "model.feature_dim=24", "--print-config"])
+        before = runner.invoke(train_main, ["--config", str(old), *model_flag, "--print-config"])
+        plain = runner.invoke(train_main, [*model_flag, "--print-config"])
+        assert new.exit_code == 0 and before.exit_code == 0 and plain.exit_code == 0, new.output + before.output
+        assert new.output == before.output
+        expected = yaml.safe_load(plain.output)
+        assert expected["model"]["name"] == (model_flag[1] if model_flag else "optstereo")
+        assert expected["model"]["feature_dim"] != 24
+        expected["model"]["feature_dim"] = 24
+        assert yaml.safe_load(new.output) == expected
+
     def test_missing_labels_dir_is_usage_error(self, tmp_path: Path) -> None:
         result = CliRunner().invoke(train_main, ["--labels", str(tmp_path / "nope"), "--out", str(tmp_path)])
         assert result.exit_code == 2 and "nope" in result.output
@@ -363,7 +392,7 @@ class TestCli:
         bad.mkdir()
         (bad / "index.json").write_text(json.dumps({"schema": {"name": "pvstereo-pvm-shards", "version": 0}}))
         result = CliRunner().invoke(train_main, ["--labels", str(bad), "--out", str(tmp_path / "r"), "--workers",
-                                                 "0", "--model-opt", "feature_dim=16"])
+                                                 "0", "--set", "model.feature_dim=16"])
         assert result.exit_code == 1 and "version" in result.output
 
 

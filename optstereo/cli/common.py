@@ -129,7 +129,7 @@ class GuardedCommand(click.Command):
             raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
 
 
-def _parse_model_opts(values: tuple[str, ...], hint: str = "--model-opt") -> dict[str, Any]:
+def _parse_model_opts(values: tuple[str, ...], hint: str = "--set") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for item in values:
         key, sep, value = item.partition("=")

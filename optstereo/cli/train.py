@@ -49,10 +49,10 @@ _D = TrainConfig()
 @click.option("--print-config", is_flag=True,
               help="Print the resolved nested YAML (defaults < --config < flags) and exit without training.")
 @click.option("--set", "set_opts", multiple=True,
-              help="Any config field as SECTION.KEY=VALUE, e.g. data.max_label_disp=192, optim.weight_decay=1e-5 "
-                   "(repeatable; overrides the flags).")
+              help="Any config field as SECTION.KEY=VALUE, e.g. model.feature_dim=128, loss.analogy.occlusion=false, "
+                   "data.max_label_disp=192 (repeatable; overrides the flags).")
 @click.option("--model", help=f"Registry model name. [default: {_D.model.name}]")
-@click.option("--model-opt", multiple=True, help="Model override KEY=VALUE, e.g. feature_dim=128 (repeatable).")
+@click.option("--model-opt", multiple=True, hidden=True, help="Removed: use --set model.KEY=VALUE.")
 @click.option("--supervision", type=click.Choice(SUPERVISIONS),
               help=f"pvm = PVM pseudo-labels (PVStereo), gt = ground truth. [default: {_D.data.supervision}]")
 @click.option("--iters", type=int, help=f"GRU iterations N_s during training. [default: {_D.model.iters}]")
@@ -77,8 +77,7 @@ _D = TrainConfig()
                    f"before issue 15). [default: {_D.loss.color_norm}]")
 @click.option("--lambda-t", type=float,
               help="Weight of the transformation self-supervision L_T (learning by analogy); 0 = off. [default: 0]")
-@click.option("--analogy-opt", multiple=True,
-              help="L_T option KEY=VALUE, e.g. occlusion=false, max_scale=1.3, photo_threshold=0.1 (repeatable).")
+@click.option("--analogy-opt", multiple=True, hidden=True, help="Removed: use --set loss.analogy.KEY=VALUE.")
 @click.option("--analogy-start", type=int, help="First step with L_T. [default: 0]")
 @click.option("--analogy-every", type=int, help="Apply L_T on every k-th step from --analogy-start. [default: 1]")
 @click.option("--conf-weight/--no-conf-weight", default=None,
@@ -113,7 +112,8 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
                **flags: Any) -> None:
     """Train OptStereo on PVM shards: optstereo-train --labels SHARDS_DIR --out RUN_DIR."""
     _setup_logging(quiet)
-    overrides = _train_overrides(flags, model_opt, analogy_opt, set_opts)
+    _refuse_removed(model_opt=model_opt, analogy_opt=analogy_opt)
+    overrides = _train_overrides(flags, set_opts)
     init_ckpt, init_layer = None, None
     try:
         if init is not None:
@@ -139,16 +139,29 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
         click.echo(f"validation: {json.dumps({k: summary['val'][k] for k in ('epe', 'bad3', 'd1_all')})}")
 
 
-def _train_overrides(flags: dict[str, Any], model_opt: tuple[str, ...], analogy_opt: tuple[str, ...],
-                     set_opts: tuple[str, ...]) -> dict[str, Any]:
-    """The command line as one config layer: flags under their flat names (``optstereo.config.FLAT_KEYS``)."""
+#: The removed ``KEY=VALUE`` flags (issue 43: a setting is a flag, ``--set SECTION.KEY=VALUE`` or YAML) and the
+#: ``--set`` section that replaced each.
+REMOVED_OPTS: dict[str, tuple[str, str]] = {"model_opt": ("--model-opt", "model"),
+                                            "analogy_opt": ("--analogy-opt", "loss.analogy")}
+
+
+def _refuse_removed(**given: tuple[str, ...]) -> None:
+    """UsageError (exit 2) naming the replacement of a removed flag given on the command line."""
+    for name, values in given.items():
+        if values:
+            flag, section = REMOVED_OPTS[name]
+            example = " ".join(f"--set {section}.{item}" for item in values)
+            raise click.UsageError(f"{flag} KEY=VALUE was removed: use --set {section}.KEY=VALUE (here: {example})")
+
+
+def _train_overrides(flags: dict[str, Any], set_opts: tuple[str, ...]) -> dict[str, Any]:
+    """The command line as one config layer: flags under their flat names (``optstereo.config.FLAT_KEYS``), --set
+    on top key by key (``--model NAME --set model.KEY=V`` keeps NAME: the flag joins the model section)."""
     from optstereo.config import merge
 
     overrides: dict[str, Any] = {k: v for k, v in flags.items() if v is not None}
-    if model_opt:
-        overrides["model_overrides"] = _parse_model_opts(model_opt)
-    if analogy_opt:
-        overrides["analogy"] = _parse_model_opts(analogy_opt, "--analogy-opt")
+    if "model" in overrides:
+        overrides["model"] = {"name": overrides["model"]}
     for dotted, value in _parse_model_opts(set_opts, "--set").items():
         *parents, key = dotted.split(".")
         layer: dict[str, Any] = {key: value}
@@ -159,13 +172,13 @@ def _train_overrides(flags: dict[str, Any], model_opt: tuple[str, ...], analogy_
 
 
 def _init_layer(init: Path, overrides: dict[str, Any]) -> tuple[LoadedCheckpoint, dict[str, Any]]:
-    """(loaded checkpoint, its model and inference settings as a config layer) for --init; under --model(-opt) the
-    layer keeps only the inference settings (later layers override them key by key)."""
+    """(loaded checkpoint, its model and inference settings as a config layer) for --init; under --model or
+    --set model.KEY=V the layer keeps only the inference settings (later layers override them key by key)."""
     from optstereo.train_resume import init_settings
 
     ckpt = load_checkpoint(init)
     layer = init_settings(ckpt)
-    if "model" in overrides or "model_overrides" in overrides:
+    if "model" in overrides:
         layer.pop("model")
     return ckpt, layer
 

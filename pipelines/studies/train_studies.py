@@ -62,7 +62,7 @@ WIDTH = {"feature_dim": 64, "hidden_dim": 64, "head_dim": 64, "upsample_dim": 32
 COMMON = ["--steps", str(STEPS), "--batch-size", "2", "--crop", "192x384", "--iters", "4", "--lr", "4e-4",
           "--schedule", "constant", "--amp", "bf16", "--workers", "1", "--threads", "1", "--seed", str(SEED),
           "--log-every", "10", "--ckpt-every", "100", "--device", "cpu", "--quiet",
-          *[x for k, v in WIDTH.items() for x in ("--model-opt", f"{k}={v}")]]
+          *[x for k, v in WIDTH.items() for x in ("--set", f"model.{k}={v}")]]
 
 
 @dataclass(frozen=True)

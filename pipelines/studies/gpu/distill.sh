@@ -59,8 +59,8 @@ common=(--lambda-t 0 --conf-weight --labels "$W/distill" --device "$DEVICE" --am
         --schedule onecycle --max-minutes "$minutes" --quiet)
 $PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init pretrained --out "$W/student" \
   --steps "$STUDENT_STEPS" --lr 1e-4 --seed 40 --iters "$ITERS" --scale-range 1.0,1.0 "${common[@]}" \
-  --model-opt input_scale=1.0 --model-opt refine=none --model-opt cascade=false --model-opt cascade_select=false \
-  --model-opt cascade_select_jump=0 --model-opt scale_ref_disp=0 --model-opt scale_ref_pixels=0 \
+  --set inference.scale=1.0 --set inference.refine=none --set inference.coarse_start=false --set inference.select=false \
+  --set inference.select_jump=0 --set inference.adaptive_ref_disp=0 --set inference.adaptive_ref_pixels=0 \
   > "$W/student.log" 2>&1 &
 student=$!
 $PY -m optstereo.cli train --model hitnet --out "$W/fast" --steps "$FAST_STEPS" --lr 4e-4 --seed 41 --photometric \
