@@ -45,8 +45,6 @@ def to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor
     return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float()[None].to(device)
 
 
-
-
 NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")  # x86 /proc/cpuinfo "flags"; aarch64 "Features"
 
 
@@ -204,7 +202,7 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     zero = coarse = None
     with _eval_mode(model):
         if not config.coarse_start or config.select or config.adaptive:
-            zero = _pass_at(model, left, right, scale, config.iters, device, amp)
+            zero = pass_at_scale(model, left, right, scale, None, config.iters, device, amp)
             gain = adaptive_factor(zero, config.adaptive_ref_disp, config.adaptive_ref_pixels) if config.adaptive \
                 else 1.0
             if gain > 1.0:
@@ -212,9 +210,9 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
                             scale, scale * gain)
                 scale *= gain
                 zero = None if config.coarse_start and not config.select else \
-                    _pass_at(model, left, right, scale, config.iters, device, amp)
+                    pass_at_scale(model, left, right, scale, None, config.iters, device, amp)
         if config.coarse_start:
-            coarse = _pass_at(model, left, right, scale, config.iters, device, amp, coarse=True)
+            coarse = pass_at_scale(model, left, right, scale, None, config.iters, device, amp, coarse=True)
     if coarse is None:
         disp = zero
     elif config.select:
@@ -224,43 +222,37 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     return Inference(apply_refine(disp, left, config.refine, device), scale)
 
 
-def _pass_at(model: nn.Module, left: Image, right: Image, scale: float, iters: int | None, device: torch.device,
-             amp: AmpMode, coarse: bool = False) -> Disparity:
-    """The disparity of the pair resized by ``scale`` and padded, back at the input's (H, W) and pixels: its GRU
-    started from zero, or with ``coarse`` from ``optstereo.cascade.coarse_start`` of the same padded pair."""
-    left_s, right_s = (left, right) if scale == 1.0 else rescaled_pair(left, right, scale)
-    left_t, right_t = to_batch(left_s, device), to_batch(right_s, device)
-    padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
-    left_t, right_t = padder.pad(left_t, right_t)
-    with inference_autocast(amp, device):
-        extra = {"disp_init": coarse_start(model, left_t, right_t, iters)} if coarse else {}
-        _, full = model(left_t, right_t, iters=iters, test_mode=True, **extra)
-    disp = padder.unpad(full)[0, 0].float().cpu().numpy().astype(np.float32)
-    return disp if scale == 1.0 else disparity_to_size(disp, left.shape[:2])
-
-
-def pass_at_scale(model: nn.Module, left: Image, right: Image, scale: float = 1.0, start: Disparity | None = None,
-                  iters: int | None = None, device: torch.device | str = "cpu", amp: AmpMode = "none") -> Disparity:
-    """One :func:`network_pass` on the pair resized by ``scale`` (its GRU from ``start``, an (H, W) float32 disparity
-    of the input resized with it, or from zero), back at the input's (H, W) and pixels; no post-filter. The building
-    block of a sequence's started frames and of the mirrored pass of a confidence."""
-    if scale == 1.0:
-        return network_pass(model, left, right, start, iters, device, amp)
-    left_s, right_s = rescaled_pair(left, right, scale)
-    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
-    return disparity_to_size(network_pass(model, left_s, right_s, start_s, iters, device, amp), left.shape[:2])
-
-
 @torch.inference_mode()
-def network_pass(model: nn.Module, left: Image, right: Image, start: Disparity | None = None,
-                 iters: int | None = None, device: torch.device | str = "cpu", amp: AmpMode = "none") -> Disparity:
-    """One network pass on a pair as given: (H, W, 3) uint8 each -> (H, W) float32 disparity, no resizing, no filter.
+def pass_at_scale(model: nn.Module, left: Image, right: Image, scale: float = 1.0, start: Disparity | None = None,
+                  iters: int | None = None, device: torch.device | str = "cpu", amp: AmpMode = "none",
+                  coarse: bool = False) -> Disparity:
+    """One network pass on the pair resized by ``scale``, back at the input's (H, W) and pixels; no post-filter.
 
-    The pair is padded to the model's multiple and the output un-padded; the GRU starts from ``start`` ((H, W)
-    float32 disparity of the pair, padded like it and averaged onto the 1/8 grid: ``optstereo.cascade.grid_start``)
-    or from zero.
+    Its GRU starts from ``start`` (an (H, W) float32 disparity of the input, resized with the pair), with ``coarse``
+    from ``optstereo.cascade.coarse_start`` of the same resized, padded pair (the training's own start), or from
+    zero. The building block of :func:`run`'s passes, of a sequence's started frames and of a confidence's mirrored
+    pass.
     """
     device = torch.device(device)
+    if scale == 1.0:
+        return _padded_pass(model, left, right, start, iters, device, amp, coarse)
+    left_s, right_s = rescaled_pair(left, right, scale)
+    start_s = None if start is None else disparity_to_size(start, left_s.shape[:2])
+    disp = _padded_pass(model, left_s, right_s, start_s, iters, device, amp, coarse)
+    return disparity_to_size(disp, left.shape[:2])
+
+
+def network_pass(model: nn.Module, left: Image, right: Image, start: Disparity | None = None,
+                 iters: int | None = None, device: torch.device | str = "cpu", amp: AmpMode = "none") -> Disparity:
+    """One network pass on a pair as given: (H, W, 3) uint8 each -> (H, W) float32 disparity, no resizing, no filter;
+    the GRU starts from ``start`` ((H, W) float32 disparity of the pair) or from zero (:func:`pass_at_scale` at 1)."""
+    return pass_at_scale(model, left, right, 1.0, start, iters, device, amp)
+
+
+def _padded_pass(model: nn.Module, left: Image, right: Image, start: Disparity | None, iters: int | None,
+                 device: torch.device, amp: AmpMode, coarse: bool) -> Disparity:
+    """The pair padded to the model's multiple, one forward in eval mode, un-padded: (H, W) float32. ``start`` is
+    padded like the pair and averaged onto the 1/8 grid (``optstereo.cascade.grid_start``)."""
     left_t, right_t = to_batch(left, device), to_batch(right, device)
     padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
     left_t, right_t = padder.pad(left_t, right_t)
@@ -269,6 +261,8 @@ def network_pass(model: nn.Module, left: Image, right: Image, start: Disparity |
         start_t = torch.from_numpy(np.ascontiguousarray(start, np.float32))[None, None].to(device)
         extra["disp_init"] = grid_start(padder.pad(start_t)[0])
     with _eval_mode(model), inference_autocast(amp, device):
+        if coarse:
+            extra["disp_init"] = coarse_start(model, left_t, right_t, iters)
         _, full = model(left_t, right_t, iters=iters, test_mode=True, **extra)
     return padder.unpad(full)[0, 0].float().cpu().numpy().astype(np.float32)
 
