@@ -104,7 +104,8 @@ def test_cli_maps_and_fill_end_to_end(tmp_path: Path) -> None:
     torch.manual_seed(0)
     teacher = tmp_path / "teacher.safetensors"
     export_safetensors(teacher, build_model("optstereo", **TINY, iters=1))
-    cli = distill._cli()
+    from optstereo.cli import distill_main as cli
+
     maps = tmp_path / "maps"
     first = CliRunner().invoke(cli, ["maps", "--checkpoint", str(teacher), "--root", str(folder), "--out", str(maps)])
     assert first.exit_code == 0, first.output

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 42 on a lent GPU, in ONE device call (a task gets ~15 min of device time, the machine's start included):
 #   1. PVM labels of the distillation pack (all CPU cores, lzf shards), in the background, while
-#   2. the teacher (version 14 as shipped: 3 passes at 1.625x, choice + jump limit, weighted median) writes both
+#   2. the teacher (version 14, `pretrained-accurate` since version 15 shipped: 3 passes at 1.625x, choice + jump limit, weighted median) writes both
 #      views of every pair on the GPU (optstereo-distill maps, float32);
 #   3. optstereo-distill fill: PVM labels + the teacher's left-right consistent views in PVM's holes (weight 0.5);
 #   4. two students trained side by side on the GPU from those shards with the paper's losses (L_P confidence-
@@ -37,12 +37,12 @@ echo "distill session start $(date -u +%FT%TZ), ends by +$TOTAL_S s"
 ( $PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels" --jobs "$JOBS" --compression lzf \
     --quiet > "$W/labels.log" 2>&1 && touch "$W/labels.ok" ) &
 labeller=$!
-timeout "${TEACHER_S:-170}" $PY -m optstereo.distill maps --checkpoint pretrained --root "$PACK" --out "$W/maps" --device "$DEVICE" \
+timeout "${TEACHER_S:-170}" $PY -m optstereo.cli distill maps --checkpoint pretrained-accurate --root "$PACK" --out "$W/maps" --device "$DEVICE" \
   > "$W/maps.log" 2>&1
 echo "teacher maps: exit $? at $(elapsed); $(tail -n 1 "$W/maps.log")"
 wait "$labeller"
 echo "labels: exit $? at $(elapsed); $(tail -n 1 "$W/labels.log")"
-$PY -m optstereo.distill fill "$W/labels" "$W/maps" "$W/distill" --compression lzf --allow-missing > "$W/fill.log" 2>&1
+$PY -m optstereo.cli distill fill "$W/labels" "$W/maps" "$W/distill" --compression lzf --allow-missing > "$W/fill.log" 2>&1
 echo "fill: exit $? at $(elapsed); $(tail -n 1 "$W/fill.log")"
 $PY - "$W/distill/index.json" "$OUTD/distill.json" <<'EOF'
 import json, sys
@@ -57,7 +57,7 @@ echo "training both for at most $minutes min from $(elapsed)"
 common=(--lambda-t 0 --conf-weight --labels "$W/distill" --device "$DEVICE" --amp "$AMP"
         --batch-size "$BATCH" --crop "$CROP" --workers "$WORKERS" --threads "$THREADS" --ckpt-every 500
         --schedule onecycle --max-minutes "$minutes" --quiet)
-$PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init pretrained --out "$W/student" \
+$PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init pretrained-accurate --out "$W/student" \
   --steps "$STUDENT_STEPS" --lr 1e-4 --seed 40 --iters "$ITERS" --scale-range 1.0,1.0 "${common[@]}" \
   --set inference.scale=1.0 --set inference.refine=none --set inference.coarse_start=false --set inference.select=false \
   --set inference.select_jump=0 --set inference.adaptive_ref_disp=0 --set inference.adaptive_ref_pixels=0 \

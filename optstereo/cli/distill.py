@@ -1,0 +1,56 @@
+"""``optstereo-distill``: ``maps`` (a teacher's two views of every pair, resumable) and ``fill`` (PVM shards + the
+teacher's left-right consistent views in their holes); the library is ``optstereo.distill``."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import click
+
+from optstereo import distill
+from optstereo.checkpoint import build_model_from_checkpoint
+from optstereo.choices import AMP_MODES
+from optstereo.cli.common import GuardedCommand
+from optstereo.pretrained import resolve_checkpoint_spec
+from pvm_labeler.common.datasets import discover
+
+
+@click.group(help="Distillation targets: a teacher's dense views where PVM has no label (optstereo.distill).")
+def distill_main() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+
+@distill_main.command("maps", cls=GuardedCommand,
+                      help="The teacher's two views of every pair of a dataset, one .npz each (resumable).")
+@click.option("--checkpoint", required=True, help="Teacher: a checkpoint file, run directory or 'pretrained'.")
+@click.option("--dataset", default="folder", show_default=True, help="Dataset reader (pvm-label's names).")
+@click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), help="Dataset root.")
+@click.option("--left", default="left", show_default=True, help="folder reader: left images' sub-folder.")
+@click.option("--right", default="right", show_default=True, help="folder reader: right images' sub-folder.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder of the .npz maps.")
+@click.option("--device", type=click.Choice(("cpu", "cuda")), default="cpu", show_default=True)
+@click.option("--amp", type=click.Choice(AMP_MODES), default="none", show_default=True, help="fp16: CUDA only.")
+def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str, out: Path, device: str,
+         amp: str) -> None:
+    kwargs = {"left": left, "right": right} if dataset == "folder" else {}
+    refs = discover(dataset, root, **kwargs)
+    model = build_model_from_checkpoint(resolve_checkpoint_spec(checkpoint), device=device)
+    written = distill.write_teacher_maps(model, refs, out, device, amp, progress=True)
+    click.echo(f"{written} new teacher maps ({len(refs)} pairs) in {out}")
+
+
+@distill_main.command("fill", cls=GuardedCommand,
+                      help="PVM shards + the teacher's left-right consistent views in their holes.")
+@click.argument("labels", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("maps_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--fill-confidence", type=float, default=distill.FILL_CONFIDENCE, show_default=True)
+@click.option("--max-lr-diff", type=float, default=distill.MAX_LR_DIFF, show_default=True)
+@click.option("--compression", default=None, help="Shard compression (default: the labeler's).")
+@click.option("--allow-missing", is_flag=True, help="A pair without a map keeps its PVM labels (else an error).")
+def fill_command(labels: Path, maps_dir: Path, out: Path, fill_confidence: float, max_lr_diff: float,
+                 compression: str | None, allow_missing: bool) -> None:
+    distill.fill(labels, maps_dir, out, fill_confidence, max_lr_diff, compression, progress=True,
+                 allow_missing=allow_missing)
+    click.echo(f"teacher-filled shards in {out}")
