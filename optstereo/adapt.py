@@ -7,7 +7,7 @@ Steps, each resumable from ``OUT``:
 2. ``OUT/train_labels``: the same shards with HOLDOUT of the labelled pixels held back (whole TILE x TILE tiles drawn
    per frame with ``seed``, so that a held-back pixel's neighbours are held back with it), the right view's labels
    that land on a held-back tile too, and no GT. ``OUT/holdout.npz`` keeps the masks.
-3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.train.main``; L_P on the labels,
+3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.training.loop.main``; L_P on the labels,
    L_R and L_S), ``steps`` steps.
 4. ``OUT/report.json`` / ``report.md``: before and after, the agreement with the held-back labels (EPE, bad-3) and
    the photometric error of the right view warped onto the left; and GT bad-3 when the dataset has GT (used only to
@@ -154,9 +154,9 @@ def finetune(cfg: AdaptConfig, train_labels: Path) -> Path:
     """Step 3: fine-tune from cfg.init on the training labels; returns the run's checkpoint (resumes a run)."""
     from optstereo.checkpoint import load_checkpoint
     from optstereo.pretrained import resolve_checkpoint_spec
-    from optstereo.train import main
-    from optstereo.train_config import TrainConfig
-    from optstereo.train_resume import config_for_resume, init_settings
+    from optstereo.training.checkpoints import config_for_resume, init_settings
+    from optstereo.training.config import TrainConfig
+    from optstereo.training.loop import main
 
     run_dir = cfg.out / "run"
     overrides = {"labels": train_labels, "out": run_dir, "steps": cfg.steps, "lr": cfg.lr, "batch_size": cfg.batch_size,

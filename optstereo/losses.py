@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from optstereo.choices import SMOOTHNESS_NORMS, SMOOTHNESS_ORDERS
-from optstereo.config import LossConfig
+from optstereo.training.sections import LossConfig
 
 # the LossConfig fields this module reads; the others (conf_weight, lambda_t, analogy*) are the trainer's
 TERM_FIELDS = (

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from pvm_labeler.common.io import write_image, write_kitti_disp
 
 if TYPE_CHECKING:
-    from optstereo.train_config import TrainConfig
+    from optstereo.training.config import TrainConfig
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -147,7 +147,7 @@ def tiny_shards(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def tiny_config(labels: Path, out: Path, **changes: Any) -> TrainConfig:
     """A tiny run; ``changes`` use the old flat keys (lr=, iters=, model_overrides=), as the CLI flags do."""
-    from optstereo.train_config import TrainConfig
+    from optstereo.training.config import TrainConfig
 
     base = dict(labels=labels, out=out, steps=4, batch_size=2, crop=(32, 64), workers=0, iters=2,
                 model_overrides=TINY, log_every=1, ckpt_every=2, image_every=0, tensorboard=False, shuffle_buffer=4)

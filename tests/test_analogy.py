@@ -10,7 +10,6 @@ import pytest
 import torch
 from conftest import make_shards, tiny_config
 
-from optstereo import train
 from optstereo.analogy import (
     AnalogyConfig,
     SpatialParams,
@@ -22,6 +21,7 @@ from optstereo.analogy import (
     reliable_mask,
     transform_batch,
 )
+from optstereo.training import loop
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -120,7 +120,7 @@ def test_config_validation() -> None:
 
 def test_training_step_with_lambda_t(tiny_shards: Path, tmp_path: Path) -> None:
     cfg = tiny_config(tiny_shards, tmp_path / "run", lambda_t=0.5, analogy_start=2, steps=4)
-    train.main(cfg, progress=False)
+    loop.main(cfg, progress=False)
     lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     logs = [json.loads(line) for line in lines]
     assert [r["L_T"] == 0.0 for r in logs] == [True, True, False, False]  # off before analogy_start
@@ -150,17 +150,17 @@ def test_training_step_occludes_only_the_network_input(tmp_path: Path, monkeypat
     shards = make_shards(tmp_path / "shards", n=2, shard_size=2, height=32, width=72)
     cfg = tiny_config(shards, tmp_path / "run", occlude_p=1.0)
     seen: dict[str, torch.Tensor] = {}
-    forward = train._forward
+    forward = loop._forward
 
     def spy_forward(state, cfg, device, left, right, disp_init=None):  # noqa: ANN001, ANN202
         seen["net_right"] = right.clone()
         return forward(state, cfg, device, left, right, disp_init)
 
-    monkeypatch.setattr(train, "_forward", spy_forward)
-    model = train.build_model(cfg)
-    optimizer, scheduler = train.build_optimizer(model, cfg)
-    state = train.TrainState(model, optimizer, scheduler, torch.amp.GradScaler("cpu", enabled=False))
-    loss = train.build_loss(cfg)
+    monkeypatch.setattr(loop, "_forward", spy_forward)
+    model = loop.build_model(cfg)
+    optimizer, scheduler = loop.build_optimizer(model, cfg)
+    state = loop.TrainState(model, optimizer, scheduler, torch.amp.GradScaler("cpu", enabled=False))
+    loss = loop.build_loss(cfg)
 
     class SpyLoss(torch.nn.Module):
         def forward(self, preds, left, right, *rest):  # noqa: ANN001, ANN202
@@ -171,11 +171,11 @@ def test_training_step_occludes_only_the_network_input(tmp_path: Path, monkeypat
     left, right = (torch.rand(2, 3, 32, 64, generator=gen) * 255 for _ in range(2))
     label = torch.full((2, 1, 32, 64), 3.0)
     batch = (left, right, label, torch.ones_like(label, dtype=torch.bool))
-    train.train_step(state, batch, SpyLoss(), cfg, torch.device("cpu"))
+    loop.train_step(state, batch, SpyLoss(), cfg, torch.device("cpu"))
     assert torch.equal(seen["loss_right"], right)
     changed = (seen["net_right"] != right).any(dim=1)
     assert changed.any(dim=(1, 2)).all() and changed.float().mean() < 0.5
     off = tiny_config(shards, tmp_path / "off")
-    assert torch.equal(train.network_right(state, off, left, right), right)
+    assert torch.equal(loop.network_right(state, off, left, right), right)
     with pytest.raises(ValueError, match="occlude-p"):
         tiny_config(shards, tmp_path / "bad", occlude_p=1.5)

@@ -89,8 +89,8 @@ def test_infer_cascade_follows_the_units() -> None:
 
 def test_trainer_draw(tmp_path: Path) -> None:
     # cascade_p 0: never a start; 1: always, on the batch's 1/8 grid; the draw repeats for the same (seed, step)
-    from optstereo.train import cascade_init
-    from optstereo.train_config import TrainConfig
+    from optstereo.training.config import TrainConfig
+    from optstereo.training.loop import cascade_init
 
     torch.manual_seed(0)
     model = build_model("optstereo", **TINY, iters=2)

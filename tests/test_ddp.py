@@ -21,8 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 def worker(shards: Path, out: Path) -> None:
     """One rank: record the frame ids its stream sees, then train a few DDP steps and report a weight checksum."""
     from optstereo.data.stream import ShardStream
-    from optstereo.train import main
-    from optstereo.train_config import TrainConfig
+    from optstereo.training.config import TrainConfig
+    from optstereo.training.loop import main
 
     rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
     stream = ShardStream(shards, rank=rank, world_size=world, infinite=False, with_ids=True)

@@ -16,11 +16,11 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from optstereo import train
 from optstereo.cli import eval_main, train_main
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
-from optstereo.train_config import TrainConfig
+from optstereo.training import loop
+from optstereo.training.config import TrainConfig
 from pvm_labeler.shards import read_index, verify
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -87,11 +87,11 @@ def test_overfit_one_crop(kitti_shards: Path, tmp_path: Path) -> None:
     batch = collate_min_size([next(iter(stream))])
     assert batch[3].float().mean() > 0.05  # the crop carries PVM labels
     torch.manual_seed(0)
-    model = train.build_model(cfg)
-    optimizer, scheduler = train.build_optimizer(model, cfg)
-    state = train.TrainState(model, optimizer, scheduler, torch.amp.GradScaler("cpu", enabled=False))
-    loss_fn = train.build_loss(cfg)
-    losses = [train.train_step(state, batch, loss_fn, cfg, torch.device("cpu"))["L_P"] for _ in range(25)]
+    model = loop.build_model(cfg)
+    optimizer, scheduler = loop.build_optimizer(model, cfg)
+    state = loop.TrainState(model, optimizer, scheduler, torch.amp.GradScaler("cpu", enabled=False))
+    loss_fn = loop.build_loss(cfg)
+    losses = [loop.train_step(state, batch, loss_fn, cfg, torch.device("cpu"))["L_P"] for _ in range(25)]
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:3]), losses
 
 

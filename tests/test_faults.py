@@ -18,9 +18,9 @@ import pytest
 import torch
 from conftest import TINY, make_shards, tiny_config
 
-from optstereo import train
 from optstereo.checkpoint import LAST, load_checkpoint, resolve_checkpoint
-from optstereo.train_resume import config_for_resume
+from optstereo.training import loop
+from optstereo.training.checkpoints import config_for_resume
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # the in-process run; the subprocesses get --threads 1
 
@@ -199,7 +199,7 @@ def test_kill_inside_checkpoint_writes_leaves_the_previous_checkpoint(tmp_path: 
 
 def test_resume_ignores_and_removes_temp_files_of_a_cut_write(tiny_shards: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
-    train.main(tiny_config(tiny_shards, run, steps=1, ckpt_every=1), progress=False)
+    loop.main(tiny_config(tiny_shards, run, steps=1, ckpt_every=1), progress=False)
     whole = (run / LAST).read_bytes()
     # What a kill inside the next checkpoint write leaves: half a file under temp names, newer than the checkpoints.
     temps = [run / f"ckpt-0000002.pt.{'a' * 12}.tmp", run / f"{LAST}.{'b' * 12}.tmp"]
@@ -210,7 +210,7 @@ def test_resume_ignores_and_removes_temp_files_of_a_cut_write(tiny_shards: Path,
     (run / "model.safetensors").unlink()  # the end-of-run export (weights only): newer than the numbered .pt
     assert resolve_checkpoint(run) == run / "ckpt-0000001.pt"  # the newest file is a temp: not a checkpoint
     (tmp_path / "saved-last.pt").rename(run / LAST)
-    resumed = train.main(config_for_resume(run, {"steps": 2}), resume=True, progress=False)
+    resumed = loop.main(config_for_resume(run, {"steps": 2}), resume=True, progress=False)
     assert (resumed["start_step"], resumed["step"]) == (1, 2)
     assert not [p for p in temps if p.exists()] and not list(run.glob("*.tmp"))
     assert load_checkpoint(run).step == 2

@@ -14,10 +14,10 @@ import pytest
 import torch
 from conftest import TINY, make_shards, tiny_config
 
-from optstereo import train
 from optstereo.analogy import AnalogyConfig, transform_batch
 from optstereo.inference import infer
 from optstereo.models import build_model
+from optstereo.training import loop
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
@@ -71,7 +71,7 @@ def test_amp_training_steps(tmp_path: Path, amp: str) -> None:
     # lzf: a GPU image may lack hdf5plugin (the Blosc filter of the default compression)
     shards = make_shards(tmp_path / "shards", n=4, shard_size=2, height=64, width=136, compression="lzf")
     cfg = tiny_config(shards, tmp_path / "run", device="cuda", amp=amp, steps=6, crop=(64, 128), lambda_t=0.5)
-    summary = train.main(cfg, progress=False)
+    summary = loop.main(cfg, progress=False)
     assert summary["step"] == 6
     last = summary["last"]
     assert np.isfinite(last["L_P"]) and np.isfinite(last["L_T"])

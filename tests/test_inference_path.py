@@ -246,7 +246,7 @@ def test_trainer_section_and_old_keys(tmp_path: Path) -> None:
     import yaml
 
     from optstereo.cli import train_main
-    from optstereo.train_config import TrainConfig
+    from optstereo.training.config import TrainConfig
 
     cfg = TrainConfig.from_layers({"model": {"input_scale": 1.5, "cascade": True}},  # an old YAML model section
                                   {"model_overrides": {"refine": "wmedian"}})  # an old flat YAML key

@@ -7,7 +7,6 @@ import pytest
 import torch
 from conftest import make_synthetic_pair
 
-from optstereo.config import LossConfig
 from optstereo.losses import (
     PVStereoLoss,
     huber,
@@ -19,6 +18,7 @@ from optstereo.losses import (
     ssim,
     warp_right_to_left,
 )
+from optstereo.training.sections import LossConfig
 
 NAN = float("nan")
 

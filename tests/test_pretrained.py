@@ -13,10 +13,10 @@ from click.testing import CliRunner
 from conftest import TINY, make_shards, tiny_config
 
 import optstereo
-from optstereo import train
 from optstereo.checkpoint import CheckpointError, load_checkpoint
 from optstereo.cli import predict_main, train_main
 from optstereo.pretrained import WEIGHTS, resolve_checkpoint_spec
+from optstereo.training import loop
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.shards import schema as shard_schema
@@ -55,7 +55,7 @@ def test_unlabelled_reader_on_shared_data(shared_data: Path) -> None:
 @pytest.fixture(scope="module")
 def trained(tiny_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("init")
-    train.main(tiny_config(tiny_shards, root / "base", steps=2), progress=False)
+    loop.main(tiny_config(tiny_shards, root / "base", steps=2), progress=False)
     return tiny_shards, root / "base"
 
 
@@ -74,20 +74,20 @@ def test_init_loads_weights_and_starts_a_new_schedule(trained: tuple[Path, Path]
 def test_init_weights_equal_the_checkpoint(trained: tuple[Path, Path]) -> None:
     _, base = trained
     cfg = tiny_config(Path("unused"), Path("unused"))
-    model = train.build_model(cfg)
-    train.init_weights(model, base)
+    model = loop.build_model(cfg)
+    loop.init_weights(model, base)
     for key, value in load_checkpoint(base).model_state.items():
         assert torch.equal(model.state_dict()[key], value), key
 
 
 def test_init_mismatch_names_the_keys(trained: tuple[Path, Path]) -> None:
     _, base = trained
-    wider = train.build_model(tiny_config(Path("x"), Path("x"), model_overrides={**TINY, "feature_dim": 24}))
+    wider = loop.build_model(tiny_config(Path("x"), Path("x"), model_overrides={**TINY, "feature_dim": 24}))
     with pytest.raises(CheckpointError, match=r"shape mismatches \['feature_encoder"):
-        train.init_weights(wider, base)
-    single = train.build_model(tiny_config(Path("x"), Path("x"), model="optstereo_ss_d4"))
+        loop.init_weights(wider, base)
+    single = loop.build_model(tiny_config(Path("x"), Path("x"), model="optstereo_ss_d4"))
     with pytest.raises(CheckpointError, match="does not fit the model"):
-        train.init_weights(single, base)
+        loop.init_weights(single, base)
 
 
 def test_init_and_resume_exclusive(trained: tuple[Path, Path], tmp_path: Path) -> None:

@@ -12,10 +12,10 @@ import yaml
 from click.testing import CliRunner
 
 from optstereo.cli import train_main
-from optstereo.config import parse_scale_range
 from optstereo.data.transforms import TrainTransform, crop_window, rescale_sample
 from optstereo.rescale import scaled_size, sparse_to_size
-from optstereo.train_config import TrainConfig
+from optstereo.training.config import TrainConfig
+from optstereo.training.sections import parse_scale_range
 from pvm_labeler.common.errors import ConfigError
 
 NAN = np.float32(np.nan)

@@ -225,13 +225,13 @@ def test_flip_swapped_samples_take_the_right_views_confidence_mirrored(tmp_path:
 def test_unflippable_samples_are_counted_and_warned_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """GT shards without gt_right: flip-swap cannot apply to any sample; PVM shards always have label_right."""
     from optstereo.distributed import DistInfo
-    from optstereo.train import _warn_unflippable
+    from optstereo.training.loop import _warn_unflippable
 
     shards = make_shards(tmp_path / "s", n=5, shard_size=2)
     gt_stream = ShardStream(shards, supervision="gt")
     assert gt_stream.count_unflippable() == 5
     assert ShardStream(shards, supervision="pvm").count_unflippable() == 0
-    caplog.set_level(logging.WARNING, logger="optstereo.train")
+    caplog.set_level(logging.WARNING, logger="optstereo.training.loop")
     _warn_unflippable(gt_stream, 0.5, DistInfo(0, 1, 0).is_main)
     _warn_unflippable(gt_stream, 0.0, True)  # flip-swap off: nothing to say
     warnings = [r.getMessage() for r in caplog.records if "flip-swap" in r.getMessage()]

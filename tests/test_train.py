@@ -14,13 +14,13 @@ import yaml
 from click.testing import CliRunner
 from conftest import TINY, tiny_config
 
-from optstereo import train
 from optstereo.analogy_config import AnalogyConfig
 from optstereo.checkpoint import load_checkpoint, save_checkpoint
 from optstereo.cli import train_main
-from optstereo.config import FLAT_KEYS, DataConfig
-from optstereo.train_config import TrainConfig, parse_crop
-from optstereo.train_resume import config_for_resume
+from optstereo.training import loop
+from optstereo.training.checkpoints import config_for_resume
+from optstereo.training.config import TrainConfig, parse_crop
+from optstereo.training.sections import FLAT_KEYS, DataConfig
 from pvm_labeler.common.errors import ConfigError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -134,7 +134,7 @@ class TestConfig:
                                         "iters": 3}))
         cfg = TrainConfig.load(path)
         assert (cfg.loss.alpha, cfg.loss.photometric_iters, cfg.loss.smoothness_norm) == (0.7, "all", "mean")
-        assert train.build_loss(cfg).config.alpha == 0.7 and train.build_model(cfg).iters == 3
+        assert loop.build_loss(cfg).config.alpha == 0.7 and loop.build_model(cfg).iters == 3
 
     @pytest.mark.parametrize(
         ("change", "message"),
@@ -171,7 +171,7 @@ class TestConfig:
 class TestRun:
     def test_artefacts_and_finite_logs(self, tiny_shards: Path, tmp_path: Path) -> None:
         cfg = tiny_config(tiny_shards, tmp_path / "run", schedule="onecycle")
-        summary = train.main(cfg)
+        summary = loop.main(cfg)
         run = tmp_path / "run"
         assert summary["step"] == 4 and (run / "last.pt").is_file() and (run / "model.safetensors").is_file()
         assert sorted(p.name for p in run.glob("ckpt-*.pt")) == ["ckpt-0000002.pt", "ckpt-0000004.pt"]
@@ -183,17 +183,17 @@ class TestRun:
         assert yaml.safe_load((run / "config.yaml").read_text())["loss"]["lambda_r"] == 0.1
         assert load_checkpoint(run).step == 4
         with pytest.raises(ValueError, match="already holds a training run"):
-            train.main(cfg)  # a second run into the same dir must not overwrite the first silently
+            loop.main(cfg)  # a second run into the same dir must not overwrite the first silently
 
     def test_run_on_enlarged_crops_exports_its_input_scale(self, tiny_shards: Path, tmp_path: Path) -> None:
         from optstereo.api import load_model
 
-        train.main(tiny_config(tiny_shards, tmp_path / "run", steps=1, scale_range=(1.25, 1.5)))
+        loop.main(tiny_config(tiny_shards, tmp_path / "run", steps=1, scale_range=(1.25, 1.5)))
         assert load_model(tmp_path / "run" / "model.safetensors").inference_config.scale == 1.375
         assert load_model(tmp_path / "run").inference_config.scale == 1.375
 
     def test_gt_supervision_is_plain_l_p(self, tiny_shards: Path, tmp_path: Path) -> None:
-        train.main(tiny_config(tiny_shards, tmp_path / "gt", steps=2, supervision="gt"))
+        loop.main(tiny_config(tiny_shards, tmp_path / "gt", steps=2, supervision="gt"))
         records = [json.loads(line) for line in (tmp_path / "gt" / "metrics.jsonl").read_text().splitlines()]
         assert all(r["L_R"] == 0 and r["L_S"] == 0 and r["total"] == pytest.approx(r["L_P"]) for r in records)
 
@@ -201,19 +201,19 @@ class TestRun:
         pytest.importorskip("tensorboard")
         from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-        train.main(tiny_config(tiny_shards, tmp_path / "tb", steps=2, tensorboard=True, image_every=2))
+        loop.main(tiny_config(tiny_shards, tmp_path / "tb", steps=2, tensorboard=True, image_every=2))
         events = EventAccumulator(str(tmp_path / "tb" / "tb"))
         events.Reload()
         assert {"train/L_P", "train/L_R", "train/L_S", "train/lr", "train/label_epe"} <= set(events.Tags()["scalars"])
         assert {"images/prediction", "images/label"} <= set(events.Tags()["images"])
 
     def test_resume_equals_uninterrupted(self, tiny_shards: Path, tmp_path: Path) -> None:
-        full = train.main(tiny_config(tiny_shards, tmp_path / "full", schedule="onecycle", photometric=True))
+        full = loop.main(tiny_config(tiny_shards, tmp_path / "full", schedule="onecycle", photometric=True))
         # Interrupted run: stop at step 2 by asking for 2 steps, then resume with the original total.
         first = tiny_config(tiny_shards, tmp_path / "part", schedule="onecycle", photometric=True)
         _run_until(first, stop_at=2)
         assert load_checkpoint(tmp_path / "part").step == 2
-        resumed = train.main(config_for_resume(tmp_path / "part"), resume=True)
+        resumed = loop.main(config_for_resume(tmp_path / "part"), resume=True)
         assert resumed["start_step"] == 2 and resumed["step"] == 4
         a, b = load_checkpoint(tmp_path / "full"), load_checkpoint(tmp_path / "part")
         assert a.scheduler["last_epoch"] == b.scheduler["last_epoch"] == 4
@@ -224,17 +224,17 @@ class TestRun:
     def test_resume_drops_records_logged_after_the_checkpoint(self, tiny_shards: Path, tmp_path: Path) -> None:
         first = tiny_config(tiny_shards, tmp_path / "part")
         _run_until(first, stop_at=2)
-        log = tmp_path / "part" / train.METRICS_FILE
+        log = tmp_path / "part" / loop.METRICS_FILE
         # A kill after step 3 was logged, before its checkpoint, and a kill in the middle of a write.
         with open(log, "a") as fh:
             fh.write(json.dumps({"step": 3, "total": 1.0}) + "\n" + '{"step": 4, "tot')
-        train.main(config_for_resume(tmp_path / "part"), resume=True)
+        loop.main(config_for_resume(tmp_path / "part"), resume=True)
         steps = [json.loads(line)["step"] for line in log.read_text().splitlines()]
         assert steps == [1, 2, 3, 4]
 
     def test_non_finite_loss_names_the_step(self, tiny_shards: Path, tmp_path: Path,
                                             monkeypatch: pytest.MonkeyPatch) -> None:
-        real = train.build_loss
+        real = loop.build_loss
 
         def nan_after_two(cfg):
             loss, calls = real(cfg), {"n": 0}
@@ -246,9 +246,9 @@ class TestRun:
 
             return forward
 
-        monkeypatch.setattr(train, "build_loss", lambda cfg: _Wrap(nan_after_two(cfg)))
-        with pytest.raises(train.NonFiniteLossError, match="step 3"):
-            train.main(tiny_config(tiny_shards, tmp_path / "nan"))
+        monkeypatch.setattr(loop, "build_loss", lambda cfg: _Wrap(nan_after_two(cfg)))
+        with pytest.raises(loop.NonFiniteLossError, match="step 3"):
+            loop.main(tiny_config(tiny_shards, tmp_path / "nan"))
 
 
 class _Wrap(torch.nn.Module):
@@ -262,19 +262,19 @@ class _Wrap(torch.nn.Module):
 
 def _run_until(cfg: TrainConfig, stop_at: int) -> None:
     """Run ``cfg`` (its schedule sized for cfg.steps) but stop after ``stop_at`` steps, like a killed job."""
-    real_step = train.train_step
+    real_step = loop.train_step
 
     def step(state, *args, **kwargs):
         if state.step >= stop_at:
             raise KeyboardInterrupt
         return real_step(state, *args, **kwargs)
 
-    train.train_step, saved = step, real_step
+    loop.train_step, saved = step, real_step
     try:
         with pytest.raises(KeyboardInterrupt):
-            train.main(cfg)
+            loop.main(cfg)
     finally:
-        train.train_step = saved
+        loop.train_step = saved
 
 
 class TestCli:
@@ -296,10 +296,10 @@ class TestCli:
     def test_resume_of_a_flat_config_run(self, tiny_shards: Path, tmp_path: Path) -> None:
         """A run saved by the trainer before the config had sections (flat config.yaml and train_config) resumes."""
         run = tmp_path / "old"
-        train.main(tiny_config(tiny_shards, run, steps=2), progress=False)
+        loop.main(tiny_config(tiny_shards, run, steps=2), progress=False)
         ckpt = load_checkpoint(run)
         flat = flatten(ckpt.train_config)
-        model = train.build_model(TrainConfig.from_dict(flat))
+        model = loop.build_model(TrainConfig.from_dict(flat))
         model.load_state_dict(ckpt.model_state)
         for path in run.glob("*.pt"):
             path.unlink()
@@ -331,7 +331,7 @@ class TestCli:
                                                                   {"data": {"max_disp": 192}})
 
     def test_color_norm_flag_and_runs_from_before_it_resume_with_the_channel_mean(self, tmp_path: Path) -> None:
-        from optstereo.train_resume import legacy_loss
+        from optstereo.training.checkpoints import legacy_loss
 
         result = CliRunner().invoke(train_main, ["--color-norm", "mean", "--print-config"])
         assert result.exit_code == 0 and yaml.safe_load(result.output)["loss"]["color_norm"] == "mean"
@@ -399,16 +399,16 @@ class TestCli:
 class TestAmp:
     def test_bf16_autocast_on_cpu_fp16_ignored(self) -> None:
         cpu = torch.device("cpu")
-        with train.autocast_context(TrainConfig(amp="bf16"), cpu):
+        with loop.autocast_context(TrainConfig(amp="bf16"), cpu):
             out = torch.nn.functional.linear(torch.ones(2, 4), torch.ones(3, 4))
         assert out.dtype == torch.bfloat16
         for amp in ("none", "fp16"):
-            with train.autocast_context(TrainConfig(amp=amp), cpu):
+            with loop.autocast_context(TrainConfig(amp=amp), cpu):
                 out = torch.nn.functional.linear(torch.ones(2, 4), torch.ones(3, 4))
             assert out.dtype == torch.float32
 
     def test_bf16_run_trains_float32_weights(self, tiny_shards: Path, tmp_path: Path) -> None:
-        summary = train.main(tiny_config(tiny_shards, tmp_path / "run", amp="bf16"))
+        summary = loop.main(tiny_config(tiny_shards, tmp_path / "run", amp="bf16"))
         records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
         assert summary["step"] == 4 and all(torch.isfinite(torch.tensor(r["total"])) for r in records)
         state = load_checkpoint(tmp_path / "run" / "last.pt")
@@ -417,8 +417,8 @@ class TestAmp:
 
 @pytest.mark.parametrize("steps", [4, 5, 20, 39, 1000])
 def test_onecycle_short_runs_step_and_long_runs_keep_their_schedule(steps: int) -> None:
-    from optstereo.config import ConfigError
-    from optstereo.train import build_optimizer
+    from optstereo.training.loop import build_optimizer
+    from optstereo.training.sections import ConfigError
 
     cfg = TrainConfig.from_dict({"optim": {"schedule": "onecycle", "steps": steps, "lr": 1e-3, "pct_start": 0.05}})
     model = torch.nn.Linear(2, 2)
@@ -447,7 +447,7 @@ def test_window_mean_skips_nan_and_stays_quiet_when_all_nan() -> None:
     import math
     import warnings
 
-    from optstereo.train import _nanmean
+    from optstereo.training.loop import _nanmean
 
     assert _nanmean([1.0, float("nan"), 3.0]) == 2.0
     with warnings.catch_warnings():

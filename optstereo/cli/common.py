@@ -119,7 +119,7 @@ class GuardedCommand(click.Command):
     CheckpointError, a non-finite loss, ValueError, RuntimeError, OSError) exit 1 with their type and message."""
 
     def invoke(self, ctx: click.Context) -> Any:
-        from optstereo.train import NonFiniteLossError  # lazy: predict and eval need not load the trainer
+        from optstereo.training.loop import NonFiniteLossError  # lazy: predict and eval need not load the trainer
 
         try:
             return super().invoke(ctx)

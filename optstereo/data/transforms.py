@@ -98,7 +98,7 @@ class TrainTransform:
     scale_range: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
-        from optstereo.config import parse_scale_range
+        from optstereo.training.sections import parse_scale_range
 
         # The config's own parser: a list [1, 1] from YAML is "off" too, and a bad range fails the same way.
         object.__setattr__(self, "scale_range", parse_scale_range(self.scale_range))

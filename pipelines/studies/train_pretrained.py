@@ -269,7 +269,7 @@ def branch_commands(start: int) -> dict[str, list[str]]:
 
 def step_branch() -> None:
     """Copy ckpt-<analogy_start>.pt of the main run into each arm's RUN_DIR as last.pt and resume it."""
-    from optstereo.train_config import TrainConfig
+    from optstereo.training.config import TrainConfig
 
     start = TrainConfig.load(RECIPE).loss.analogy_start
     source = RUNS / "main" / f"ckpt-{start:07d}.pt"
@@ -290,7 +290,7 @@ def step_branch() -> None:
 
 def step_finish() -> None:
     """Continue the no-L_T arm from its step-(start + ARM_STEPS) checkpoint to the recipe's full step count."""
-    from optstereo.train_config import TrainConfig
+    from optstereo.training.config import TrainConfig
 
     cfg = TrainConfig.load(RECIPE)
     rd = RUNS / "arm_no_lt"

@@ -22,7 +22,7 @@ from torch import nn
 
 from optstereo import distributed as ddp
 from optstereo.checkpoint import LAST, CheckpointError, LoadedCheckpoint, load_checkpoint, save_checkpoint, unwrap
-from optstereo.train_config import CONFIG_FILE, TrainConfig, read_yaml
+from optstereo.training.config import CONFIG_FILE, TrainConfig, read_yaml
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.errors import ConfigError
 

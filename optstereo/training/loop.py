@@ -29,9 +29,9 @@ from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, loa
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.inference import warn_if_emulated_bf16
-from optstereo.train_config import TrainConfig
-from optstereo.train_log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
-from optstereo.train_resume import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
+from optstereo.training.checkpoints import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
+from optstereo.training.config import TrainConfig
+from optstereo.training.log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
 
 logger = logging.getLogger(__name__)
 

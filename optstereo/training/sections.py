@@ -1,6 +1,6 @@
 """Sections of the trainer's TrainConfig (no I/O, no torch) and the map from the old flat keys to them.
 
-``optstereo.train_config.TrainConfig`` composes ``model`` (``optstereo.models.config.ModelConfig``, the network's
+``optstereo.training.config.TrainConfig`` composes ``model`` (``optstereo.models.config.ModelConfig``, the network's
 own config), ``loss`` (LossConfig), ``data`` (DataConfig), ``optim`` (OptimConfig) and ``val`` (ValConfig) with a
 few run-level fields. Every section is a frozen dataclass validated on construction; ``from_dict`` rejects unknown
 keys and ``to_dict`` gives YAML/JSON-friendly values (paths as str, tuples as lists).

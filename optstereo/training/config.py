@@ -11,9 +11,10 @@ Layout (one field, one place)::
     out, init, device, amp, seed, threads, max_minutes, log_every, image_every, ckpt_every, keep_ckpts, tensorboard
 
 Precedence (lowest to highest): dataclass defaults < ``--config FILE`` (YAML) < command-line flags; each layer may
-be nested or the old flat form (``optstereo.config.nest``). The resolved config (model variant defaults and the loss
-weights of the chosen supervision filled in) is written to ``RUN_DIR/config.yaml`` and stored in every checkpoint, so
-``--resume RUN_DIR`` continues with exactly the same settings; flat configs of older runs still resume.
+be nested or the old flat form (``optstereo.training.sections.nest``). The resolved config (model variant defaults
+and the loss weights of the chosen supervision filled in) is written to ``RUN_DIR/config.yaml`` and stored in
+every checkpoint, so ``--resume RUN_DIR`` continues with exactly the same settings; flat configs of older runs
+still resume.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import yaml
 
 from optstereo.analogy_config import AnalogyConfig
 from optstereo.choices import AMP_MODES, DEVICES, AmpMode, Device
-from optstereo.config import (
+from optstereo.training.sections import (
     FLAT_KEYS,
     DataConfig,
     InferenceConfig,
