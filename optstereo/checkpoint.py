@@ -167,12 +167,15 @@ class LoadedCheckpoint:
 
 
 def resolve_checkpoint(path: Path) -> Path:
-    """A checkpoint file, or a run directory (-> its last.pt, else the newest checkpoint in it)."""
+    """A checkpoint file, or a run directory (-> its last.pt, else its newest training checkpoint, else its newest
+    weights file). A training checkpoint (.pt/.pth/.ckpt) wins over a newer weights-only export (.safetensors): it
+    holds the optimiser and the step, so ``--resume`` continues instead of starting from the export and stopping."""
     path = Path(path)
     if path.is_dir():
         if (path / LAST).is_file():
             return path / LAST
-        found = sorted((p for p in path.iterdir() if p.suffix in CHECKPOINT_SUFFIXES), key=lambda p: p.stat().st_mtime)
+        found = sorted((p for p in path.iterdir() if p.suffix in CHECKPOINT_SUFFIXES),
+                       key=lambda p: (p.suffix != ".safetensors", p.stat().st_mtime))
         if not found:
             raise CheckpointError(f"no checkpoint ({'/'.join(CHECKPOINT_SUFFIXES)}) in run directory {path}")
         return found[-1]

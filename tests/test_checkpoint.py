@@ -81,6 +81,18 @@ class TestSaveLoad:
         save_checkpoint(tmp_path / "last.pt", model=model, step=1)
         assert resolve_checkpoint(tmp_path).name == "last.pt"
 
+    def test_run_dir_without_last_prefers_a_training_checkpoint_to_a_newer_export(self, tmp_path: Path) -> None:
+        """--resume on a run whose last.pt is gone continues from its newest ckpt-*.pt, not from model.safetensors
+        (weights only, written after the checkpoints), which would load the final step and stop."""
+        model = tiny_model()
+        save_checkpoint(tmp_path / "ckpt-0000001.pt", model=model, step=1)
+        save_checkpoint(tmp_path / "ckpt-0000002.pt", model=model, step=2)
+        export_safetensors(tmp_path / "model.safetensors", model, step=2)
+        assert resolve_checkpoint(tmp_path).name == "ckpt-0000002.pt"
+        for name in ("ckpt-0000001.pt", "ckpt-0000002.pt"):
+            (tmp_path / name).unlink()
+        assert resolve_checkpoint(tmp_path).name == "model.safetensors"  # weights only: still loads a model
+
 
 class TestSafety:
     def test_atomic_write_leaves_no_partial_file(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
