@@ -32,7 +32,8 @@ import torch
 from torch import nn
 
 from optstereo.inference_config import InferenceConfig
-from optstereo.models.config import RENAMED_MODEL_KEYS, rename_keys, split_legacy_model_dict
+from optstereo.models import upgrade_model_keys
+from optstereo.models.config import split_legacy_model_dict
 from optstereo.version import __version__
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.version import git_commit
@@ -206,8 +207,8 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Loa
         raise CheckpointError(f"{path} is not an optstereo checkpoint (no 'model' entry)")
     if state.get("format", CHECKPOINT_FORMAT) != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} has format {state.get('format')!r}, expected {CHECKPOINT_FORMAT!r}")
-    model_config, inference = split_configs(path, dict(state.get("model_config") or {}),
-                                            state.get("inference_config"))
+    model_config, inference = split_configs(path, str(state.get("model_name", "optstereo")),
+                                            dict(state.get("model_config") or {}), state.get("inference_config"))
     return LoadedCheckpoint(
         path=path,
         step=int(state.get("step", 0)),
@@ -248,7 +249,8 @@ def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedChe
     except (SafetensorError, OSError) as exc:
         raise CheckpointError(f"cannot load safetensors checkpoint {path}: {exc}") from exc
     stored = metadata.get("inference_config")
-    model_config, inference = split_configs(path, json.loads(metadata.get("model_config", "{}")),
+    model_config, inference = split_configs(path, metadata.get("model_name", "optstereo"),
+                                            json.loads(metadata.get("model_config", "{}")),
                                             None if stored is None else json.loads(stored))
     return LoadedCheckpoint(
         path=path,
@@ -261,13 +263,18 @@ def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedChe
     )
 
 
-def split_configs(path: Path, model_config: dict[str, Any],
+def split_configs(path: Path, name: str, model_config: dict[str, Any],
                   stored: dict[str, Any] | None) -> tuple[dict[str, Any], InferenceConfig]:
     """(architecture dict, InferenceConfig) of a file's ``model_config`` and its ``inference_config`` (None in files
-    written before it existed, whose inference settings sit in ``model_config``: split_legacy_model_dict). Renamed
-    model keys (``max_disp`` -> ``search_range``) take their new names."""
+    written before it existed, whose inference settings sit in ``model_config``: split_legacy_model_dict). The old
+    keys of model ``name``'s config class are upgraded (``optstereo.models.upgrade_model_keys``): HITNet's
+    ``feature_dim`` -> ``feature_channels``, ``max_disp`` -> ``search_range``, ...; OptStereo's ``max_disp`` /
+    ``search_range``, which it never read, are dropped."""
     model_config, legacy = split_legacy_model_dict(model_config)
-    model_config = rename_keys(model_config, RENAMED_MODEL_KEYS, f"{path}: model_config")
+    try:
+        model_config = upgrade_model_keys(name, model_config, f"{path}: model_config")
+    except ValueError as exc:
+        raise CheckpointError(str(exc)) from exc
     try:
         return model_config, InferenceConfig.from_dict({**legacy, **(stored or {})})
     except (TypeError, ValueError) as exc:
@@ -279,8 +286,8 @@ def build_model_from_checkpoint(
 ) -> nn.Module:
     """Rebuild the registry model recorded in a checkpoint, load its weights, move to device, eval mode.
 
-    ``overrides`` are ModelConfig fields (e.g. ``iters``). The model carries the file's inference settings as
-    ``model.inference_config`` (an InferenceConfig), which ``optstereo.inference.run`` uses by default.
+    ``overrides`` are fields of the model's config class (e.g. ``iters``). The model carries the file's inference
+    settings as ``model.inference_config`` (an InferenceConfig), which ``optstereo.inference.run`` uses by default.
     """
     from optstereo.models import build_model
 

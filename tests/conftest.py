@@ -26,8 +26,10 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: The tiny OptStereo every wiring test builds (``build_model("optstereo", **TINY)``); the GRU iterations are the
 #: model's default (8) unless a test passes ``iters=`` beside it.
 TINY: dict[str, Any] = {"feature_dim": 16, "hidden_dim": 16, "head_dim": 16, "upsample_dim": 8}
-#: The tiny HITNet: two resolutions, narrow layers, a 32 px search (wiring tests run in well under a second).
-TINY_HITNET: dict[str, Any] = {"feature_dim": 8, "hidden_dim": 16, "corr_levels": 2, "search_range": 32, "iters": 2}
+#: The tiny HITNet (``HITNetConfig`` fields): two resolutions, narrow layers, a 32 px search (wiring tests run in well
+#: under a second).
+TINY_HITNET: dict[str, Any] = {"feature_channels": 8, "propagation_channels": 16, "levels": 2, "search_range": 32,
+                               "iters": 2}
 
 
 #: The studies' tests (pipelines/studies/): collected only with --studies (make test-studies, make test-all).

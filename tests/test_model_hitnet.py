@@ -3,21 +3,32 @@ the train/eval/predict CLIs on a HITNet run, and overfitting one synthetic pair.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+import yaml
 from click.testing import CliRunner
 from conftest import TINY_HITNET as TINY
 from conftest import make_shards, make_synthetic_pair, overfit_epe
+from safetensors import safe_open
+from safetensors.torch import save_file
 
 from optstereo.api import load_model
-from optstereo.checkpoint import build_model_from_checkpoint, save_checkpoint
+from optstereo.checkpoint import (
+    CheckpointError,
+    build_model_from_checkpoint,
+    export_safetensors,
+    load_checkpoint,
+    save_checkpoint,
+)
 from optstereo.cli import eval_main, export_main, predict_main, train_main
 from optstereo.inference import infer
-from optstereo.models import HITNet, build_from_config, build_model, list_models
+from optstereo.models import HITNet, HITNetConfig, ModelConfig, build_from_config, build_model, list_models
 from optstereo.models.tiles import (
     HYP_DIM,
     TILE,
@@ -29,6 +40,9 @@ from optstereo.models.tiles import (
     upsample_hypotheses,
 )
 from optstereo.padding import InputPadder, divisor_of
+from optstereo.training.checkpoints import config_for_resume, init_settings
+from optstereo.training.config import TrainConfig
+from pvm_labeler.common.errors import ConfigError
 from pvm_labeler.common.io import read_pfm, write_image
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -111,8 +125,9 @@ class TestRegistry:
         model = build_model("hitnet")
         cfg = model.config
         assert isinstance(model, HITNet) and cfg.name == "hitnet"
-        assert (cfg.feature_dim, cfg.hidden_dim, cfg.corr_levels, cfg.corr_radius, cfg.iters, cfg.search_range) == (
-            16, 32, 4, 1, 2, 192)
+        assert isinstance(cfg, HITNetConfig) and cfg == HITNetConfig()
+        assert (cfg.feature_channels, cfg.propagation_channels, cfg.levels, cfg.offset_radius, cfg.iters,
+                cfg.search_range) == (16, 32, 4, 1, 2, 192)
         assert divisor_of(model) == HITNet.divisor == 8 and divisor_of(build_model("optstereo", iters=1)) == 8
         assert sum(p.numel() for p in model.parameters()) == 500_010  # docs/optstereo.md quotes it
 
@@ -130,6 +145,14 @@ class TestRegistry:
     def test_exception(self) -> None:
         with pytest.raises(ValueError, match="search_range must be >= 1, got 0"):
             build_model("hitnet", search_range=0)
+        with pytest.raises(ValueError, match="levels must be >= 1, got 0"):
+            build_model("hitnet", levels=0)
+        with pytest.raises(ValueError, match=r"unknown model config keys \['hidden'\]"):
+            build_model("hitnet", hidden=3)
+        with pytest.raises(ValueError, match=r"unknown model config keys \['feature_channels'\]"):
+            build_model("optstereo", feature_channels=8)  # a HITNet field is no OptStereo field
+        with pytest.raises(ValueError, match="model 'hitnet' is built from a HITNetConfig, got a ModelConfig"):
+            build_from_config(ModelConfig(name="hitnet"))
 
 
 class TestForward:
@@ -151,7 +174,8 @@ class TestForward:
         # low is d at the tile centres, (3.5, 3.5) + 8 (i, j): the mean of the four pixels around each centre.
         torch.testing.assert_close(low * 8, F.avg_pool2d(full[..., 3:, 3:], 2, stride=8))
         with torch.no_grad():  # default 4 levels: 4 inits + 3 coarse steps + iters finest steps
-            assert len(build_model("hitnet", iters=1, feature_dim=8, hidden_dim=8)(lp, rp, iters=3)) == 4 + 3 + 3
+            small = build_model("hitnet", iters=1, feature_channels=8, propagation_channels=8)
+            assert len(small(lp, rp, iters=3)) == 4 + 3 + 3
 
     def test_gradcheck_backward_reaches_every_parameter(self) -> None:
         torch.manual_seed(1)
@@ -239,9 +263,10 @@ class TestCli:
             assert "EPE" in res.output
 
     def test_init_from_hitnet_and_export_refused(self, tmp_path: Path) -> None:
-        """--init takes the architecture from a HITNet checkpoint; optstereo-export refuses it with the reason."""
+        """--init takes the architecture from a HITNet checkpoint (one written with the old ModelConfig keys);
+        optstereo-export refuses it with the reason."""
         torch.manual_seed(0)
-        source = save_checkpoint(tmp_path / "hitnet.pt", model=build_model("hitnet", **TINY), step=5)
+        source = _old_keys_checkpoint(tmp_path / "hitnet.pt", build_model("hitnet", **TINY))
         shards = make_shards(tmp_path / "shards", n=2, shard_size=2, height=32, width=72)
         (tmp_path / "run.yaml").write_text("tensorboard: false\nimage_every: 0\n")
         res = CliRunner().invoke(train_main, ["--labels", str(shards), "--out", str(tmp_path / "run"), "--init",
@@ -254,6 +279,84 @@ class TestCli:
                                                str(tmp_path / "h.onnx"), "--quiet"])
         assert res.exit_code == 1 and "HITNet cannot be exported" in res.output, res.output
         assert not (tmp_path / "h.onnx").exists()
+
+
+#: TINY as a HITNet checkpoint, run directory or YAML wrote it before HITNet had its own config (issue 43): the shared
+#: ModelConfig's field names, the OptStereo-only fields HITNet never read, and the search range's first name.
+OLD_TINY: dict[str, Any] = {
+    "name": "hitnet", "feature_dim": 8, "hidden_dim": 16, "corr_levels": 2, "corr_radius": 1, "iters": 2,
+    "upsampler": "conv", "upsample_dim": 16, "head_dim": 128, "norm": "instance", "corr_scale": True, "max_disp": 32,
+}
+
+
+def _old_keys_checkpoint(path: Path, model: torch.nn.Module, train: dict[str, Any] | None = None) -> Path:
+    """Save ``model`` (the TINY HITNet) as a checkpoint whose model_config (and the model section of ``train``, its
+    train_config) hold OLD_TINY's keys, as files written before issue 43 do."""
+    save_checkpoint(path, model=model, step=5, train_config=train or None)
+    state = torch.load(path, weights_only=True)
+    state["model_config"] = dict(OLD_TINY)
+    if train:
+        state["train_config"] = {**state["train_config"], "model": dict(OLD_TINY)}
+    torch.save(state, path)
+    return path
+
+
+class TestOldKeys:
+    """Files and YAML written with the shared ModelConfig's names for a HITNet keep loading (HITNetConfig)."""
+
+    def test_feature_old_checkpoint_and_export_load(self, tmp_path: Path) -> None:
+        torch.manual_seed(0)
+        model = build_model("hitnet", **TINY).eval()
+        path = _old_keys_checkpoint(tmp_path / "old.pt", model)
+        assert load_checkpoint(path).model_config == model.config.to_dict()
+        export = export_safetensors(tmp_path / "old.safetensors", model)
+        with safe_open(str(export), framework="pt") as fh:
+            metadata, tensors = fh.metadata(), {k: fh.get_tensor(k) for k in fh.keys()}
+        save_file(tensors, str(export), metadata={**metadata, "model_config": json.dumps(OLD_TINY)})
+        left = torch.rand(1, 3, 32, 64) * 255
+        with torch.no_grad():
+            expected = model(left, left.roll(-5, -1), test_mode=True)[1]
+            for source in (path, export):
+                rebuilt = load_model(source)
+                assert isinstance(rebuilt, HITNet) and rebuilt.config == model.config
+                torch.testing.assert_close(rebuilt(left, left.roll(-5, -1), test_mode=True)[1], expected, rtol=0,
+                                           atol=0)
+        assert init_settings(path)["model"] == {k: v for k, v in model.config.to_dict().items() if k != "iters"}
+
+    def test_feature_old_yaml_and_set_keys(self, tmp_path: Path) -> None:
+        """Nested, flat (model_overrides) and --set-style layers with the old keys give the new config."""
+        new = TrainConfig.from_dict({"model": {"name": "hitnet", **TINY}})
+        assert new.model == HITNetConfig(**TINY)
+        path = tmp_path / "old.yaml"
+        path.write_text(yaml.safe_dump({"model": OLD_TINY}))
+        assert TrainConfig.load(path) == new
+        flat = {"model": "hitnet", "model_overrides": {k: v for k, v in OLD_TINY.items() if k != "name"}}
+        assert TrainConfig.from_dict(flat) == new
+        # A later layer's old key wins over an earlier layer's field, as any later layer does.
+        wider = TrainConfig.from_layers({"model": {"name": "hitnet", **TINY}}, {"model": {"feature_dim": 12}})
+        assert wider.model.feature_channels == 12
+        assert "feature_dim" not in new.to_dict()["model"] and TrainConfig.from_dict(new.to_dict()) == new
+
+    def test_feature_old_run_resumes(self, tmp_path: Path) -> None:
+        """--resume of a run whose checkpoint holds the old keys keeps its model; changing it names the new key."""
+        run = tmp_path / "run"
+        saved = TrainConfig.from_dict({"model": {"name": "hitnet", **TINY}, "out": str(run)})
+        _old_keys_checkpoint(run / "last.pt", build_model("hitnet", **TINY), saved.to_dict())
+        assert config_for_resume(run, {"steps": 9}).model == saved.model
+        with pytest.raises(ConfigError, match=r"model\.feature_channels: 8 -> 24"):
+            config_for_resume(run, {"model": {"feature_dim": 24}})
+
+    def test_exception_old_and_new_key_disagree(self, tmp_path: Path) -> None:
+        with pytest.raises(ConfigError, match="sets both 'feature_dim' .* and 'feature_channels' .*keep 'feature_c"):
+            TrainConfig.from_dict({"model": {"name": "hitnet", "feature_dim": 8, "feature_channels": 16}})
+        with pytest.raises(ValueError, match="sets both 'corr_levels' .* and 'levels'"):
+            build_model("hitnet", corr_levels=2, levels=3)
+        path = save_checkpoint(tmp_path / "both.pt", model=build_model("hitnet", **TINY), step=1)
+        state = torch.load(path, weights_only=True)
+        state["model_config"]["hidden_dim"] = 99
+        torch.save(state, path)
+        with pytest.raises(CheckpointError, match="both.pt: model_config sets both 'hidden_dim' .*'propagation_ch"):
+            load_checkpoint(path)
 
 
 def _overfit(steps: int, disp: int = 7, lr: float = 2e-3) -> tuple[float, float]:

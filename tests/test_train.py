@@ -359,11 +359,12 @@ class TestCli:
         assert f"(here: --set {section}.occlusion=false)" in result.output
         assert flag not in CliRunner().invoke(train_main, ["--help"]).output
 
-    @pytest.mark.parametrize("model_flag", [[], ["--model", "hitnet"]])
-    def test_set_model_key_equals_the_old_model_opt(self, tmp_path: Path, model_flag: list[str]) -> None:
+    @pytest.mark.parametrize(("model_flag", "field"),
+                             [([], "feature_dim"), (["--model", "hitnet"], "feature_channels")])
+    def test_set_model_key_equals_the_old_model_opt(self, tmp_path: Path, model_flag: list[str], field: str) -> None:
         """--set model.feature_dim=24 prints what --model-opt feature_dim=24 printed: the defaults (of --model's
-        network) with that one field changed, the same YAML as the old flag's flat key model_overrides; --model
-        NAME beside --set model.KEY keeps NAME."""
+        network) with that one field changed (HITNet's feature_dim is its feature_channels), the same YAML as the
+        old flag's flat key model_overrides; --model NAME beside --set model.KEY keeps NAME."""
         old = tmp_path / "old.yaml"
         old.write_text(yaml.safe_dump({"model_overrides": {"feature_dim": 24}}))
         runner = CliRunner()
@@ -374,8 +375,8 @@ class TestCli:
         assert new.output == before.output
         expected = yaml.safe_load(plain.output)
         assert expected["model"]["name"] == (model_flag[1] if model_flag else "optstereo")
-        assert expected["model"]["feature_dim"] != 24
-        expected["model"]["feature_dim"] = 24
+        assert expected["model"][field] != 24
+        expected["model"][field] = 24
         assert yaml.safe_load(new.output) == expected
 
     def test_missing_labels_dir_is_usage_error(self, tmp_path: Path) -> None:

@@ -1,6 +1,9 @@
-"""Typed configuration of one OptStereo network (no I/O, no torch, nothing of training).
+"""Typed configuration of the networks (no I/O, no torch, nothing of training): ``NetworkConfig``, what every
+network's config shares, and ``ModelConfig``, OptStereo's architecture.
 
-``ModelConfig`` is frozen and YAML/JSON friendly: ``to_dict()`` gives plain Python values and ``from_dict()`` rejects
+Each network has its own frozen config class with fields named for what they mean in it (HITNet's is
+``optstereo.models.hitnet_config.HITNetConfig``); the registry (``optstereo.models``) knows which class a model name
+is built from. A config is YAML/JSON friendly: ``to_dict()`` gives plain Python values and ``from_dict()`` rejects
 unknown keys, so a checkpoint or a YAML file rebuilds exactly the same model (``optstereo.models.build_from_config``).
 The trainer composes it as the ``model`` section of its TrainConfig; this module must not import the trainer. How a
 network is run (input scale, passes, post-filter) is ``optstereo.inference_config.InferenceConfig``, not part of it.
@@ -10,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, Self
 
 from optstereo.choices import NORMS, UPSAMPLERS, Norm, Upsampler
 from pvm_labeler.common.configtools import reject_unknown_keys
@@ -23,14 +26,59 @@ LEGACY_INFERENCE_KEYS: dict[str, str] = {
     "scale_ref_pixels": "adaptive_ref_pixels", "cascade": "coarse_start", "cascade_select": "select",
     "cascade_select_jump": "select_jump",
 }
-#: Model keys renamed since (issue 43): old key -> field. Checkpoints and YAML written before keep loading: the old
-#: key is mapped quietly (``rename_keys``).
-RENAMED_MODEL_KEYS: dict[str, str] = {"max_disp": "search_range"}
+
+
+class NetworkConfig:
+    """What the config of every registered network has: ``name`` (its registry name), ``iters`` (the forward
+    contract's default refinement steps, N_s of training), a plain-dict round trip and the keys of older files.
+
+    Subclasses are frozen dataclasses that define the fields and ``validate``; ``RENAMED_KEYS`` (old key -> field)
+    are mapped quietly and ``RETIRED_KEYS`` (keys that older files recorded but this network never read) dropped
+    quietly, so checkpoints, run directories and YAML written before keep loading (``upgrade_keys``).
+    """
+
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {}
+    RETIRED_KEYS: ClassVar[tuple[str, ...]] = ()
+    name: str
+    iters: int
+
+    def validate(self) -> Self:
+        """Raise ValueError naming the option if a value is out of range; return self."""
+        raise NotImplementedError
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (YAML/JSON-serialisable), including ``name``."""
+        return dataclasses.asdict(self)  # type: ignore[call-overload]
+
+    @classmethod
+    def upgrade_keys(cls, values: dict[str, Any], where: str = "model config") -> dict[str, Any]:
+        """A copy of ``values`` with the old keys of older files under their fields' names and the retired keys
+        dropped; ConfigError naming both keys when an old key and its field are both given with different values."""
+        out = rename_keys(values, cls.RENAMED_KEYS, where)
+        return {k: v for k, v in out.items() if k not in cls.RETIRED_KEYS}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> Self:
+        """Build from a dict, rejecting unknown keys with a clear message; old keys are upgraded quietly."""
+        values = cls.upgrade_keys(values)
+        legacy = sorted(set(values) & LEGACY_INFERENCE_KEYS.keys())
+        if legacy:
+            moved = ", ".join(f"{k} -> inference.{LEGACY_INFERENCE_KEYS[k]}" for k in legacy)
+            raise ConfigError(f"model config keys {legacy} are inference settings now (InferenceConfig): {moved}")
+        reject_unknown_keys(cls, values, "model config")  # ConfigError, a ValueError
+        return cls(**values).validate()
+
+
+def check_at_least(config: NetworkConfig, minimum: int, *keys: str) -> None:
+    """ValueError naming the first of ``keys`` whose value in ``config`` is below ``minimum``."""
+    for key in keys:
+        if getattr(config, key) < minimum:
+            raise ValueError(f"model option {key} must be >= {minimum}, got {getattr(config, key)}")
 
 
 @dataclass(frozen=True)
-class ModelConfig:
-    """Hyper-parameters of one OptStereo network (paper Section III-B).
+class ModelConfig(NetworkConfig):
+    """Hyper-parameters of one OptStereo network (paper Section III-B): its architecture only.
 
     Attributes:
         name: registry name the model was built from ("optstereo", "optstereo_ss_d4", ...).
@@ -45,15 +93,13 @@ class ModelConfig:
         head_dim: width of the first conv of the Delta-D head (two convs on h).
         norm: normalisation in the feature extractor (RAFT's fnet uses instance norm).
         corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
-        search_range: HITNet only: the initial local cost volumes search [0, search_range) full-resolution pixels
-            (OptStereo has no search range and ignores it; 192 is the PVM labeler's default range). Called
-            ``max_disp`` in files written before issue 43, which still load (``RENAMED_MODEL_KEYS``).
 
-    HITNet ("hitnet", optstereo.models.hitnet) reads the shared fields with its own meaning: feature_dim = channels
-    of its finest (1/2) U-Net level, hidden_dim = width of the propagation CNNs, corr_levels = resolutions (one
-    local cost volume each), corr_radius = disparity offsets either side of each tile's plane, iters = propagation
-    steps at the finest level; it ignores upsampler, upsample_dim, head_dim, norm and corr_scale.
+    Until issue 43 this class also held HITNet's search range (``search_range``, earlier ``max_disp``), which
+    OptStereo never read; files that record it (the shipped weights do) still load: the key is dropped
+    (``RETIRED_KEYS``). HITNet has its own config, ``optstereo.models.hitnet_config.HITNetConfig``.
     """
+
+    RETIRED_KEYS: ClassVar[tuple[str, ...]] = ("search_range", "max_disp")
 
     name: str = "optstereo"
     feature_dim: int = 256
@@ -66,7 +112,6 @@ class ModelConfig:
     head_dim: int = 128
     norm: Norm = "instance"
     corr_scale: bool = True
-    search_range: int = 192
 
     @property
     def corr_channels(self) -> int:
@@ -75,31 +120,13 @@ class ModelConfig:
 
     def validate(self) -> ModelConfig:
         """Raise ValueError naming the option if a value is out of range; return self."""
-        for key in ("feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim", "search_range"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"model option {key} must be >= 1, got {getattr(self, key)}")
-        if self.corr_radius < 0:
-            raise ValueError(f"model option corr_radius must be >= 0, got {self.corr_radius}")
+        check_at_least(self, 1, "feature_dim", "hidden_dim", "corr_levels", "iters", "upsample_dim", "head_dim")
+        check_at_least(self, 0, "corr_radius")
         if self.upsampler not in UPSAMPLERS:
             raise ValueError(f"model option upsampler must be one of {UPSAMPLERS}, got {self.upsampler!r}")
         if self.norm not in NORMS:
             raise ValueError(f"model option norm must be one of {NORMS}, got {self.norm!r}")
         return self
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain dict (YAML/JSON-serialisable), including ``name``."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> ModelConfig:
-        """Build from a dict, rejecting unknown keys with a clear message; renamed keys are mapped quietly."""
-        values = rename_keys(values, RENAMED_MODEL_KEYS, "model config")
-        legacy = sorted(set(values) & LEGACY_INFERENCE_KEYS.keys())
-        if legacy:
-            moved = ", ".join(f"{k} -> inference.{LEGACY_INFERENCE_KEYS[k]}" for k in legacy)
-            raise ConfigError(f"model config keys {legacy} are inference settings now (InferenceConfig): {moved}")
-        reject_unknown_keys(cls, values, "model config")  # ConfigError, a ValueError
-        return cls(**values).validate()
 
 
 def split_legacy_model_dict(values: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

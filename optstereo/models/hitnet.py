@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.models.config import ModelConfig
+from optstereo.models.hitnet_config import HITNetConfig
 from optstereo.models.optstereo import check_stereo_pair, normalize_image, resolve_iters
 from optstereo.models.tiles import (
     DESC_DIM,
@@ -184,7 +184,7 @@ class HITNet(nn.Module):
         "branch on the image size that tracing bakes in; export OptStereo, or run HITNet in torch")
 
     def __init__(self, *, features: UNetFeatures, inits: nn.ModuleList, steps: nn.ModuleList,
-                 refine: PropagationStep, radius: int, iters: int = 2, config: ModelConfig | None = None) -> None:
+                 refine: PropagationStep, radius: int, iters: int = 2, config: HITNetConfig | None = None) -> None:
         super().__init__()
         if not len(inits) == len(steps) >= 1:
             raise ValueError(f"need one init and one step per level, got {len(inits)} and {len(steps)}")
@@ -230,19 +230,20 @@ class HITNet(nn.Module):
         return preds
 
 
-def build_hitnet(cfg: ModelConfig) -> HITNet:
-    """Compose HITNet from ``cfg`` (see ModelConfig for which fields it reads)."""
+def build_hitnet(cfg: HITNetConfig) -> HITNet:
+    """Compose HITNet from ``cfg`` (its fields: optstereo.models.hitnet_config.HITNetConfig)."""
     cfg.validate()
-    widths = level_widths(cfg.feature_dim, cfg.corr_levels)
-    cost_dim = TILE * TILE * (2 * cfg.corr_radius + 1)
-    strides = [HITNet.stride(level) for level in range(cfg.corr_levels)]
+    widths = level_widths(cfg.feature_channels, cfg.levels)
+    cost_dim = TILE * TILE * (2 * cfg.offset_radius + 1)
+    strides = [HITNet.stride(level) for level in range(cfg.levels)]
     inits = nn.ModuleList(TileInit(w, s, cfg.search_range) for w, s in zip(widths, strides, strict=True))
     # The coarsest level refines its init alone; every finer one weighs the upsampled coarse hypothesis against its own.
     steps = nn.ModuleList(
-        PropagationStep(1 if level == cfg.corr_levels - 1 else 2, cost_dim, cfg.hidden_dim, stride=s,
+        PropagationStep(1 if level == cfg.levels - 1 else 2, cost_dim, cfg.propagation_channels, stride=s,
                         disp_scale=float(cfg.search_range))
         for level, s in enumerate(strides)
     )
-    refine = PropagationStep(1, cost_dim, cfg.hidden_dim, stride=strides[0], disp_scale=float(cfg.search_range))
-    return HITNet(features=UNetFeatures(widths), inits=inits, steps=steps, refine=refine, radius=cfg.corr_radius,
+    refine = PropagationStep(1, cost_dim, cfg.propagation_channels, stride=strides[0],
+                             disp_scale=float(cfg.search_range))
+    return HITNet(features=UNetFeatures(widths), inits=inits, steps=steps, refine=refine, radius=cfg.offset_radius,
                   iters=cfg.iters, config=cfg)

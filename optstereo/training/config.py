@@ -2,7 +2,8 @@
 
 Layout (one field, one place)::
 
-    model:  ModelConfig  (optstereo.models.config: the network, including N_s = model.iters)
+    model:  the network's own config, including N_s = model.iters; ``model.name`` picks its class
+            (ModelConfig for OptStereo, HITNetConfig for HITNet: ``optstereo.models.config_class``)
     inference: InferenceConfig (optstereo.inference_config: how the run's exports are run; written into them)
     loss:   LossConfig   (L_P/L_R/L_S weights, alpha, photometric_iters, conf_weight, L_T)
     data:   DataConfig   (labels, supervision, batch, crop, augmentation, workers)
@@ -14,7 +15,8 @@ Precedence (lowest to highest): dataclass defaults < ``--config FILE`` (YAML) < 
 be nested or the old flat form (``optstereo.training.sections.nest``). The resolved config (model variant defaults
 and the loss weights of the chosen supervision filled in) is written to ``RUN_DIR/config.yaml`` and stored in
 every checkpoint, so ``--resume RUN_DIR`` continues with exactly the same settings; flat configs of older runs
-still resume.
+still resume. The model section's old keys are those of its network (``NetworkConfig.RENAMED_KEYS``, e.g. HITNet's
+``feature_dim`` -> ``feature_channels``): each layer is upgraded with the class of the final ``model.name``.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ import yaml
 
 from optstereo.analogy_config import AnalogyConfig
 from optstereo.choices import AMP_MODES, DEVICES, AmpMode, Device
+from optstereo.models import config_class, config_classes, model_config
+from optstereo.models.config import NetworkConfig
 from optstereo.training.sections import (
     FLAT_KEYS,
     DataConfig,
@@ -77,7 +81,7 @@ class TrainConfig:
         tensorboard: write TensorBoard events when tensorboard is installed.
     """
 
-    model: ModelConfig = field(default_factory=ModelConfig)
+    model: NetworkConfig = field(default_factory=ModelConfig)
     inference: InferenceConfig = field(default_factory=InferenceConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -123,6 +127,7 @@ class TrainConfig:
     def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
         """Build from a nested or old flat dict (YAML/JSON, a checkpoint's train_config); unknown keys fail."""
         nested = nest(values)
+        nested = _upgrade_model_keys(nested, _model_class(nested))
         _check_keys(nested)
         sections = {name: _build_section(name, nested.get(name) or {}) for name in _SECTIONS}
         run = {k: (Path(v) if k in _PATHS and v is not None else v) for k, v in nested.items() if k not in _SECTIONS}
@@ -131,9 +136,16 @@ class TrainConfig:
     @classmethod
     def from_layers(cls, *layers: dict[str, Any] | None) -> TrainConfig:
         """Merge layers (later ones win key by key; None values mean "not given") and build."""
+        nested = [nest({k: v for k, v in (layer or {}).items() if v is not None}) for layer in layers]
+        final: dict[str, Any] = {}
+        for layer in nested:
+            final = merge(final, layer)
+        # Old model keys are the network's (HITNet's feature_dim is feature_channels): upgrade every layer with the
+        # class of the final model.name before merging, so a later layer's old key still wins over an earlier new one.
+        model_class = _model_class(final)
         merged: dict[str, Any] = {}
-        for layer in layers:
-            merged = merge(merged, nest({k: v for k, v in (layer or {}).items() if v is not None}))
+        for layer in nested:
+            merged = merge(merged, _upgrade_model_keys(layer, model_class))
         return cls.from_dict(merged)
 
     @classmethod
@@ -177,6 +189,24 @@ def _section_dict(value: Any) -> Any:
     return value.to_dict() if hasattr(value, "to_dict") else plain(value)
 
 
+def _model_class(nested: dict[str, Any]) -> type[NetworkConfig]:
+    """The config class of a nested config's ``model.name`` (ModelConfig when unset); ConfigError if unknown."""
+    section = nested.get("model")
+    name = section.get("name", ModelConfig.name) if isinstance(section, dict) else ModelConfig.name
+    try:
+        return config_class(name)
+    except ValueError as exc:
+        raise ConfigError(f"model: {exc}") from exc
+
+
+def _upgrade_model_keys(nested: dict[str, Any], cls: type[NetworkConfig]) -> dict[str, Any]:
+    """``nested`` with the old keys of its model section upgraded by ``cls`` (``NetworkConfig.upgrade_keys``)."""
+    section = nested.get("model")
+    if not isinstance(section, dict):
+        return nested
+    return {**nested, "model": cls.upgrade_keys(section, "training config section 'model'")}
+
+
 def _build_section(name: str, values: dict[str, Any]) -> Any:
     if name == "inference":
         try:
@@ -185,9 +215,7 @@ def _build_section(name: str, values: dict[str, Any]) -> Any:
             raise ConfigError(f"inference: {exc}") from exc
     if name != "model":
         return _SECTIONS[name].from_dict(values)
-    from optstereo.models import model_config  # the registry's variant defaults (optstereo_ss_d4: 1 level, ...)
-
-    try:
+    try:  # the registry's variant defaults (optstereo_ss_d4: 1 level, ...), then the section's values
         return model_config(**values)
     except ValueError as exc:
         raise ConfigError(f"model: {exc}") from exc
@@ -202,21 +230,38 @@ def _where(key: str) -> str | None:
     for name, cls in _SECTIONS.items():
         if key in {f.name for f in dataclasses.fields(cls)}:
             return f"{name}.{key}"
+    if any(key in {f.name for f in dataclasses.fields(cls)} for cls in config_classes()):  # type: ignore[arg-type]
+        return f"model.{key}"
     return key if key in {f.name for f in dataclasses.fields(TrainConfig)} else None
 
 
 def _check_keys(nested: dict[str, Any]) -> None:
-    """ConfigError naming every unknown key with its new place (renamed/misplaced) or a close match (typo)."""
+    """ConfigError naming every unknown key with its new place (renamed/misplaced) or a close match (typo); a model
+    key is checked against the config class of ``model.name``."""
     run_fields = {f.name for f in dataclasses.fields(TrainConfig)}
     problems = [_unknown(key, key) for key in nested if key not in run_fields]
-    for name, cls in _SECTIONS.items():
+    for name, cls in {**_SECTIONS, "model": _model_class(nested)}.items():
         section = nested.get(name) or {}
         if not isinstance(section, dict):
             raise ConfigError(f"training config section {name!r} must be a mapping, got {section!r}")
         known = {f.name for f in dataclasses.fields(cls)}
-        problems += [_unknown(f"{name}.{key}", key) for key in section if key not in known]
+        unknown = [key for key in section if key not in known]
+        if name == "model":
+            problems += [_unknown_model_key(key, cls, section.get("name", ModelConfig.name)) for key in unknown]
+        else:
+            problems += [_unknown(f"{name}.{key}", key) for key in unknown]
     if problems:
         raise ConfigError("unknown training config keys: " + "; ".join(problems))
+
+
+def _unknown_model_key(key: str, cls: type, name: str) -> str:
+    """An unknown key of the model section: its new place if it moved elsewhere, else the fields of the network's
+    config class (a HITNet field under OptStereo, or the reverse, is named as such)."""
+    path, new = f"model.{key}", _where(key)
+    if new is not None and new != path:
+        return f"{path!r} (it is now {new!r})"
+    fields = [f.name for f in dataclasses.fields(cls) if f.name != "name"]
+    return f"{path!r} (model {name!r} is built from {cls.__name__}: {', '.join(fields)})"
 
 
 def _unknown(path: str, key: str) -> str:

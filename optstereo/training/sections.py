@@ -1,7 +1,8 @@
 """Sections of the trainer's TrainConfig (no I/O, no torch) and the map from the old flat keys to them.
 
-``optstereo.training.config.TrainConfig`` composes ``model`` (``optstereo.models.config.ModelConfig``, the network's
-own config), ``loss`` (LossConfig), ``data`` (DataConfig), ``optim`` (OptimConfig) and ``val`` (ValConfig) with a
+``optstereo.training.config.TrainConfig`` composes ``model`` (the network's own config: ``ModelConfig`` for
+OptStereo, ``HITNetConfig`` for HITNet, picked by ``model.name``: ``optstereo.models.config_class``), ``loss``
+(LossConfig), ``data`` (DataConfig), ``optim`` (OptimConfig) and ``val`` (ValConfig) with a
 few run-level fields. Every section is a frozen dataclass validated on construction; ``from_dict`` rejects unknown
 keys and ``to_dict`` gives YAML/JSON-friendly values (paths as str, tuples as lists).
 
@@ -33,7 +34,7 @@ from optstereo.choices import (
     Supervision,
 )
 from optstereo.inference_config import InferenceConfig
-from optstereo.models.config import RENAMED_MODEL_KEYS, ModelConfig, rename_keys, split_legacy_model_dict
+from optstereo.models.config import ModelConfig, rename_keys, split_legacy_model_dict
 from pvm_labeler.common.configtools import reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
@@ -64,8 +65,10 @@ FLAT_KEYS: dict[str, str] = {
 }
 SECTIONS = ("model", "inference", "loss", "data", "optim", "val")
 #: Section keys renamed since (issue 43): section -> {old key: field}. YAML files, saved run configs and
-#: ``--set data.max_disp=...`` written with the old name keep working: ``nest`` maps them quietly.
-RENAMED_KEYS: dict[str, dict[str, str]] = {"model": RENAMED_MODEL_KEYS, "data": {"max_disp": "max_label_disp"}}
+#: ``--set data.max_disp=...`` written with the old name keep working: ``nest`` maps them quietly. The model
+#: section's old keys depend on the network (``NetworkConfig.RENAMED_KEYS`` of ``model.name``'s config class):
+#: TrainConfig upgrades them once every layer is read.
+RENAMED_KEYS: dict[str, dict[str, str]] = {"data": {"max_disp": "max_label_disp"}}
 
 
 def parse_crop(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
@@ -364,8 +367,8 @@ def nest(values: dict[str, Any]) -> dict[str, Any]:
     the top level (run-level fields, or unknown keys that TrainConfig rejects). ``None`` sections mean empty.
     The inference settings that older configs kept under ``model`` (``input_scale``, ``refine``, ``cascade``, ...:
     ``optstereo.models.config.LEGACY_INFERENCE_KEYS``) move to their ``inference`` fields; an ``inference`` value of
-    the same layer wins over them. Renamed section keys (``RENAMED_KEYS``: data.max_disp, model.max_disp) take their
-    new names.
+    the same layer wins over them. Renamed section keys (``RENAMED_KEYS``: data.max_disp) take their new names; the
+    model section's are left to TrainConfig, which knows the network (``model.name``) only once every layer is read.
     """
     out: dict[str, Any] = {}
     sections: dict[str, dict[str, Any]] = {}
