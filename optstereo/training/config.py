@@ -185,7 +185,8 @@ def _build_section(name: str, values: dict[str, Any]) -> Any:
             raise ConfigError(f"inference: {exc}") from exc
     if name != "model":
         return _SECTIONS[name].from_dict(values)
-    from optstereo.models import model_config  # the registry's variant defaults (optstereo_ss_d4: 1 level, ...)
+    # the registry's variant defaults (optstereo_ss_d4: 1 level, ...)
+    from optstereo.models import model_config  # lazy: the registry loads torch; only a model section needs it
 
     try:
         return model_config(**values)
