@@ -14,13 +14,13 @@ __all__ = ["__version__", "load_model", "predict"]
 
 def load_model(*args: Any, **kwargs: Any) -> Any:
     """See :func:`optstereo.api.load_model` (imported lazily: ``import optstereo`` stays cheap)."""
-    from optstereo.api import load_model as _load_model
+    from optstereo.api import load_model as _load_model  # lazy: keeps `import optstereo` torch-free
 
     return _load_model(*args, **kwargs)
 
 
 def predict(*args: Any, **kwargs: Any) -> Any:
     """See :func:`optstereo.api.predict`."""
-    from optstereo.api import predict as _predict
+    from optstereo.api import predict as _predict  # lazy: keeps `import optstereo` torch-free
 
     return _predict(*args, **kwargs)

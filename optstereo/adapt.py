@@ -31,6 +31,16 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
+from optstereo.api import load_model
+from optstereo.cascade import photometric_costs
+from optstereo.checkpoint import load_checkpoint
+from optstereo.inference import infer
+from optstereo.pretrained import resolve_checkpoint_spec
+from optstereo.training.checkpoints import config_for_resume, init_settings
+from optstereo.training.config import TrainConfig
+from optstereo.training.loop import main
+from pvm_labeler.shards import ShardRecord, open_shard, read_index, read_sample, write_shard_dir
+
 logger = logging.getLogger(__name__)
 
 #: The default budget: 150 steps of batch 1 on 320x736 crops, about 4 s each on 2 CPU cores (docs/training.md:
@@ -124,8 +134,6 @@ def right_mask(held: npt.NDArray[np.bool_], label_right: npt.NDArray[np.float32]
 def split_holdout(cfg: AdaptConfig, labels: Path) -> dict[str, npt.NDArray[np.bool_]]:
     """Step 2: OUT/train_labels without the held-back pixels (and without GT); returns frame id -> held-back mask
     (also saved in OUT/holdout.npz)."""
-    from pvm_labeler.shards import ShardRecord, open_shard, read_index, read_sample, write_shard_dir
-
     index = read_index(labels)
     rng = np.random.default_rng(cfg.seed)
     masks, records = {}, []
@@ -152,12 +160,6 @@ def split_holdout(cfg: AdaptConfig, labels: Path) -> dict[str, npt.NDArray[np.bo
 
 def finetune(cfg: AdaptConfig, train_labels: Path) -> Path:
     """Step 3: fine-tune from cfg.init on the training labels; returns the run's checkpoint (resumes a run)."""
-    from optstereo.checkpoint import load_checkpoint
-    from optstereo.pretrained import resolve_checkpoint_spec
-    from optstereo.training.checkpoints import config_for_resume, init_settings
-    from optstereo.training.config import TrainConfig
-    from optstereo.training.loop import main
-
     run_dir = cfg.out / "run"
     overrides = {"labels": train_labels, "out": run_dir, "steps": cfg.steps, "lr": cfg.lr, "batch_size": cfg.batch_size,
                  "crop": list(cfg.crop), "device": cfg.device, "workers": 0, "seed": cfg.seed, "tensorboard": False,
@@ -178,11 +180,6 @@ def score(checkpoint: str | Path, labels: Path, masks: dict[str, npt.NDArray[np.
     """Agreement with the held-back labels (EPE px, bad-3 %), the mean photometric error (the right view warped by
     the prediction onto the left: 0.85 (1 - SSIM) / 2 + 0.15 L1 per pixel, 1 where the warp leaves the image) and,
     when the shards hold GT, GT EPE / bad-3; pooled over every pixel of every frame."""
-    from optstereo.api import load_model
-    from optstereo.cascade import photometric_costs
-    from optstereo.inference import infer
-    from pvm_labeler.shards import open_shard, read_index, read_sample
-
     model = load_model(checkpoint, device)
     dev = next(model.parameters()).device
     sums = {"held_abs": 0.0, "held_bad": 0, "held_n": 0, "photo": 0.0, "photo_n": 0, "gt_abs": 0.0, "gt_bad": 0,
@@ -232,8 +229,6 @@ def guard(before: dict[str, Any], after: dict[str, Any]) -> bool:
 
 def run(cfg: AdaptConfig) -> dict[str, Any]:
     """All four steps; returns the report (also written to OUT/report.json and OUT/report.md)."""
-    from optstereo.pretrained import resolve_checkpoint_spec
-
     cfg.check()
     cfg.out.mkdir(parents=True, exist_ok=True)
     labels = label(cfg)

@@ -18,6 +18,12 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from optstereo.checkpoint import build_model_from_checkpoint
+from optstereo.confidence import infer_with_confidence
+from optstereo.distributed import resolve_device
+from optstereo.inference import infer
+from optstereo.pretrained import resolve_checkpoint_spec
+
 Image = npt.NDArray[np.uint8]
 
 
@@ -28,10 +34,6 @@ def load_model(checkpoint: str | Path = "pretrained", device: str | torch.device
         checkpoint: ``"pretrained"`` (the shipped model), a .pt/.safetensors file or a training RUN_DIR.
         device: ``"cpu"``, ``"cuda"``, ``"auto"`` (cuda when available) or a torch.device.
     """
-    from optstereo.checkpoint import build_model_from_checkpoint
-    from optstereo.distributed import resolve_device
-    from optstereo.pretrained import resolve_checkpoint_spec
-
     dev = resolve_device(device) if isinstance(device, str) else device
     return build_model_from_checkpoint(resolve_checkpoint_spec(checkpoint), dev)
 
@@ -68,9 +70,6 @@ def predict(
         (H, W) float32, or a list of them for a list of pairs (each at its own size); with ``confidence`` a
         (disparity, confidence) tuple in place of each map.
     """
-    from optstereo.confidence import infer_with_confidence
-    from optstereo.inference import infer
-
     device = _device_of(model)
 
     def one(lft: Image, rgt: Image) -> Any:

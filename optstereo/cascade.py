@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from optstereo.losses import photometric_error, warp_right_to_left
+
 DIVISOR = 8  # the 1/8 grid D_s lives on
 
 
@@ -77,8 +79,6 @@ def photometric_costs(left: np.ndarray, right: np.ndarray, candidates: Sequence[
     L1), 1 where the warp leaves the image, then averaged over a ``window`` x ``window`` box so that one pixel's
     noise does not decide.
     """
-    from optstereo.losses import photometric_error, warp_right_to_left
-
     if not len(candidates):
         raise ValueError("photometric_select needs at least one candidate")
     shape = left.shape[:2]

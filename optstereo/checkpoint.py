@@ -29,10 +29,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 from torch import nn
 
 from optstereo.inference_config import InferenceConfig
-from optstereo.models import upgrade_model_keys
+from optstereo.models import build_model, upgrade_model_keys
 from optstereo.models.config import split_legacy_model_dict
 from optstereo.version import __version__
 from pvm_labeler.common.atomic import atomic_path
@@ -127,8 +129,6 @@ def export_safetensors(path: Path, model: nn.Module, step: int | None = None,
                        inference: InferenceConfig | None = None) -> Path:
     """Write the model weights as safetensors with the model name/config and the inference settings (JSON) in the
     metadata; ``inference`` None = the model's own (:func:`model_inference`)."""
-    from safetensors.torch import save_file
-
     path = Path(path)
     name, model_config = model_spec(model)
     # safetensors refuses shared storage; contiguous clones make every tensor its own buffer.
@@ -240,8 +240,6 @@ def _check_torch_container(path: Path) -> None:
 
 
 def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedCheckpoint:
-    from safetensors import SafetensorError, safe_open
-
     try:
         with safe_open(str(path), framework="pt", device=str(map_location)) as fh:
             metadata = fh.metadata() or {}
@@ -289,8 +287,6 @@ def build_model_from_checkpoint(
     ``overrides`` are fields of the model's config class (e.g. ``iters``). The model carries the file's inference
     settings as ``model.inference_config`` (an InferenceConfig), which ``optstereo.inference.run`` uses by default.
     """
-    from optstereo.models import build_model
-
     if not isinstance(ckpt, LoadedCheckpoint):
         ckpt = load_checkpoint(ckpt)
     kwargs = {k: v for k, v in ckpt.model_config.items() if k != "name"}

@@ -25,6 +25,11 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from optstereo.cascade import photometric_costs
+from optstereo.inference import infer_scaled, pass_at_scale, to_batch
+from optstereo.padding import InputPadder, divisor_of
+from pvm_labeler.common.io import write_image
+
 Image = npt.NDArray[np.uint8]
 Map = npt.NDArray[np.float32]
 
@@ -41,8 +46,6 @@ DENSITIES = tuple(round(0.05 * k, 2) for k in range(1, 21))
 def photometric_confidence(left: Image, right: Image, disp: Map) -> Map:
     """(H, W) float32 in [0, 1]: 1 - the 7x7-box photometric error of ``right`` warped by ``disp`` onto ``left``
     ((H, W, 3) uint8 each; 0 where the warp leaves the image)."""
-    from optstereo.cascade import photometric_costs
-
     cost = photometric_costs(left, right, [np.nan_to_num(disp, nan=0.0).astype(np.float32)])[0]
     return np.clip(1.0 - cost, 0.0, 1.0).astype(np.float32) * np.isfinite(disp)
 
@@ -51,8 +54,6 @@ def right_view_disparity(model: nn.Module, left: Image, right: Image, device: to
                          amp: str = "none", iters: int | None = None, scale: float = 1.0) -> Map:
     """(H, W) float32 disparity of the RIGHT view (right(x) matches left(x + d)), from one network pass on the
     mirrored pair: flip both images left-right and swap them, so the right view becomes a left view."""
-    from optstereo.inference import pass_at_scale
-
     mirrored_left, mirrored_right = np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1])
     mirrored = pass_at_scale(model, mirrored_left, mirrored_right, scale, None, iters, device, amp)
     return np.ascontiguousarray(mirrored[:, ::-1])
@@ -86,9 +87,6 @@ def iteration_predictions(model: nn.Module, left: Image, right: Image, device: t
                           iters: int | None = None) -> npt.NDArray[np.float32]:
     """(K, H, W) float32: the full-resolution prediction after each of the K GRU iterations of one zero-start pass
     (the forward's list output, which training uses), float32, no autocast."""
-    from optstereo.inference import to_batch
-    from optstereo.padding import InputPadder, divisor_of
-
     device = torch.device(device)
     was_training = model.training
     model.eval()
@@ -128,8 +126,6 @@ def infer_with_confidence(model: nn.Module, left: Image, right: Image, *, method
                           scale: float | None = None, refine: str | None = None) -> tuple[Map, Map]:
     """(disparity, confidence), each (H, W) float32, of one (H, W, 3) uint8 pair: the disparity is exactly
     ``optstereo.inference.infer``'s (same arguments), the confidence :func:`confidence_of` it."""
-    from optstereo.inference import infer_scaled
-
     result = infer_scaled(model, left, right, iters, device, amp, scale, refine)
     conf = confidence_of(model, left, right, result.disparity, method, device, amp, result.input_scale)
     return result.disparity, conf
@@ -161,8 +157,6 @@ def curve_area(curve: npt.NDArray[np.float64], densities: Iterable[float] = DENS
 def write_confidence(out_dir: Path, name: str, conf: Map, formats: Iterable[str]) -> dict[str, Path]:
     """Write ``conf`` as ``conf-png`` (``<name>_conf.png``, uint16 = round(conf x 65535)) and/or ``conf-npy``
     (``<name>_conf.npy``, float32); format -> path."""
-    from pvm_labeler.common.io import write_image
-
     out_dir = Path(out_dir)
     paths: dict[str, Path] = {}
     for fmt in formats:

@@ -28,6 +28,8 @@ from tqdm import tqdm
 
 from optstereo.inference import infer
 from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.datasets import load_pair
+from pvm_labeler.shards import rewrite
 from pvm_labeler.shards.fills import add_fills, right_confidence
 
 logger = logging.getLogger(__name__)
@@ -87,8 +89,6 @@ def write_teacher_maps(model: nn.Module, refs: list[Any], maps_dir: Path, device
     """Write ``MAPS/<frame id>.npz`` (``left``, ``right``: (H, W) float32 teacher views) for every pair of ``refs``
     (``pvm_labeler.common.datasets.PairRef``); a pair whose file exists is skipped (a re-run resumes). Each file is
     written to a temporary name and renamed, so a killed run leaves no partial map. Returns the pairs written."""
-    from pvm_labeler.common.datasets import load_pair
-
     maps_dir = Path(maps_dir)
     maps_dir.mkdir(parents=True, exist_ok=True)
     written = 0
@@ -147,8 +147,6 @@ def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CON
         ValueError: ``fill_confidence`` outside (0, 1], ``max_lr_diff`` < 0, a missing or mis-sized map, GT in a
             sample.
     """
-    from pvm_labeler.shards import rewrite
-
     if not 0 < fill_confidence <= 1 or not max_lr_diff >= 0:
         raise ValueError(f"distill fill: need 0 < fill_confidence <= 1 and max_lr_diff >= 0, got {fill_confidence} "
                          f"and {max_lr_diff}")

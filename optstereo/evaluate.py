@@ -33,8 +33,14 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from optstereo.inference import infer_scaled, model_inference_config
+from optstereo.outputs import colorize
 from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator
+from pvm_labeler.common.viz import error_map
+from pvm_labeler.shards import open_shard, read_index, read_sample
 
 logger = logging.getLogger(__name__)
 
@@ -94,21 +100,11 @@ def summarise(acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[st
 
 
 def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
-    """KITTI-style error map (labeler's viz.error_map), or a plain |error| rendering when viz is unavailable."""
-    try:
-        from pvm_labeler.common.viz import error_map
-    except ImportError:
-        from optstereo.outputs import colorize
-
-        err = np.where(np.isfinite(gt), np.abs(pred - gt), np.nan).astype(np.float32)
-        return colorize(err, max_disp=5.0)  # saturates at 5 px, past KITTI's 3 px outlier threshold
+    """KITTI-style error map (the base's viz.error_map): (H, W, 3) uint8."""
     return error_map(pred, gt)
 
 
 def _save_maps(out_dir: Path, frame: Frame) -> None:
-    from optstereo.outputs import colorize
-    from pvm_labeler.common.io import write_image
-
     maps = out_dir / "maps"
     maps.mkdir(parents=True, exist_ok=True)
     vmax = float(np.nanmax(frame.gt)) if frame.gt is not None and np.isfinite(frame.gt).any() else None
@@ -190,9 +186,6 @@ def model_frames(
     reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
 ) -> Iterator[Frame]:
     """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames."""
-    from optstereo.inference import infer_scaled
-    from pvm_labeler.common.datasets import discover, load_pair
-
     for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
         sample = load_pair(ref)
         t0 = time.perf_counter()
@@ -207,8 +200,6 @@ def model_frames(
 
 def label_frames(labels_dir: Path, limit: int | None = None) -> Iterator[Frame]:
     """The PVM labels (NaN = unlabelled) of every sample in a shard directory, with the shard's GT."""
-    from pvm_labeler.shards import open_shard, read_index, read_sample
-
     index = read_index(Path(labels_dir))
     count = 0
     for path, ids in index.shards:
@@ -234,8 +225,6 @@ def evaluate_model(
     ``inference``, and as ``input_scale`` / ``refine`` / ``scale_refs`` (the adaptive pass's references); each
     frame's final scale in its row).
     """
-    from optstereo.inference import model_inference_config
-
     config = model_inference_config(model, iters, scale, refine)
     refs = {"scale_ref_disp": config.adaptive_ref_disp, "scale_ref_pixels": config.adaptive_ref_pixels} \
         if config.adaptive else None

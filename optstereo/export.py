@@ -56,7 +56,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from optstereo.cascade import grid_start
+from optstereo.checkpoint import model_inference
 from optstereo.choices import EXPORT_FORMATS as FORMATS
+from optstereo.inference import check_refine, run
 from optstereo.inference_config import InferenceConfig
 from pvm_labeler.common.atomic import atomic_path
 
@@ -78,8 +81,6 @@ class InferenceGraph(nn.Module):
     def forward(self, left: torch.Tensor, right: torch.Tensor, start: torch.Tensor | None = None) -> torch.Tensor:
         if start is None:
             return self.model(left, right, iters=self.iters, test_mode=True)[1]
-        from optstereo.cascade import grid_start
-
         return self.model(left, right, iters=self.iters, test_mode=True, disp_init=grid_start(start))[1]
 
 
@@ -98,8 +99,6 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):
         model.image_chunk = 0 if batch else 1  # the same outputs either way (tests/test_model_optstereo.py)
-    from optstereo.checkpoint import model_inference
-
     config = model_inference(model)
     config = config if iters is None else config.replace(iters=iters)  # the graph's own, fixed here
     recorded = {"inference_config": json.dumps(config.to_dict())}
@@ -137,7 +136,7 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
 
 def onnx_session(path: Path | str, threads: int = 0):
     """An onnxruntime CPU session of an exported file (``threads`` 0 = onnxruntime's default)."""
-    import onnxruntime as ort
+    import onnxruntime as ort  # lazy: onnxruntime is optional
 
     options = ort.SessionOptions()
     if threads:
@@ -150,8 +149,6 @@ def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8
     """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session, by ``optstereo.inference.run``
     with the InferenceConfig the file records (:func:`onnx_inference_config`); ``scale``/``refine`` override it as
     ``infer``'s do (a given scale is final)."""
-    from optstereo.inference import check_refine, run
-
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     config = onnx_inference_config(session)

@@ -19,8 +19,11 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+import yaml
 
+from pvm_labeler.common.datasets import read_middlebury_calib
 from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.io import write_image
 
 DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNG in millimetres (0 = invalid), as KITTI depth and most RGB-D tools
 
@@ -64,8 +67,6 @@ def _read_middlebury(lines: dict[str, str], path: Path) -> Calibration:
 
 
 def _read_yaml(path: Path) -> Calibration:
-    import yaml
-
     doc = yaml.safe_load(path.read_text()) or {}
     missing = [k for k in ("fx", "cx", "cy", "baseline") if k not in doc]
     if missing:
@@ -76,8 +77,6 @@ def _read_yaml(path: Path) -> Calibration:
 
 def _key_values(path: Path) -> dict[str, str]:
     """``key: value`` lines (KITTI) or ``key=value`` lines (Middlebury, via the dataset reader's own parser)."""
-    from pvm_labeler.common.datasets import read_middlebury_calib
-
     text = path.read_text()
     if "P_rect_02" not in text:
         return read_middlebury_calib(path)
@@ -127,8 +126,6 @@ def depth_to_points(
 
 def write_depth_png(path: Path | str, depth: npt.NDArray[np.floating]) -> None:
     """16-bit PNG in millimetres (0 = invalid; depths beyond 65.535 m are clipped to it)."""
-    from pvm_labeler.common.io import write_image
-
     mm = np.clip(np.round(np.nan_to_num(depth, nan=0.0) * DEPTH_PNG_SCALE), 0, 65535).astype(np.uint16)
     write_image(Path(path), mm)
 

@@ -107,10 +107,10 @@ def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], ref
     if refine == "none":
         return disp
     if torch.device(device).type == "cuda":
-        from optstereo.refine_torch import weighted_median_torch
+        from optstereo.refine_torch import weighted_median_torch  # lazy: numba (~0.4 s) loads only when wmedian runs
 
         return weighted_median_torch(disp, left, device=device)
-    from pvm_labeler.refine import weighted_median
+    from pvm_labeler.refine import weighted_median  # lazy: numba (~0.4 s) loads only when wmedian runs
 
     return weighted_median(disp, left)
 

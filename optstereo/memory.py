@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
+
 CPU_BASE_BYTES = 0.70e9
 CPU_BYTES_PER_PIXEL = 1060.0
 CUDA_BASE_BYTES = 0.05 * 2**30
@@ -70,6 +72,4 @@ def check_fits(what: str, height: int, width: int, scale: float = 1.0, cuda: boo
 
 
 def _cuda_free() -> float | None:
-    import torch
-
     return float(torch.cuda.mem_get_info()[0]) if torch.cuda.is_available() else None

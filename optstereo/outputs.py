@@ -20,8 +20,12 @@ import torch
 from torch import nn
 
 from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
+from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
 from optstereo.inference import infer
 from optstereo.submission import write_submission
+from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.io import read_image, write_image, write_kitti_disp, write_npy, write_pfm
+from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)
 
@@ -30,17 +34,6 @@ DEFAULT_FORMATS = ("png", "color")
 
 def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
     """(H, W, 3) uint8 colour rendering of a disparity map (NaN = black), via the labeler's viz module."""
-    try:
-        from pvm_labeler.common.viz import colorize_disparity
-    except ImportError:  # viz is optional for inference; fall back to OpenCV's turbo map
-        import cv2
-
-        finite = np.isfinite(disp)
-        vmax = max_disp or (float(disp[finite].max()) if finite.any() else 1.0)
-        grey = np.clip(np.nan_to_num(disp) / max(vmax, 1e-6) * 255.0, 0, 255).astype(np.uint8)
-        out = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)[..., ::-1].copy()
-        out[~finite] = 0
-        return out
     return colorize_disparity(disp, max_disp=max_disp)
 
 
@@ -53,8 +46,6 @@ def write_disparity(
     With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
     ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders.
     """
-    from pvm_labeler.common.io import write_image, write_kitti_disp, write_npy, write_pfm
-
     formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
     unknown = sorted(set(formats) - set(DISPARITY_FORMATS))
     if unknown:
@@ -85,9 +76,6 @@ def write_geometry(
     formats: Iterable[str], max_depth: float = float("inf"),
 ) -> dict[str, Path]:
     """Depth (16-bit mm PNG, PFM/NPY in m) and a coloured PLY point cloud of one prediction; format -> path."""
-    from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
-    from pvm_labeler.common.io import write_npy, write_pfm
-
     wanted = [f for f in formats if f in GEOMETRY_FORMATS]
     if not wanted:
         return {}
@@ -119,8 +107,6 @@ def predict_pair(
     calib: Any = None, max_depth: float = float("inf"), scale: float | None = None, refine: str | None = None,
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
-    from pvm_labeler.common.io import read_image
-
     left, right = read_image(left_path), read_image(right_path)
     if left.shape != right.shape:
         raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
@@ -142,8 +128,6 @@ def predict_dataset(
 
     With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server.
     """
-    from pvm_labeler.common.datasets import discover, load_pair
-
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if submission is not None and not dataset.startswith("kitti"):
         raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")

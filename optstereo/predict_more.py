@@ -21,7 +21,12 @@ from torch import nn
 from tqdm import tqdm
 
 from optstereo.choices import CONF_FORMATS
-from optstereo.sequence import DEFAULT_SEQUENCE_ITERS
+from optstereo.confidence import confidence_of, write_confidence
+from optstereo.inference import infer
+from optstereo.outputs import write_disparity
+from optstereo.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next
+from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.io import read_image
 
 logger = logging.getLogger(__name__)
 
@@ -60,10 +65,6 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     """Predict (name, left path, right path) frames in order and write each one's files; returns format -> path
     per frame. With ``more.sequence`` each frame after the first starts from the one before (optstereo.sequence);
     a frame from another folder than the one before (another drive of ``kitti_unlabelled``) starts a new sequence."""
-    from optstereo.inference import infer
-    from optstereo.sequence import SequenceState, infer_next
-    from pvm_labeler.common.io import read_image
-
     formats = tuple(formats)
     frames = list(frames)
     state, folder = SequenceState(), None
@@ -92,22 +93,16 @@ def _confidence(model: nn.Module, left: np.ndarray, right: np.ndarray, disp: npt
                 amp: str) -> npt.NDArray[np.float32] | None:
     if more.min_confidence <= 0 and not any(f in CONF_FORMATS for f in formats):
         return None
-    from optstereo.confidence import confidence_of
-
     return confidence_of(model, left, right, disp, device=device, amp=amp)
 
 
 def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,
            more: MoreOptions, formats: tuple[str, ...], kitti_layout: bool) -> dict[str, Path]:
-    from optstereo.outputs import write_disparity
-
     if conf is not None and more.min_confidence > 0:
         disp = np.where(conf >= more.min_confidence, disp, np.nan).astype(np.float32)
     paths = write_disparity(out_dir, name, disp, [f for f in formats if f not in CONF_FORMATS],
                             kitti_layout=kitti_layout)
     if conf is not None:
-        from optstereo.confidence import write_confidence
-
         paths.update(write_confidence(Path(out_dir) / ("conf" if kitti_layout else ""), name, conf,
                                       [f for f in formats if f in CONF_FORMATS]))
     return paths
@@ -119,7 +114,5 @@ def frames_of(left: Path | None, right: Path | None, dataset: str | None, root: 
     if dataset is None:
         assert left is not None and right is not None
         return [(Path(left).stem, Path(left), Path(right))]
-    from pvm_labeler.common.datasets import discover
-
     refs = discover(dataset, root, split=split, **reader_options)[:limit]
     return [(ref.frame_id, Path(ref.left), Path(ref.right)) for ref in refs]

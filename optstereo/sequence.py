@@ -23,6 +23,8 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from optstereo.inference import apply_refine, infer_scaled, model_inference_config, pass_at_scale
+
 Image = npt.NDArray[np.uint8]
 Disparity = npt.NDArray[np.float32]
 
@@ -58,8 +60,6 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
         sequence_iters: GRU iterations of every later frame, started from the previous answer.
         scale, refine: as ``optstereo.inference.infer``; later frames reuse the first frame's final scale.
     """
-    from optstereo.inference import apply_refine, infer_scaled, model_inference_config, pass_at_scale
-
     if sequence_iters < 1:
         raise ValueError(f"sequence_iters must be >= 1, got {sequence_iters}")
     prev = state.disparity

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.io import image_size
 
 __all__ = ["write_submission"]
 
@@ -32,12 +35,6 @@ def write_submission(pred_dir: Path, zip_path: Path, refs: list[Any]) -> Path:
 
 def _write_checked_zip(tmp: Path, zip_path: Path, frames: list, pred_dir: Path) -> None:
     """Write the submission entries to ``tmp`` and re-read them as the server will."""
-    import zipfile
-
-    import cv2
-
-    from pvm_labeler.common.io import image_size
-
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
         for ref in frames:
             src = Path(pred_dir) / "disp_0" / f"{ref.frame_id}.png"

@@ -17,6 +17,7 @@ most complete GT.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import hashlib
 import json
@@ -237,8 +238,6 @@ def quality_report(frames: Sequence[Frame], cfg: LabelerConfig, cache_dir: Path 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """``python -m pipelines.baselines``: print the KITTI 2015 quality report of the default config as JSON."""
-    import argparse  # noqa: PLC0415
-
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("--shared", type=Path, default=Path("../shared/data"), help="real data root")
     parser.add_argument("--cache", type=Path, default=None, help="cache dir for per-scale SGM outputs (e.g. /tmp)")

@@ -22,6 +22,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from optstereo.api import load_model
+from optstereo.export import export, infer_onnx, onnx_session
+from optstereo.inference import infer, model_inference_config
+from pvm_labeler.common.io import read_image
+
 THREADS = 2
 REPEATS = int(os.environ.get("PVS_BENCH_REPEATS", "5"))
 TARGET = 0.8
@@ -56,9 +61,6 @@ def _timings(fns: dict[str, Callable[[], Any]], repeats: int, warmup: bool = Tru
 
 def _compare(model: Any, session: Any, left: np.ndarray, right: np.ndarray, scale: float) -> dict[str, Any]:
     """torch vs onnxruntime on one pair at one input scale: medians, ratio, paired spread, output difference."""
-    from optstereo.export import infer_onnx
-    from optstereo.inference import infer
-
     fns = {"torch": lambda: infer(model, left, right, scale=scale),
            "onnxruntime": lambda: infer_onnx(session, left, right, scale=scale)}
     diff = np.abs(fns["onnxruntime"]() - fns["torch"]())  # these first calls are the warm-up, too
@@ -70,11 +72,6 @@ def _compare(model: Any, session: Any, left: np.ndarray, right: np.ndarray, scal
 
 
 def run(shared: Path) -> dict[str, Any]:
-    from optstereo.api import load_model
-    from optstereo.export import export, onnx_session
-    from optstereo.inference import model_inference_config
-    from pvm_labeler.common.io import read_image
-
     torch.set_num_threads(THREADS)
     base = Path(shared) / "kitti15/training"
     left, right = read_image(base / "image_2/000000_10.png"), read_image(base / "image_3/000000_10.png")

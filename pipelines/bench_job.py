@@ -33,6 +33,7 @@ from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.job import JobSpec
 from pvm_labeler.job import run as run_job
+from pvm_labeler.multiscale import label_pair
 from pvm_labeler.parallel import available_cores, peak_rss_mb
 from pvm_labeler.shards import COMPRESSIONS, ShardRecord, ShardWriter, open_shard, read_index, read_sample
 
@@ -45,8 +46,6 @@ FRAME_TARGET_S = 0.25  # issue 2: a full PVM frame <= 0.25 s of wall time per fr
 
 
 def _warm_up(root: Path, cfg: LabelerConfig) -> float:
-    from pvm_labeler.multiscale import label_pair
-
     ref = discover("kitti15", root)[0]
     sample = load_pair(ref)
     t0 = time.perf_counter()

@@ -30,6 +30,8 @@ from pvm_labeler.config import LabelerConfig
 from pvm_labeler.kernels._lanes import SENTINEL16, path_lanes
 from pvm_labeler.kernels.aggregate import aggregate_backward_wta, aggregate_forward
 from pvm_labeler.kernels.cost import census_dtype, census_transform, cost_volume, cost_volume_right
+from pvm_labeler.multiscale import label_pair
+from pvm_labeler.parallel import thread_budget
 from pvm_labeler.sgm import release_workspace, sgm_pair
 
 logger = logging.getLogger(__name__)
@@ -161,12 +163,6 @@ def _compile_seconds() -> float | None:
 
 
 def _full_label(left: np.ndarray, right: np.ndarray, repeats: int) -> dict[str, Any]:
-    try:
-        from pvm_labeler.multiscale import label_pair
-    except ImportError as exc:
-        return {"note": f"pvm_labeler.multiscale.label_pair not available yet: {exc}"}
-    from pvm_labeler.parallel import thread_budget
-
     cfg = LabelerConfig()
     runs, peak = _label_runs(label_pair, left, right, cfg, repeats)
     # The same frame with a budget of 2 threads: the views of every SGM pair side by side (parallel.run_two).

@@ -23,7 +23,11 @@ import cv2
 import numpy as np
 import torch
 
+from optstereo.api import load_model
+from optstereo.inference import infer
+from optstereo.pretrained import SHIPPED
 from pipelines.bench_labeler import _opencv
+from pvm_labeler.common.io import read_image
 
 THREADS = 2
 FRAMES = ("000000", "000005", "000010")
@@ -43,8 +47,6 @@ def _seconds(fn: Callable[[], Any], repeats: int) -> float:
 
 
 def _frames(shared: Path) -> list[tuple[np.ndarray, np.ndarray]]:
-    from pvm_labeler.common.io import read_image
-
     base = Path(shared) / "kitti15/training"
     return [(read_image(base / f"image_2/{f}_10.png"), read_image(base / f"image_3/{f}_10.png")) for f in FRAMES]
 
@@ -52,8 +54,6 @@ def _frames(shared: Path) -> list[tuple[np.ndarray, np.ndarray]]:
 def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, np.ndarray]],
              repeats: int = REPEATS) -> list[dict[str, Any]]:
     """Per model: median seconds per frame, SGBM's on the same frames, and the median per-frame ratio."""
-    from optstereo.inference import infer
-
     sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
     rows = []
     for name, model in models.items():
@@ -78,8 +78,6 @@ def gpu_rows(models: dict[str, torch.nn.Module], left: np.ndarray, right: np.nda
     """Per model and precision: synchronised milliseconds of ``infer`` on CUDA (empty without CUDA)."""
     if not torch.cuda.is_available():
         return []
-    from optstereo.inference import infer
-
     rows = []
     for name, model in models.items():
         model = model.cuda()
@@ -97,9 +95,6 @@ def gpu_rows(models: dict[str, torch.nn.Module], left: np.ndarray, right: np.nda
 
 
 def run(shared: Path) -> dict[str, Any]:
-    from optstereo.api import load_model
-    from optstereo.pretrained import SHIPPED
-
     torch.set_num_threads(THREADS)
     frames = _frames(shared)
     models = {name: load_model(name) for name in SHIPPED}

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from optstereo.inference import cpu_has_native_bf16
 from optstereo.losses import PVStereoLoss
@@ -154,8 +155,6 @@ def _infer_fn(mode: str) -> tuple[Callable[[], None], float]:
 
 
 def _count_gflops(fn: Callable[[], None]) -> float:
-    from torch.utils.flop_counter import FlopCounterMode
-
     counter = FlopCounterMode(display=False)
     with counter:
         fn()

@@ -21,7 +21,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
+
+from optstereo.data.stream import ShardStream
+from optstereo.data.transforms import TrainTransform
+from optstereo.inference import infer
+from optstereo.losses import PVStereoLoss
+from optstereo.models import build_model
+from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.parallel import peak_rss_mb
+from pvm_labeler.shards import ShardRecord, write_shard_dir
 
 # The issue's RAFT-Stereo figures on this machine (not measured here): train step 320x736 batch 2, inference 8 iters.
 RAFT_STEREO_QUOTED = {"train_step_s": 9.5, "infer_s": 3.1}
@@ -31,11 +41,6 @@ THREADS = 2
 
 
 def _train_speed(batch_size: int, steps: int) -> dict[str, Any]:
-    import torch
-
-    from optstereo.losses import PVStereoLoss
-    from optstereo.models import build_model
-
     torch.set_num_threads(THREADS)
     torch.manual_seed(0)
     model = build_model("optstereo", iters=8).train()
@@ -60,18 +65,10 @@ def _train_speed(batch_size: int, steps: int) -> dict[str, Any]:
 
 
 def _infer_speed(kitti_root: str | None, iters: int, repeats: int) -> dict[str, Any]:
-    import numpy as np
-    import torch
-
-    from optstereo.inference import infer
-    from optstereo.models import build_model
-
     torch.set_num_threads(THREADS)
     torch.manual_seed(0)
     model = build_model("optstereo").eval()
     if kitti_root:
-        from pvm_labeler.common.datasets import discover, load_pair
-
         sample = load_pair(discover("kitti15", kitti_root)[0])
         left, right = sample.left, sample.right
     else:
@@ -90,11 +87,6 @@ def _infer_speed(kitti_root: str | None, iters: int, repeats: int) -> dict[str, 
 
 def _write_kitti_shards(kitti_root: Path, out: Path, limit: int) -> Path:
     """Shards of real KITTI frames with GT as the label (the loader's work is the same as with PVM labels)."""
-    import numpy as np
-
-    from pvm_labeler.common.datasets import discover, load_pair
-    from pvm_labeler.shards import ShardRecord, write_shard_dir
-
     records = []
     for ref in discover("kitti15", kitti_root)[:limit]:
         s = load_pair(ref)
@@ -104,11 +96,6 @@ def _write_kitti_shards(kitti_root: Path, out: Path, limit: int) -> Path:
 
 
 def _loader_speed(shards: str, samples: int) -> dict[str, Any]:
-    import torch
-
-    from optstereo.data.stream import ShardStream
-    from optstereo.data.transforms import TrainTransform
-
     torch.set_num_threads(1)
     stream = ShardStream(Path(shards), transform=TrainTransform(crop=(320, 736), photometric=True), seed=0)
     it = iter(stream)

@@ -25,6 +25,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+import skimage
+
+from optstereo.inference import cpu_has_native_bf16
+from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.metrics import disparity_metrics
+from pvm_labeler.shards import open_shard, read_index, read_sample
+
 # One torch thread for training plus one loader worker fills the 2 cores; on a busy shared machine a second spinning
 # OpenMP thread made small training steps 3-6x slower (measured at a load average of ~8).
 # Smaller than the paper (feature_dim 256, hidden 128) so a CPU run learns something in minutes; say so in reports.
@@ -38,8 +46,6 @@ def training_amp(choice: str) -> str:
     Xeon, so the 4 minutes buy twice the steps), float32 elsewhere (emulated bf16 is many times slower)."""
     if choice != "auto":
         return choice
-    from optstereo.inference import cpu_has_native_bf16
-
     return "bf16" if cpu_has_native_bf16() else "none"
 
 
@@ -59,8 +65,6 @@ def _run(cmd: list[str], log: Path) -> None:
 
 
 def _motorcycle_metrics(disp, gt) -> str:
-    from pvm_labeler.common.metrics import disparity_metrics
-
     m = disparity_metrics(disp, gt)
     return f"EPE {m['epe']:.2f} px, bad-3 {m['bad3']:.1f} %, density {m['density']:.0f} %"
 
@@ -71,14 +75,10 @@ SHOWN = ("pretrained", "pretrained-accurate")
 
 def overview(out: Path, pred_npy: Path, shipped_npy: dict[str, Path]) -> Path:
     """left | PVM labels | GT / demo network | each shipped network for the motorcycle pair, metrics in the titles."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib.use("Agg") must run before pyplot loads
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    from pvm_labeler.common.datasets import discover, load_pair
-    from pvm_labeler.shards import open_shard, read_index, read_sample
+    import matplotlib.pyplot as plt  # lazy: after matplotlib.use("Agg")
 
     sample = load_pair(next(r for r in discover("sample", None) if r.frame_id == "motorcycle"))
     label = None
@@ -149,8 +149,6 @@ def main(argv: list[str] | None = None) -> None:
     _run([str(BIN / "optstereo-eval"), "--labels", str(out / "labels"), "--out", str(out / "eval_labels")], log)
 
     print("== 4/5 prediction files for the motorcycle pair", flush=True)
-    import skimage
-
     data = Path(skimage.__file__).parent / "data"
     _run([str(BIN / "optstereo-predict"), "--checkpoint", str(out / "run"), str(data / "motorcycle_left.png"),
           str(data / "motorcycle_right.png"), "--out", str(out / "predict"), "--format", "png", "--format", "pfm",

@@ -157,10 +157,10 @@ def study_group(frames: Sequence[Frame]) -> dict[str, Any]:
 
 def plot_group(name: str, res: dict[str, Any], path: Path) -> Path:
     """2 x 2 panels: density vs bad-3 / AEPE; top the paper's vote (Pareto fronts), bottom the default recipe."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib.use("Agg") must run before pyplot loads
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after matplotlib.use("Agg")
 
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
     colours = plt.cm.viridis(np.linspace(0, 0.9, len(KS)))

@@ -158,6 +158,63 @@ def test_no_import_cycle() -> None:
     assert import_cycles(graph) == KNOWN_CYCLES
 
 
+#: The comment that keeps an import inside a function: ``# lazy: why`` on the statement's own line.
+LAZY_MARK = "# lazy:"
+#: optstereo modules that load without torch: the package itself (its API is imported lazily) and the config layer.
+TORCH_FREE = ("optstereo", "optstereo.version", "optstereo.choices", "optstereo.inference_config",
+              "optstereo.analogy_config")
+
+
+def _is_type_checking(node: ast.AST) -> bool:
+    test = node.test if isinstance(node, ast.If) else None
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def unmarked_local_imports(package: str = "optstereo") -> list[str]:
+    """'file:line' of every import statement under ``package`` that sits inside a function or class body, outside
+    ``if TYPE_CHECKING:``, and carries no ``# lazy:`` comment on its own line(s)."""
+    found = []
+    for path in _modules(package):
+        lines = path.read_text().splitlines()
+
+        def visit(node: ast.AST, nested: bool, path: Path = path, lines: list[str] = lines) -> None:
+            for child in ast.iter_child_nodes(node):
+                if _is_type_checking(child):
+                    continue
+                if isinstance(child, (ast.Import, ast.ImportFrom)) and nested:
+                    if not any(LAZY_MARK in line for line in lines[child.lineno - 1: child.end_lineno]):
+                        found.append(f"{path.relative_to(ROOT)}:{child.lineno}")
+                visit(child, nested or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda,
+                                                          ast.ClassDef)))
+
+        visit(ast.parse("\n".join(lines), filename=str(path)), False)
+    return found
+
+
+def test_imports_sit_at_the_top_unless_marked_lazy() -> None:
+    """Issue 43: imports at module level; a function-level one stays only with a ``# lazy: why`` comment (it keeps a
+    torch-free module torch-free, an optional dependency optional, or numba off the commands' import path)."""
+    assert unmarked_local_imports() == []
+    probe = ROOT / "optstereo" / "_lazy_probe.py"
+    probe.write_text("from typing import TYPE_CHECKING\n\nimport json\n\nif TYPE_CHECKING:\n    import torch\n\n\n"
+                     "def f():\n    import numpy\n    from pathlib import (  # lazy: a reason\n        Path,\n    )\n"
+                     "    if numpy:\n        import os\n    return json, Path, os\n\n\n"
+                     "class C:\n    import re  # lazy: a reason\n")
+    try:
+        assert unmarked_local_imports() == ["optstereo/_lazy_probe.py:10", "optstereo/_lazy_probe.py:15"]
+    finally:
+        probe.unlink()
+
+
+@pytest.mark.parametrize("module", TORCH_FREE)
+def test_the_config_layer_loads_without_torch(module: str) -> None:
+    """What the ``# lazy:`` comments of ``optstereo/__init__.py`` promise: these modules import no torch."""
+    code = f"import sys, {module}; print(sorted(m for m in ('numba', 'torch') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stderr
+
+
 def test_the_product_never_imports_a_study() -> None:
     """pipelines/studies/ is not installed: neither package nor any flow of pipelines/ may import it, and the two
     packages import no flow of pipelines/ either."""

@@ -60,7 +60,6 @@ def test_bench_export_paired_ratios_by_hand() -> None:
                                                             (True, "none", "none"), (False, "bf16", "bf16")])
 def test_demo_trains_in_bf16_only_where_the_cpu_has_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                        native: bool, choice: str, expected: str) -> None:
-    from optstereo import inference
     from pipelines import demo
 
     class Stop(Exception):
@@ -73,7 +72,7 @@ def test_demo_trains_in_bf16_only_where_the_cpu_has_it(tmp_path: Path, monkeypat
         if Path(cmd[0]).name == "optstereo-train":
             raise Stop
 
-    monkeypatch.setattr(inference, "cpu_has_native_bf16", lambda: native)
+    monkeypatch.setattr(demo, "cpu_has_native_bf16", lambda: native)
     monkeypatch.setattr(demo, "_run", fake_run)
     with pytest.raises(Stop):
         demo.main(["--out", str(tmp_path), "--amp", choice])
@@ -103,7 +102,7 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
     def bench_models_infer(*args: object) -> None:  # stands for optstereo.inference.infer
         raise AssertionError("timed through fake_seconds only")
 
-    monkeypatch.setattr("optstereo.inference.infer", bench_models_infer)
+    monkeypatch.setattr(bench_models, "infer", bench_models_infer)
     monkeypatch.setattr(bench_models, "_seconds", fake_seconds)
     frames = [(np.zeros((8, 16, 3), np.uint8), np.zeros((8, 16, 3), np.uint8))] * 3
     models = {"pretrained": Fake(InferenceConfig()), "accurate": Fake(InferenceConfig(coarse_start=True))}

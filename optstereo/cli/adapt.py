@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from optstereo.adapt import DEFAULT_LR, DEFAULT_STEPS, AdaptConfig
+from optstereo.adapt import DEFAULT_LR, DEFAULT_STEPS, AdaptConfig, run
 from optstereo.cli.common import (
     EXISTING,
     GuardedCommand,
@@ -44,8 +44,6 @@ from optstereo.cli.common import (
 def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, steps: int, lr: float, holdout: float,
                limit: int | None, max_disp: int | None, seed: int, device: str, quiet: bool, **reader: Any) -> None:
     """Adapt to your rig without GT: optstereo-adapt --root MY_RIG --left cam0 --right cam1 --out out/adapt."""
-    from optstereo.adapt import run
-
     _setup_logging(quiet)
     cfg = AdaptConfig(dataset=dataset or "folder", root=root, out=out, reader_options=collect_reader_options(**reader),
                       init=init, steps=steps, lr=lr, holdout=holdout, limit=limit, max_disp=max_disp, seed=seed,

@@ -4,14 +4,20 @@ the options of eval, predict and adapt (click decorators) with their small helpe
 from __future__ import annotations
 
 import logging
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import click
+import torch
 import yaml
 
-from optstereo.checkpoint import CheckpointError
+from optstereo.checkpoint import CheckpointError, build_model_from_checkpoint
 from optstereo.choices import AMP_MODES, DEVICES, REFINERS
+from optstereo.distributed import resolve_device
+from optstereo.pretrained import resolve_checkpoint_spec
+from optstereo.training.loop import NonFiniteLossError
+from pvm_labeler.common.datasets import DATASETS
 from pvm_labeler.common.errors import ConfigError, PVMError
 
 EXISTING = click.Path(exists=True, path_type=Path)
@@ -23,8 +29,6 @@ def check_out(out: Path, is_file: bool = False, hint: str = "--out") -> None:
     Checked before any model is loaded or image decoded: the nearest existing ancestor must be a directory that
     takes a new file, and ``out`` itself must not be a file (a folder) or a directory (a file).
     """
-    import tempfile
-
     if out.exists() and out.is_dir() == is_file:
         raise click.BadParameter(f"{out} is a {'directory' if is_file else 'file'}; give a "
                                  f"{'file' if is_file else 'folder'} path", param_hint=hint)
@@ -43,8 +47,6 @@ def check_out(out: Path, is_file: bool = False, hint: str = "--out") -> None:
 def _set_threads(_ctx: click.Context, _param: click.Parameter, threads: int) -> int:
     """--threads' callback: set torch's intra-op threads as the option is parsed (0 leaves torch's default)."""
     if threads:
-        import torch
-
         torch.set_num_threads(threads)
     return threads
 
@@ -95,8 +97,6 @@ def collect_reader_options(folder_left: str | None, folder_right: str | None, fo
 
 def dataset_option(fn):
     """--dataset, one of the readers of ``pvm_labeler.common.datasets``."""
-    from pvm_labeler.common.datasets import DATASETS
-
     return click.option("--dataset", type=click.Choice(DATASETS),
                         help="Dataset reader (official layouts); `folder` takes --left/--right/--gt.")(fn)
 
@@ -119,8 +119,6 @@ class GuardedCommand(click.Command):
     CheckpointError, a non-finite loss, ValueError, RuntimeError, OSError) exit 1 with their type and message."""
 
     def invoke(self, ctx: click.Context) -> Any:
-        from optstereo.training.loop import NonFiniteLossError  # lazy: predict and eval need not load the trainer
-
         try:
             return super().invoke(ctx)
         except ConfigError as exc:
@@ -141,8 +139,6 @@ def _parse_model_opts(values: tuple[str, ...], hint: str = "--set") -> dict[str,
 
 def _resolve_checkpoint(spec: Path | str) -> Path:
     """'pretrained' -> the shipped weights; else the path, which must exist (exit 2 naming it otherwise)."""
-    from optstereo.pretrained import resolve_checkpoint_spec
-
     try:
         return resolve_checkpoint_spec(spec)
     except CheckpointError as exc:
@@ -151,8 +147,5 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
 
 def load_model(checkpoint: Path, device: str) -> tuple[Any, Any]:
     """The model of ``checkpoint`` (a file, RUN_DIR or a shipped name) on ``device`` (auto/cpu/cuda), and the device."""
-    from optstereo.checkpoint import build_model_from_checkpoint
-    from optstereo.distributed import resolve_device
-
     dev = resolve_device(device)
     return build_model_from_checkpoint(_resolve_checkpoint(checkpoint), dev), dev

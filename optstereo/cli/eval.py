@@ -8,6 +8,7 @@ from typing import Any
 
 import click
 
+from optstereo import evaluate
 from optstereo.cli.common import (
     EXISTING,
     GuardedCommand,
@@ -44,8 +45,6 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
               scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
     _setup_logging(quiet)
-    from optstereo import evaluate
-
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     check_out(out)

@@ -14,6 +14,7 @@ from optstereo.cli.common import (
     check_out,
     load_model,
 )
+from optstereo.export import OPSET, export
 
 logger = logging.getLogger(__name__)
 
@@ -30,8 +31,6 @@ def export_main(checkpoint: Path, fmt: str, out: Path, iters: int | None, batch:
     """Export the inference graph: inputs left, right (1, 3, H, W) float [0, 255] with H, W multiples of 8 (dynamic;
     --batch: (B, 3, H, W)), output disparity (1 or B, 1, H, W); ONNX opset 18 (see optstereo/export.py)."""
     _setup_logging(quiet)
-    from optstereo.export import OPSET, export
-
     check_out(out, is_file=True)
     model, _ = load_model(checkpoint, "cpu")
     path = export(model, out, fmt, iters, batch=batch)

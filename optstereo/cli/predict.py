@@ -7,7 +7,9 @@ from pathlib import Path
 from typing import Any
 
 import click
+import torch
 
+from optstereo import inference, outputs
 from optstereo.choices import GEOMETRY_FORMATS, PREDICT_FORMATS
 from optstereo.cli.common import (
     EXISTING,
@@ -21,7 +23,11 @@ from optstereo.cli.common import (
     load_model,
     reader_options,
 )
+from optstereo.export import infer_onnx, onnx_session
+from optstereo.geometry import read_calibration
+from optstereo.memory import check_fits
 from optstereo.predict_more import MoreOptions, frames_of, more_options, predict_frames
+from pvm_labeler.common.io import image_size, read_image
 
 logger = logging.getLogger(__name__)
 
@@ -62,8 +68,6 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                  sequence_iters: int, min_confidence: float, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     _setup_logging(quiet)
-    from optstereo import inference, outputs
-
     if dataset is None and (left is None or right is None):
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
     if dataset is not None and left is not None:
@@ -77,8 +81,6 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
     rig = None
     if calib is not None:
-        from optstereo.geometry import read_calibration
-
         rig = read_calibration(calib)
     model, dev = load_model(checkpoint, device)
     more = MoreOptions(sequence, sequence_iters, min_confidence)
@@ -111,12 +113,6 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
 
 def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...],
                   dataset: str | None, scale: float | None, refine: str | None) -> None:
-    import torch
-
-    from optstereo import outputs
-    from optstereo.export import infer_onnx, onnx_session
-    from pvm_labeler.common.io import read_image
-
     if dataset is not None or left is None or right is None or Path(onnx_file).suffix != ".onnx":
         raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")
     if not Path(onnx_file).is_file():
@@ -131,9 +127,6 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
 def _check_memory(left: Path, right: Path, scale: float, device_type: str) -> None:
     """Exit 1 naming LEFT when the pair's estimated peak memory exceeds the free memory (optstereo.memory); read
     from the image headers, before either image is decoded. Pairs of different sizes are refused here too."""
-    from optstereo.memory import check_fits
-    from pvm_labeler.common.io import image_size
-
     size = image_size(left)
     if image_size(right) != size:
         raise click.ClickException(f"left/right sizes differ: {size} vs {image_size(right)}: {left}, {right}")

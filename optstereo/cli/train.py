@@ -28,7 +28,10 @@ from optstereo.cli.common import (
     _resolve_checkpoint,
     _setup_logging,
 )
+from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig, read_yaml
+from optstereo.training.loop import main
+from optstereo.training.sections import merge
 from pvm_labeler.common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -129,8 +132,6 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
         return
     if cfg.data.labels is None or cfg.out is None:
         raise click.UsageError("--labels SHARDS_DIR and --out RUN_DIR are required (or --resume RUN_DIR)")
-    from optstereo.training.loop import main
-
     summary = main(cfg, resume=resume is not None, progress=not quiet, init_ckpt=init_ckpt)
     last = summary.get("last", {})
     click.echo(f"trained {summary['start_step']} -> {summary['step']} steps in {summary['seconds']:.0f} s; "
@@ -158,8 +159,6 @@ def _train_overrides(flags: dict[str, Any], set_opts: tuple[str, ...]) -> dict[s
     """The command line as one config layer: flags under their flat names
     (``optstereo.training.sections.FLAT_KEYS``), --set on top key by key (``--model NAME --set model.KEY=V``
     keeps NAME: the flag joins the model section)."""
-    from optstereo.training.sections import merge
-
     overrides: dict[str, Any] = {k: v for k, v in flags.items() if v is not None}
     if "model" in overrides:
         overrides["model"] = {"name": overrides["model"]}
@@ -175,8 +174,6 @@ def _train_overrides(flags: dict[str, Any], set_opts: tuple[str, ...]) -> dict[s
 def _init_layer(init: Path, overrides: dict[str, Any]) -> tuple[LoadedCheckpoint, dict[str, Any]]:
     """(loaded checkpoint, its model and inference settings as a config layer) for --init; under --model or
     --set model.KEY=V the layer keeps only the inference settings (later layers override them key by key)."""
-    from optstereo.training.checkpoints import init_settings
-
     ckpt = load_checkpoint(init)
     layer = init_settings(ckpt)
     if "model" in overrides:
@@ -192,6 +189,4 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
         return TrainConfig.from_layers(base, init_layer, overrides)
     if config_file is not None:
         raise click.UsageError("--resume uses the run's saved config; do not combine it with --config")
-    from optstereo.training.checkpoints import config_for_resume
-
     return config_for_resume(resume, overrides)

@@ -17,6 +17,10 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from optstereo.augment import flip_swap
+from optstereo.rescale import rescaled_pair, sparse_to_size
+from optstereo.training.sections import parse_scale_range
+
 logger = logging.getLogger(__name__)
 
 Image = npt.NDArray[np.uint8]
@@ -71,8 +75,6 @@ def rescale_sample(left: Image, right: Image, label: Disp, weight: Disp | None,
                    scale: float) -> tuple[Image, Image, Disp, Disp | None]:
     """One training sample resized by ``scale`` (optstereo.rescale): the pair smoothly, the sparse label and its
     confidence by nearest neighbour, the label's disparities times the width ratio."""
-    from optstereo.rescale import rescaled_pair, sparse_to_size
-
     left, right = rescaled_pair(left, right, scale)
     shape = left.shape[:2]
     label = sparse_to_size(label, shape)
@@ -98,8 +100,6 @@ class TrainTransform:
     scale_range: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
-        from optstereo.training.sections import parse_scale_range
-
         # The config's own parser: a list [1, 1] from YAML is "off" too, and a bad range fails the same way.
         object.__setattr__(self, "scale_range", parse_scale_range(self.scale_range))
 
@@ -117,8 +117,6 @@ class TrainTransform:
         # Draw the flip decision even when it cannot be applied so the random sequence does not depend on data.
         do_flip = rng.random() < self.flip_swap_p
         if do_flip and label_right is not None:
-            from optstereo.augment import flip_swap
-
             left, right, label, label_right = flip_swap(left, right, label, label_right)
             if weight is not None:
                 weight = (np.ones(label.shape, dtype=np.float32) if weight_right is None

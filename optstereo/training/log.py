@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pvm_labeler.common.viz import colorize_disparity
+
 logger = logging.getLogger(__name__)
 
 METRICS_FILE = "metrics.jsonl"
@@ -32,7 +34,7 @@ class RunLogger:
             trim_metrics(self.path, resume_step)
         if enabled and tensorboard:
             try:
-                from torch.utils.tensorboard import SummaryWriter
+                from torch.utils.tensorboard import SummaryWriter  # lazy: tensorboard is optional
             except ImportError:
                 logger.warning("tensorboard is not installed; logging to %s only", self.path)
             else:
@@ -86,8 +88,6 @@ def trim_metrics(path: Path, last_step: int) -> int:
 
 def disparity_images(left: torch.Tensor, pred: torch.Tensor, label: torch.Tensor, valid: torch.Tensor) -> dict:
     """Colour pictures of the first sample of a batch: left image, prediction, label (for TensorBoard)."""
-    from pvm_labeler.common.viz import colorize_disparity
-
     pred_np = pred[0, 0].detach().float().cpu().numpy()
     label_np = np.where(valid[0, 0].cpu().numpy(), label[0, 0].cpu().numpy(), np.nan).astype(np.float32)
     vmax = float(np.nanmax(label_np)) if np.isfinite(label_np).any() else float(pred_np.max())

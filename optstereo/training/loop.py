@@ -25,10 +25,15 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from optstereo import distributed as ddp
+from optstereo.analogy import analogy_loss, occlude_right, transform_batch
+from optstereo.cascade import coarse_start
 from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, unwrap
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
+from optstereo.evaluate import evaluate_model
 from optstereo.inference import warn_if_emulated_bf16
+from optstereo.losses import PVStereoLoss
+from optstereo.models import build_from_config
 from optstereo.training.checkpoints import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
 from optstereo.training.config import TrainConfig
 from optstereo.training.log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
@@ -44,8 +49,6 @@ class NonFiniteLossError(RuntimeError):
 def build_model(cfg: TrainConfig) -> nn.Module:
     """The network of cfg.model (a resolved ModelConfig; its iters is N_s of training), carrying cfg.inference as
     ``model.inference_config``: the run's checkpoints, exports and validation use it."""
-    from optstereo.models import build_from_config
-
     model = build_from_config(cfg.model)
     model.inference_config = cfg.inference
     return model
@@ -53,8 +56,6 @@ def build_model(cfg: TrainConfig) -> nn.Module:
 
 def build_loss(cfg: TrainConfig) -> nn.Module:
     """PVStereoLoss of cfg.loss (lambda_r/lambda_s already resolved for the supervision)."""
-    from optstereo.losses import PVStereoLoss
-
     return PVStereoLoss.from_config(cfg.loss)
 
 
@@ -158,8 +159,6 @@ def cascade_init(state: TrainState, cfg: TrainConfig, device: torch.device, left
     p = cfg.data.cascade_p
     if p <= 0 or float(torch.rand(1, generator=_step_generator(cfg, state.step, stream=2))) >= p:
         return None
-    from optstereo.cascade import coarse_start
-
     with autocast_context(cfg, device):
         return coarse_start(state.model, left, right, cfg.model.iters)
 
@@ -173,8 +172,6 @@ def network_right(state: TrainState, cfg: TrainConfig, left: torch.Tensor, right
     """The right view the network sees: ``right``, with pasted occluders when data.occlude_p > 0."""
     if cfg.data.occlude_p <= 0:
         return right
-    from optstereo.analogy import occlude_right
-
     occluded, _ = occlude_right(left, right, cfg.data.occlude_p, cfg.analogy_config(),
                                 _step_generator(cfg, state.step, stream=1))
     return occluded
@@ -189,8 +186,6 @@ def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left
     zero, loss = torch.zeros((), device=device), cfg.loss
     if loss.lambda_t <= 0 or state.step < loss.analogy_start or (state.step - loss.analogy_start) % loss.analogy_every:
         return zero, {"L_T": zero, "T_valid": zero}
-    from optstereo.analogy import analogy_loss, transform_batch
-
     sample = transform_batch(left, right, disp0, cfg.analogy_config(), _step_generator(cfg, state.step))
     preds_t = _forward(state, cfg, device, sample.left, sample.right)
     loss_t = analogy_loss(preds_t, sample, loss.gamma)
@@ -297,8 +292,6 @@ def evaluate(model: nn.Module, cfg: TrainConfig, device: torch.device, out_dir: 
     """Evaluate on cfg.val (dataset, root) with the project's ruler (optstereo.evaluate); {} if unset."""
     if not cfg.val.dataset:
         return {}
-    from optstereo.evaluate import evaluate_model
-
     result = evaluate_model(unwrap(model), cfg.val.dataset, cfg.val.root, iters=None, device=device,
                             out_dir=out_dir, limit=cfg.val.limit or None)
     return result.summary
