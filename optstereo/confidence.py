@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from optstereo.cascade import photometric_costs
-from optstereo.inference import infer_scaled, pass_at_scale, to_batch
+from optstereo.inference import model_inference_config, pass_at_scale, run, to_batch
 from optstereo.padding import InputPadder, divisor_of
 from pvm_labeler.common.io import write_image
 
@@ -126,7 +126,7 @@ def infer_with_confidence(model: nn.Module, left: Image, right: Image, *, method
                           scale: float | None = None, refine: str | None = None) -> tuple[Map, Map]:
     """(disparity, confidence), each (H, W) float32, of one (H, W, 3) uint8 pair: the disparity is exactly
     ``optstereo.inference.infer``'s (same arguments), the confidence :func:`confidence_of` it."""
-    result = infer_scaled(model, left, right, iters, device, amp, scale, refine)
+    result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
     conf = confidence_of(model, left, right, result.disparity, method, device, amp, result.input_scale)
     return result.disparity, conf
 

@@ -33,7 +33,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from optstereo.inference import infer_scaled, model_inference_config
+from optstereo.inference import model_inference_config, run
 from optstereo.outputs import colorize
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.datasets import discover, load_pair
@@ -57,7 +57,7 @@ class Frame:
     gt_noc: npt.NDArray[np.float32] | None = None
     left: npt.NDArray[np.uint8] | None = None
     seconds: float = math.nan
-    input_scale: float = math.nan  # a network's final pass (optstereo.inference.infer_scaled); NaN for labels
+    input_scale: float = math.nan  # a network's final pass (optstereo.inference.run); NaN for labels
 
 
 @dataclass
@@ -186,11 +186,11 @@ def model_frames(
     reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
 ) -> Iterator[Frame]:
     """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames."""
+    config = model_inference_config(model, iters, scale, refine)
     for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
         sample = load_pair(ref)
         t0 = time.perf_counter()
-        result = infer_scaled(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
-                              refine=refine)
+        result = run(model, sample.left, sample.right, config, device, amp)
         seconds = time.perf_counter() - t0
         logger.info("%s: %dx%d in %.2f s (input scale %.3f)", ref.frame_id, sample.left.shape[0],
                     sample.left.shape[1], seconds, result.input_scale)

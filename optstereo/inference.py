@@ -164,23 +164,9 @@ def infer(
     Returns:
         (H, W) float32 disparity in pixels of the input (positive, left(x) matches right(x - d)).
     """
-    return infer_scaled(model, left, right, iters, device, amp, scale, refine).disparity
-
-
-def infer_scaled(
-    model: nn.Module,
-    left: Image,
-    right: Image,
-    iters: int | None = None,
-    device: torch.device | str = "cpu",
-    amp: AmpMode = "none",
-    scale: float | None = None,
-    refine: str | None = None,
-) -> Inference:
-    """:func:`infer`, also returning the input scale of the final pass (above the config's after an adaptive pass)."""
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
-    return run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
+    return run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp).disparity
 
 
 @torch.inference_mode()

@@ -1,6 +1,6 @@
 """Stereo video: each frame's GRU starts from the previous frame's answer, with fewer iterations.
 
-The first frame runs the plain path (``optstereo.inference.infer_scaled``: the model's own passes, scale and
+The first frame runs the plain path (``optstereo.inference.run``: the model's own passes, scale and
 post-filter), so a one-frame sequence equals it exactly. Every later frame runs one network pass at the first
 frame's final input scale, its D_s^0 the previous frame's disparity averaged onto the 1/8 grid
 (``optstereo.cascade.grid_start``, inside ``optstereo.inference.network_pass``) and ``sequence_iters`` GRU iterations,
@@ -23,7 +23,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from optstereo.inference import apply_refine, infer_scaled, model_inference_config, pass_at_scale
+from optstereo.inference import apply_refine, model_inference_config, pass_at_scale, run
 
 Image = npt.NDArray[np.uint8]
 Disparity = npt.NDArray[np.float32]
@@ -64,7 +64,7 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
         raise ValueError(f"sequence_iters must be >= 1, got {sequence_iters}")
     prev = state.disparity
     if prev is None or prev.shape != left.shape[:2] or state.scale is None:
-        result = infer_scaled(model, left, right, iters, device, amp, scale, refine)
+        result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
         state.disparity, state.scale = result.disparity, result.input_scale
         return result.disparity
     refine = model_inference_config(model, refine=refine).refine

@@ -1,5 +1,5 @@
 """The disparity-adaptive input scale: the rule by hand (optstereo.rescale.adaptive_factor), the second pass of
-``infer_scaled`` with a fake network whose output is known, the InferenceConfig, the checkpoint and the ONNX file."""
+``run`` with a fake network whose output is known, the InferenceConfig, the checkpoint and the ONNX file."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 import torch
 from conftest import TINY, Echo, kitti_crop
 
-from optstereo.inference import infer, infer_scaled
+from optstereo.inference import infer, model_inference_config, run
 from optstereo.inference_config import InferenceConfig
 from optstereo.models import build_model
 from optstereo.rescale import ADAPTIVE_MIN_GAIN, ADAPTIVE_PERCENTILE, adaptive_factor
@@ -68,23 +68,24 @@ class TestInfer:
         # 10 px of the doubled pair = 5 px of the input (hand-computed).
         left = np.full((40, 80, 3), 10, np.uint8)
         model = self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80)
-        result = infer_scaled(model, left, left)
+        result = run(model, left, left)
         assert result.input_scale == pytest.approx(2.0)
         np.testing.assert_allclose(result.disparity, 5.0, rtol=1e-5)
         np.testing.assert_array_equal(infer(model, left, left), result.disparity)
 
     def test_large_disparities_keep_one_pass(self) -> None:
         left = np.full((40, 80, 3), 50, np.uint8)  # 50 px > the reference 40 px: no enlargement
-        result = infer_scaled(self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80), left, left)
+        result = run(self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80), left, left)
         assert result.input_scale == 1.0
         np.testing.assert_allclose(result.disparity, 50.0, rtol=1e-6)
 
     def test_a_given_scale_and_a_model_without_references_are_fixed(self) -> None:
         left = np.full((40, 80, 3), 10, np.uint8)
         model = self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80)
-        assert infer_scaled(model, left, left, scale=1.0).input_scale == 1.0  # the caller's scale is final
-        assert infer_scaled(model, left, left, scale=1.5).input_scale == 1.5
-        assert infer_scaled(self.echo(), left, left).input_scale == 1.0  # no references: one pass
+        fixed = run(model, left, left, model_inference_config(model, scale=1.0))
+        assert fixed.input_scale == 1.0  # the caller's scale is final
+        assert run(model, left, left, model_inference_config(model, scale=1.5)).input_scale == 1.5
+        assert run(self.echo(), left, left).input_scale == 1.0  # no references: one pass
 
 
 class TestConfig:
@@ -121,7 +122,7 @@ def test_onnx_file_records_the_references(tmp_path: Path, shared_data: Path) -> 
     meta = json.loads(session.get_modelmeta().custom_metadata_map["inference_config"])
     assert meta["adaptive_ref_disp"] == 1e6 and meta["adaptive_ref_pixels"] == 4 * 64 * 120
     left, right = kitti_crop(shared_data, 64, 120)
-    assert infer_scaled(model, left, right).input_scale == pytest.approx(2.0)
+    assert run(model, left, right).input_scale == pytest.approx(2.0)
     ref, got = infer(model, left, right), infer_onnx(session, left, right)
     assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the second pass changed it
     diff = np.abs(got - ref)

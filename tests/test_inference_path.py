@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from conftest import TINY, kitti_crop
 from infer_reference import old_infer
 
-from optstereo.inference import infer, infer_scaled, run
+from optstereo.inference import infer, model_inference_config, run
 from optstereo.inference_config import REFINERS, InferenceConfig
 from optstereo.models import build_model
 from optstereo.models.config import ModelConfig, split_legacy_model_dict
@@ -192,9 +192,10 @@ def test_infer_overrides_the_model_config() -> None:
     left = np.full((40, 80, 3), 10, np.uint8)
     net = CountingNet()
     net.inference_config = InferenceConfig(**REFS, refine="none")
-    assert infer_scaled(net, left, left).input_scale == 2.0
+    assert run(net, left, left).input_scale == 2.0
     net.calls.clear()
-    assert infer_scaled(net, left, left, scale=1.0).input_scale == 1.0  # a given scale is final: one pass
+    one_pass = run(net, left, left, model_inference_config(net, scale=1.0))
+    assert one_pass.input_scale == 1.0  # a given scale is final: one pass
     assert net.calls == [(40, 80, False)]
     with pytest.raises(ValueError, match="refine must be one of"):
         infer(net, left, left, refine="bilateral")

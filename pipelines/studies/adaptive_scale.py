@@ -85,7 +85,7 @@ def step_check(candidate: Path = CANDIDATE, factor: float = 1 / 3, every: int = 
     """GT-free: every ``every``-th unlabelled pair shrunk by ``factor`` (a small pair with small disparities), its PVM
     labels shrunk with it; the candidate at its fixed input scale vs adaptive, both scored against those labels."""
     from optstereo.api import load_model
-    from optstereo.inference import infer_scaled, model_inference_config
+    from optstereo.inference import model_inference_config, run
     from optstereo.rescale import rescaled_pair, sparse_to_size
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
@@ -102,7 +102,7 @@ def step_check(candidate: Path = CANDIDATE, factor: float = 1 / 3, every: int = 
         label = sparse_to_size(sample.label, left.shape[:2])
         row: dict[str, Any] = {"frame_id": str(frame_id), "height": left.shape[0], "width": left.shape[1]}
         for mode, scale in (("fixed", base), ("adaptive", None)):
-            result = infer_scaled(model, left, right, scale=scale)
+            result = run(model, left, right, model_inference_config(model, scale=scale))
             metrics = accs[mode].update(result.disparity, label)
             row[mode] = {"input_scale": result.input_scale, "epe": metrics["epe"], "bad1": metrics["bad1"],
                          "bad3": metrics["bad3"]}
