@@ -8,7 +8,7 @@ set -euo pipefail
 W=${WORK:-/work/f3}
 MIRRORS=${MIRRORS:?MIRRORS: the folder holding the fetched snapshots, one <owner>+<name>/ each}
 PY=${PY:-.venv/bin/python}
-STEPS=${STEPS:-1600}
+STEPS=${STEPS:-1300}
 mkdir -p "$W"
 if [ ! -d "$W/fetched" ]; then   # section G (three single captures) needs snapshots we do not fetch: stop before it
   sed '/^# G\./,$d' ../shared/data/fetch_unlabelled_more.sh > "$W/fetch_a_to_f.sh"
@@ -24,6 +24,6 @@ else
   nice -n 5 $PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init pretrained \
     --labels "$W/distill" --out "$W/run" --steps "$STEPS" --lr 1e-4 --seed 43 --iters 8 --scale-range 0.5,0.5 \
     --lambda-t 0 --conf-weight --batch-size 4 --crop 176x448 --schedule onecycle --amp bf16 --threads 2 --workers 1 \
-    --ckpt-every 100 --quiet \
+    --ckpt-every 100 --max-minutes 85 --quiet \
     --set inference.refine=none --set inference.adaptive_ref_disp=60.1 --set inference.adaptive_ref_pixels=465750
 fi
