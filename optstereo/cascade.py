@@ -30,9 +30,11 @@ def grid_start(disp: torch.Tensor) -> torch.Tensor:
     return F.avg_pool2d(disp.float(), DIVISOR) / DIVISOR
 
 
-def half_size(height: int, width: int) -> tuple[int, int]:
-    """(h, w) of the coarse pass of an (H, W) batch: half, rounded down to multiples of 8 (at least 8)."""
-    return max(DIVISOR, height // 2 // DIVISOR * DIVISOR), max(DIVISOR, width // 2 // DIVISOR * DIVISOR)
+def half_size(height: int, width: int, min_width: int = DIVISOR) -> tuple[int, int]:
+    """(h, w) of the coarse pass of an (H, W) batch: half, rounded down to multiples of 8 (at least 8), and never
+    narrower than ``min_width`` (the network's narrowest input) unless the batch itself is."""
+    w = max(DIVISOR, width // 2 // DIVISOR * DIVISOR, min(min_width, width))
+    return max(DIVISOR, height // 2 // DIVISOR * DIVISOR), w
 
 
 @torch.no_grad()
@@ -43,7 +45,7 @@ def coarse_start(model: nn.Module, left: torch.Tensor, right: torch.Tensor, iter
     W / w, then averaged onto the 1/8 grid (:func:`grid_start`). No gradient flows into it (the GRU is trained to
     refine a start, not to make one).
     """
-    h, w = half_size(left.shape[-2], left.shape[-1])
+    h, w = half_size(left.shape[-2], left.shape[-1], getattr(model, "min_width", DIVISOR))  # HITNet: any width
     small_l = F.interpolate(left, size=(h, w), mode="area")
     small_r = F.interpolate(right, size=(h, w), mode="area")
     _, full = model(small_l, small_r, iters=iters, test_mode=True)

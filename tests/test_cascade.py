@@ -33,6 +33,18 @@ def test_half_size() -> None:
     assert half_size(256, 640) == (128, 320)
     assert half_size(100, 300) == (48, 144)
     assert half_size(10, 12) == (8, 8)
+    assert half_size(64, 120, min_width=64) == (32, 64)  # a narrow pair's coarse pass keeps the network's minimum
+    assert half_size(64, 64, min_width=64) == (32, 64)
+
+
+def test_coarse_start_on_a_pair_narrower_than_twice_the_minimum() -> None:
+    """120 px wide: half would be 56 px, below the 4-level pyramid's 64 (it used to raise); the start keeps 64."""
+    torch.manual_seed(0)
+    model = build_model("optstereo", feature_dim=16, hidden_dim=16, head_dim=16, iters=1).eval()
+    assert model.min_width == 64
+    x = torch.rand(1, 3, 64, 120) * 255
+    start = coarse_start(model, x, x, iters=1)
+    assert start.shape == (1, 1, 8, 15) and torch.isfinite(start).all()
 
 
 def test_coarse_start_units() -> None:

@@ -124,14 +124,17 @@ class OptStereo(nn.Module):
         """D^k (B, 1, H, W) from D_s^k, h^k and I_l, per image on CPU (see _chunk_size)."""
         return self._in_chunks(self.upsampler, self._chunk_size(image), disp, hidden, image)
 
+    @property
+    def min_width(self) -> int:
+        """Narrowest input width (pixels) the cost-volume pyramid takes: every level keeps at least one column."""
+        return DIVISOR * self.corr_block.min_width
+
     def _check_inputs(self, left: torch.Tensor, right: torch.Tensor) -> None:
         check_stereo_pair(left, right, self.divisor)
         w = left.shape[-1]
-        if w // DIVISOR < self.corr_block.min_width:
-            raise ValueError(
-                f"W must be >= {DIVISOR * self.corr_block.min_width} for {self.corr_block.num_levels} cost-volume "
-                f"levels, got W = {w}"
-            )
+        if w < self.min_width:
+            raise ValueError(f"W must be >= {self.min_width} for {self.corr_block.num_levels} cost-volume levels, "
+                             f"got W = {w}")
 
     def forward(
         self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False,
