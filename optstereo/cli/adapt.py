@@ -12,11 +12,11 @@ from optstereo.cli.common import (
     EXISTING,
     GuardedCommand,
     _set_threads,
-    _setup_logging,
     collect_reader_options,
     dataset_option,
     device_option,
     reader_options,
+    setup_logging,
 )
 
 
@@ -44,7 +44,7 @@ from optstereo.cli.common import (
 def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, steps: int, lr: float, holdout: float,
                limit: int | None, max_disp: int | None, seed: int, device: str, quiet: bool, **reader: Any) -> None:
     """Adapt to your rig without GT: optstereo-adapt --root MY_RIG --left cam0 --right cam1 --out out/adapt."""
-    _setup_logging(quiet)
+    setup_logging(quiet)
     cfg = AdaptConfig(dataset=dataset or "folder", root=root, out=out, reader_options=collect_reader_options(**reader),
                       init=init, steps=steps, lr=lr, holdout=holdout, limit=limit, max_disp=max_disp, seed=seed,
                       device=device, quiet=quiet)

@@ -9,45 +9,35 @@ from typing import Any
 import click
 
 from optstereo import evaluate
-from optstereo.cli.common import (
-    EXISTING,
-    GuardedCommand,
-    _setup_logging,
-    check_out,
-    collect_reader_options,
-    dataset_option,
-    device_option,
-    infer_options,
-    load_model,
-    reader_options,
-)
+from optstereo.cli import common
 
 logger = logging.getLogger(__name__)
 
 
-@click.command(cls=GuardedCommand, context_settings={"show_default": True})
+@click.command(cls=common.GuardedCommand, context_settings={"show_default": True})
 @click.option("--checkpoint", type=click.Path(path_type=Path),
               help="Checkpoint file (.pt/.pth/.ckpt/.safetensors), RUN_DIR, or 'pretrained' (the shipped model).")
-@click.option("--labels", type=EXISTING, help="Evaluate this shard directory's own PVM labels instead of a network.")
-@dataset_option
-@click.option("--root", type=EXISTING, help="Dataset root folder (not needed for sample).")
-@reader_options
+@click.option("--labels", type=common.EXISTING,
+              help="Evaluate this shard directory's own PVM labels instead of a network.")
+@common.dataset_option
+@click.option("--root", type=common.EXISTING, help="Dataset root folder (not needed for sample).")
+@common.reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Report folder.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
 @click.option("--limit", type=int, default=None, help="Only the first N frames.")
 @click.option("--save-maps/--no-save-maps", default=True, help="Write colour disparity and error maps.")
-@device_option
-@infer_options
+@common.device_option
+@common.infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
               out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
               scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
-    _setup_logging(quiet)
+    common.setup_logging(quiet)
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
-    check_out(out)
+    common.check_out(out)
     if labels is not None:
         if scale is not None or refine is not None:
             raise click.UsageError("--scale and --refine act on a network's prediction; --labels evaluates stored "
@@ -56,10 +46,11 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
     else:
         if dataset is None:
             raise click.UsageError("--checkpoint needs --dataset NAME (and --root PATH)")
-        model, dev = load_model(checkpoint, device)
-        result = evaluate.evaluate_model(model, dataset, root, split=split, iters=iters, device=dev,
-                              out_dir=out, limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
-                              amp=amp, reader_options=collect_reader_options(**reader), scale=scale, refine=refine)
+        model, dev = common.load_model(checkpoint, device)
+        result = evaluate.evaluate_model(model, dataset, root, split=split, iters=iters, device=dev, out_dir=out,
+                                         limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
+                                         amp=amp, reader_options=common.collect_reader_options(**reader),
+                                         scale=scale, refine=refine)
     s = result.summary
     click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
                f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")

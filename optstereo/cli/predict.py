@@ -11,18 +11,7 @@ import torch
 
 from optstereo import inference, outputs
 from optstereo.choices import GEOMETRY_FORMATS, PREDICT_FORMATS
-from optstereo.cli.common import (
-    EXISTING,
-    GuardedCommand,
-    _setup_logging,
-    check_out,
-    collect_reader_options,
-    dataset_option,
-    device_option,
-    infer_options,
-    load_model,
-    reader_options,
-)
+from optstereo.cli import common
 from optstereo.export import infer_onnx, onnx_session
 from optstereo.geometry import read_calibration
 from optstereo.memory import check_fits
@@ -32,15 +21,16 @@ from pvm_labeler.common.io import image_size, read_image
 logger = logging.getLogger(__name__)
 
 
-@click.command(cls=GuardedCommand, context_settings={"show_default": True})
-@click.argument("left", type=EXISTING, required=False)
-@click.argument("right", type=EXISTING, required=False)
+@click.command(cls=common.GuardedCommand, context_settings={"show_default": True})
+@click.argument("left", type=common.EXISTING, required=False)
+@click.argument("right", type=common.EXISTING, required=False)
 @click.option("--checkpoint", type=click.Path(path_type=Path), required=True,
               help="Checkpoint file, RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
-@dataset_option
-@click.option("--root", type=EXISTING, help="Dataset root (predicts the whole dataset; KITTI: disp_0/<frame>.png).")
-@reader_options
+@common.dataset_option
+@click.option("--root", type=common.EXISTING,
+              help="Dataset root (predicts the whole dataset; KITTI: disp_0/<frame>.png).")
+@common.reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
 @click.option("--iters", type=int, default=None, help="GRU iterations (default: the model's own, 8).")
@@ -49,7 +39,7 @@ logger = logging.getLogger(__name__)
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm), "
                    "depth-pfm / depth-npy (m), ply (coloured point cloud); conf-png (16-bit, confidence x 65535) / "
                    "conf-npy (float32 in [0, 1]) (repeatable).")
-@click.option("--calib", type=EXISTING,
+@click.option("--calib", type=common.EXISTING,
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
                    "(fx, cx, cy, baseline [m], doffs).")
 @click.option("--max-depth", type=float, default=None, help="Drop depths beyond this many metres (depth and PLY).")
@@ -57,8 +47,8 @@ logger = logging.getLogger(__name__)
               help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats).")
 @click.option("--submission", type=click.Path(path_type=Path),
               help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
-@device_option
-@infer_options
+@common.device_option
+@common.infer_options
 @more_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: Path, dataset: str | None,
@@ -67,12 +57,12 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                  amp: str, scale: float | None, refine: str | None, quiet: bool, sequence: bool,
                  sequence_iters: int, min_confidence: float, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
-    _setup_logging(quiet)
+    common.setup_logging(quiet)
     if dataset is None and (left is None or right is None):
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
-    check_out(out)
+    common.check_out(out)
     if backend == "onnxruntime":
         _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
         return
@@ -82,13 +72,13 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     rig = None
     if calib is not None:
         rig = read_calibration(calib)
-    model, dev = load_model(checkpoint, device)
+    model, dev = common.load_model(checkpoint, device)
     more = MoreOptions(sequence, sequence_iters, min_confidence)
     if more.active(formats):  # optstereo.predict_more: --sequence, confidence formats, --min-confidence
         if geometry or submission is not None:
             raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
                                    "--submission outputs")
-        frames = frames_of(left, right, dataset, root, split, limit, collect_reader_options(**reader))
+        frames = frames_of(left, right, dataset, root, split, limit, common.collect_reader_options(**reader))
         written = predict_frames(model, frames, out, more, formats=formats, iters=iters, device=dev,
                                amp=amp, scale=scale, refine=refine, progress=not quiet,
                                kitti_layout=bool(dataset and dataset.startswith("kitti")))
@@ -104,9 +94,10 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     else:
         if submission is not None and "png" not in formats:
             formats = (*formats, "png")
-        written = outputs.predict_dataset(model, dataset, root, out, split=split, iters=iters,
-                               formats=formats, device=dev, limit=limit, amp=amp, submission=submission,
-                               reader_options=collect_reader_options(**reader), scale=scale, refine=refine)
+        written = outputs.predict_dataset(model, dataset, root, out, split=split, iters=iters, formats=formats,
+                                          device=dev, limit=limit, amp=amp, submission=submission,
+                                          reader_options=common.collect_reader_options(**reader), scale=scale,
+                                          refine=refine)
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
 

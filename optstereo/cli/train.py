@@ -26,7 +26,7 @@ from optstereo.cli.common import (
     GuardedCommand,
     _parse_model_opts,
     _resolve_checkpoint,
-    _setup_logging,
+    setup_logging,
 )
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig, read_yaml
@@ -114,7 +114,7 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
                set_opts: tuple[str, ...], model_opt: tuple[str, ...], analogy_opt: tuple[str, ...], quiet: bool,
                **flags: Any) -> None:
     """Train OptStereo on PVM shards: optstereo-train --labels SHARDS_DIR --out RUN_DIR."""
-    _setup_logging(quiet)
+    setup_logging(quiet)
     _refuse_removed(model_opt=model_opt, analogy_opt=analogy_opt)
     overrides = _train_overrides(flags, set_opts)
     init_ckpt, init_layer = None, None
