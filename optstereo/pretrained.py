@@ -19,8 +19,9 @@ SHIPPED: dict[str, str] = {
 }
 #: Names that were planned and did not ship, with why (a clear error instead of "file not found").
 NOT_SHIPPED: dict[str, str] = {
-    "pretrained-fast": "no fast model qualified (RESULTS.md, 'Candidates scored': both fast candidates were less "
-                       "accurate than dense SGM); use 'pretrained', or 'pretrained' with --scale 0.5",
+    "pretrained-fast": "no fast model qualified (RESULTS.md, 'Candidates scored': all three fast candidates were "
+                       "less accurate than dense SGM on KITTI 2015); use 'pretrained', or 'pretrained' with --scale "
+                       "0.5 (about 4x faster, less accurate)",
 }
 PRETRAINED = "pretrained"
 WEIGHTS = WEIGHTS_DIR / SHIPPED[PRETRAINED]

@@ -64,7 +64,7 @@ def infer_options(fn):
     fn = click.option("--refine", type=click.Choice(REFINERS),
                       help="Post-filter of the disparity: wmedian = colour-weighted median (snaps blurred depth "
                            "edges to colour edges), none = the network's output as it is. Default: the model's own "
-                           "(the shipped model: wmedian).")(fn)
+                           "(pretrained: none; pretrained-accurate: wmedian).")(fn)
     return click.option("--amp", type=click.Choice(AMP_MODES), default="none", show_default=True,
                         help="Inference precision: bf16 (CPUs with AVX512-BF16/AMX, CUDA), fp16 (CUDA).")(fn)
 
