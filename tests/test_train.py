@@ -12,7 +12,7 @@ import pytest
 import torch
 import yaml
 from click.testing import CliRunner
-from conftest import TINY, tiny_config
+from conftest import TINY, make_shards, tiny_config
 
 from optstereo.analogy_config import AnalogyConfig
 from optstereo.checkpoint import load_checkpoint, save_checkpoint
@@ -454,3 +454,20 @@ def test_window_mean_skips_nan_and_stays_quiet_when_all_nan() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # numpy's nanmean warns "Mean of empty slice" here
         assert math.isnan(_nanmean([float("nan"), float("nan")]))
+
+
+def test_logged_lr_is_the_rate_each_step_used(tmp_path: Path) -> None:
+    """metrics' lr at step k is the rate step k ran with: a 4-step OneCycle logs its warm-up start (max_lr / 25)
+    first, its peak, and never the negative rate the schedule would give a fifth step (it used to log that)."""
+    shards = make_shards(tmp_path / "shards", n=2, shard_size=2, height=32, width=72)
+    cfg = tiny_config(shards, tmp_path / "run", schedule="onecycle", lr=1e-3)
+    model = loop.build_model(cfg)
+    optimizer, scheduler = loop.build_optimizer(model, cfg)
+    state = loop.TrainState(model, optimizer, scheduler, torch.amp.GradScaler("cpu", enabled=False))
+    gen = torch.Generator().manual_seed(0)
+    left, right = (torch.rand(2, 3, 32, 64, generator=gen) * 255 for _ in range(2))
+    label = torch.full((2, 1, 32, 64), 3.0)
+    batch = (left, right, label, torch.ones_like(label, dtype=torch.bool))
+    lrs = [loop.train_step(state, batch, loop.build_loss(cfg), cfg, torch.device("cpu"))["lr"] for _ in range(4)]
+    assert lrs[0] == pytest.approx(1e-3 / 25) and max(lrs) == pytest.approx(1e-3)
+    assert all(lr >= 0 for lr in lrs)

@@ -209,6 +209,7 @@ def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainCo
     state.scaler.unscale_(state.optimizer)
     max_norm = cfg.optim.clip_grad if cfg.optim.clip_grad > 0 else float("inf")
     grad_norm = torch.nn.utils.clip_grad_norm_(state.model.parameters(), max_norm)
+    lr = state.optimizer.param_groups[0]["lr"]  # the rate this step uses (the scheduler moves it on below)
     state.scaler.step(state.optimizer)
     state.scaler.update()
     if state.scheduler is not None:
@@ -218,7 +219,7 @@ def train_step(state: TrainState, batch: tuple, loss_fn: nn.Module, cfg: TrainCo
         err = (preds[-1] - label).abs()[valid]
         label_epe = float(err.mean()) if err.numel() else float("nan")
     logs = {k: float(v.detach()) for k, v in terms.items()}
-    logs.update(label_epe=label_epe, lr=state.optimizer.param_groups[0]["lr"], grad_norm=float(grad_norm))
+    logs.update(label_epe=label_epe, lr=lr, grad_norm=float(grad_norm))
     return logs
 
 
