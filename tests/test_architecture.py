@@ -223,6 +223,18 @@ def test_the_product_never_imports_a_study() -> None:
     assert _offenders("pipelines", ("pipelines.studies",), skip_dirs=("pipelines/studies",)) == {}
 
 
+def test_the_wheel_carries_no_study() -> None:
+    """`pip install .` packages what pyproject.toml's find-rule selects: the product and the flows, no study."""
+    import tomllib
+
+    from setuptools import find_packages
+
+    rule = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    packages = find_packages(where=str(ROOT), include=rule["include"], exclude=rule.get("exclude", ()))
+    assert {"pvm_labeler", "optstereo", "optstereo.training", "optstereo.cli", "pipelines"} <= set(packages)
+    assert [p for p in packages if p.startswith("pipelines.studies")] == []
+
+
 def test_test_modules_import_no_other_test_module() -> None:
     """What tests share lives in conftest.py (fixtures, TINY, the builders) or in helper modules holding no tests."""
     offenders = {}
