@@ -226,7 +226,6 @@ def test_the_product_never_imports_a_study() -> None:
 def test_the_wheel_carries_no_study() -> None:
     """`pip install .` packages what pyproject.toml's find-rule selects: the product and the flows, no study."""
     import tomllib
-
     from setuptools import find_packages
 
     rule = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]

@@ -346,6 +346,19 @@ class TestOldKeys:
         with pytest.raises(ConfigError, match=r"model\.feature_channels: 8 -> 24"):
             config_for_resume(run, {"model": {"feature_dim": 24}})
 
+    def test_exception_retired_key_typed_on_the_command_line(self, tmp_path: Path) -> None:
+        """An OptStereo-only key is dropped quietly from an older run's files but fails, named, when typed now."""
+        cfg = yaml.safe_dump({"model": {"name": "hitnet", **TINY, "norm": "batch"}})  # an old run's config.yaml
+        (tmp_path / "old.yaml").write_text(cfg)
+        assert TrainConfig.load(tmp_path / "old.yaml").model == HITNetConfig(**TINY)
+        args = ["--labels", str(tmp_path), "--out", str(tmp_path / "run"), "--print-config"]
+        typed = CliRunner().invoke(train_main, ["--model", "hitnet", "--set", "model.norm=batch", *args])
+        assert typed.exit_code == 2 and "['norm'] are not settings of this network (HITNetConfig" in typed.output
+        optstereo = CliRunner().invoke(train_main, ["--set", "model.search_range=96", *args])
+        assert optstereo.exit_code == 2 and "['search_range'] are not settings" in optstereo.output
+        old_name = CliRunner().invoke(train_main, ["--model", "hitnet", "--set", "model.feature_dim=8", *args])
+        assert old_name.exit_code == 0 and "feature_channels: 8" in old_name.output  # renamed keys still map
+
     def test_exception_old_and_new_key_disagree(self, tmp_path: Path) -> None:
         with pytest.raises(ConfigError, match="sets both 'feature_dim' .* and 'feature_channels' .*keep 'feature_c"):
             TrainConfig.from_dict({"model": {"name": "hitnet", "feature_dim": 8, "feature_channels": 16}})

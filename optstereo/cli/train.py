@@ -186,7 +186,7 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
     """defaults < --config (or the resumed run's saved config) < --init's model settings < flags."""
     if resume is None:
         base = read_yaml(config_file) if config_file is not None else {}
-        return TrainConfig.from_layers(base, init_layer, overrides)
+        return TrainConfig.from_layers(base, init_layer, overrides, strict_last=True)
     if config_file is not None:
         raise click.UsageError("--resume uses the run's saved config; do not combine it with --config")
     return config_for_resume(resume, overrides)

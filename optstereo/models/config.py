@@ -51,10 +51,16 @@ class NetworkConfig:
         return dataclasses.asdict(self)  # type: ignore[call-overload]
 
     @classmethod
-    def upgrade_keys(cls, values: dict[str, Any], where: str = "model config") -> dict[str, Any]:
+    def upgrade_keys(cls, values: dict[str, Any], where: str = "model config", strict: bool = False) -> dict[str, Any]:
         """A copy of ``values`` with the old keys of older files under their fields' names and the retired keys
-        dropped; ConfigError naming both keys when an old key and its field are both given with different values."""
+        dropped; ConfigError naming both keys when an old key and its field are both given with different values.
+        ``strict`` (a layer the user just typed, not a file of an older run): a retired key fails, named."""
         out = rename_keys(values, cls.RENAMED_KEYS, where)
+        retired = sorted(set(out) & set(cls.RETIRED_KEYS))
+        if strict and retired:
+            fields = ", ".join(f.name for f in dataclasses.fields(cls) if f.name != "name")
+            raise ConfigError(f"{where}: {retired} are not settings of this network ({cls.__name__}: {fields}); "
+                              "files of older runs may hold them, a new setting may not")
         return {k: v for k, v in out.items() if k not in cls.RETIRED_KEYS}
 
     @classmethod

@@ -134,8 +134,9 @@ class TrainConfig:
         return cls(**sections, **run)
 
     @classmethod
-    def from_layers(cls, *layers: dict[str, Any] | None) -> TrainConfig:
-        """Merge layers (later ones win key by key; None values mean "not given") and build."""
+    def from_layers(cls, *layers: dict[str, Any] | None, strict_last: bool = False) -> TrainConfig:
+        """Merge layers (later ones win key by key; None values mean "not given") and build. ``strict_last``: the
+        last layer is the command line, where a retired model key (one only older files hold) fails, named."""
         nested = [nest({k: v for k, v in (layer or {}).items() if v is not None}) for layer in layers]
         final: dict[str, Any] = {}
         for layer in nested:
@@ -144,8 +145,9 @@ class TrainConfig:
         # class of the final model.name before merging, so a later layer's old key still wins over an earlier new one.
         model_class = _model_class(final)
         merged: dict[str, Any] = {}
-        for layer in nested:
-            merged = merge(merged, _upgrade_model_keys(layer, model_class))
+        for i, layer in enumerate(nested):
+            strict = strict_last and i == len(nested) - 1
+            merged = merge(merged, _upgrade_model_keys(layer, model_class, strict))
         return cls.from_dict(merged)
 
     @classmethod
@@ -199,12 +201,12 @@ def _model_class(nested: dict[str, Any]) -> type[NetworkConfig]:
         raise ConfigError(f"model: {exc}") from exc
 
 
-def _upgrade_model_keys(nested: dict[str, Any], cls: type[NetworkConfig]) -> dict[str, Any]:
+def _upgrade_model_keys(nested: dict[str, Any], cls: type[NetworkConfig], strict: bool = False) -> dict[str, Any]:
     """``nested`` with the old keys of its model section upgraded by ``cls`` (``NetworkConfig.upgrade_keys``)."""
     section = nested.get("model")
     if not isinstance(section, dict):
         return nested
-    return {**nested, "model": cls.upgrade_keys(section, "training config section 'model'")}
+    return {**nested, "model": cls.upgrade_keys(section, "training config section 'model'", strict)}
 
 
 def _build_section(name: str, values: dict[str, Any]) -> Any:
