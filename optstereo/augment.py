@@ -9,6 +9,7 @@ is wrong (that label belongs to the other view).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TypeVar
 
 import numpy as np
@@ -50,3 +51,11 @@ def flip_swap(
     if tuple(left.shape) != tuple(right.shape):
         raise ValueError(f"left/right shapes differ: {tuple(left.shape)} vs {tuple(right.shape)}")
     return _flip(right), _flip(left), _flip(label_right), _flip(label_left)
+
+
+def right_view(predict: Callable[[np.ndarray, np.ndarray], np.ndarray], left: np.ndarray,
+               right: np.ndarray) -> np.ndarray:
+    """The RIGHT view's (H, W) disparity (right(x) matches left(x + d)) of an (H, W, 3) pair: ``predict`` (any
+    left-view matcher, (left, right) -> (H, W)) on the flip-swapped pair, mirrored back."""
+    mirrored_left, mirrored_right, _, _ = flip_swap(left, right, None, None)
+    return _flip(predict(mirrored_left, mirrored_right))

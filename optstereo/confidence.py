@@ -25,6 +25,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
+from optstereo.augment import right_view
 from optstereo.cascade import photometric_costs
 from optstereo.inference import model_inference_config, pass_at_scale, run, to_batch
 from optstereo.padding import InputPadder, divisor_of
@@ -54,9 +55,7 @@ def right_view_disparity(model: nn.Module, left: Image, right: Image, device: to
                          amp: str = "none", iters: int | None = None, scale: float = 1.0) -> Map:
     """(H, W) float32 disparity of the RIGHT view (right(x) matches left(x + d)), from one network pass on the
     mirrored pair: flip both images left-right and swap them, so the right view becomes a left view."""
-    mirrored_left, mirrored_right = np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1])
-    mirrored = pass_at_scale(model, mirrored_left, mirrored_right, scale, None, iters, device, amp)
-    return np.ascontiguousarray(mirrored[:, ::-1])
+    return right_view(lambda l, r: pass_at_scale(model, l, r, scale, None, iters, device, amp), left, right)
 
 
 def lr_difference(disp_left: Map, disp_right: Map) -> Map:

@@ -26,6 +26,7 @@ import numpy.typing as npt
 from torch import nn
 from tqdm import tqdm
 
+from optstereo.augment import right_view
 from optstereo.inference import infer
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.datasets import load_pair
@@ -48,10 +49,10 @@ def teacher_views(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDAr
     """(left-view, right-view) (H, W) float32 disparities of an (H, W, 3) uint8 pair by ``infer`` with the model's
     own settings; the right view's is the mirrored, swapped pair's left view, mirrored back (right(x) matches
     left(x + d))."""
-    disp_left = infer(model, left, right, device=device, amp=amp)
-    mirrored = infer(model, np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]),
-                     device=device, amp=amp)
-    return disp_left, np.ascontiguousarray(mirrored[:, ::-1])
+    def teacher(a: npt.NDArray[np.uint8], b: npt.NDArray[np.uint8]) -> npt.NDArray[np.float32]:
+        return infer(model, a, b, device=device, amp=amp)
+
+    return teacher(left, right), right_view(teacher, left, right)
 
 
 def consistent_views(disp_left: npt.NDArray[np.float32], disp_right: npt.NDArray[np.float32],
@@ -60,7 +61,8 @@ def consistent_views(disp_left: npt.NDArray[np.float32], disp_right: npt.NDArray
 
     The labeler's rule (``pvm_labeler.voting.lr_check``) on dense maps, vectorised: a left pixel x with disparity d
     reads the right view at the rounded column floor(x - d + 0.5), a right pixel at floor(x + d + 0.5); off the image
-    or non-finite = inconsistent.
+    or non-finite = inconsistent. A NumPy copy, not the labeler's numba function: the trainer reaches the labeler
+    only through its base, the shard schema and the post-filter (docs/architecture.md); a test holds them equal.
     """
     if disp_left.ndim != 2 or disp_left.shape != disp_right.shape:
         raise ValueError(f"views must be (H, W) of one shape, got {disp_left.shape} and {disp_right.shape}")
