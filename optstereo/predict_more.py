@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from optstereo.choices import CONF_FORMATS
 from optstereo.confidence import confidence_of, write_confidence
-from optstereo.inference import infer
+from optstereo.inference import model_inference_config, run
 from optstereo.outputs import write_disparity
 from optstereo.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next
 from pvm_labeler.common.datasets import discover
@@ -80,9 +80,11 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
         if more.sequence:
             disp = infer_next(model, left, right, state, iters=iters, sequence_iters=more.sequence_iters,
                               device=device, amp=amp, scale=scale, refine=refine)
+            used_scale = state.scale
         else:
-            disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale, refine=refine)
-        conf = _confidence(model, left, right, disp, more, formats, device, amp)
+            result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
+            disp, used_scale = result.disparity, result.input_scale
+        conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale)
         logger.info("%s: %.2f s", name, time.perf_counter() - t0)
         written.append(_write(out_dir, name, disp, conf, more, formats, kitti_layout))
     return written
@@ -90,10 +92,12 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
 
 def _confidence(model: nn.Module, left: np.ndarray, right: np.ndarray, disp: npt.NDArray[np.float32],
                 more: MoreOptions, formats: tuple[str, ...], device: torch.device | str,
-                amp: str) -> npt.NDArray[np.float32] | None:
+                amp: str, scale: float) -> npt.NDArray[np.float32] | None:
+    """The disparity's confidence when a format or --min-confidence asks for it; the LR pass runs at ``scale``, the
+    input scale of the pass that made ``disp`` (as ``confidence.infer_with_confidence`` does)."""
     if more.min_confidence <= 0 and not any(f in CONF_FORMATS for f in formats):
         return None
-    return confidence_of(model, left, right, disp, device=device, amp=amp)
+    return confidence_of(model, left, right, disp, device=device, amp=amp, scale=scale)
 
 
 def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,

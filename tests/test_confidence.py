@@ -119,6 +119,26 @@ def test_predict_cli_conf_formats_and_min_confidence(tmp_path: Path) -> None:
     assert np.all(np.isnan(semi[~keep])) and 0 < keep.mean() < 1
 
 
+
+def test_predict_cli_confidence_pass_runs_at_the_disparity_pass_scale(tmp_path: Path) -> None:
+    """With --scale 1.5 the mirrored LR pass of the written confidence runs at 1.5 too: the files equal
+    infer_with_confidence's (it ran at 1 before, against a disparity made at 1.5)."""
+    from optstereo.checkpoint import build_model_from_checkpoint, save_checkpoint
+    from optstereo.cli import predict_main
+
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+    left, right = _pair(2, (64, 128))
+    write_image(tmp_path / "l.png", left)
+    write_image(tmp_path / "r.png", right)
+    res = CliRunner().invoke(predict_main, ["--checkpoint", str(ckpt), str(tmp_path / "l.png"), str(tmp_path / "r.png"),
+                                            "--device", "cpu", "--refine", "none", "--scale", "1.5", "--quiet",
+                                            "--format", "npy", "--format", "conf-npy", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    disp, conf = infer_with_confidence(build_model_from_checkpoint(ckpt), left, right, scale=1.5, refine="none")
+    np.testing.assert_allclose(np.load(tmp_path / "o" / "l.npy"), disp, atol=1e-4)
+    np.testing.assert_allclose(np.load(tmp_path / "o" / "l_conf.npy"), conf, atol=1e-4)
+
 def test_api_predict_with_confidence() -> None:
     from optstereo.api import predict
 
