@@ -39,6 +39,7 @@ from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig
 from optstereo.training.loop import main
+from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.shards import ShardRecord, open_shard, read_index, read_sample, write_shard_dir
 
 logger = logging.getLogger(__name__)
@@ -182,8 +183,8 @@ def score(checkpoint: str | Path, labels: Path, masks: dict[str, npt.NDArray[np.
     when the shards hold GT, GT EPE / bad-3; pooled over every pixel of every frame."""
     model = load_model(checkpoint, device)
     dev = next(model.parameters()).device
-    sums = {"held_abs": 0.0, "held_bad": 0, "held_n": 0, "photo": 0.0, "photo_n": 0, "gt_abs": 0.0, "gt_bad": 0,
-            "gt_n": 0}
+    held_acc, gt_acc = MetricAccumulator(), MetricAccumulator()
+    photo_sum, photo_n = 0.0, 0
     index = read_index(labels)
     bar = tqdm(total=index.num_samples, desc=f"score {what}".strip(), unit="pair", disable=quiet)
     for path, ids in index.shards:
@@ -191,27 +192,20 @@ def score(checkpoint: str | Path, labels: Path, masks: dict[str, npt.NDArray[np.
             for frame_id in ids:
                 s = read_sample(h5, frame_id)
                 disp = infer(model, s.left, s.right, device=dev)
-                held = masks[frame_id]
-                err = np.abs(disp - s.label)[held]
-                sums["held_abs"] += float(err.sum())
-                sums["held_bad"] += int((err > 3).sum())
-                sums["held_n"] += int(err.size)
+                held_acc.update(disp, s.label, masks[frame_id])
                 cost = photometric_costs(s.left, s.right, [disp], window=1)[0]
-                sums["photo"] += float(cost.sum())
-                sums["photo_n"] += int(cost.size)
+                photo_sum, photo_n = photo_sum + float(cost.sum()), photo_n + int(cost.size)
                 if s.gt is not None and np.isfinite(s.gt).any():
-                    gerr = np.abs(disp - s.gt)[np.isfinite(s.gt)]
-                    sums["gt_abs"] += float(gerr.sum())
-                    sums["gt_bad"] += int((gerr > 3).sum())
-                    sums["gt_n"] += int(gerr.size)
+                    gt_acc.update(disp, s.gt)
                 bar.update()
     bar.close()
-    held_n = max(sums["held_n"], 1)
-    out = {"held_epe": sums["held_abs"] / held_n, "held_bad3": 100 * sums["held_bad"] / held_n,
-           "held_pixels": sums["held_n"], "photometric": sums["photo"] / max(sums["photo_n"], 1)}
-    if sums["gt_n"]:
-        out.update(gt_epe=sums["gt_abs"] / sums["gt_n"], gt_bad3=100 * sums["gt_bad"] / sums["gt_n"],
-                   gt_pixels=sums["gt_n"])
+    held = held_acc.compute()
+    out = {"held_epe": held["epe"] if held_acc.n_covered else 0.0,
+           "held_bad3": held["bad3"] if held_acc.n_covered else 0.0,
+           "held_pixels": held_acc.n_covered, "photometric": photo_sum / max(photo_n, 1)}
+    if gt_acc.n_covered:
+        gt = gt_acc.compute()
+        out.update(gt_epe=gt["epe"], gt_bad3=gt["bad3"], gt_pixels=gt_acc.n_covered)
     return out
 
 
