@@ -32,9 +32,9 @@ import numpy.typing as npt
 from tqdm import tqdm
 
 from optstereo.api import load_model
-from optstereo.cascade import photometric_costs
 from optstereo.checkpoint import load_checkpoint
-from optstereo.inference import infer
+from optstereo.inference.cascade import photometric_costs
+from optstereo.inference.engine import infer
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig

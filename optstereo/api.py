@@ -19,9 +19,9 @@ import torch
 from torch import nn
 
 from optstereo.checkpoint import build_model_from_checkpoint
-from optstereo.confidence import infer_with_confidence
 from optstereo.distributed import resolve_device
-from optstereo.inference import infer
+from optstereo.inference.confidence import infer_with_confidence
+from optstereo.inference.engine import infer
 from optstereo.pretrained import resolve_checkpoint_spec
 
 Image = npt.NDArray[np.uint8]
@@ -62,9 +62,9 @@ def predict(
         amp: ``none``, ``bf16`` or ``fp16`` (CUDA).
         scale: run the network on both images resized by this factor (e.g. 0.5 for a large Middlebury pair); the
             disparity comes back at the input's size, in its pixels. None = the model's own
-            (``model.inference_config``, the InferenceConfig its checkpoint records: optstereo.inference.run).
-        confidence: also return each map's confidence in [0, 1] (``optstereo.confidence``: photometric x LR, one
-            more network pass).
+            (``model.inference_config``, the InferenceConfig its checkpoint records: optstereo.inference.engine.run).
+        confidence: also return each map's confidence in [0, 1] (``optstereo.inference.confidence``: photometric x LR,
+            one more network pass).
 
     Returns:
         (H, W) float32, or a list of them for a list of pairs (each at its own size); with ``confidence`` a

@@ -9,7 +9,7 @@ A training checkpoint (``.pt``/``.pth``/``.ckpt``) is a dict of tensors and plai
 
 It is loaded with ``torch.load(weights_only=True)``, which refuses pickled classes/functions. A weights-only export
 ``.safetensors`` stores the model state dict with the model name/config and the inference settings
-(``inference_config``, ``optstereo.inference_config.InferenceConfig``) as JSON metadata. Files written before that
+(``inference_config``, ``optstereo.inference.config.InferenceConfig``) as JSON metadata. Files written before that
 key existed kept those settings inside ``model_config`` (``input_scale``, ``refine``, ...): loading moves them to
 ``LoadedCheckpoint.inference_config`` (``optstereo.models.config.split_legacy_model_dict``).
 
@@ -33,7 +33,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 from torch import nn
 
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
 from optstereo.models import build_model, upgrade_model_keys
 from optstereo.models.config import split_legacy_model_dict
 from optstereo.version import __version__
@@ -285,7 +285,8 @@ def build_model_from_checkpoint(
     """Rebuild the registry model recorded in a checkpoint, load its weights, move to device, eval mode.
 
     ``overrides`` are fields of the model's config class (e.g. ``iters``). The model carries the file's inference
-    settings as ``model.inference_config`` (an InferenceConfig), which ``optstereo.inference.run`` uses by default.
+    settings as ``model.inference_config`` (an InferenceConfig), which ``optstereo.inference.engine.run`` uses by
+    default.
     """
     if not isinstance(ckpt, LoadedCheckpoint):
         ckpt = load_checkpoint(ckpt)

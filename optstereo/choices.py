@@ -23,7 +23,7 @@ AMP_MODES: tuple[str, ...] = get_args(AmpMode)
 #: Where a command runs; "auto" = cuda when available.
 Device = Literal["auto", "cpu", "cuda"]
 DEVICES: tuple[str, ...] = get_args(Device)
-#: Post-filters ``optstereo.inference.run`` can apply to the disparity at the input's size ("wmedian":
+#: Post-filters ``optstereo.inference.engine.run`` can apply to the disparity at the input's size ("wmedian":
 #: ``pvm_labeler.refine``).
 Refiner = Literal["none", "wmedian"]
 REFINERS: tuple[str, ...] = get_args(Refiner)
@@ -49,13 +49,13 @@ Schedule = Literal["constant", "onecycle"]
 SCHEDULES: tuple[str, ...] = get_args(Schedule)
 
 # -- output files (optstereo-predict --format) -----------------------------------------------------------------
-#: Disparity files (``optstereo.outputs.write_disparity``).
+#: Disparity files (``optstereo.inference.outputs.write_disparity``).
 DisparityFormat = Literal["png", "pfm", "npy", "color"]
 DISPARITY_FORMATS: tuple[str, ...] = get_args(DisparityFormat)
 #: Depth and point clouds; they need a calibration (``optstereo.geometry``).
 GeometryFormat = Literal["depth-png", "depth-pfm", "depth-npy", "ply"]
 GEOMETRY_FORMATS: tuple[str, ...] = get_args(GeometryFormat)
-#: Confidence maps (``optstereo.predict_more``).
+#: Confidence maps (``optstereo.inference.predict_more``).
 ConfFormat = Literal["conf-png", "conf-npy"]
 CONF_FORMATS: tuple[str, ...] = get_args(ConfFormat)
 #: Every value of optstereo-predict's --format.

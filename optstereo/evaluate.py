@@ -33,8 +33,8 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from optstereo.inference import model_inference_config, run
-from optstereo.outputs import colorize
+from optstereo.inference.engine import model_inference_config, run
+from optstereo.inference.outputs import colorize
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.io import write_image
@@ -57,7 +57,7 @@ class Frame:
     gt_noc: npt.NDArray[np.float32] | None = None
     left: npt.NDArray[np.uint8] | None = None
     seconds: float = math.nan
-    input_scale: float = math.nan  # a network's final pass (optstereo.inference.run); NaN for labels
+    input_scale: float = math.nan  # a network's final pass (optstereo.inference.engine.run); NaN for labels
 
 
 @dataclass

@@ -3,7 +3,7 @@
 The exported graph is the test-mode network: N_s GRU iterations unrolled, the final full-resolution disparity out.
 
     inputs   left, right: (1, 3, H, W) float32 in [0, 255], RGB; H and W multiples of 8 (dynamic). Padding to a
-             multiple of 8 stays OUTSIDE the graph: :func:`infer_onnx` pads like ``optstereo.inference.infer``
+             multiple of 8 stays OUTSIDE the graph: :func:`infer_onnx` pads like ``optstereo.inference.engine.infer``
              (replicate padding, then crops the output back). ``batch=True`` exports a dynamic batch (B, 3, H, W)
              instead, at some speed: the default graph runs the feature encoder and the upsampler one image per
              call, as eager torch does on CPU, which makes onnxruntime ~10 % faster at KITTI size (`make bench`).
@@ -12,12 +12,13 @@ The exported graph is the test-mode network: N_s GRU iterations unrolled, the fi
 ONNX: torch's dynamo exporter at opset 18 (``optimize=False``: the graph optimiser of onnxscript 0.7 fails on this
 graph; onnxruntime optimises it at load time anyway). TorchScript: ``torch.jit.trace`` of the same wrapper. The ONNX
 file's metadata records the model's InferenceConfig (key ``inference_config``, JSON), and :func:`infer_onnx` runs
-the graph through ``optstereo.inference.run`` with it, the same sequence as the torch model's (resize, pad, passes,
+the graph through ``optstereo.inference.engine.run`` with it, the same sequence as the torch model's (resize, pad,
+passes,
 unpad, resize back, post-filter); files written before that key read the old per-key metadata (``input_scale``,
 ``refine``, ``scale_ref_disp``/``scale_ref_pixels``, ``cascade_select``/``cascade_select_jump``). A TorchScript file
 carries none of it: its caller runs the model's settings itself. A model with ``InferenceConfig.coarse_start``
 exports a graph with a third input, ``start`` (1, 1, H, W): a full-resolution disparity of the padded pair, zeros
-for the zero start, which the graph averages onto the 1/8 grid (``optstereo.cascade.grid_start``).
+for the zero start, which the graph averages onto the 1/8 grid (``optstereo.inference.cascade.grid_start``).
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -56,11 +57,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.cascade import grid_start
 from optstereo.checkpoint import model_inference
 from optstereo.choices import EXPORT_FORMATS as FORMATS
-from optstereo.inference import check_refine, run
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.cascade import grid_start
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import check_refine, run
 from pvm_labeler.common.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
@@ -71,7 +72,7 @@ OPSET = 18
 class InferenceGraph(nn.Module):
     """(left, right) -> full-resolution disparity of the last of ``iters`` GRU iterations (test mode); with a third
     input ``start`` (1, 1, H, W), a full-resolution disparity of the pair (zeros = the zero start), the GRU starts
-    from it averaged onto the 1/8 grid (a model with ``InferenceConfig.coarse_start``, optstereo.cascade)."""
+    from it averaged onto the 1/8 grid (a model with ``InferenceConfig.coarse_start``, optstereo.inference.cascade)."""
 
     def __init__(self, model: nn.Module, iters: int | None = None) -> None:
         super().__init__()
@@ -146,7 +147,8 @@ def onnx_session(path: Path | str, threads: int = 0):
 
 def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
                scale: float | None = None, refine: str | None = None) -> npt.NDArray[np.float32]:
-    """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session, by ``optstereo.inference.run``
+    """(H, W, 3) uint8 pair -> (H, W) float32 disparity through an onnxruntime session, by
+    ``optstereo.inference.engine.run``
     with the InferenceConfig the file records (:func:`onnx_inference_config`); ``scale``/``refine`` override it as
     ``infer``'s do (a given scale is final)."""
     if left.shape != right.shape:
@@ -177,7 +179,8 @@ def onnx_inference_config(session) -> InferenceConfig:
 
 
 class OnnxNetwork(nn.Module):
-    """An onnxruntime session with the model's forward contract, so that ``optstereo.inference.run`` runs it as it
+    """An onnxruntime session with the model's forward contract, so that ``optstereo.inference.engine.run`` runs it as
+    it
     runs the torch model: (left, right, iters, test_mode=True, disp_init) -> (None, (1, 1, H, W) disparity).
 
     ``iters`` is the graph's own (fixed at export). ``disp_init`` (1, 1, H/8, W/8) in 1/8-grid pixels reaches a
@@ -185,7 +188,7 @@ class OnnxNetwork(nn.Module):
     repeated), which the graph averages back onto the grid; a graph without one refuses it.
     """
 
-    divisor = 8  # the exported OptStereo's multiple (optstereo.padding.divisor_of)
+    divisor = 8  # the exported OptStereo's multiple (optstereo.inference.padding.divisor_of)
 
     def __init__(self, session) -> None:
         super().__init__()

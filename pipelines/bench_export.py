@@ -24,7 +24,7 @@ import torch
 
 from optstereo.api import load_model
 from optstereo.export import export, infer_onnx, onnx_session
-from optstereo.inference import infer, model_inference_config
+from optstereo.inference.engine import infer, model_inference_config
 from pvm_labeler.common.io import read_image
 
 THREADS = 2

@@ -1,6 +1,7 @@
 """`make bench` section "models": each shipped model's seconds per KITTI frame against OpenCV's SGBM, same run.
 
-For every shipped name (``optstereo.pretrained.SHIPPED``) the end-to-end ``optstereo.inference.infer`` of the model
+For every shipped name (``optstereo.pretrained.SHIPPED``) the end-to-end ``optstereo.inference.engine.infer`` of the
+model
 with its own settings (resize, passes, post-filter; float32, 2 threads, model loaded once), timed on the same
 KITTI 2015 frames as OpenCV StereoSGBM (MODE_HH, 192 disparities, blockSize 5: the labeler bench's baseline), the
 two alternating frame by frame so that load on a shared machine hits both alike. The ratio is the median over frames
@@ -24,7 +25,7 @@ import numpy as np
 import torch
 
 from optstereo.api import load_model
-from optstereo.inference import infer
+from optstereo.inference.engine import infer
 from optstereo.pretrained import SHIPPED
 from pipelines.bench_labeler import _opencv
 from pvm_labeler.common.io import read_image

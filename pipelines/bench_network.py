@@ -33,9 +33,9 @@ from typing import Any
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from optstereo.inference import cpu_has_native_bf16
-from optstereo.losses import PVStereoLoss
+from optstereo.inference.engine import cpu_has_native_bf16
 from optstereo.models import build_model
+from optstereo.training.losses import PVStereoLoss
 
 log = logging.getLogger(__name__)
 

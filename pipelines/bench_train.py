@@ -26,9 +26,9 @@ import torch
 
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform
-from optstereo.inference import infer
-from optstereo.losses import PVStereoLoss
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
+from optstereo.training.losses import PVStereoLoss
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.parallel import peak_rss_mb
 from pvm_labeler.shards import ShardRecord, write_shard_dir

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import skimage
 
-from optstereo.inference import cpu_has_native_bf16
+from optstereo.inference.engine import cpu_has_native_bf16
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.metrics import disparity_metrics
 from pvm_labeler.shards import open_shard, read_index, read_sample

@@ -187,7 +187,7 @@ def kitti_crop(shared_data: Path, h: int, w: int) -> tuple[np.ndarray, np.ndarra
 def overfit_epe(model: torch.nn.Module, left: torch.Tensor, right: torch.Tensor, label: torch.Tensor, steps: int,
                 lr: float) -> tuple[float, float]:
     """Adam on L_P alone (gamma 0.8) over one pair; (EPE before, EPE after) on the finite label pixels."""
-    from optstereo.losses import sequence_huber_loss
+    from optstereo.training.losses import sequence_huber_loss
 
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     valid = torch.isfinite(label)

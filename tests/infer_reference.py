@@ -1,6 +1,8 @@
 """The inference path as it was before ``InferenceConfig`` (optstereo 0.1.0 up to issue 42), kept as a reference:
-``optstereo.inference.run`` must give the same disparities for the sequences it kept, and the coarse start's change
-(the training's ``optstereo.cascade.coarse_start`` on the resized, padded pair instead of a second resize of the
+``optstereo.inference.engine.run`` must give the same disparities for the sequences it kept, and the coarse start's
+change
+(the training's ``optstereo.inference.cascade.coarse_start`` on the resized, padded pair instead of a second resize of
+the
 input to half the scale) is measured against it. Copied from the old ``rescale.scaled_passes`` and
 ``inference._network``; not used by the product."""
 
@@ -10,10 +12,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from optstereo.cascade import grid_start, jump_limit, photometric_select
-from optstereo.inference import apply_refine, to_batch
-from optstereo.padding import InputPadder, divisor_of
-from optstereo.rescale import adaptive_factor, disparity_to_size, rescaled_pair
+from optstereo.inference.cascade import grid_start, jump_limit, photometric_select
+from optstereo.inference.engine import apply_refine, to_batch
+from optstereo.inference.padding import InputPadder, divisor_of
+from optstereo.inference.rescale import adaptive_factor, disparity_to_size, rescaled_pair
 
 
 @torch.inference_mode()

@@ -1,4 +1,5 @@
-"""The disparity-adaptive input scale: the rule by hand (optstereo.rescale.adaptive_factor), the second pass of
+"""The disparity-adaptive input scale: the rule by hand (optstereo.inference.rescale.adaptive_factor), the second pass
+of
 ``run`` with a fake network whose output is known, the InferenceConfig, the checkpoint and the ONNX file."""
 
 from __future__ import annotations
@@ -12,10 +13,10 @@ import pytest
 import torch
 from conftest import TINY, Echo, kitti_crop
 
-from optstereo.inference import infer, model_inference_config, run
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer, model_inference_config, run
+from optstereo.inference.rescale import ADAPTIVE_MIN_GAIN, ADAPTIVE_PERCENTILE, adaptive_factor
 from optstereo.models import build_model
-from optstereo.rescale import ADAPTIVE_MIN_GAIN, ADAPTIVE_PERCENTILE, adaptive_factor
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -1,4 +1,5 @@
-"""Transformation self-supervision (optstereo.analogy): identity, exact spatial maps, occluders, reliability, no
+"""Transformation self-supervision (optstereo.training.analogy): identity, exact spatial maps, occluders, reliability,
+no
 gradient into the target, and its place in a training step."""
 
 from __future__ import annotations
@@ -10,7 +11,8 @@ import pytest
 import torch
 from conftest import make_shards, tiny_config
 
-from optstereo.analogy import (
+from optstereo.training import loop
+from optstereo.training.analogy import (
     AnalogyConfig,
     SpatialParams,
     analogy_loss,
@@ -21,7 +23,6 @@ from optstereo.analogy import (
     reliable_mask,
     transform_batch,
 )
-from optstereo.training import loop
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from optstereo.augment import flip_swap
-from optstereo.losses import warp_right_to_left
+from optstereo.training.augment import flip_swap
+from optstereo.training.losses import warp_right_to_left
 
 NAN = np.float32(np.nan)
 

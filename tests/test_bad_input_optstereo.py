@@ -103,7 +103,7 @@ class TestPredictInputs:
         def decode(path: Path) -> None:
             raise ValueError(f"{path} decoded")
 
-        monkeypatch.setattr("optstereo.outputs.read_image", decode)
+        monkeypatch.setattr("optstereo.inference.outputs.read_image", decode)
         result = predict(ckpt, *pair, tmp_path / "o")
         assert result.exit_code == 1 and "l.png: a 32 x 64 pair" in result.output
         assert f"needs about {need / 1e9:.1f} GB of RAM" in result.output and "--scale 0.7" in result.output

@@ -1,4 +1,5 @@
-"""The coarse-to-fine start (optstereo.cascade): grid units by hand, the model's disp_init, the trainer's draw and
+"""The coarse-to-fine start (optstereo.inference.cascade): grid units by hand, the model's disp_init, the trainer's
+draw and
 infer's passes with fake networks whose outputs are known (the pass sequence itself: tests/test_inference_path.py)."""
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ import pytest
 import torch
 from conftest import TINY, Echo, StartEcho, kitti_crop
 
-from optstereo.cascade import choose, coarse_start, grid_start, half_size, jump_limit, photometric_select
-from optstereo.inference import infer
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.cascade import choose, coarse_start, grid_start, half_size, jump_limit, photometric_select
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -83,7 +84,8 @@ class TestModel:
 
 
 def test_infer_cascade_follows_the_units() -> None:
-    # input scale 1: the coarse pass (optstereo.cascade.coarse_start on the padded pair at half size) answers red R
+    # input scale 1: the coarse pass (optstereo.inference.cascade.coarse_start on the padded pair at half size) answers
+    # red R
     # in half-size px = 2R px of the pair; the final pass starts from that and StartEcho hands the start back: 2R,
     # where the zero start answers R (hand-computed)
     left = np.full((32, 64, 3), 12, np.uint8)

@@ -1,4 +1,5 @@
-"""optstereo.confidence: range and shape on a tiny model, the LR difference and the sparsification curve by hand,
+"""optstereo.inference.confidence: range and shape on a tiny model, the LR difference and the sparsification curve by
+hand,
 the files and the CLI's conf formats / --min-confidence."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import torch
 from click.testing import CliRunner
 from conftest import TINY
 
-from optstereo.confidence import (
+from optstereo.inference.confidence import (
     METHODS,
     confidence_of,
     curve_area,
@@ -22,8 +23,8 @@ from optstereo.confidence import (
     sparsification,
     write_confidence,
 )
-from optstereo.inference import infer
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
 from pvm_labeler.common.io import write_image
 

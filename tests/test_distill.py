@@ -1,4 +1,5 @@
-"""optstereo.distill: the teacher's two views, their left-right check, the fills of PVM's holes, the CLI end to end."""
+"""optstereo.training.distill: the teacher's two views, their left-right check, the fills of PVM's holes, the CLI end
+to end."""
 
 from __future__ import annotations
 
@@ -10,10 +11,10 @@ import torch
 from click.testing import CliRunner
 from conftest import TINY, make_shards
 
-from optstereo import distill
 from optstereo.checkpoint import export_safetensors
-from optstereo.inference import infer
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
+from optstereo.training import distill
 from pvm_labeler.common.io import write_image
 from pvm_labeler.shards import open_shard, read_index, read_sample
 from pvm_labeler.voting import lr_check

@@ -13,14 +13,14 @@ import torch
 from click.testing import CliRunner
 from conftest import TINY, Echo, make_shards
 
-from optstereo import inference as predict_mod
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
 from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
-from optstereo.inference import infer, model_inference_config, warn_if_emulated_bf16
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference import engine as predict_mod
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer, model_inference_config, warn_if_emulated_bf16
+from optstereo.inference.outputs import write_disparity
 from optstereo.models import build_model
-from optstereo.outputs import write_disparity
 from pvm_labeler.common.io import read_image, read_kitti_disp, read_pfm, write_image
 from pvm_labeler.common.metrics import disparity_metrics
 
@@ -165,7 +165,7 @@ class TestPredict:
     def test_bf16_emulation_warning(self, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
         monkeypatch.setattr(predict_mod, "cpu_has_native_bf16", lambda: False)
         monkeypatch.setattr(predict_mod, "_bf16_warned", False)
-        with caplog.at_level("WARNING", logger="optstereo.inference"):
+        with caplog.at_level("WARNING", logger="optstereo.inference.engine"):
             warn_if_emulated_bf16("none", torch.device("cpu"))
             assert not caplog.records
             warn_if_emulated_bf16("bf16", torch.device("cpu"))
@@ -178,7 +178,7 @@ class TestPredict:
         assert not caplog.records
 
     def test_native_bf16_from_cpuinfo_flags(self) -> None:
-        from optstereo.inference import NATIVE_BF16_FLAGS
+        from optstereo.inference.engine import NATIVE_BF16_FLAGS
         from pvm_labeler.common.version import cpuinfo_flags
 
         def native(text: str) -> bool:

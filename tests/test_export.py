@@ -12,8 +12,8 @@ from conftest import TINY, kitti_crop
 
 from optstereo.checkpoint import export_safetensors
 from optstereo.cli import export_main, predict_main
-from optstereo.inference import infer
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
 from pvm_labeler.common.io import read_image
 
@@ -146,7 +146,7 @@ def test_shipped_model_onnx_at_kitti_size(tmp_path: Path, shared_data: Path, nam
     2026-11-27), so there the end-to-end bar is mean <= 0.01 px and at most 1 pixel in 2000 beyond 0.1 px."""
     from optstereo.api import load_model
     from optstereo.export import OnnxNetwork, export, infer_onnx, onnx_session
-    from optstereo.inference import run
+    from optstereo.inference.engine import run
 
     model = load_model(name)
     session = onnx_session(export(model, tmp_path / "model.onnx"))

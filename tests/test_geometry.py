@@ -156,7 +156,7 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
                  sorted(zf.namelist())]
     assert sizes == [(375, 1242), (370, 1224)]
     (tmp_path / "pred/disp_0/000002_10.png").unlink()
-    from optstereo.outputs import write_submission
+    from optstereo.inference.outputs import write_submission
     from pvm_labeler.common.datasets import discover
 
     with pytest.raises(ValueError, match="000002_10 missing"):

@@ -14,10 +14,10 @@ import pytest
 import torch
 from conftest import TINY, make_shards, tiny_config
 
-from optstereo.analogy import AnalogyConfig, transform_batch
-from optstereo.inference import infer
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
 from optstereo.training import loop
+from optstereo.training.analogy import AnalogyConfig, transform_batch
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]

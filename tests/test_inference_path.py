@@ -1,5 +1,6 @@
 """The one inference path (issue 42, part 4): InferenceConfig, the legacy split, the shipped file's settings, the
-pass sequence of ``optstereo.inference.run`` with a counting fake network, the old path's outputs kept, the trainer's
+pass sequence of ``optstereo.inference.engine.run`` with a counting fake network, the old path's outputs kept, the
+trainer's
 ``inference`` section and the ONNX metadata."""
 
 from __future__ import annotations
@@ -15,8 +16,8 @@ from click.testing import CliRunner
 from conftest import TINY, kitti_crop
 from infer_reference import old_infer
 
-from optstereo.inference import infer, model_inference_config, run
-from optstereo.inference_config import REFINERS, InferenceConfig
+from optstereo.inference.config import REFINERS, InferenceConfig
+from optstereo.inference.engine import infer, model_inference_config, run
 from optstereo.models import build_model
 from optstereo.models.config import ModelConfig, split_legacy_model_dict
 from pvm_labeler.common.errors import ConfigError
@@ -221,12 +222,13 @@ def test_same_outputs_as_the_old_path(shared_data: Path, changes: dict) -> None:
 
 
 def test_the_coarse_start_is_the_trainings(shared_data: Path) -> None:
-    # the coarse-started pass is the network started from optstereo.cascade.coarse_start of the resized, padded
+    # the coarse-started pass is the network started from optstereo.inference.cascade.coarse_start of the resized,
+    # padded
     # pair (the training's function), then resized back: computed here step by step
-    from optstereo.cascade import coarse_start
-    from optstereo.inference import to_batch
-    from optstereo.padding import InputPadder
-    from optstereo.rescale import disparity_to_size, rescaled_pair
+    from optstereo.inference.cascade import coarse_start
+    from optstereo.inference.engine import to_batch
+    from optstereo.inference.padding import InputPadder
+    from optstereo.inference.rescale import disparity_to_size, rescaled_pair
 
     torch.manual_seed(0)
     model = build_model("optstereo", **TINY, iters=2).eval()

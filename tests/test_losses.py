@@ -7,7 +7,7 @@ import pytest
 import torch
 from conftest import make_synthetic_pair
 
-from optstereo.losses import (
+from optstereo.training.losses import (
     PVStereoLoss,
     huber,
     photometric_error,
@@ -186,7 +186,7 @@ class TestSmoothness:
         warped = left.clone()
         warped[:, 0] += 0.3
         warped[:, 2] += 0.1  # per-pixel differences 0.3, 0, 0.1: L1 norm 0.4, channel mean 0.4 / 3
-        from optstereo.losses import ssim
+        from optstereo.training.losses import ssim
 
         dssim = ((1.0 - ssim(left, warped)) / 2.0).clamp(0, 1).mean(dim=1, keepdim=True)
         l1 = photometric_error(left, warped, alpha=0.85) - 0.85 * dssim
@@ -305,7 +305,7 @@ class TestPVStereoLoss:
 
 def test_confidence_weighted_sequence_loss_hand_computed() -> None:
     """Weighted L_P = sum(w * huber) / sum(w) over labelled pixels: two pixels with errors 2 and 0.5."""
-    from optstereo.losses import sequence_huber_loss
+    from optstereo.training.losses import sequence_huber_loss
 
     pred = torch.tensor([[[[3.0, 1.5, 9.0]]]])
     label = torch.tensor([[[[1.0, 1.0, float("nan")]]]])

@@ -27,7 +27,8 @@ from optstereo.checkpoint import (
     save_checkpoint,
 )
 from optstereo.cli import eval_main, export_main, predict_main, train_main
-from optstereo.inference import infer
+from optstereo.inference.engine import infer
+from optstereo.inference.padding import InputPadder, divisor_of
 from optstereo.models import HITNet, HITNetConfig, ModelConfig, build_from_config, build_model, list_models
 from optstereo.models.tiles import (
     HYP_DIM,
@@ -39,7 +40,6 @@ from optstereo.models.tiles import (
     tile_costs,
     upsample_hypotheses,
 )
-from optstereo.padding import InputPadder, divisor_of
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig
 from pvm_labeler.common.errors import ConfigError

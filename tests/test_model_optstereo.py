@@ -7,9 +7,9 @@ import pytest
 import torch
 from conftest import TINY, make_synthetic_pair, overfit_epe
 
+from optstereo.inference.padding import InputPadder
 from optstereo.models import OptStereo, build_from_config, build_model, list_models, register_model
 from optstereo.models.config import ModelConfig
-from optstereo.padding import InputPadder
 
 # Small widths for wiring tests; the paper's C = 256 is used where the test is about shapes.
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from optstereo.padding import InputPadder
+from optstereo.inference.padding import InputPadder
 
 
 class TestInputPadder:

@@ -84,7 +84,7 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
     """cpu_rows: the ratio is the median of per-frame (model / SGBM) times; a model of several passes is timed once."""
     import itertools
 
-    from optstereo.inference_config import InferenceConfig
+    from optstereo.inference.config import InferenceConfig
     from pipelines import bench_models
 
     clock = itertools.count()
@@ -99,7 +99,7 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
         calls.append(f"{name}:{repeats}")
         return 2.0 if name == "sgbm" else 3.0 + next(clock)
 
-    def bench_models_infer(*args: object) -> None:  # stands for optstereo.inference.infer
+    def bench_models_infer(*args: object) -> None:  # stands for optstereo.inference.engine.infer
         raise AssertionError("timed through fake_seconds only")
 
     monkeypatch.setattr(bench_models, "infer", bench_models_infer)

@@ -1,4 +1,4 @@
-"""The weighted median in torch (optstereo.refine_torch, the post-filter on a GPU): against the pixel-by-pixel
+"""The weighted median in torch (optstereo.inference.refine_torch, the post-filter on a GPU): against the pixel-by-pixel
 reference and the numba kernel, on hand-made edges, and through ``apply_refine``'s device dispatch."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import torch
 from conftest import two_regions
 from naive import naive_weighted_median
 
-from optstereo.inference import apply_refine
-from optstereo.refine_torch import weighted_median_torch
+from optstereo.inference.engine import apply_refine
+from optstereo.inference.refine_torch import weighted_median_torch
 from pvm_labeler.refine import MedianParams, weighted_median
 
 

@@ -1,4 +1,4 @@
-"""Resizing a pair and its disparities by one factor (optstereo.rescale): inference --scale and the training's
+"""Resizing a pair and its disparities by one factor (optstereo.inference.rescale): inference --scale and the training's
 spatial scale augmentation --scale-range. Hand-computed maps, and a synthetic pair whose scaled label must still
 match its scaled images."""
 
@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from optstereo.cli import train_main
 from optstereo.data.transforms import TrainTransform, crop_window, rescale_sample
-from optstereo.rescale import scaled_size, sparse_to_size
+from optstereo.inference.rescale import scaled_size, sparse_to_size
 from optstereo.training.config import TrainConfig
 from optstereo.training.sections import parse_scale_range
 from pvm_labeler.common.errors import ConfigError

@@ -1,4 +1,5 @@
-"""optstereo.sequence: a one-frame sequence is the plain path, later frames start from the previous answer, and
+"""optstereo.inference.sequence: a one-frame sequence is the plain path, later frames start from the previous answer,
+and
 the temporal-change measure on hand-made frames."""
 
 from __future__ import annotations
@@ -8,10 +9,10 @@ import pytest
 import torch
 from conftest import TINY, StartEcho
 
-from optstereo.inference import infer
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer
+from optstereo.inference.sequence import SequenceState, infer_next, infer_sequence, temporal_change
 from optstereo.models import build_model
-from optstereo.sequence import SequenceState, infer_next, infer_sequence, temporal_change
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -14,10 +14,10 @@ import yaml
 from click.testing import CliRunner
 from conftest import TINY, make_shards, tiny_config
 
-from optstereo.analogy_config import AnalogyConfig
 from optstereo.checkpoint import load_checkpoint, save_checkpoint
 from optstereo.cli import train_main
 from optstereo.training import loop
+from optstereo.training.analogy_config import AnalogyConfig
 from optstereo.training.checkpoints import config_for_resume
 from optstereo.training.config import TrainConfig, parse_crop
 from optstereo.training.sections import FLAT_KEYS, DataConfig

@@ -1,5 +1,5 @@
 """``optstereo-distill``: ``maps`` (a teacher's two views of every pair, resumable) and ``fill`` (PVM shards + the
-teacher's left-right consistent views in their holes); the library is ``optstereo.distill``."""
+teacher's left-right consistent views in their holes); the library is ``optstereo.training.distill``."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ from pathlib import Path
 
 import click
 
-from optstereo import distill
 from optstereo.checkpoint import build_model_from_checkpoint
 from optstereo.choices import AMP_MODES
 from optstereo.cli.common import GuardedCommand
 from optstereo.pretrained import resolve_checkpoint_spec
+from optstereo.training import distill
 from pvm_labeler.common.datasets import discover
 
 
-@click.group(help="Distillation targets: a teacher's dense views where PVM has no label (optstereo.distill).")
+@click.group(help="Distillation targets: a teacher's dense views where PVM has no label (optstereo.training.distill).")
 def distill_main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 

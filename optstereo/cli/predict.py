@@ -9,13 +9,14 @@ from typing import Any
 import click
 import torch
 
-from optstereo import inference, outputs
 from optstereo.choices import GEOMETRY_FORMATS, PREDICT_FORMATS
 from optstereo.cli import common
 from optstereo.export import infer_onnx, onnx_session
 from optstereo.geometry import read_calibration
+from optstereo.inference import engine as inference
+from optstereo.inference import outputs
+from optstereo.inference.predict_more import MoreOptions, frames_of, more_options, predict_frames
 from optstereo.memory import check_fits
-from optstereo.predict_more import MoreOptions, frames_of, more_options, predict_frames
 from pvm_labeler.common.io import image_size, read_image
 
 logger = logging.getLogger(__name__)
@@ -74,7 +75,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         rig = read_calibration(calib)
     model, dev = common.load_model(checkpoint, device)
     more = MoreOptions(sequence, sequence_iters, min_confidence)
-    if more.active(formats):  # optstereo.predict_more: --sequence, confidence formats, --min-confidence
+    if more.active(formats):  # optstereo.inference.predict_more: --sequence, confidence formats, --min-confidence
         if geometry or submission is not None:
             raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
                                    "--submission outputs")

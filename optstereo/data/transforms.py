@@ -17,8 +17,8 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from optstereo.augment import flip_swap
-from optstereo.rescale import rescaled_pair, sparse_to_size
+from optstereo.inference.rescale import rescaled_pair, sparse_to_size
+from optstereo.training.augment import flip_swap
 from optstereo.training.sections import parse_scale_range
 
 logger = logging.getLogger(__name__)
@@ -73,7 +73,8 @@ def photometric_jitter(left: Image, right: Image, rng: np.random.Generator) -> t
 
 def rescale_sample(left: Image, right: Image, label: Disp, weight: Disp | None,
                    scale: float) -> tuple[Image, Image, Disp, Disp | None]:
-    """One training sample resized by ``scale`` (optstereo.rescale): the pair smoothly, the sparse label and its
+    """One training sample resized by ``scale`` (optstereo.inference.rescale): the pair smoothly, the sparse label and
+    its
     confidence by nearest neighbour, the label's disparities times the width ratio."""
     left, right = rescaled_pair(left, right, scale)
     shape = left.shape[:2]

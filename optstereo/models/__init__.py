@@ -7,7 +7,8 @@ compact HITNet, the paper's PVM-HITNet row: PVM labels train a second supervised
 ``HITNetConfig``. Each name knows its config class (``config_class``): a config section or a checkpoint's
 ``model_config`` is read into the class of its ``name``. Another network plugs in with
 ``register_model(name, builder, defaults, config_class=...)`` where ``builder(cfg)`` returns an ``nn.Module`` whose
-forward follows the OptStereo contract (and whose class ``divisor`` tells optstereo.padding how to pad its inputs).
+forward follows the OptStereo contract (and whose class ``divisor`` tells optstereo.inference.padding how to pad its
+inputs).
 """
 
 from __future__ import annotations

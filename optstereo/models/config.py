@@ -6,7 +6,7 @@ Each network has its own frozen config class with fields named for what they mea
 is built from. A config is YAML/JSON friendly: ``to_dict()`` gives plain Python values and ``from_dict()`` rejects
 unknown keys, so a checkpoint or a YAML file rebuilds exactly the same model (``optstereo.models.build_from_config``).
 The trainer composes it as the ``model`` section of its TrainConfig; this module must not import the trainer. How a
-network is run (input scale, passes, post-filter) is ``optstereo.inference_config.InferenceConfig``, not part of it.
+network is run (input scale, passes, post-filter) is ``optstereo.inference.config.InferenceConfig``, not part of it.
 """
 
 from __future__ import annotations

@@ -170,14 +170,15 @@ class HITNet(nn.Module):
     """Hierarchical iterative tile refinement, coarse to fine, with OptStereo's forward contract.
 
     forward(left, right, iters=None, test_mode=False):
-        left, right: (B, 3, H, W) float in [0, 255], H and W divisible by 8 (use optstereo.padding.InputPadder).
+        left, right: (B, 3, H, W) float in [0, 255], H and W divisible by 8 (use
+        optstereo.inference.padding.InputPadder).
         Training: a list of L - 1 + iters full-resolution disparities (B, 1, H, W), one per propagation step,
             coarse to fine (one step per coarse level, ``iters`` at the finest), positive, full-resolution pixels.
         test_mode=True: (d of the finest tiles (B, 1, H/8, W/8) in 1/8-resolution pixels, last (B, 1, H, W)),
             the same pair as OptStereo's (its finest tiles are 8 x 8 pixels).
     """
 
-    divisor: ClassVar[int] = TILE * FINEST_STRIDE  # what optstereo.padding.divisor_of reads
+    divisor: ClassVar[int] = TILE * FINEST_STRIDE  # what optstereo.inference.padding.divisor_of reads
     #: Why optstereo.export refuses this network: a traced graph would only be valid at the example's size.
     not_exportable: ClassVar[str] = (
         "HITNet's per-level cost volume clips its disparity range to the level's width (tiles.cost_volume), a Python "

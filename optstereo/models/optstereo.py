@@ -40,7 +40,8 @@ def check_stereo_pair(left: torch.Tensor, right: torch.Tensor, divisor: int) -> 
         raise ValueError(f"left/right must have 3 channels (B, 3, H, W), got {tuple(left.shape)}")
     h, w = left.shape[-2:]
     if h % divisor or w % divisor:
-        raise ValueError(f"H, W must be divisible by {divisor}, got ({h}, {w}); pad with optstereo.padding.InputPadder")
+        raise ValueError(f"H, W must be divisible by {divisor}, got ({h}, {w}); "
+                             "pad with optstereo.inference.padding.InputPadder")
 
 
 def resolve_iters(iters: int | None, default: int) -> int:
@@ -55,14 +56,15 @@ class OptStereo(nn.Module):
     """Iterative 1-D stereo network of PVStereo.
 
     forward(left, right, iters=None, test_mode=False):
-        left, right: (B, 3, H, W) float in [0, 255], H and W divisible by 8 (use optstereo.padding.InputPadder).
+        left, right: (B, 3, H, W) float in [0, 255], H and W divisible by 8 (use
+        optstereo.inference.padding.InputPadder).
         Training: returns a list of N_s full-resolution disparities D^1..D^{N_s}, each (B, 1, H, W), positive
             (left(x) matches right(x - d)), in full-resolution pixels.
         test_mode=True: returns (D_s^{N_s} (B, 1, H/8, W/8) in 1/8-resolution pixels, D^{N_s} (B, 1, H, W));
             only the last iteration is upsampled.
     """
 
-    divisor: ClassVar[int] = DIVISOR  # what optstereo.padding.divisor_of reads to pad inputs for this network
+    divisor: ClassVar[int] = DIVISOR  # what optstereo.inference.padding.divisor_of reads to pad inputs for this network
 
     def __init__(
         self,
@@ -141,7 +143,7 @@ class OptStereo(nn.Module):
         disp_init: torch.Tensor | None = None,
     ) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
         """``disp_init``: (B, 1, H/8, W/8) start D_s^0 in 1/8-grid pixels (a coarse-to-fine start,
-        optstereo.cascade), detached; None = the paper's zero start."""
+        optstereo.inference.cascade), detached; None = the paper's zero start."""
         self._check_inputs(left, right)
         iters = resolve_iters(iters, self.iters)
         image_left = normalize_image(left)

@@ -4,7 +4,7 @@ Layout (one field, one place)::
 
     model:  the network's own config, including N_s = model.iters; ``model.name`` picks its class
             (ModelConfig for OptStereo, HITNetConfig for HITNet: ``optstereo.models.config_class``)
-    inference: InferenceConfig (optstereo.inference_config: how the run's exports are run; written into them)
+    inference: InferenceConfig (optstereo.inference.config: how the run's exports are run; written into them)
     loss:   LossConfig   (L_P/L_R/L_S weights, alpha, photometric_iters, conf_weight, L_T)
     data:   DataConfig   (labels, supervision, batch, crop, augmentation, workers)
     optim:  OptimConfig  (steps, lr, schedule, clipping)
@@ -29,10 +29,10 @@ from typing import Any
 
 import yaml
 
-from optstereo.analogy_config import AnalogyConfig
 from optstereo.choices import AMP_MODES, DEVICES, AmpMode, Device
 from optstereo.models import config_class, config_classes, model_config
 from optstereo.models.config import NetworkConfig
+from optstereo.training.analogy_config import AnalogyConfig
 from optstereo.training.sections import (
     FLAT_KEYS,
     DataConfig,

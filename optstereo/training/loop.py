@@ -25,18 +25,18 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from optstereo import distributed as ddp
-from optstereo.analogy import analogy_loss, occlude_right, transform_batch
-from optstereo.cascade import coarse_start
 from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, unwrap
 from optstereo.data.stream import ShardStream
 from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.evaluate import evaluate_model
-from optstereo.inference import warn_if_emulated_bf16
-from optstereo.losses import PVStereoLoss
+from optstereo.inference.cascade import coarse_start
+from optstereo.inference.engine import warn_if_emulated_bf16
 from optstereo.models import build_from_config
+from optstereo.training.analogy import analogy_loss, occlude_right, transform_batch
 from optstereo.training.checkpoints import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
 from optstereo.training.config import TrainConfig
 from optstereo.training.log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
+from optstereo.training.losses import PVStereoLoss
 
 logger = logging.getLogger(__name__)
 
@@ -154,7 +154,8 @@ def _forward(state: TrainState, cfg: TrainConfig, device: torch.device, left: to
 
 def cascade_init(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor,
                  right: torch.Tensor) -> torch.Tensor | None:
-    """D_s^0 from a half-size pass (optstereo.cascade) with probability data.cascade_p, else None (zero start);
+    """D_s^0 from a half-size pass (optstereo.inference.cascade) with probability data.cascade_p, else None (zero
+    start);
     the draw comes from a generator seeded by (seed, step), so a resumed run repeats it."""
     p = cfg.data.cascade_p
     if p <= 0 or float(torch.rand(1, generator=_step_generator(cfg, state.step, stream=2))) >= p:
@@ -179,7 +180,7 @@ def network_right(state: TrainState, cfg: TrainConfig, left: torch.Tensor, right
 
 def analogy_term(state: TrainState, cfg: TrainConfig, device: torch.device, left: torch.Tensor, right: torch.Tensor,
                  disp0: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """lambda_t-weighted L_T of one batch (optstereo.analogy) and its logs; zero before loss.analogy_start.
+    """lambda_t-weighted L_T of one batch (optstereo.training.analogy) and its logs; zero before loss.analogy_start.
 
     The transformation draws come from a generator seeded by (seed, step), so a resumed run repeats them.
     """

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from optstereo.analogy_config import AnalogyConfig
 from optstereo.choices import (
     COLOR_NORMS,
     PHOTOMETRIC_ITERS,
@@ -33,8 +32,9 @@ from optstereo.choices import (
     SmoothnessOrder,
     Supervision,
 )
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
 from optstereo.models.config import ModelConfig, rename_keys, split_legacy_model_dict
+from optstereo.training.analogy_config import AnalogyConfig
 from pvm_labeler.common.configtools import reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
@@ -177,7 +177,7 @@ class LossConfig(_Section):
             run before issue 15 used, the shipped model included (a checkpoint without this key resumes with it).
         conf_weight: weight L_P per pixel by the shards' PVM confidence (flip-swapped samples: the right view's
             where the shards hold it, else 1).
-        lambda_t: weight of the transformation self-supervision L_T ("learning by analogy", optstereo.analogy);
+        lambda_t: weight of the transformation self-supervision L_T ("learning by analogy", optstereo.training.analogy);
             0 = off (it costs a second forward/backward per step).
         analogy_start: first step at which L_T is applied (D0 of an untrained network is no target).
         analogy_every: apply L_T on every k-th step only (it doubles a step's cost; k = 2 costs ~1.5x).
@@ -259,10 +259,11 @@ class DataConfig(_Section):
         scale_range: (lo, hi) of the spatial scale augmentation, s ~ U(lo, hi) per sample before the crop
             (``TrainTransform``); (1, 1) = off.
         occlude_p: probability per sample that the network's right input gets L_T's pasted occluders
-            (``optstereo.analogy.occlude_right``; sizes from loss.analogy); L_P supervises the occluded pixels with
+            (``optstereo.training.analogy.occlude_right``; sizes from loss.analogy); L_P supervises the occluded pixels
+            with
             their PVM labels, L_R and L_S see the clean pair (with L_T on, its D0 is the occluded input's).
         cascade_p: probability per batch that the GRU starts from a coarse pass (the batch at half size, no
-            gradient) instead of zero: a coarse-to-fine start (``optstereo.cascade``), which a model with
+            gradient) instead of zero: a coarse-to-fine start (``optstereo.inference.cascade``), which a model with
             ``InferenceConfig.coarse_start`` uses at test time.
         max_label_disp: labels >= max_label_disp (or < 0) are ignored in the loss, px. This is a mask on the
             TARGETS, not a search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt.

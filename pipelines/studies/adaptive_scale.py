@@ -39,8 +39,8 @@ def step_reference(checkpoint: str = "pretrained", out_path: Path = REFERENCE) -
     """Per unlabelled pair: the 95th percentile of the model's raw disparity (its own input scale, no post-filter)
     and the pair's pixel count; the constants are the medians over the pairs."""
     from optstereo.api import load_model
-    from optstereo.inference import infer, model_inference_config
-    from optstereo.rescale import ADAPTIVE_PERCENTILE
+    from optstereo.inference.engine import infer, model_inference_config
+    from optstereo.inference.rescale import ADAPTIVE_PERCENTILE
     from pvm_labeler.common.datasets import discover, load_pair
 
     model = load_model(checkpoint)
@@ -69,7 +69,7 @@ def step_reference(checkpoint: str = "pretrained", out_path: Path = REFERENCE) -
 def step_candidate(checkpoint: str = "pretrained", refs_path: Path = REFERENCE) -> Path:
     """``checkpoint``'s weights, unchanged, recording the constants of ``refs_path``, written to CANDIDATE."""
     from optstereo.api import load_model
-    from optstereo.inference import model_inference_config
+    from optstereo.inference.engine import model_inference_config
     from optstereo.pretrained import resolve_checkpoint_spec
     from pipelines.studies.train_pretrained import step_ship
 
@@ -85,8 +85,8 @@ def step_check(candidate: Path = CANDIDATE, factor: float = 1 / 3, every: int = 
     """GT-free: every ``every``-th unlabelled pair shrunk by ``factor`` (a small pair with small disparities), its PVM
     labels shrunk with it; the candidate at its fixed input scale vs adaptive, both scored against those labels."""
     from optstereo.api import load_model
-    from optstereo.inference import model_inference_config, run
-    from optstereo.rescale import rescaled_pair, sparse_to_size
+    from optstereo.inference.engine import model_inference_config, run
+    from optstereo.inference.rescale import rescaled_pair, sparse_to_size
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     model = load_model(candidate)

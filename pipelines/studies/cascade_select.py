@@ -1,7 +1,8 @@
 """GT-free check of the per-pixel choice between a cascade model's two starts (``InferenceConfig.select``).
 
 A model trained with coarse starts (``--cascade-p``) answers a pair twice at its final scale: from zero and from a
-pass at half that scale. ``optstereo.cascade.photometric_select`` keeps, per pixel, the one whose warp matches the
+pass at half that scale. ``optstereo.inference.cascade.photometric_select`` keeps, per pixel, the one whose warp
+matches the
 pair better. This script scores the three answers (zero start, coarse start, the choice) on training pairs against
 their PVM labels, which no GT touched:
 
@@ -49,8 +50,8 @@ def _starts(checkpoint: str, every: int) -> tuple[float, int, Iterator[Starts]]:
     (frame id, the shard's sample, the coarse-start pass, the zero-start pass), the passes (H, W) float32 at the
     pair's size, no post-filter; the model is loaded once, the passes run as the iterator goes."""
     from optstereo.api import load_model
-    from optstereo.inference import model_inference_config, run
-    from optstereo.inference_config import InferenceConfig
+    from optstereo.inference.config import InferenceConfig
+    from optstereo.inference.engine import model_inference_config, run
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
     model = load_model(checkpoint)
@@ -72,7 +73,7 @@ def _starts(checkpoint: str, every: int) -> tuple[float, int, Iterator[Starts]]:
 def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
     """The pairs of :func:`_starts`: the zero-start pass, the coarse-start pass and their per-pixel choice, each
     scored against the pair's PVM labels (no post-filter, so the three differ only by the start)."""
-    from optstereo.cascade import photometric_select
+    from optstereo.inference.cascade import photometric_select
 
     accs = {answer: MetricAccumulator() for answer in ANSWERS}
     rows = []
@@ -100,10 +101,11 @@ def step_check(checkpoint: str, every: int = 6) -> dict[str, Any]:
 def step_calibrate(checkpoint: str, name: str, every: int = 3,
                    grid: tuple[float, ...] = JUMP_GRID) -> dict[str, Any]:
     """The pairs of :func:`_starts`: the choice between the coarse and the zero start at each jump limit of
-    ``grid`` (``optstereo.cascade.choose``, the code ``infer`` runs), scored against the PVM labels; returns (and
+    ``grid`` (``optstereo.inference.cascade.choose``, the code ``infer`` runs), scored against the PVM labels; returns
+    (and
     writes) each limit's pooled EPE / bad-1 / bad-3 and ``jump``, the one with the lowest bad-3 (an exact tie goes
     to the tighter limit, 0 = no limit being the loosest)."""
-    from optstereo.cascade import choose, jump_limit, photometric_costs
+    from optstereo.inference.cascade import choose, jump_limit, photometric_costs
 
     accs = {jump: MetricAccumulator() for jump in grid}
     scale, n_pairs, pairs = _starts(checkpoint, every)

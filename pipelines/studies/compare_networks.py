@@ -27,7 +27,7 @@ SETS = ("kitti15", "kitti12", "middlebury")
 
 def frame_ms(model: torch.nn.Module, repeats: int = 3) -> float:
     """Median ms of one test-mode forward at KITTI size (376x1248, the padded 375x1242), 2 threads."""
-    from optstereo.inference import infer
+    from optstereo.inference.engine import infer
     from pipelines.bench_export import _medians
 
     rng = np.random.default_rng(0)

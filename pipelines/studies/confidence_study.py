@@ -1,4 +1,4 @@
-"""Which confidence (optstereo.confidence) ranks the shipped model's errors best? Sparsification curves on the
+"""Which confidence (optstereo.inference.confidence) ranks the shipped model's errors best? Sparsification curves on the
 KITTI 2015 GT frames, beside dense SGM's uniqueness ratio and the oracle.
 
     nice .venv/bin/python -m pipelines.studies.confidence_study [--limit N]
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from optstereo.api import load_model
-from optstereo.confidence import (
+from optstereo.inference.confidence import (
     DENSITIES,
     curve_area,
     lr_difference,
@@ -29,7 +29,7 @@ from optstereo.confidence import (
     sparsification,
     spread_confidence,
 )
-from optstereo.inference import infer
+from optstereo.inference.engine import infer
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.dense import fill_rows_nearest

@@ -155,7 +155,7 @@ def photo_errors(left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8], disp
     ``disp``; NaN where the warp leaves the image or ``disp`` is NaN."""
     import torch
 
-    from optstereo.losses import photometric_error, warp_right_to_left
+    from optstereo.training.losses import photometric_error, warp_right_to_left
 
     def tensor(img: npt.NDArray[np.uint8]) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float() / 255.0
@@ -222,7 +222,7 @@ def lr_consistent(net: Any, left: npt.NDArray[np.uint8], right: npt.NDArray[np.u
     (the flip-swapped pair's prediction at input scale ``scale``, mirrored back), by the labeler's LRDCC. ``scale``
     None is the file's own input scale, as ``predict``'s (the scale ``pred`` must have been made at)."""
     from optstereo.api import predict
-    from optstereo.augment import flip_swap
+    from optstereo.training.augment import flip_swap
     from pvm_labeler.voting import lr_check
 
     flipped_left, flipped_right, _, _ = flip_swap(left, right, None, None)
@@ -280,7 +280,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     file's own input scale. ``edges`` adds, per network, the split of :func:`edge_masks` (distance to GT depth edges).
     """
     from optstereo.api import load_model, predict
-    from optstereo.inference import model_inference_config
+    from optstereo.inference.engine import model_inference_config
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.dense import dense_sgm
@@ -292,7 +292,7 @@ def run(checkpoints: list[str], name: str | None = None, photometric: bool = Fal
     name = name or dataset
     loaded = dict(parse_checkpoint(arg) for arg in checkpoints)  # checkpoint label -> spec, in order
     cfg, models = LabelerConfig(), {tag: load_model(spec) for tag, spec in loaded.items()}
-    # None stays None for a file with an adaptive input scale: its scale is chosen per pair (optstereo.inference)
+    # None stays None for a file with an adaptive input scale: its scale is chosen per pair (optstereo.inference.engine)
     resolved = {tag: [s if s is not None or model_inference_config(models[tag]).adaptive
                       else model_inference_config(models[tag]).scale
                       for s in scales] for tag in loaded}

@@ -43,7 +43,7 @@ def tag(params: MedianParams | None) -> str:
 def step_dump(checkpoint: str = "pretrained") -> None:
     """Predict every GT set and every unlabelled pair with ``checkpoint`` at its own input scale; .npy per frame."""
     from optstereo.api import load_model
-    from optstereo.inference import infer
+    from optstereo.inference.engine import infer
     from pvm_labeler.common.datasets import discover, load_pair
 
     model = load_model(checkpoint)

@@ -1,5 +1,6 @@
-"""Stereo video (optstereo.sequence) against independent frames on a KITTI raw drive: seconds per frame and the
-mean change between consecutive outputs on pixels that can be followed (optstereo.sequence.temporal_change).
+"""Stereo video (optstereo.inference.sequence) against independent frames on a KITTI raw drive: seconds per frame and
+the
+mean change between consecutive outputs on pixels that can be followed (optstereo.inference.sequence.temporal_change).
 
     nice .venv/bin/python -m pipelines.studies.sequence_study --frames 10 --scale 1 --refine none
 
@@ -20,8 +21,8 @@ import numpy as np
 import torch
 
 from optstereo.api import load_model
-from optstereo.inference import infer
-from optstereo.sequence import SequenceState, infer_next, temporal_change
+from optstereo.inference.engine import infer
+from optstereo.inference.sequence import SequenceState, infer_next, temporal_change
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.common.io import read_image
 

@@ -146,7 +146,8 @@ CONTINUE: tuple[tuple[str, str, Path, list[str]], ...] = (
     # sgmboth_p's control: the same start, seed and steps on left-only fills (HEADS/sgmfill_o = version 11's file)
     ("sgmleft_r", "sgmfill_o", LABELS_SGMWM, ["--steps", "5000", "--lr", "1e-4", "--seed", "31", "--amp", "bf16",
                                               "--iters", "8", "--scale-range", "1.5,1.75"]),
-    # version 13 (= version 12's weights) with coarse-to-fine starts in half of the batches (optstereo.cascade)
+    # version 13 (= version 12's weights) with coarse-to-fine starts in half of the batches
+    # (optstereo.inference.cascade)
     ("cascade_t", "pretrained", LABELS_SGMWM2, ["--steps", "2800", "--lr", "1e-4", "--seed", "33", "--amp", "bf16",
                                                 "--iters", "8", "--scale-range", "1.5,1.75", "--cascade-p", "0.5"]),
     # the longer cascade run cascade_t's outcome asked for: its weights + 2400 steps of the same recipe
@@ -402,7 +403,7 @@ def step_ship(run: str, input_scale: float = 1.0, refine: str = "none", scale_re
     that is > 0) as what ``infer`` does by default; ``out``
     another file than the shipped one (a candidate)."""
     from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
-    from optstereo.inference_config import InferenceConfig
+    from optstereo.inference.config import InferenceConfig
 
     ckpt = load_checkpoint(Path(run) if Path(run).exists() else RUNS / run)
     ref_disp, ref_pixels = scale_refs or (0.0, 0)

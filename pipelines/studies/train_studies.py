@@ -349,7 +349,7 @@ def plot_overview(path: Path, frame_index: int = 0) -> None:
     import matplotlib.pyplot as plt
 
     from optstereo.checkpoint import build_model_from_checkpoint
-    from optstereo.inference import infer
+    from optstereo.inference.engine import infer
     from pvm_labeler.common.datasets import discover, load_pair
     from pvm_labeler.config import LabelerConfig
     from pvm_labeler.dense import fill_rows_nearest, sgm_left

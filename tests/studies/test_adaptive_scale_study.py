@@ -14,8 +14,8 @@ import pipelines.studies.adaptive_scale as adaptive
 import pvm_labeler.common.datasets as datasets
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors
-from optstereo.inference import infer
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

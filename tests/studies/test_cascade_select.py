@@ -13,8 +13,8 @@ import pipelines.studies.cascade_select as check
 import pvm_labeler.common.datasets as datasets
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors
-from optstereo.inference import infer
-from optstereo.inference_config import InferenceConfig
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import infer
 from optstereo.models import build_model
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.shards import ShardRecord, write_shard_dir

@@ -199,7 +199,7 @@ def test_run_on_another_dataset_at_the_files_input_scale(monkeypatch: pytest.Mon
 
     if not (er.SHARED / "middlebury2001").is_dir():
         pytest.skip("../shared/data is not here")
-    from optstereo.inference_config import InferenceConfig
+    from optstereo.inference.config import InferenceConfig
 
     model = types.SimpleNamespace(inference_config=InferenceConfig(scale=1.5))
     scales = []

@@ -2,7 +2,7 @@
 
 Times the network alone (inputs already on the GPU, padded 375x1242 -> 376x1248, test mode, 8 GRU iterations),
 median of ``--repeats`` calls after ``--warmup``, each bracketed by ``torch.cuda.synchronize()``; and once
-end to end through :func:`optstereo.inference.infer` (uint8 numpy in, numpy out: host copies and padding
+end to end through :func:`optstereo.inference.engine.infer` (uint8 numpy in, numpy out: host copies and padding
 included). Rows: the shipped model (C = 128) and the paper-size network (C = 256, random weights: the time does
 not depend on them), float32 / TF32 / bf16 / fp16 autocast; then the float32 and TF32 forwards captured as CUDA
 graphs and replayed (no Python or kernel-launch overhead); and the shipped post-filter (wmedian) on the CPU and on the
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from optstereo.api import load_model
-from optstereo.inference import infer, inference_autocast
+from optstereo.inference.engine import infer, inference_autocast
 from optstereo.models import build_model
 
 KITTI_HW = (375, 1242)
@@ -122,7 +122,7 @@ def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int, label: str
 def wmedian_rows(repeats: int, warmup: int) -> list[dict[str, Any]]:
     """The shipped post-filter (``refine: wmedian``) on a KITTI-size disparity: the CPU's numba kernel (what infer
     ran on every device before) against the torch one on the GPU (what infer runs on CUDA)."""
-    from optstereo.refine_torch import weighted_median_torch
+    from optstereo.inference.refine_torch import weighted_median_torch
     from pvm_labeler.refine import weighted_median
 
     rng = np.random.default_rng(0)

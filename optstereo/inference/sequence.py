@@ -1,9 +1,10 @@
 """Stereo video: each frame's GRU starts from the previous frame's answer, with fewer iterations.
 
-The first frame runs the plain path (``optstereo.inference.run``: the model's own passes, scale and
+The first frame runs the plain path (``optstereo.inference.engine.run``: the model's own passes, scale and
 post-filter), so a one-frame sequence equals it exactly. Every later frame runs one network pass at the first
 frame's final input scale, its D_s^0 the previous frame's disparity averaged onto the 1/8 grid
-(``optstereo.cascade.grid_start``, inside ``optstereo.inference.network_pass``) and ``sequence_iters`` GRU iterations,
+(``optstereo.inference.cascade.grid_start``, inside ``optstereo.inference.engine.network_pass``) and ``sequence_iters``
+GRU iterations,
 then the same post-filter. Between consecutive frames of a video most disparities move by a fraction of a 1/8-grid
 cell, so a few iterations finish the walk that a zero start needs all of its iterations for.
 
@@ -23,7 +24,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from optstereo.inference import apply_refine, model_inference_config, pass_at_scale, run
+from optstereo.inference.engine import apply_refine, model_inference_config, pass_at_scale, run
 
 Image = npt.NDArray[np.uint8]
 Disparity = npt.NDArray[np.float32]
@@ -58,7 +59,7 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
         state: the sequence so far (a fresh :class:`SequenceState` for the first frame, which runs the plain path).
         iters: GRU iterations of the first frame (None = the model's own).
         sequence_iters: GRU iterations of every later frame, started from the previous answer.
-        scale, refine: as ``optstereo.inference.infer``; later frames reuse the first frame's final scale.
+        scale, refine: as ``optstereo.inference.engine.infer``; later frames reuse the first frame's final scale.
     """
     if sequence_iters < 1:
         raise ValueError(f"sequence_iters must be >= 1, got {sequence_iters}")

@@ -1,6 +1,6 @@
 """Typed settings of the transformation self-supervision L_T (no torch, no I/O): ``AnalogyConfig``.
 
-The trainer's ``LossConfig.analogy`` (``optstereo.training.sections``) holds one; ``optstereo.analogy``
+The trainer's ``LossConfig.analogy`` (``optstereo.training.sections``) holds one; ``optstereo.training.analogy``
 applies it. YAML gives it as the mapping ``loss: {analogy: {occlusion: false, ...}}``, the command line as
 ``--set loss.analogy.KEY=V``; keys left out keep their defaults.
 """

@@ -3,12 +3,13 @@
 ``run`` resizes the pair once by ``InferenceConfig.scale``, pads it to the network's multiple, runs the network
 pass(es) in order, unpads, brings the disparity back to the input's size and pixels, and applies the post-filter.
 The passes: the zero-start one; with ``adaptive_ref_disp`` set, the same again on a small pair enlarged by
-``optstereo.rescale.adaptive_factor``; with ``coarse_start`` the final pass starts its GRU from
-``optstereo.cascade.coarse_start`` (the training's own function: a pass on the padded pair at half size), and with
+``optstereo.inference.rescale.adaptive_factor``; with ``coarse_start`` the final pass starts its GRU from
+``optstereo.inference.cascade.coarse_start`` (the training's own function: a pass on the padded pair at half size), and
+with
 ``select`` per pixel the better matching of it and the zero-start pass is kept. ``infer`` is the thin public
 wrapper (the model's own settings, with ``iters``/``scale``/``refine`` overrides); ``network_pass`` is one pass on a
 pair as given, optionally started from a disparity. ``optstereo.export.infer_onnx`` runs an ONNX graph through the
-same ``run``. Writing the results to files: ``optstereo.outputs``.
+same ``run``. Writing the results to files: ``optstereo.inference.outputs``.
 """
 
 from __future__ import annotations
@@ -24,12 +25,12 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from optstereo.cascade import coarse_start, grid_start, jump_limit, photometric_select
 from optstereo.checkpoint import model_inference
 from optstereo.choices import AMP_MODES, REFINERS, AmpMode
-from optstereo.inference_config import InferenceConfig
-from optstereo.padding import InputPadder, divisor_of
-from optstereo.rescale import adaptive_factor, disparity_to_size, rescaled_pair
+from optstereo.inference.cascade import coarse_start, grid_start, jump_limit, photometric_select
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.padding import InputPadder, divisor_of
+from optstereo.inference.rescale import adaptive_factor, disparity_to_size, rescaled_pair
 from pvm_labeler.common.version import cpuinfo_flags
 
 logger = logging.getLogger(__name__)
@@ -101,13 +102,16 @@ def check_refine(refine: str) -> None:
 def apply_refine(disp: npt.NDArray[np.float32], left: npt.NDArray[np.uint8], refine: str,
                  device: torch.device | str = "cpu") -> npt.NDArray[np.float32]:
     """The post-filter ``refine`` ("none" or "wmedian", see InferenceConfig.refine) on an (H, W) float32 disparity of
-    the (H, W, 3) uint8 left image; on a CUDA ``device`` the median runs there (``optstereo.refine_torch``), on the CPU
+    the (H, W, 3) uint8 left image; on a CUDA ``device`` the median runs there (``optstereo.inference.refine_torch``),
+    on the CPU
     in the labeler's numba kernel."""
     check_refine(refine)
     if refine == "none":
         return disp
     if torch.device(device).type == "cuda":
-        from optstereo.refine_torch import weighted_median_torch  # lazy: numba (~0.4 s) loads only when wmedian runs
+        from optstereo.inference.refine_torch import (
+            weighted_median_torch,  # lazy: numba (~0.4 s) loads only when wmedian runs
+        )
 
         return weighted_median_torch(disp, left, device=device)
     from pvm_labeler.refine import weighted_median  # lazy: numba (~0.4 s) loads only when wmedian runs
@@ -175,8 +179,10 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     """The disparity of one (H, W, 3) uint8 pair as ``config`` says (None = the model's ``model.inference_config``).
 
     In order: the zero-start pass at ``config.scale`` (unless only a coarse-started one is wanted); with
-    ``adaptive_ref_disp``, a second one at the enlarged scale when :func:`optstereo.rescale.adaptive_factor` asks for
-    it; with ``coarse_start`` the pass started from ``optstereo.cascade.coarse_start`` on the same resized, padded
+    ``adaptive_ref_disp``, a second one at the enlarged scale when :func:`optstereo.inference.rescale.adaptive_factor`
+    asks for
+    it; with ``coarse_start`` the pass started from ``optstereo.inference.cascade.coarse_start`` on the same resized,
+    padded
     pair, and with ``select`` the per-pixel choice between it and the zero-start pass; then the post-filter.
     Returns the (H, W) float32 disparity in the input's pixels and the scale of the final pass.
     """
@@ -215,7 +221,8 @@ def pass_at_scale(model: nn.Module, left: Image, right: Image, scale: float = 1.
     """One network pass on the pair resized by ``scale``, back at the input's (H, W) and pixels; no post-filter.
 
     Its GRU starts from ``start`` (an (H, W) float32 disparity of the input, resized with the pair), with ``coarse``
-    from ``optstereo.cascade.coarse_start`` of the same resized, padded pair (the training's own start), or from
+    from ``optstereo.inference.cascade.coarse_start`` of the same resized, padded pair (the training's own start), or
+    from
     zero. The building block of :func:`run`'s passes, of a sequence's started frames and of a confidence's mirrored
     pass.
     """
@@ -238,7 +245,7 @@ def network_pass(model: nn.Module, left: Image, right: Image, start: Disparity |
 def _padded_pass(model: nn.Module, left: Image, right: Image, start: Disparity | None, iters: int | None,
                  device: torch.device, amp: AmpMode, coarse: bool) -> Disparity:
     """The pair padded to the model's multiple, one forward in eval mode, un-padded: (H, W) float32. ``start`` is
-    padded like the pair and averaged onto the 1/8 grid (``optstereo.cascade.grid_start``)."""
+    padded like the pair and averaged onto the 1/8 grid (``optstereo.inference.cascade.grid_start``)."""
     left_t, right_t = to_batch(left, device), to_batch(right, device)
     padder = InputPadder(left_t.shape, divis_by=divisor_of(model))
     left_t, right_t = padder.pad(left_t, right_t)

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from optstereo.analogy_config import AnalogyConfig
-from optstereo.losses import photometric_error, sequence_huber_loss, warp_right_to_left
+from optstereo.training.analogy_config import AnalogyConfig
+from optstereo.training.losses import photometric_error, sequence_huber_loss, warp_right_to_left
 
 
 # -- reliability -----------------------------------------------------------------------------------------------------

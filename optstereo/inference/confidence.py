@@ -3,7 +3,7 @@
 Three measures, all without ground truth (``results/confidence.json`` scores them on the KITTI 2015 GT frames):
 
 - ``photometric``: 1 - the photometric error of the right view warped by the disparity onto the left, averaged
-  over a 7x7 box (``optstereo.cascade.photometric_costs``: 0.85 (1 - SSIM) / 2 + 0.15 L1, the reconstruction
+  over a 7x7 box (``optstereo.inference.cascade.photometric_costs``: 0.85 (1 - SSIM) / 2 + 0.15 L1, the reconstruction
   loss's own per-pixel form). No extra network pass.
 - ``lr``: left-right consistency. One more network pass on the mirrored pair (both images flipped, swapped) gives
   the right view's disparity; confidence exp(-|d_L(x) - d_R(x - d_L(x))| / LR_SCALE), 0 where x - d leaves the
@@ -25,10 +25,10 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from optstereo.augment import right_view
-from optstereo.cascade import photometric_costs
-from optstereo.inference import model_inference_config, pass_at_scale, run, to_batch
-from optstereo.padding import InputPadder, divisor_of
+from optstereo.inference.cascade import photometric_costs
+from optstereo.inference.engine import model_inference_config, pass_at_scale, run, to_batch
+from optstereo.inference.padding import InputPadder, divisor_of
+from optstereo.training.augment import right_view
 from pvm_labeler.common.io import write_image
 
 Image = npt.NDArray[np.uint8]
@@ -124,7 +124,7 @@ def infer_with_confidence(model: nn.Module, left: Image, right: Image, *, method
                           iters: int | None = None, device: torch.device | str = "cpu", amp: str = "none",
                           scale: float | None = None, refine: str | None = None) -> tuple[Map, Map]:
     """(disparity, confidence), each (H, W) float32, of one (H, W, 3) uint8 pair: the disparity is exactly
-    ``optstereo.inference.infer``'s (same arguments), the confidence :func:`confidence_of` it."""
+    ``optstereo.inference.engine.infer``'s (same arguments), the confidence :func:`confidence_of` it."""
     result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
     conf = confidence_of(model, left, right, result.disparity, method, device, amp, result.input_scale)
     return result.disparity, conf

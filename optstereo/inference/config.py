@@ -1,6 +1,6 @@
 """Typed settings of how a network is run on a pair (no torch, no I/O): ``InferenceConfig``.
 
-``optstereo.inference.run`` reads one of these and runs, in order: resize the pair by ``scale``, pad, the network
+``optstereo.inference.engine.run`` reads one of these and runs, in order: resize the pair by ``scale``, pad, the network
 pass(es), unpad, resize the disparity back, the post-filter ``refine``. A weights file stores it under its own key
 (``inference_config``, JSON), apart from the architecture (``optstereo.models.config.ModelConfig``); files written
 before that key existed kept these settings among the model's, and ``optstereo.models.config.split_legacy_model_dict``
@@ -20,7 +20,7 @@ from pvm_labeler.common.configtools import reject_unknown_keys
 
 @dataclass(frozen=True)
 class InferenceConfig:
-    """How ``optstereo.inference.run`` runs a network on one pair.
+    """How ``optstereo.inference.engine.run`` runs a network on one pair.
 
     Attributes:
         scale: factor both images are resized by before the network (weights trained on enlarged crops run best on
@@ -31,15 +31,16 @@ class InferenceConfig:
             by the 1/8 grid to the colour edges).
         adaptive_ref_disp: 0 = off; else a pair whose first pass (at ``scale``) has smaller disparities than the
             model learned on is run again, enlarged so that the 95th percentile of its disparity reaches this many
-            pixels (``optstereo.rescale.adaptive_factor``): the second pass for small pairs.
+            pixels (``optstereo.inference.rescale.adaptive_factor``): the second pass for small pairs.
         adaptive_ref_pixels: the training pairs' pixel count (H x W): the adaptive pass never feeds the network more
             pixels than that (required when ``adaptive_ref_disp`` is set).
         coarse_start: the final pass's GRU starts from a pass at half its scale instead of from zero
-            (``optstereo.cascade.coarse_start``, the training's own; for weights trained with ``data.cascade_p``).
+            (``optstereo.inference.cascade.coarse_start``, the training's own; for weights trained with
+            ``data.cascade_p``).
         select: with ``coarse_start``, keep per pixel whichever of that pass and the zero-start pass at the same
-            scale matches the pair better photometrically (``optstereo.cascade.photometric_select``).
+            scale matches the pair better photometrically (``optstereo.inference.cascade.photometric_select``).
         select_jump: with ``select``, > 0: the zero start is only chosen within this fraction of the pair's width
-            of the coarse start (``optstereo.cascade.jump_limit``); 0 = no limit.
+            of the coarse start (``optstereo.inference.cascade.jump_limit``); 0 = no limit.
     """
 
     scale: float = 1.0

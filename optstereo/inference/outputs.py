@@ -3,7 +3,7 @@
 Outputs per frame (``formats`` picks them): ``png`` KITTI 16-bit PNG (disparity x 256, 0 = invalid), ``pfm``
 (float32, Middlebury/Scene Flow), ``npy`` (float32), ``color`` (8-bit colour rendering for people). The KITTI form
 (``kitti_layout=True``) names files as the benchmark's submission expects: ``disp_0/<frame>_10.png``. The disparity
-itself comes from ``optstereo.inference.infer`` (the one inference path).
+itself comes from ``optstereo.inference.engine.infer`` (the one inference path).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from torch import nn
 
 from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
 from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
-from optstereo.inference import infer
+from optstereo.inference.engine import infer
 from optstereo.submission import write_submission
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.io import read_image, write_image, write_kitti_disp, write_npy, write_pfm

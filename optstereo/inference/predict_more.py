@@ -1,5 +1,5 @@
 """``optstereo-predict``'s video and confidence outputs: ``--sequence``, ``--format conf-png|conf-npy`` and
-``--min-confidence``, a per-frame loop beside ``optstereo.inference.predict_dataset`` that writes the same files.
+``--min-confidence``, a per-frame loop beside ``optstereo.inference.engine.predict_dataset`` that writes the same files.
 
 Options (click decorators) live here too, so that the predict command gains them in one line.
 """
@@ -21,10 +21,10 @@ from torch import nn
 from tqdm import tqdm
 
 from optstereo.choices import CONF_FORMATS
-from optstereo.confidence import confidence_of, write_confidence
-from optstereo.inference import model_inference_config, run
-from optstereo.outputs import write_disparity
-from optstereo.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next
+from optstereo.inference.confidence import confidence_of, write_confidence
+from optstereo.inference.engine import model_inference_config, run
+from optstereo.inference.outputs import write_disparity
+from optstereo.inference.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.common.io import read_image
 
@@ -48,8 +48,8 @@ class MoreOptions:
 def more_options(fn):
     """--sequence, --sequence-iters and --min-confidence for optstereo-predict."""
     fn = click.option("--min-confidence", type=click.FloatRange(0, 1), default=0.0,
-                      help="Semi-dense output: pixels whose confidence (optstereo.confidence) is below this get no "
-                           "value (0 in png, NaN in pfm/npy). 0 = dense.")(fn)
+                      help="Semi-dense output: pixels whose confidence (optstereo.inference.confidence) is below "
+                           "this get no value (0 in png, NaN in pfm/npy). 0 = dense.")(fn)
     fn = click.option("--sequence-iters", type=click.IntRange(min=1), default=DEFAULT_SEQUENCE_ITERS,
                       help="--sequence: GRU iterations of every frame after the first.")(fn)
     return click.option("--sequence", is_flag=True,
@@ -63,7 +63,8 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
                    device: torch.device | str = "cpu", amp: str = "none", scale: float | None = None,
                    refine: str | None = None, progress: bool = True) -> list[dict[str, Path]]:
     """Predict (name, left path, right path) frames in order and write each one's files; returns format -> path
-    per frame. With ``more.sequence`` each frame after the first starts from the one before (optstereo.sequence);
+    per frame. With ``more.sequence`` each frame after the first starts from the one before
+    (optstereo.inference.sequence);
     a frame from another folder than the one before (another drive of ``kitti_unlabelled``) starts a new sequence."""
     formats = tuple(formats)
     frames = list(frames)

@@ -1,6 +1,7 @@
 """Distillation targets: a teacher's dense disparities where PVM has no label (issue 42's one-pass student).
 
-A teacher (any checkpoint run through ``optstereo.inference.infer`` with its own settings, e.g. version 14's three
+A teacher (any checkpoint run through ``optstereo.inference.engine.infer`` with its own settings, e.g. version 14's
+three
 passes at 1.625x and the weighted median) predicts both views of every training pair: the left view as given, the
 right view from the mirrored, swapped pair. Where the two agree (the labeler's left-right check,
 ``pvm_labeler.voting.lr_check``, at ``max_lr_diff`` px) the teacher's disparity fills PVM's holes at weight
@@ -26,8 +27,8 @@ import numpy.typing as npt
 from torch import nn
 from tqdm import tqdm
 
-from optstereo.augment import right_view
-from optstereo.inference import infer
+from optstereo.inference.engine import infer
+from optstereo.training.augment import right_view
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.datasets import load_pair
 from pvm_labeler.shards import rewrite

@@ -1,5 +1,6 @@
 """Resizing a stereo pair and its disparities by one factor: inference at another input scale (``--scale``) and
-the training's spatial scale augmentation (``--scale-range``); pure helpers, which ``optstereo.inference.run`` calls.
+the training's spatial scale augmentation (``--scale-range``); pure helpers, which ``optstereo.inference.engine.run``
+calls.
 
 A disparity is a horizontal distance in pixels of the image it was measured on, so resizing a pair's width from W
 to w multiplies its disparities by w / W. Rows stay aligned under a resize of both views, so the pair stays

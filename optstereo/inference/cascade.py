@@ -5,7 +5,7 @@ The paper's update operator starts every pair from D_s^0 = 0 and walks to the di
 as finer than the 1/8 grid and the surroundings as larger, and a start from its answer puts the walk near the right
 period. Weights trained from zero starts do not walk well from other starts (RESULTS.md: a probe), so the trainer
 draws coarse starts with probability ``data.cascade_p`` and ``InferenceConfig.coarse_start`` turns them on at test
-time: ``optstereo.inference.run`` calls the same :func:`coarse_start` on the resized, padded pair.
+time: ``optstereo.inference.engine.run`` calls the same :func:`coarse_start` on the resized, padded pair.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.losses import photometric_error, warp_right_to_left
+from optstereo.training.losses import photometric_error, warp_right_to_left
 
 DIVISOR = 8  # the 1/8 grid D_s lives on
 
@@ -77,7 +77,8 @@ def photometric_costs(left: np.ndarray, right: np.ndarray, candidates: Sequence[
     """(K, H, W) float32: per candidate disparity, how badly the right view warped by it matches the left.
 
     ``left``, ``right``: (H, W, 3) uint8; ``candidates``: K (H, W) float32 disparities. The error is the
-    reconstruction loss's own per-pixel form (``optstereo.losses.photometric_error``: 0.85 (1 - SSIM 3x3) / 2 + 0.15
+    reconstruction loss's own per-pixel form (``optstereo.training.losses.photometric_error``: 0.85 (1 - SSIM 3x3) / 2
+    + 0.15
     L1), 1 where the warp leaves the image, then averaged over a ``window`` x ``window`` box so that one pixel's
     noise does not decide.
     """
