@@ -9,12 +9,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner, Result
 from conftest import SMALL, make_folder
 
 from pvm_labeler.cli import main
+from pvm_labeler.common.diskspace import disk_name, require_room, room_for_file
+from pvm_labeler.common.errors import DiskFullError
+from pvm_labeler.shards import open_shard, read_index, read_sample
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -47,19 +51,92 @@ def test_yaml_with_a_bad_value_is_named(doc: dict, match: str, tmp_path: Path) -
     assert not out.exists()
 
 
-def test_disk_full_leaves_no_shard_that_looks_complete(tmp_path: Path) -> None:
-    """RLIMIT_FSIZE as a full disk. Today the process dies inside HDF5 (h5py's 'File too large' on stderr, then a
-    crash, issue 45): the run is not silent, and only the temporary shard file is left, which a resume replaces."""
-    data, out = make_folder(tmp_path / "d", n=3), tmp_path / "out"
+def _label_with_file_limit(data: Path, out: Path, nbytes: int | None) -> subprocess.CompletedProcess:
+    """``pvm-label run`` in a subprocess, with RLIMIT_FSIZE = nbytes (a full disk: writes past it fail, EFBIG)."""
 
     def limit() -> None:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+        if nbytes is not None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
 
-    proc = subprocess.run([sys.executable, "-m", "pvm_labeler.cli", "--dataset", "folder", "--root", str(data),
-                           "--out", str(out), *SMALL, "--shard-size", "2"], cwd=REPO, preexec_fn=limit,
+    return subprocess.run([sys.executable, "-m", "pvm_labeler.cli", "--dataset", "folder", "--root", str(data),
+                           "--out", str(out), *SMALL, "--shard-size", "2", "--quiet"], cwd=REPO, preexec_fn=limit,
                           env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=600)
-    assert proc.returncode != 0
-    assert "File too large" in proc.stdout + proc.stderr
-    assert not list(out.glob("shard-*.h5"))  # no complete-looking shard
-    index = out / "index.json"
-    assert not index.exists() or '"shards": []' in index.read_text().replace("\n", "").replace("  ", "")
+
+
+def _labels(out: Path) -> dict[str, np.ndarray]:
+    index = read_index(out)
+    labels = {}
+    for path, ids in index.shards:
+        with open_shard(path) as h5:
+            labels.update({i: read_sample(h5, i).label for i in ids})
+    return labels
+
+
+def test_disk_full_stops_the_job_naming_disk_and_shard_and_resume_finishes(tmp_path: Path) -> None:
+    """RLIMIT_FSIZE as a full disk (20 kB: job.json fits, no shard does). The job stops before labelling a shard:
+    exit 1, a message naming the shard and the disk, no shard or temporary file; re-run with room, it finishes
+    with the labels of a clean run."""
+    data, out = make_folder(tmp_path / "d", n=3), tmp_path / "out"
+    proc = _label_with_file_limit(data, out, 20_000)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert f"not enough space for shard {out.resolve() / 'shard-00000.h5'}" in proc.stderr
+    assert f"free on {disk_name(out)}" in proc.stderr and "re-run with --resume" in proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
+    assert not list(out.glob("shard-*"))  # neither a shard nor a temporary one
+    assert not (out / "index.json").exists()
+    resumed = _label_with_file_limit(data, out, None)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    clean = _label_with_file_limit(data, tmp_path / "clean", None)
+    assert clean.returncode == 0
+    got, want = _labels(out), _labels(tmp_path / "clean")
+    assert sorted(got) == sorted(want) == ["000", "001", "002"]
+    for frame_id in want:
+        np.testing.assert_array_equal(got[frame_id], want[frame_id])
+
+
+WRITE_PAST_LIMIT = """
+import resource, sys
+import numpy as np
+from pvm_labeler.common.errors import DiskFullError
+from pvm_labeler.shards import ShardRecord, ShardWriter, writer
+writer.require_room = lambda *args: None  # no check before: the write itself meets the limit
+limit = int(sys.argv[1])
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+rng = np.random.default_rng(0)
+w = ShardWriter(sys.argv[2], {}, compression="none")
+for i in range(3):
+    left = rng.integers(0, 255, (64, 128, 3), dtype=np.uint8)
+    label = rng.random((64, 128), dtype=np.float32)
+    w.add(ShardRecord(frame_id=str(i), left=left, right=left, label=label, label_right=label, confidence=label))
+try:
+    w.close()
+except DiskFullError as exc:
+    print(exc, file=sys.stderr)
+    sys.exit(1)
+"""
+
+
+@pytest.mark.parametrize("limit", [1, 4096, 50_000, 150_000, 250_000])
+def test_a_write_that_meets_the_limit_raises_instead_of_crashing(limit: int, tmp_path: Path) -> None:
+    """Past the check (patched out), the write itself fails at several sizes: DiskFullError naming the shard and
+    the disk, exit 1 (h5py writing to disk itself crashed with SIGSEGV in 14 of 15 limits), no file left."""
+    shard = tmp_path / "shard-00000.h5"
+
+    proc = subprocess.run([sys.executable, "-c", WRITE_PAST_LIMIT, str(limit), str(shard)], cwd=REPO,
+                          env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1, (proc.returncode, proc.stderr[-2000:])
+    assert f"disk full while writing shard {shard}" in proc.stderr and disk_name(shard) in proc.stderr
+    assert "File too large" in proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_room_counts_the_file_size_limit(tmp_path: Path) -> None:
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    try:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (12345, hard))
+        assert room_for_file(tmp_path) == 12345
+        with pytest.raises(DiskFullError, match=r"needs about 0\.1 MB, 0\.0 MB free on"):
+            require_room(tmp_path / "x.h5", 100_000, "shard")
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert room_for_file(tmp_path) == os.statvfs(tmp_path).f_bavail * os.statvfs(tmp_path).f_frsize

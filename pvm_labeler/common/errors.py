@@ -20,3 +20,10 @@ class ConfigError(InputError):
 
 class ShardError(PVMError):
     """A shard or shard directory is missing, corrupt, half-written or of another schema/config."""
+
+
+class DiskFullError(ShardError):
+    """A file could not be written for want of room (full disk, quota or file-size limit): the job stops.
+
+    Unlike a bad pair, which is recorded and skipped, every later write would fail too; the message names the disk.
+    """

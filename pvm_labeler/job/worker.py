@@ -15,13 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from pvm_labeler.common.datasets import PairRef, load_pair
+from pvm_labeler.common.datasets import PairRef, check_pair_sizes, load_pair
 from pvm_labeler.common.errors import ConfigError, PVMError
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.job.spec import DEFAULT_LABELER
 from pvm_labeler.parallel import peak_rss_mb, reset_peak_rss, thread_budget
 from pvm_labeler.shards import ShardRecord, ShardWriter
+from pvm_labeler.shards.writer import expected_shard_bytes
 from pvm_labeler.stages import count_stages
 
 logger = logging.getLogger(__name__)
@@ -148,6 +149,18 @@ def _label_into(task: ShardTask, writer: ShardWriter) -> dict[str, Any]:
             "failures": failures}
 
 
+def _expected_bytes(task: ShardTask) -> int:
+    """The shard's expected size on disk, from its pairs' image headers (checked before any pair is labelled)."""
+    pixels = 0
+    for ref in task.refs:
+        try:
+            height, width = check_pair_sizes(ref)
+        except (PVMError, OSError):  # an unreadable pair is recorded as a failure when it is labelled
+            continue
+        pixels += height * width
+    return expected_shard_bytes(pixels, any(ref.gt is not None for ref in task.refs), task.compression)
+
+
 def label_shard(task: ShardTask) -> ShardOutcome:
     """Worker entry: label every pair of one shard and publish the shard file atomically.
 
@@ -159,7 +172,8 @@ def label_shard(task: ShardTask) -> ShardOutcome:
     path = Path(task.path)
     planned = [ref.frame_id for ref in task.refs]
     with thread_budget(task.numba_threads):
-        writer = ShardWriter(path, task.config, compression=task.compression, extra_attrs={"planned": planned})
+        writer = ShardWriter(path, task.config, compression=task.compression, extra_attrs={"planned": planned},
+                             expected_bytes=_expected_bytes(task))
         try:
             stats = _label_into(task, writer)
             writer.set_attr("stats", json.dumps(stats))

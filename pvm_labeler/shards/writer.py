@@ -1,7 +1,14 @@
-"""Writing shards: one process per file, ``shard-XXXXX.h5.tmp`` renamed on completion; index.json written last."""
+"""Writing shards: one process per file, ``shard-XXXXX.h5.tmp`` renamed on completion; index.json written last.
+
+HDF5 builds the shard in memory and Python writes the finished image to disk. HDF5 reports a failed write (full
+disk, file-size limit) only from object destructors ("Exception ignored in ObjectID.__dealloc__") and then may crash
+the process in ``close``; Python's own ``write`` raises. So the disk is touched by one ``write`` + ``fsync`` per shard,
+checked before (room for the shard) and after (the bytes on disk are the image), then renamed.
+"""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import time
@@ -12,7 +19,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from pvm_labeler.common.errors import ShardError
+from pvm_labeler.common.diskspace import NO_ROOM, disk_name, mb, require_room
+from pvm_labeler.common.errors import DiskFullError, ShardError
 from pvm_labeler.common.io import atomic_write_bytes
 from pvm_labeler.common.version import code_version, git_commit
 from pvm_labeler.shards import schema
@@ -57,6 +65,8 @@ class ShardWriter:
         config: labeler config dict (stored as JSON in the root attrs, compared on resume).
         compression: one of COMPRESSIONS, "blosc-lz4" by default.
         extra_attrs: more root attributes (JSON-able values are stored as JSON strings).
+        expected_bytes: the shard's expected size on disk (:func:`expected_shard_bytes`); when given, a disk without
+            room for it raises :class:`DiskFullError` here, before any work goes into the shard.
     """
 
     def __init__(
@@ -65,12 +75,16 @@ class ShardWriter:
         config: dict[str, Any],
         compression: str = DEFAULT_COMPRESSION,
         extra_attrs: dict[str, Any] | None = None,
+        expected_bytes: int | None = None,
     ) -> None:
         self.path = Path(path)
         self.tmp_path = self.path.with_name(self.path.name + schema.TMP_SUFFIX)
         self._kwargs = _compression_kwargs(compression)
         self._ids: list[str] = []
-        self._file = h5py.File(self.tmp_path, "w")
+        if expected_bytes is not None:
+            require_room(self.path, expected_bytes, "shard")
+        # HDF5's core driver: the file lives in memory (backing_store=False) until close() writes its image
+        self._file = h5py.File(self.tmp_path, "w", driver="core", backing_store=False)
         attrs = self._file.attrs
         attrs["schema_name"] = schema.SCHEMA_NAME
         attrs["schema_version"] = schema.SCHEMA_VERSION
@@ -108,15 +122,37 @@ class ShardWriter:
         self._file.attrs[key] = value
 
     def close(self) -> Path:
-        """Finish the file and atomically publish it under its final name; returns the final path."""
+        """Finish the file and atomically publish it under its final name; returns the final path.
+
+        Raises:
+            DiskFullError: the disk (or the file-size limit) has no room for the shard; nothing is published and
+                the temporary file is removed.
+            ShardError: the bytes read back from disk are not the shard's.
+        """
         self._file.attrs["samples"] = json.dumps(self._ids)
         self._file.attrs["num_samples"] = len(self._ids)
+        self._file.flush()
+        data = memoryview(self._file.id.get_file_image())
         self._file.close()
-        os.replace(self.tmp_path, self.path)
+        try:
+            require_room(self.path, len(data), "shard")
+            _write_durably(self.tmp_path, data)
+            os.replace(self.tmp_path, self.path)
+            _fsync_directory(self.path.parent)
+        except OSError as exc:
+            self.tmp_path.unlink(missing_ok=True)
+            if exc.errno in NO_ROOM:
+                raise DiskFullError(f"disk full while writing shard {self.path} ({mb(len(data))}) on "
+                                    f"{disk_name(self.path)}: {exc.strerror}; free space and re-run with --resume"
+                                    ) from exc
+            raise ShardError(f"cannot write shard {self.path}: {exc}") from exc
+        except BaseException:
+            self.tmp_path.unlink(missing_ok=True)
+            raise
         return self.path
 
     def abort(self) -> None:
-        """Close and delete the temporary file (nothing half-written is left behind)."""
+        """Close and drop the shard (nothing half-written is left behind)."""
         try:
             self._file.close()
         finally:
@@ -130,6 +166,49 @@ class ShardWriter:
             self.close()
         else:
             self.abort()
+
+
+def _write_durably(path: Path, data: memoryview) -> None:
+    """Write ``data`` to ``path``, fsync it and check that the file on disk holds exactly ``len(data)`` bytes."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+    try:
+        written = 0
+        while written < len(data):
+            n = os.write(fd, data[written:])
+            if n == 0:  # a write that makes no progress: the disk takes nothing more
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+            written += n
+        os.fsync(fd)
+        size = os.fstat(fd).st_size
+    finally:
+        os.close(fd)
+    if size != len(data):
+        raise ShardError(f"shard {path}: {size} bytes on disk after writing {len(data)}")
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (a crash after it must not bring back the old name)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:  # some file systems cannot open a directory: the rename is still atomic
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def expected_shard_bytes(pixels: int, with_gt: bool, compression: str) -> int:
+    """A generous estimate of a shard's size on disk: ``pixels`` summed over its pairs.
+
+    Per pixel: two RGB images (6 B), label, right label and confidence (12 B), GT maps (8 B); the compressors take
+    that to about half (KITTI 2015 with GT, Blosc-LZ4: 12.6 B per pixel, 5.9 MB per frame, against 26 B raw), so
+    0.7 of the raw size leaves a margin. ``none`` keeps the raw size.
+    """
+    raw = pixels * (6 + 12 + (8 if with_gt else 0))
+    return int(raw if compression == "none" else 0.7 * raw)
 
 
 def _record_arrays(record: ShardRecord) -> dict[str, np.ndarray]:
