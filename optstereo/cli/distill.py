@@ -1,5 +1,6 @@
-"""``optstereo-distill``: ``maps`` (a teacher's two views of every pair, resumable) and ``fill`` (PVM shards + the
-teacher's left-right consistent views in their holes); the library is ``optstereo.training.distill``."""
+"""``optstereo-distill``: ``maps`` (a teacher's two views of every pair, resumable), ``fill`` (PVM shards + the
+teacher's left-right consistent views in their holes) and ``valset`` (a GT-free validation set: PVM labels and the
+teacher's maps of held-back pairs); the libraries are ``optstereo.training.distill`` and ``optstereo.validation``."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from optstereo import validation
 from optstereo.checkpoint import build_model_from_checkpoint
 from optstereo.choices import AMP_MODES
 from optstereo.cli.common import GuardedCommand
@@ -54,3 +56,22 @@ def fill_command(labels: Path, maps_dir: Path, out: Path, fill_confidence: float
     distill.fill(labels, maps_dir, out, fill_confidence, max_lr_diff, compression, progress=True,
                  allow_missing=allow_missing)
     click.echo(f"teacher-filled shards in {out}")
+
+
+@distill_main.command("valset", cls=GuardedCommand,
+                      help="A GT-free validation set of held-back pairs: PVM labels + the teacher's maps (resumable); "
+                           "score a model on it with optstereo-eval --valset.")
+@click.option("--dataset", default="folder", show_default=True, help="Dataset reader (pvm-label's names).")
+@click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), help="Dataset root.")
+@click.option("--left", default="left", show_default=True, help="folder reader: left images' sub-folder.")
+@click.option("--right", default="right", show_default=True, help="folder reader: right images' sub-folder.")
+@click.option("--teacher", default="pretrained-accurate", show_default=True, help="The teacher's checkpoint.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="The validation set's folder.")
+@click.option("--device", type=click.Choice(("cpu", "cuda")), default="cpu", show_default=True)
+@click.option("--max-disp", type=click.IntRange(min=1), default=None, help="The labeler's search range (default 192).")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def valset_command(dataset: str, root: Path | None, left: str, right: str, teacher: str, out: Path, device: str,
+                   max_disp: int | None, quiet: bool) -> None:
+    options = {"left": left, "right": right} if dataset == "folder" else {}
+    built = validation.build(dataset, root, out, teacher, options, device, quiet, max_disp)
+    click.echo(f"validation set of {len(built.manifest['pairs'])} pairs in {out} (teacher {teacher})")

@@ -1,15 +1,18 @@
-"""``optstereo-eval``: a network (or a shard directory's own labels) on a dataset's GT -> metrics and reports."""
+"""``optstereo-eval``: a network (or a shard directory's own labels) on a dataset's GT -> metrics and reports; with
+``--valset``, a network on a GT-free validation set (optstereo.validation)."""
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Any
 
 import click
 
-from optstereo import evaluate
+from optstereo import evaluate, validation
 from optstereo.cli import common
+from pvm_labeler.common.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
 
@@ -19,6 +22,9 @@ logger = logging.getLogger(__name__)
               help="Checkpoint file (.pt/.pth/.ckpt/.safetensors), RUN_DIR, or 'pretrained' (the shipped model).")
 @click.option("--labels", type=common.EXISTING,
               help="Evaluate this shard directory's own PVM labels instead of a network.")
+@click.option("--valset", type=common.EXISTING,
+              help="Score --checkpoint without GT on this validation set (optstereo-distill valset): against its PVM "
+                   "labels, the teacher's consistent pixels in their holes, and the photometric error.")
 @common.dataset_option
 @click.option("--root", type=common.EXISTING, help="Dataset root folder (not needed for sample).")
 @common.reader_options
@@ -30,11 +36,20 @@ logger = logging.getLogger(__name__)
 @common.device_option
 @common.infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
-def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None, root: Path | None, split: str,
-              out: Path, iters: int | None, limit: int | None, save_maps: bool, device: str, amp: str,
-              scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
+def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None, dataset: str | None,
+              root: Path | None, split: str, out: Path, iters: int | None, limit: int | None, save_maps: bool,
+              device: str, amp: str, scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
     common.setup_logging(quiet)
+    if valset is not None:
+        if checkpoint is None or labels is not None or dataset is not None:
+            raise click.UsageError("--valset scores a --checkpoint on its own pairs: give no --labels or --dataset")
+        if iters is not None or scale is not None or refine is not None:
+            raise click.UsageError("--valset scores the model with its own inference settings (no --iters, --scale, "
+                                   "--refine)")
+        common.check_out(out)
+        _eval_valset(checkpoint, valset, out, device, amp, quiet)
+        return
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     common.check_out(out)
@@ -55,3 +70,18 @@ def eval_main(checkpoint: Path | None, labels: Path | None, dataset: str | None,
     click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
                f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
     click.echo(f"reports: {result.files['md']}, {result.files['csv']}, {result.files['json']}")
+
+
+def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp: str, quiet: bool) -> None:
+    """``--valset``: OUT/gtfree.json (summary and per-pair sums) and one summary line."""
+    try:
+        valset = validation.open_valset(valset_dir)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from exc
+    model, dev = common.load_model(checkpoint, device)
+    result = validation.score(model, valset, dev, amp, progress=not quiet, what=str(checkpoint))
+    out.mkdir(parents=True, exist_ok=True)
+    doc = {"checkpoint": str(checkpoint), "valset": str(valset_dir), **result.to_dict()}
+    atomic_write_text(out / "gtfree.json", json.dumps(doc, indent=2) + "\n")
+    click.echo(validation.summary_line(result.summary))
+    click.echo(f"report: {out / 'gtfree.json'}")

@@ -1,0 +1,260 @@
+"""GT-free validation: a model scored on held-back unlabelled pairs against their PVM labels and a teacher's maps.
+
+A validation set is one folder (:func:`build`, ``optstereo-distill valset``):
+
+    valset.json   what it holds: the pairs' dataset and root, the teacher (spec and weights digest); written last,
+                  so a folder without it is not (yet) a validation set
+    labels/       PVM shards of the pairs (``pvm-label run``; no GT is read or written)
+    maps/         the teacher's two views of every pair (``optstereo-distill maps``), left-right checked when scored
+
+A model's scores (:func:`score`, ``optstereo-eval --valset``), pooled over the pixels of every pair:
+
+    pvm_bad3, pvm_epe          against PVM's labels, on PVM's pixels
+    teacher_bad3, teacher_epe  against the teacher's left-right consistent pixels in PVM's holes; left out for a
+                               model with the teacher's weights (a model is never scored against its own maps)
+    photometric                the right view warped by the prediction onto the left: 0.85 (1 - SSIM 3x3) / 2 +
+                               0.15 L1, 1 where the warp leaves the image (the reconstruction loss's per-pixel form)
+
+The matcher that made the labels scores ~0 on them, so dense SGM is never judged here. Per-pair scores give the noise
+of a difference between two models (:func:`paired_difference`), which ``optstereo-adapt``'s guard uses.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import subprocess
+import sys
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from optstereo.checkpoint import build_model_from_checkpoint
+from optstereo.inference.cascade import photometric_costs
+from optstereo.inference.engine import infer
+from optstereo.pretrained import resolve_checkpoint_spec
+from optstereo.training.distill import consistent_views, read_teacher_maps, write_teacher_maps
+from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.datasets import discover
+from pvm_labeler.shards import open_shard, read_index, read_sample
+
+logger = logging.getLogger(__name__)
+
+MANIFEST = "valset.json"
+#: The bad-N threshold of every score (px), the field's bad-3.
+BAD_PX = 3.0
+#: lzf, built into h5py: a validation set is small and read anywhere without the Blosc plugin.
+SHARD_COMPRESSION = "lzf"
+
+
+@dataclass(frozen=True)
+class ValSet:
+    """An opened validation set: its folders and its manifest."""
+
+    root: Path
+    labels: Path
+    maps: Path
+    manifest: dict[str, Any]
+
+    @property
+    def teacher_digest(self) -> str:
+        """The teacher's :func:`weights_digest`."""
+        return str(self.manifest["teacher"]["digest"])
+
+
+@dataclass
+class PairScore:
+    """One pair's sums (pooled by adding them) and its own bad-3 / photometric means."""
+
+    frame_id: str
+    pvm_n: int = 0
+    pvm_err: float = 0.0
+    pvm_bad: int = 0
+    teacher_n: int = 0
+    teacher_err: float = 0.0
+    teacher_bad: int = 0
+    photo_sum: float = 0.0
+    photo_n: int = 0
+
+    def value(self, key: str) -> float:
+        """This pair's own ``pvm_bad3`` / ``teacher_bad3`` / ``photometric`` (NaN where it has no pixel)."""
+        return pooled([self])[key]
+
+
+@dataclass
+class ValScore:
+    """A model on a validation set: pooled scores (:func:`pooled`) and the per-pair sums."""
+
+    summary: dict[str, float]
+    pairs: list[PairScore] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able: the summary and one row per pair."""
+        return {"summary": self.summary, "pairs": [asdict(p) for p in self.pairs]}
+
+
+def weights_digest(model: nn.Module) -> str:
+    """sha256 (16 hex digits) of the model's parameters and buffers, in name order: equal weights, equal digest,
+    whatever file or inference settings they came with."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().to("cpu").contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def open_valset(root: Path | str) -> ValSet:
+    """Open a validation set folder; ValueError naming the folder and what is missing."""
+    root = Path(root)
+    manifest_path = root / MANIFEST
+    if not manifest_path.is_file():
+        raise ValueError(f"{root} is not a validation set: {MANIFEST} is missing (build one with "
+                         "`optstereo-distill valset`; an interrupted build resumes)")
+    try:
+        manifest = json.loads(manifest_path.read_text())
+        teacher = manifest["teacher"]["digest"]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{manifest_path} is corrupt: {exc}") from exc
+    if not isinstance(teacher, str):
+        raise ValueError(f"{manifest_path} is corrupt: teacher digest {teacher!r}")
+    return ValSet(root=root, labels=root / "labels", maps=root / "maps", manifest=manifest)
+
+
+def pvm_label(dataset: str, root: Path | None, out: Path, reader_options: dict[str, Any] | None = None,
+              limit: int | None = None, max_disp: int | None = None, quiet: bool = False) -> Path:
+    """``pvm-label run`` into ``out`` in a subprocess (the trainer never imports the labeler); resumes a half-done
+    job. RuntimeError with the job's last output when it fails."""
+    cmd = [sys.executable, "-m", "pvm_labeler.cli", "run", "--dataset", dataset, "--out", str(out),
+           "--compression", SHARD_COMPRESSION]
+    if root is not None:
+        cmd += ["--root", str(root)]
+    flags = {"left": "--left", "right": "--right", "gt": "--gt", "pass_": "--sceneflow-pass"}
+    for key, flag in flags.items():
+        if (reader_options or {}).get(key) is not None:
+            cmd += [flag, str(reader_options[key])]
+    if limit:
+        cmd += ["--limit", str(limit)]
+    if max_disp:
+        cmd += ["--max-disp", str(max_disp)]
+    if quiet:
+        cmd += ["--quiet"]
+    logger.info("labeling: %s", " ".join(cmd))
+    done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"pvm-label run failed (exit {done.returncode}) for {dataset} {root}: "
+                           f"{done.stdout[-2000:]}")
+    return out
+
+
+def build(dataset: str, root: Path | None, out: Path, teacher: str | Path = "pretrained-accurate",
+          reader_options: dict[str, Any] | None = None, device: str = "cpu", quiet: bool = False,
+          max_disp: int | None = None) -> ValSet:
+    """Build (or finish) the validation set of a dataset's pairs in ``out``: PVM labels, the teacher's maps, then
+    the manifest. Both steps resume. ValueError when a pair has GT (nothing is written)."""
+    refs = discover(dataset, root, **(reader_options or {}))
+    with_gt = [ref.frame_id for ref in refs if ref.gt is not None or ref.gt_noc is not None]
+    if with_gt:
+        raise ValueError(f"{len(with_gt)} of {len(refs)} pairs of {root} have GT (first: {with_gt[0]}): a validation "
+                         "set is made of unlabelled pairs; point --root at a folder without GT")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pvm_label(dataset, root, out / "labels", reader_options, max_disp=max_disp, quiet=quiet)
+    teacher_path = resolve_checkpoint_spec(teacher)
+    model = build_model_from_checkpoint(teacher_path, device=device)
+    write_teacher_maps(model, refs, out / "maps", device, progress=not quiet)
+    manifest = {"dataset": dataset, "root": None if root is None else str(root), "reader_options": reader_options or {},
+                "pairs": [ref.frame_id for ref in refs],
+                "teacher": {"spec": str(teacher), "file": teacher_path.name, "digest": weights_digest(model)}}
+    atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
+    return open_valset(out)
+
+
+def score_pair(frame_id: str, disp: npt.NDArray[np.float32], label: npt.NDArray[np.float32],
+               teacher: npt.NDArray[np.float32] | None, photometric: npt.NDArray[np.float32]) -> PairScore:
+    """One pair's sums: ``disp`` (H, W) against ``label`` on its finite pixels, against ``teacher`` (consistent
+    views, NaN elsewhere; None = not scored) where ``label`` has none; ``photometric`` (H, W) per-pixel costs."""
+    on_pvm = np.isfinite(label)
+    err = np.abs(disp[on_pvm] - label[on_pvm]).astype(np.float64)
+    out = PairScore(frame_id, pvm_n=int(err.size), pvm_err=float(err.sum()), pvm_bad=int((err > BAD_PX).sum()),
+                    photo_sum=float(photometric.sum(dtype=np.float64)), photo_n=int(photometric.size))
+    if teacher is not None:
+        on_teacher = np.isfinite(teacher) & ~on_pvm
+        terr = np.abs(disp[on_teacher] - teacher[on_teacher]).astype(np.float64)
+        out.teacher_n, out.teacher_err, out.teacher_bad = int(terr.size), float(terr.sum()), int((terr > BAD_PX).sum())
+    return out
+
+
+def pooled(pairs: list[PairScore]) -> dict[str, float]:
+    """Scores pooled over the pixels of ``pairs``: bad-3 in %, EPE in px, photometric error; NaN where no pixel."""
+    def ratio(num: float, den: int, scale: float = 1.0) -> float:
+        return scale * num / den if den else math.nan
+
+    pvm_n, teacher_n = sum(p.pvm_n for p in pairs), sum(p.teacher_n for p in pairs)
+    return {"pvm_bad3": ratio(sum(p.pvm_bad for p in pairs), pvm_n, 100.0),
+            "pvm_epe": ratio(sum(p.pvm_err for p in pairs), pvm_n),
+            "teacher_bad3": ratio(sum(p.teacher_bad for p in pairs), teacher_n, 100.0),
+            "teacher_epe": ratio(sum(p.teacher_err for p in pairs), teacher_n),
+            "photometric": ratio(sum(p.photo_sum for p in pairs), sum(p.photo_n for p in pairs)),
+            "pairs": float(len(pairs)), "pvm_pixels": float(pvm_n), "teacher_pixels": float(teacher_n)}
+
+
+def valset_pairs(valset: ValSet, only: set[str] | None = None) -> Iterator[tuple[Any, npt.NDArray[np.float32]]]:
+    """(shard sample, the teacher's left-right consistent left view) of every pair (or of ``only``'s ids)."""
+    for path, ids in read_index(valset.labels).shards:
+        with open_shard(path) as h5:
+            for frame_id in ids:
+                if only is not None and frame_id not in only:
+                    continue
+                sample = read_sample(h5, frame_id)
+                views = read_teacher_maps(valset.maps, frame_id, sample.label.shape)
+                yield sample, consistent_views(*views)[0]
+
+
+def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", amp: str = "none",
+          only: set[str] | None = None, progress: bool = False, what: str = "") -> ValScore:
+    """The model (run with its own inference settings) on every pair of ``valset`` (or of ``only``)."""
+    own = weights_digest(model) == valset.teacher_digest
+    if own:
+        logger.info("the model has the teacher's weights: teacher_* scores are left out (its own maps)")
+    total = len(only) if only is not None else read_index(valset.labels).num_samples
+    pairs = []
+    for sample, teacher in tqdm(valset_pairs(valset, only), total=total, desc=f"gt-free {what}".strip(), unit="pair",
+                                disable=not progress):
+        disp = infer(model, sample.left, sample.right, device=device, amp=amp)
+        cost = photometric_costs(sample.left, sample.right, [disp], window=1)[0]
+        pairs.append(score_pair(sample.frame_id, disp, sample.label, None if own else teacher, cost))
+    summary = pooled(pairs)
+    summary["own_teacher"] = float(own)
+    return ValScore(summary=summary, pairs=pairs)
+
+
+def paired_difference(before: list[PairScore], after: list[PairScore], key: str = "pvm_bad3",
+                      z: float = 2.0) -> tuple[float, float]:
+    """(mean over pairs of after - before in ``key``, its noise margin ``z`` standard errors); pairs matched by id.
+
+    The margin is the spread of the per-pair differences (a two-sided ~95 % band at z = 2): a mean change inside
+    it is what re-drawing the pairs would give. NaN margin with fewer than 3 pairs (no decision can be made).
+    """
+    by_id = {p.frame_id: p for p in before}
+    diffs = np.array([a.value(key) - by_id[a.frame_id].value(key) for a in after if a.frame_id in by_id])
+    diffs = diffs[np.isfinite(diffs)]
+    if diffs.size < 3:
+        return (float(diffs.mean()) if diffs.size else math.nan), math.nan
+    return float(diffs.mean()), float(z * diffs.std(ddof=1) / math.sqrt(diffs.size))
+
+
+def summary_line(summary: dict[str, float]) -> str:
+    """``'24 pairs: PVM bad-3 0.31 % (EPE 0.52 px), teacher bad-3 4.10 % (EPE 1.02 px), photometric 0.1234'``."""
+    teacher = ("teacher: own maps, not scored" if summary.get("own_teacher") else
+               f"teacher bad-3 {summary['teacher_bad3']:.2f} % (EPE {summary['teacher_epe']:.3f} px)")
+    return (f"{int(summary['pairs'])} pairs: PVM bad-3 {summary['pvm_bad3']:.2f} % (EPE {summary['pvm_epe']:.3f} px), "
+            f"{teacher}, photometric {summary['photometric']:.4f}")

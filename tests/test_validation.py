@@ -1,0 +1,157 @@
+"""GT-free validation (optstereo.validation): the scores by hand, the pooling, the noise of a paired difference, the
+teacher's own weights left out, a set built end to end and scored by ``optstereo-eval --valset``."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from conftest import TINY, make_folder, make_shards
+
+from optstereo import validation
+from optstereo.checkpoint import export_safetensors
+from optstereo.inference.cascade import photometric_costs
+from optstereo.inference.engine import infer
+from optstereo.models import build_model
+from optstereo.training import distill
+from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.shards import open_shard, read_index, read_sample
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_score_pair_by_hand() -> None:
+    disp = np.array([[1.0, 2.0, 10.0, 4.0]], np.float32)
+    label = np.array([[1.5, np.nan, 5.0, np.nan]], np.float32)   # PVM: errors 0.5 and 5 -> one bad
+    teacher = np.array([[9.0, 2.5, np.nan, 0.0]], np.float32)    # in PVM's holes only: x=1 (0.5), x=3 (4 -> bad)
+    photo = np.array([[0.1, 0.2, 0.3, 0.4]], np.float32)
+    s = validation.score_pair("f", disp, label, teacher, photo)
+    assert (s.pvm_n, s.pvm_err, s.pvm_bad) == (2, 5.5, 1)
+    assert (s.teacher_n, s.teacher_err, s.teacher_bad) == (2, 4.5, 1)
+    assert s.photo_n == 4 and s.photo_sum == pytest.approx(1.0)
+    assert s.value("pvm_bad3") == 50.0 and s.value("photometric") == pytest.approx(0.25)
+    assert validation.score_pair("f", disp, label, None, photo).teacher_n == 0
+
+
+def test_pooled_adds_pixels_not_frame_means() -> None:
+    a = validation.PairScore("a", pvm_n=100, pvm_err=50.0, pvm_bad=10, photo_sum=1.0, photo_n=10)
+    b = validation.PairScore("b", pvm_n=300, pvm_err=30.0, pvm_bad=2, teacher_n=4, teacher_err=2.0, teacher_bad=1,
+                             photo_sum=3.0, photo_n=10)
+    p = validation.pooled([a, b])
+    assert p["pvm_bad3"] == pytest.approx(100 * 12 / 400) and p["pvm_epe"] == pytest.approx(80 / 400)
+    assert p["teacher_bad3"] == 25.0 and p["teacher_epe"] == 0.5 and p["photometric"] == pytest.approx(0.2)
+    assert math.isnan(validation.pooled([a])["teacher_bad3"])
+
+
+def test_paired_difference_mean_and_margin_by_hand() -> None:
+    def pairs(bads: list[int]) -> list[validation.PairScore]:
+        return [validation.PairScore(str(i), pvm_n=100, pvm_bad=b) for i, b in enumerate(bads)]
+
+    mean, margin = validation.paired_difference(pairs([10, 10, 10, 10]), pairs([8, 9, 7, 8]))
+    diffs = np.array([-2.0, -1.0, -3.0, -2.0])  # per pair, in % points
+    assert mean == pytest.approx(diffs.mean())
+    assert margin == pytest.approx(2 * diffs.std(ddof=1) / 2)
+    mean2, margin2 = validation.paired_difference(pairs([10, 10]), pairs([8, 9]))
+    assert mean2 == pytest.approx(-1.5) and math.isnan(margin2)  # two pairs: no decision
+
+
+def test_weights_digest_sees_every_weight() -> None:
+    torch.manual_seed(0)
+    model = build_model("optstereo", **TINY, iters=1)
+    twin = build_model("optstereo", **TINY, iters=1)
+    twin.load_state_dict(model.state_dict())
+    assert validation.weights_digest(model) == validation.weights_digest(twin)
+    with torch.no_grad():
+        next(twin.parameters()).view(-1)[0] += 1e-6
+    assert validation.weights_digest(model) != validation.weights_digest(twin)
+
+
+def _handmade_valset(tmp_path: Path, teacher_digest: str) -> validation.ValSet:
+    """Three tiny shards without GT, teacher maps of constant 3 px, a manifest naming ``teacher_digest``."""
+    root = tmp_path / "val"
+    make_shards(root / "labels", n=3, with_gt=False, compression="lzf")
+    for _, ids in read_index(root / "labels").shards:
+        for frame_id in ids:
+            (root / "maps").mkdir(parents=True, exist_ok=True)
+            np.savez(distill.map_path(root / "maps", frame_id), left=np.full((32, 64), 3.0, np.float32),
+                     right=np.full((32, 64), 3.0, np.float32))
+    atomic_write_text(root / validation.MANIFEST, json.dumps({"teacher": {"digest": teacher_digest}}))
+    return validation.open_valset(root)
+
+
+def test_score_equals_a_numpy_reference_and_leaves_out_its_own_maps(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    model = build_model("optstereo", **TINY, iters=2).eval()
+    valset = _handmade_valset(tmp_path, teacher_digest="someone-else")
+    got = validation.score(model, valset)
+    bad = n = tbad = tn = 0
+    photo = []
+    for path, ids in read_index(valset.labels).shards:
+        with open_shard(path) as h5:
+            for frame_id in ids:
+                s = read_sample(h5, frame_id)
+                disp = infer(model, s.left, s.right)
+                known = np.isfinite(s.label)
+                bad, n = bad + int((np.abs(disp - s.label)[known] > 3).sum()), n + int(known.sum())
+                teacher = distill.consistent_views(np.full((32, 64), 3.0, np.float32),
+                                                   np.full((32, 64), 3.0, np.float32))[0]
+                hole = np.isfinite(teacher) & ~known
+                tbad, tn = tbad + int((np.abs(disp - 3.0)[hole] > 3).sum()), tn + int(hole.sum())
+                photo.append(photometric_costs(s.left, s.right, [disp], window=1)[0].mean())
+    assert got.summary["pvm_pixels"] == n and got.summary["pvm_bad3"] == pytest.approx(100 * bad / n)
+    assert got.summary["teacher_pixels"] == tn > 0 and got.summary["teacher_bad3"] == pytest.approx(100 * tbad / tn)
+    assert got.summary["photometric"] == pytest.approx(np.mean(photo), rel=1e-5)
+    own = validation.score(model, _handmade_valset(tmp_path / "own", validation.weights_digest(model)))
+    assert own.summary["own_teacher"] == 1.0 and own.summary["teacher_pixels"] == 0
+    assert own.summary["pvm_bad3"] == got.summary["pvm_bad3"]
+
+
+def test_open_valset_names_what_is_missing(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=f"{tmp_path} is not a validation set: valset.json is missing"):
+        validation.open_valset(tmp_path)
+    (tmp_path / "valset.json").write_text("{not json")
+    with pytest.raises(ValueError, match="valset.json is corrupt"):
+        validation.open_valset(tmp_path)
+
+
+def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
+    """optstereo-distill valset (PVM labels by the labeling job, teacher maps, manifest last), then
+    optstereo-eval --valset on the teacher (own maps: left out) and on another model."""
+    from optstereo.cli import distill_main, eval_main
+
+    pairs = make_folder(tmp_path / "pairs", n=3)
+    refused = CliRunner().invoke(distill_main, ["valset", "--root", str(pairs), "--out", str(tmp_path / "no")])
+    assert refused.exit_code == 1 and "3 of 3 pairs" in refused.output and "have GT" in refused.output
+    assert not (tmp_path / "no").exists()
+    shutil.rmtree(pairs / "gt")
+    torch.manual_seed(0)
+    teacher, other = tmp_path / "teacher.safetensors", tmp_path / "other.safetensors"
+    export_safetensors(teacher, build_model("optstereo", **TINY, iters=1))
+    export_safetensors(other, build_model("optstereo", **TINY, iters=1))
+    val = tmp_path / "val"
+    built = CliRunner().invoke(distill_main, ["valset", "--root", str(pairs), "--teacher", str(teacher),
+                                              "--out", str(val), "--max-disp", "16", "--quiet"])
+    assert built.exit_code == 0, built.output
+    assert "validation set of 3 pairs" in built.output
+    assert sorted(p.name for p in (val / "maps").iterdir()) == ["000.npz", "001.npz", "002.npz"]
+    for path, ids in read_index(val / "labels").shards:
+        with open_shard(path) as h5:
+            assert all(read_sample(h5, i).gt is None for i in ids)
+    for ckpt, own in ((teacher, True), (other, False)):
+        out = tmp_path / f"eval_{ckpt.stem}"
+        done = CliRunner().invoke(eval_main, ["--checkpoint", str(ckpt), "--valset", str(val), "--out", str(out),
+                                              "--device", "cpu", "--quiet"])
+        assert done.exit_code == 0, done.output
+        assert "3 pairs: PVM bad-3" in done.output
+        assert ("teacher: own maps, not scored" in done.output) == own
+        doc = json.loads((out / "gtfree.json").read_text())
+        assert len(doc["pairs"]) == 3 and doc["summary"]["own_teacher"] == float(own)
+    wrong = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(pairs), "--out",
+                                           str(tmp_path / "e"), "--quiet"])
+    assert wrong.exit_code == 2 and "is not a validation set" in wrong.output
