@@ -12,7 +12,7 @@ OUT ?= out/labels/$(DATASET)
 JOBS ?= 2
 PYTEST_ARGS ?=
 
-.PHONY: install test test-slow test-all test-studies bench demo labels results lint clean
+.PHONY: install test test-faults test-slow test-all test-studies bench demo labels results lint clean
 
 install: $(STAMP)
 
@@ -27,6 +27,11 @@ $(STAMP): pyproject.toml
 
 test: $(STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# The fault tests (SIGKILL + resume, a killed Dask worker, checkpoint kills, peak-RSS bounds): slow ones included.
+# CI runs them after `make test` (.ci/run).
+test-faults: $(STAMP)
+	$(PY) -m pytest -q --runslow -m faults $(PYTEST_ARGS)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q --runslow -m "slow or perf" $(PYTEST_ARGS)

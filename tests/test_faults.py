@@ -104,6 +104,7 @@ def full_run_workers(fault_shards: Path, tmp_path_factory: pytest.TempPathFactor
 
 
 @pytest.mark.slow
+@pytest.mark.faults
 @pytest.mark.parametrize("kill_after, delay_s", [(2, 0.0), (5, 0.3), (8, 0.05)])
 def test_sigkill_then_resume_is_bit_identical(fault_shards: Path, full_run: Path, tmp_path: Path, kill_after: int,
                                               delay_s: float) -> None:
@@ -126,6 +127,7 @@ def test_sigkill_then_resume_is_bit_identical(fault_shards: Path, full_run: Path
 
 
 @pytest.mark.slow
+@pytest.mark.faults
 def test_sigkill_then_resume_is_bit_identical_with_loader_workers(fault_shards: Path, full_run_workers: Path,
                                                                   tmp_path: Path) -> None:
     """Two DataLoader workers, resumed at an odd step: the resumed loader asks worker 0 first, so the stream rotates
@@ -179,6 +181,7 @@ def _kill_writer(target: Path, delay_s: float) -> int:
 
 
 @pytest.mark.slow
+@pytest.mark.faults
 def test_kill_inside_checkpoint_writes_leaves_the_previous_checkpoint(tmp_path: Path) -> None:
     target = tmp_path / "run" / LAST
     debris = 0

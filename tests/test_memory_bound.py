@@ -1,8 +1,9 @@
-"""Peak memory of the two long-running programs does not grow with the number of frames.
+"""Peak memory of the long-running programs does not grow with the number of frames.
 
-``optstereo-eval`` over 50 and 500 frames and ``pvm-label run`` over 20 and 200 frames, each a subprocess that
-prints its own peak RSS (VmHWM, ``pvm_labeler.parallel.peak_rss_mb``: a fresh process's, never its parent's) when
-it exits. The frames are tiny (32x64), so one frame's arrays are small: a program that kept them would grow by
+``optstereo-eval`` over 50 and 500 frames, ``pvm-label run`` and ``optstereo-train`` over 20 and 200 frames, each a
+subprocess that prints its own peak RSS (VmHWM, ``pvm_labeler.parallel.peak_rss_mb``: a fresh process's, never its
+parent's) when it exits. The frames are tiny (32x64; the trainer's 64x128), so one frame's arrays are small: a
+program that kept them would grow by
 
     eval:  pred + gt (float32) + left (uint8 RGB) = 22 KiB a frame -> 9.7 MiB over the 450 extra frames;
     label: left + right (uint8 RGB) + label + label_right + confidence + gt (float32) = 44 KiB a frame
@@ -23,12 +24,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY, make_folder
+from conftest import TINY, make_folder, make_shards
 
 from optstereo.checkpoint import save_checkpoint
 from pvm_labeler.shards import read_index
 
-pytestmark = [pytest.mark.slow,
+pytestmark = [pytest.mark.slow, pytest.mark.faults,
               pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM is Linux-only")]
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,3 +82,25 @@ def test_label_peak_rss_does_not_grow_with_frames(frames: dict[int, Path], tmp_p
     small, large = peak(20), peak(200)
     assert read_index(tmp_path / "labels200").num_samples == 200
     assert large - small < LABEL_GROWTH_MIB, f"peak RSS {small:.1f} MiB at 20 frames, {large:.1f} MiB at 200"
+
+
+#: 20 -> 200 frames of 64x128: a kept frame (left + right uint8 RGB, label + label_right + confidence float32,
+#: 144 KiB) would add 25 MiB over the 180 extra frames; the stream keeps a shuffle buffer of 8 samples by design.
+TRAIN_GROWTH_MIB = 6.0
+
+
+def test_train_peak_rss_does_not_grow_with_shards(tmp_path: Path) -> None:
+    """optstereo-train streams the shards: the same 200 steps (batch 2, so every frame of the large set is read
+    at least once) peak at the same RSS over 20 and over 200 frames (ten times the shards)."""
+
+    def peak(n: int) -> float:
+        labels = make_shards(tmp_path / f"shards{n}", n=n, shard_size=2, height=64, width=128)
+        model = [f"--set=model.{k}={v}" for k, v in TINY.items()]
+        return _peak_mib("optstereo.cli", "train_main", "--labels", str(labels), "--out", str(tmp_path / f"run{n}"),
+                         "--steps", "200", "--batch-size", "2", "--crop", "32x64", "--iters", "1", "--workers", "0",
+                         "--threads", "1", "--device", "cpu", "--ckpt-every", "1000", "--log-every", "50",
+                         "--set", "data.shuffle_buffer=8", "--set", "tensorboard=false", "--quiet", *model)
+
+    small, large = peak(20), peak(200)
+    assert (tmp_path / "run200" / "last.pt").exists()
+    assert large - small < TRAIN_GROWTH_MIB, f"peak RSS {small:.1f} MiB at 20 frames, {large:.1f} MiB at 200"

@@ -10,7 +10,8 @@ import pytest
 
 from pvm_labeler.parallel import peak_rss_mb, reset_peak_rss
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM / clear_refs are Linux-only")
+pytestmark = [pytest.mark.faults,
+              pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM / clear_refs are Linux-only")]
 
 MIB = 2**20
 
