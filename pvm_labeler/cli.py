@@ -337,7 +337,7 @@ def match_cmd(left: Path | None, right: Path | None, out: Path, formats: tuple[s
             return
         done = match_dataset(dataset, root, out, split=split, formats=formats, max_disp=max_disp, fill=fill,
                              jobs=jobs, limit=limit, quiet=quiet)
-    except PVMError as exc:
+    except (PVMError, OSError) as exc:  # OSError: OUT not writable (a file, no permission, disk full)
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {len(done)} pairs into {out} ({', '.join(formats)})")
 

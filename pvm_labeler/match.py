@@ -126,11 +126,12 @@ def match_dataset(dataset: str, root: Path | None, out_dir: Path, *, split: str 
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     for ref in refs:
         check_pair_sizes(ref)
+    jobs = min(jobs, len(refs))
     threads = numba_threads_per_worker(jobs)
     tasks = [MatchTask(ref, Path(out_dir), tuple(formats), max_disp, fill, threads) for ref in refs]
     done = []
     with progress_bar(len(tasks), 0, quiet, desc="pvm-label match") as bar:
-        for task in run_tasks(_match_task, tasks, "loky", min(jobs, len(tasks))):
+        for task in run_tasks(_match_task, tasks, "loky", jobs):
             done.append(task)
             bar.update(1)
     return done

@@ -90,6 +90,9 @@ class TestPair:
         both = _invoke(left, right, "--dataset", "folder", "--root", tmp_path, "--out", tmp_path / "o")
         assert both.exit_code == 2 and "not both" in both.output
         assert not (tmp_path / "o").exists()
+        (tmp_path / "a_file").write_text("")
+        not_a_folder = _invoke(left, right, "--out", tmp_path / "a_file", "--max-disp", MAX_DISP)
+        assert not_a_folder.exit_code == 1 and "a_file" in not_a_folder.output
 
 
 class TestDataset:
