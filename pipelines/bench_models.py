@@ -8,6 +8,12 @@ two alternating frame by frame so that load on a shared machine hits both alike.
 of (model seconds / SGBM seconds on that frame); issue 42's targets are <= 3.0 for the default and <= 0.5 for the
 fast model. With CUDA present, a GPU row per model: ``infer`` in bf16 and float32, synchronised, median of 10 after 3
 warm-up calls (issue 42's target for the default: <= 15 ms in bf16).
+
+Beside them, in the same run, `pvm-label match` (issue 52): ``pvm_labeler.match.match_arrays`` (grey, census SGM of
+the left view over 192 disparities, row fill: what the command does between reading and writing) with numba on the
+same 2 threads, alternating with SGBM-HH frame by frame; its target is <= 0.5x SGBM's time. Its row also gives both
+maps' bad-3 on all 15 KITTI 2015 GT frames (occ GT, else noc; fast enough to score them all), SGBM's holes filled by
+the same row fill so that the two matchers, not their fills, are compared.
 """
 
 from __future__ import annotations
@@ -28,12 +34,18 @@ from optstereo.api import load_model
 from optstereo.inference.engine import infer
 from optstereo.pretrained import SHIPPED
 from pipelines.bench_labeler import _opencv
+from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.io import read_image
+from pvm_labeler.common.metrics import MetricAccumulator
+from pvm_labeler.dense import fill_rows_nearest
+from pvm_labeler.match import match_arrays
+from pvm_labeler.parallel import thread_budget
 
 THREADS = 2
 FRAMES = ("000000", "000005", "000010")
 REPEATS = int(os.environ.get("PVS_BENCH_REPEATS", "3"))
 TARGETS = {"pretrained": 3.0, "pretrained-fast": 0.5}
+MATCH_TARGET = 0.5
 
 
 def _seconds(fn: Callable[[], Any], repeats: int) -> float:
@@ -50,6 +62,12 @@ def _seconds(fn: Callable[[], Any], repeats: int) -> float:
 def _frames(shared: Path) -> list[tuple[np.ndarray, np.ndarray]]:
     base = Path(shared) / "kitti15/training"
     return [(read_image(base / f"image_2/{f}_10.png"), read_image(base / f"image_3/{f}_10.png")) for f in FRAMES]
+
+
+def _scored(shared: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(left, right, GT) of every KITTI 2015 GT frame through the project's reader (GT: occ if present, else noc)."""
+    samples = [load_pair(ref) for ref in discover("kitti15", Path(shared) / "kitti15")]
+    return [(s.left, s.right, s.gt) for s in samples if s.gt is not None]
 
 
 def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, np.ndarray]],
@@ -73,6 +91,40 @@ def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, 
                      "ratio": ratio, "target": target,
                      "verdict": None if target is None else ("met" if ratio <= target else "not met")})
     return rows
+
+
+def _match(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    with thread_budget(THREADS):
+        return match_arrays(left, right)
+
+
+def _sgbm_filled(sgbm: Any, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """SGBM's disparity in px (fixed point / 16) with its invalid pixels (< 0) filled along the row like match's."""
+    disp = sgbm.compute(left, right).astype(np.float32) / 16
+    return fill_rows_nearest(np.where(disp >= 0, disp, np.nan).astype(np.float32))
+
+
+def match_row(frames: list[tuple[np.ndarray, np.ndarray]], scored: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+              repeats: int = REPEATS) -> dict[str, Any]:
+    """`pvm-label match`'s seconds per frame, SGBM-HH's on the same ``frames``, the median per-frame ratio, and both
+    maps' pooled bad-3 (%) on the ``scored`` (left, right, GT) triples."""
+    sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
+    ratios, match_s, sgbm_s = [], [], []
+    for left, right in frames:
+        t_sgbm = _seconds(functools.partial(sgbm.compute, left, right), repeats)
+        t_match = _seconds(functools.partial(_match, left, right), repeats)
+        match_s.append(t_match)
+        sgbm_s.append(t_sgbm)
+        ratios.append(t_match / t_sgbm)
+    acc = {"match": MetricAccumulator(), "sgbm": MetricAccumulator()}
+    for left, right, gt in scored:
+        acc["match"].update(_match(left, right), gt)
+        acc["sgbm"].update(_sgbm_filled(sgbm, left, right), gt)
+    ratio = statistics.median(ratios)
+    bad3 = {name: a.compute()["bad3"] for name, a in acc.items()}
+    return {"model": "pvm-label match", "s_per_frame": statistics.median(match_s), "sgbm_s": statistics.median(sgbm_s),
+            "ratio": ratio, "target": MATCH_TARGET, "verdict": "met" if ratio <= MATCH_TARGET else "not met",
+            "bad3": bad3["match"], "sgbm_bad3": bad3["sgbm"], "bad3_ratio": bad3["match"] / bad3["sgbm"]}
 
 
 def gpu_rows(models: dict[str, torch.nn.Module], left: np.ndarray, right: np.ndarray) -> list[dict[str, Any]]:
@@ -100,17 +152,22 @@ def run(shared: Path) -> dict[str, Any]:
     frames = _frames(shared)
     models = {name: load_model(name) for name in SHIPPED}
     rows = cpu_rows(models, frames)
+    match = match_row(frames, _scored(shared))
     gpu = gpu_rows(models, *frames[0])
     results = {"threads": THREADS, "repeats": REPEATS, "frames": [f"kitti15 {f}_10" for f in FRAMES], "cpu": rows,
-               "gpu": gpu, "load_avg": os.getloadavg()[0]}
+               "match": match, "gpu": gpu, "load_avg": os.getloadavg()[0]}
     lines = [f"Each shipped model with its own settings, end to end (`infer`: resize, passes, filter), float32, "
              f"{THREADS} threads, beside OpenCV SGBM-HH (192 disparities) on the same {len(FRAMES)} KITTI 2015 "
              f"frames, alternating; median of {REPEATS} runs per frame (1 for a multi-pass model), ratio = median "
              "of the per-frame ratios.", "",
              "| model | s / KITTI frame | OpenCV SGBM-HH s | x SGBM | target | |", "|---|---:|---:|---:|---:|---|"]
-    for r in rows:
+    for r in [*rows, match]:
         lines.append(f"| `{r['model']}` | {r['s_per_frame']:.2f} | {r['sgbm_s']:.2f} | {r['ratio']:.2f} | "
                      f"{'' if r['target'] is None else '<= ' + str(r['target'])} | {r['verdict'] or ''} |")
+    lines += ["", f"`pvm-label match` = dense census SGM + row fill (`pvm_labeler.match.match_arrays`, numba on "
+              f"{THREADS} threads, no network, file I/O not timed). bad-3 on the 15 KITTI 2015 GT frames, pooled: "
+              f"{match['bad3']:.2f} % against SGBM-HH's {match['sgbm_bad3']:.2f} % with its holes filled alike "
+              f"({match['bad3_ratio']:.2f}x)."]
     if gpu:
         lines += ["", f"GPU ({gpu[0]['device']}), `infer` synchronised, median of 10:", "",
                   "| model | precision | ms / KITTI frame |", "|---|---|---:|"]

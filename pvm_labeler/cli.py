@@ -8,6 +8,7 @@ Forms::
     pvm-label verify DIR                                                       # schema, counts, readability
     pvm-label report DIR [DIR ...] --out REPORT_DIR                            # label quality vs GT + pictures
     pvm-label densify DIR OUT                                                  # holes filled by superpixel planes
+    pvm-label match LEFT RIGHT --out DIR --format png                          # dense SGM + fill, no network
 
 Exit codes: 0 ok; 1 runtime failure (bad data, some pairs failed, broken shards); 2 bad usage (unknown option
 values, missing --root directory, out-of-range numbers such as --k 1 or a negative kappa).
@@ -27,6 +28,7 @@ from pvm_labeler.common.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
 from pvm_labeler.common.errors import ConfigError, PVMError
 from pvm_labeler.config import RECIPES, LabelerConfig, recipe_values
 from pvm_labeler.job.spec import DEFAULT_LABELER
+from pvm_labeler.match import MATCH_FORMATS
 from pvm_labeler.packgt import PACK_GT_LABELER
 from pvm_labeler.parallel import BACKENDS
 from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
@@ -56,7 +58,8 @@ class _DefaultRunGroup(click.Group):
 @click.group(cls=_DefaultRunGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="pvstereo")
 def main() -> None:
-    """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`, `convert`, `densify`;
+    """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`, `convert`, `densify`,
+    `match` (dense SGM + fill, no network);
     `pack-gt` = `run --labels none` (images + GT in shards, no labeling pass, for --supervision gt)."""
 
 
@@ -291,6 +294,52 @@ def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fi
     except PVMError as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {read_index(out).num_samples} densified samples into {out}")
+
+
+@main.command("match")
+@click.argument("left", required=False, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("right", required=False, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: OUT/<left stem or frame id>.<format>.")
+@click.option("--format", "formats", type=click.Choice(MATCH_FORMATS), multiple=True, default=("png",),
+              show_default=True, help="png: KITTI 16-bit (x256, 0 = none); pfm / npy: float32, NaN = none. Repeatable.")
+@click.option("--dataset", type=click.Choice(DATASETS), default=None,
+              help="Match every pair of a dataset (with --root) instead of LEFT RIGHT.")
+@click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+              help="Dataset folder (its official layout).")
+@click.option("--split", type=click.Choice(SPLITS), default="training", show_default=True, help="Dataset split.")
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N pairs (sorted ids).")
+@click.option("--max-disp", type=click.IntRange(min=2), default=None,
+              help="Search range [0, max-disp), px.  [default: the pair's calib ndisp, else the dataset's, else "
+                   f"{_DEFAULTS.max_disp}]")
+@click.option("--fill/--no-fill", default=True, show_default=True,
+              help="Fill SGM's holes with the nearest value on the row; --no-fill keeps them (NaN, PNG 0).")
+@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Pairs matched at once (numba threads per pair = cores // jobs).")
+@click.option("--quiet", is_flag=True, default=False, help="No progress bar (also off when stderr is not a TTY).")
+@click.option("-v", "--verbose", count=True, help="-v info logging.")
+def match_cmd(left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...], dataset: str | None,
+              root: Path | None, split: str, limit: int | None, max_disp: int | None, fill: bool, jobs: int,
+              quiet: bool, verbose: int) -> None:
+    """Dense disparity fast on a CPU, no network: census SGM + row fill (pvm_labeler.dense), for LEFT RIGHT or
+    --dataset NAME --root DIR."""
+    _setup_logging(verbose)
+    from pvm_labeler.match import match_dataset, match_pair
+
+    if dataset is None and (left is None or right is None):
+        raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME (with --root)")
+    if dataset is not None and left is not None:
+        raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    try:
+        if dataset is None:
+            paths = match_pair(left, right, out, formats=formats, max_disp=max_disp, fill=fill)
+            click.echo(f"wrote {', '.join(str(p) for p in paths.values())}")
+            return
+        done = match_dataset(dataset, root, out, split=split, formats=formats, max_disp=max_disp, fill=fill,
+                             jobs=jobs, limit=limit, quiet=quiet)
+    except (PVMError, OSError) as exc:  # OSError: OUT not writable (a file, no permission, disk full)
+        raise click.ClickException(str(exc)) from exc
+    click.echo(f"wrote {len(done)} pairs into {out} ({', '.join(formats)})")
 
 
 @main.command("report")

@@ -75,6 +75,121 @@ class TestMiddlebury:
         assert ref.frame_id == "cones"
 
 
+def _cones(shared_data: Path, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The top ``rows`` x ``cols`` at column 260 of ../shared's Cones (some GT 0 = unknown lies there): left, right
+    (RGB uint8) and its raw 8-bit GT map."""
+    src = shared_data / "middlebury2003/cones"
+    crop = (slice(0, rows), slice(260, 260 + cols))
+    return (io.read_image(src / "im2.png")[crop], io.read_image(src / "im6.png")[crop],
+            io.read_grey_raw(src / "disp2.png")[crop])
+
+
+def _middlebury_2005_scene(folder: Path, shared_data: Path, rows: int, gt_folder: Path | None = None) -> np.ndarray:
+    """A 2005 / 2006 scene (view1, view5, disp1, disp5) from Cones' pixels; returns the raw map written as disp1."""
+    left, right, raw = _cones(shared_data, rows, 64)
+    folder.mkdir(parents=True)
+    io.write_image(folder / "view1.png", left)
+    io.write_image(folder / "view5.png", right)
+    gt_folder = gt_folder or folder
+    io.write_image(gt_folder / "disp1.png", raw)
+    io.write_image(gt_folder / "disp5.png", raw[:, ::-1].copy())
+    return raw
+
+
+class TestMiddlebury2005:
+    """The 2005 / 2006 layout: view1 / view5, disp1 / disp5 with value / 1, 2, 3 by size, 0 = unknown."""
+
+    def test_feature(self, tmp_path: Path, shared_data: Path) -> None:
+        raws = {name: _middlebury_2005_scene(tmp_path / name, shared_data, rows)
+                for name, rows in [("FullSize/Art", 40), ("HalfSize/Books", 40), ("ThirdSize/Dolls", 40),
+                                   ("scenes2006/Aloe", 370)]}  # the last: no size folder, 370 rows = ThirdSize
+        refs = {r.frame_id: r for r in discover("middlebury", tmp_path)}
+        assert set(refs) == {"FullSize-Art", "HalfSize-Books", "ThirdSize-Dolls", "scenes2006-Aloe"}
+        for (name, raw), factor in zip(raws.items(), (1, 2, 3, 3), strict=True):
+            assert (raw == 0).any() and (raw > 0).any()
+            s = load_pair(refs[name.replace("/", "-")])
+            want = np.where(raw == 0, np.nan, raw.astype(np.float32) / factor).astype(np.float32)
+            np.testing.assert_array_equal(s.gt, want)
+            np.testing.assert_array_equal(s.gt_right, want[:, ::-1])
+            assert s.gt_noc is None and s.max_disp is None and s.left.shape == (raw.shape[0], 64, 3)
+        assert refs["HalfSize-Books"].meta["gt_scale"] == 2.0
+
+    def test_illumination_folders(self, tmp_path: Path, shared_data: Path) -> None:
+        """The full archives: <scene>/Illum<i>/Exp<e>/view1.png, GT in <scene>/."""
+        scene = tmp_path / "ThirdSize/Laundry"
+        raw = _middlebury_2005_scene(scene / "Illum1/Exp0", shared_data, 40, gt_folder=scene)
+        (ref,) = discover("middlebury", tmp_path)
+        assert ref.frame_id == "ThirdSize-Laundry-Illum1-Exp0" and ref.gt == scene / "disp1.png"
+        np.testing.assert_array_equal(load_pair(ref).gt, np.where(raw == 0, np.nan, raw / np.float32(3)))
+
+    def test_no_gt(self, tmp_path: Path, shared_data: Path) -> None:
+        _middlebury_2005_scene(tmp_path / "Art", shared_data, 40)
+        for name in ("disp1.png", "disp5.png"):
+            (tmp_path / "Art" / name).unlink()
+        (ref,) = discover("middlebury", tmp_path)  # no GT: the size is never needed
+        assert ref.gt is None and load_pair(ref).gt is None
+
+    def test_exception(self, tmp_path: Path, shared_data: Path) -> None:
+        _middlebury_2005_scene(tmp_path / "a/Art", shared_data, 40)
+        with pytest.raises(InputError, match=r"cannot tell the size of .*a/Art/view1.png.*40 rows.*1110 / 555 / 370"):
+            discover("middlebury", tmp_path / "a")
+        _middlebury_2005_scene(tmp_path / "b/HalfSize/Art", shared_data, 370)
+        with pytest.raises(InputError, match=r"HalfSize folder \(555 rows\) but has 370 rows.*ThirdSize"):
+            discover("middlebury", tmp_path / "b")
+
+
+def _eth3d_scene(folder: Path, gt_folder: Path | None, shared_data: Path) -> tuple[np.ndarray, np.ndarray]:
+    """An ETH3D scene (grey im0 / im1, calib.txt; disp0GT.pfm, mask0nocc.png in ``gt_folder``) from the top-left
+    48 x 96 of ../shared's MiddEval3 Motorcycle (inf, mask 0, 128 and 255 all occur there); returns (GT, mask)."""
+    src = shared_data / "middlebury_eval3/trainingQ/Motorcycle"
+    crop = (slice(0, 48), slice(0, 96))
+    folder.mkdir(parents=True)
+    for name in ("im0.png", "im1.png"):
+        io.write_image(folder / name, io.read_image(src / name)[crop][:, :, 0].copy())  # ETH3D images are grey
+    shutil.copy(src / "calib.txt", folder / "calib.txt")  # ndisp=70
+    gt, mask = io.read_pfm(src / "disp0GT.pfm")[crop], io.read_grey_raw(src / "mask0nocc.png")[crop]
+    if gt_folder is not None:
+        gt_folder.mkdir(parents=True, exist_ok=True)
+        io.write_pfm(gt_folder / "disp0GT.pfm", gt)
+        io.write_image(gt_folder / "mask0nocc.png", mask)
+    return gt, mask
+
+
+class TestEth3d:
+    """ETH3D two-view: two_view_training/<scene>/im0, im1, calib.txt; two_view_training_gt/<scene>/disp0GT.pfm
+    (inf = unknown), mask0nocc.png (255 = non-occluded)."""
+
+    def test_feature(self, tmp_path: Path, shared_data: Path) -> None:
+        train, gt_root = tmp_path / "two_view_training", tmp_path / "two_view_training_gt"
+        gt, mask = _eth3d_scene(train / "delivery_area_1l", gt_root / "delivery_area_1l", shared_data)
+        _eth3d_scene(train / "electro_1s", train / "electro_1s", shared_data)  # both archives unpacked in one folder
+        _eth3d_scene(tmp_path / "two_view_test/lakeside_1l", None, shared_data)
+        refs = discover("eth3d", tmp_path)
+        assert [r.frame_id for r in refs] == ["delivery_area_1l", "electro_1s"]
+        assert refs[1].gt == train / "electro_1s/disp0GT.pfm"
+        s = load_pair(refs[0])
+        assert s.left.shape == (48, 96, 3) and (s.left[..., 0] == s.left[..., 2]).all()  # grey -> 3 channels
+        assert np.isinf(gt).sum() > 0 and {0, 128, 255} <= set(np.unique(mask))
+        np.testing.assert_array_equal(s.gt, np.where(np.isinf(gt), np.nan, gt))
+        np.testing.assert_array_equal(s.gt_noc, np.where((mask == 255) & np.isfinite(gt), gt, np.nan))
+        assert s.gt_right is None and s.max_disp == 70  # calib.txt ndisp
+        (test,) = discover("eth3d", tmp_path, split="testing")
+        assert test.frame_id == "lakeside_1l" and test.gt is None and load_pair(test).gt is None
+
+    def test_root_is_a_scene(self, tmp_path: Path, shared_data: Path) -> None:
+        _eth3d_scene(tmp_path / "playground_1l", tmp_path / "playground_1l", shared_data)
+        (ref,) = discover("eth3d", tmp_path / "playground_1l")
+        assert ref.frame_id == "playground_1l" and ref.gt is not None and "noc_mask" in ref.meta
+
+    def test_exception(self, tmp_path: Path, shared_data: Path) -> None:
+        _eth3d_scene(tmp_path / "two_view_training/terrace_1s", None, shared_data)
+        with pytest.raises(InputError, match="eth3d split folder for 'testing' not found.*two_view_test"):
+            discover("eth3d", tmp_path, split="testing")
+        (tmp_path / "two_view_training/terrace_1s/im1.png").unlink()
+        with pytest.raises(InputError, match=r"left image .*terrace_1s/im0.png has no right image"):
+            discover("eth3d", tmp_path)
+
+
 class TestSceneFlow:
     def test_load(self, shared_data: Path) -> None:
         (ref,) = discover("sceneflow", shared_data / "sceneflow")
@@ -202,4 +317,5 @@ class TestErrors:
             load_pair(ref)
 
     def test_names(self) -> None:
-        assert DATASETS == ("kitti15", "kitti12", "middlebury", "sceneflow", "folder", "kitti_unlabelled", "sample")
+        assert DATASETS == ("kitti15", "kitti12", "middlebury", "eth3d", "sceneflow", "folder", "kitti_unlabelled",
+                            "sample")

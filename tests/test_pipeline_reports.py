@@ -111,3 +111,25 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
     assert [r["ratio"] for r in rows] == [2.0, 3.5]
     assert rows[0]["verdict"] == "met" and rows[1]["target"] is None
     assert calls[:2] == ["sgbm:3", "model:3"] and calls[-2:] == ["sgbm:1", "model:1"]
+
+
+def test_bench_models_match_row(monkeypatch: pytest.MonkeyPatch) -> None:
+    """match_row: per-frame (match / SGBM) ratio, median, against the 0.5 target; bad-3 pooled over the scored ones."""
+    import itertools
+
+    from pipelines import bench_models
+
+    clock = itertools.count()
+
+    def fake_seconds(fn: object, repeats: int) -> float:
+        return 2.0 if getattr(fn, "func", None) is not bench_models._match else 0.8 + 0.2 * next(clock)
+
+    gt = np.array([[10.0, 10.0, 10.0, np.nan]], np.float32)
+    monkeypatch.setattr(bench_models, "_seconds", fake_seconds)
+    monkeypatch.setattr(bench_models, "_match", lambda left, right: np.array([[10, 10, 20, 0]], np.float32))
+    monkeypatch.setattr(bench_models, "_sgbm_filled", lambda sgbm, left, right: np.full((1, 4), 20, np.float32))
+    frames = [(np.zeros((1, 4, 3), np.uint8), np.zeros((1, 4, 3), np.uint8))] * 3
+    row = bench_models.match_row(frames, [(*frames[0], gt)] * 2, repeats=3)
+    # match 0.8, 1.0, 1.2 s against SGBM's 2 s: ratios 0.4, 0.5, 0.6 -> median 0.5, met; bad-3 2/6 vs 6/6
+    assert row["ratio"] == pytest.approx(0.5) and row["verdict"] == "met"
+    assert row["bad3"] == pytest.approx(100 / 3) and row["sgbm_bad3"] == 100.0

@@ -11,12 +11,12 @@ from pvm_labeler.job.spec import JobSpec
 from pvm_labeler.job.worker import ShardTask
 
 
-def progress_bar(total: int, initial: int, quiet: bool) -> Any:
+def progress_bar(total: int, initial: int, quiet: bool, desc: str = "pvm-label") -> Any:
     """A tqdm bar over ``total`` pairs, ``initial`` of them done already; off when quiet or stderr is no TTY."""
     from tqdm import tqdm
 
     disable = quiet or not sys.stderr.isatty()
-    return tqdm(total=total, initial=initial, unit="pair", desc="pvm-label", file=sys.stderr, disable=disable,
+    return tqdm(total=total, initial=initial, unit="pair", desc=desc, file=sys.stderr, disable=disable,
                 dynamic_ncols=True)
 
 

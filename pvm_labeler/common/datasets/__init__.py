@@ -11,7 +11,12 @@ Supported layouts (``root`` is the folder you pass as ``--root``):
 - ``middlebury``: every folder under ``root`` holding a known pair: MiddEval3 (``im0.png``, ``im1.png``,
   ``disp0GT.pfm`` inf = unknown, ``disp1GT.pfm``, ``mask0nocc.png``, ``calib.txt`` ndisp), 2003 (``im2.png``,
   ``im6.png``, ``disp2.png``/``disp6.png`` value / 4), 2001 (``im2``/``im6`` with ``disp2.pgm``/``disp6.pgm`` value / 8;
-  tsukuba ``im3``/``im4`` with ``disp3.pgm`` value / 16). 0 = unknown in the integer formats.
+  tsukuba ``im3``/``im4`` with ``disp3.pgm`` value / 16), 2005 / 2006 (``view1.png``, ``view5.png``, ``disp1.png``,
+  ``disp5.png``, beside the views or, for ``<scene>/Illum<i>/Exp<e>/`` views, in ``<scene>/``; value / 1, 2 or 3 for
+  FullSize, HalfSize, ThirdSize: see ``readers.middlebury_2005_scale``). 0 = unknown in the integer formats.
+- ``eth3d``: ETH3D two-view: ``two_view_training/<scene>/im0.png``, ``im1.png``, ``calib.txt``; GT
+  ``two_view_training_gt/<scene>/disp0GT.pfm`` (inf = unknown), ``mask0nocc.png`` (255 = non-occluded); see
+  :mod:`.eth3d`.
 - ``sceneflow``: FlyingThings3D / Driving / Monkaa: ``<base>/frames_<pass>/<rel>/left/<n>.png`` (or
   ``RGB_<pass>``), ``right/``; GT ``<base>/disparity/<rel>/{left,right}/<n>.pfm``; optional
   ``<base>/occlusion/<rel>/left/<n>.png`` (True = occluded) gives the non-occluded GT.
@@ -34,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from pvm_labeler.common import io
+from pvm_labeler.common.datasets.eth3d import _discover_eth3d
 from pvm_labeler.common.datasets.readers import (
     _discover_folder,
     _discover_kitti12,
@@ -65,6 +71,7 @@ _DISCOVER: dict[str, Callable[..., list[PairRef]]] = {
     "kitti15": _discover_kitti15,
     "kitti12": _discover_kitti12,
     "middlebury": _discover_middlebury,
+    "eth3d": _discover_eth3d,
     "sceneflow": _discover_sceneflow,
     "folder": _discover_folder,
     "kitti_unlabelled": _discover_kitti_unlabelled,
@@ -79,7 +86,8 @@ def discover(name: str, root: Path | str | None, split: str = "training", **kwar
         name: one of :data:`DATASETS`.
         root: dataset folder (see the module docstring per dataset); ignored by ``sample``, optional for ``folder``
             when ``left``/``right`` are absolute.
-        split: ``training`` or ``testing`` (KITTI split folder; Scene Flow TRAIN/TEST; ignored by middlebury).
+        split: ``training`` or ``testing`` (KITTI split folder; Scene Flow TRAIN/TEST; ETH3D two_view_training /
+            two_view_test; ignored by middlebury).
         **kwargs: per-dataset options: ``folder``: ``left``, ``right``, ``gt``, ``gt_scale``; ``sceneflow``:
             ``pass_`` ("clean"/"final"); ``sample``: ``synthetic``, ``motorcycle`` (bools: which pairs to include).
 

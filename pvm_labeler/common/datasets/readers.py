@@ -57,15 +57,55 @@ def _discover_kitti12(root: Path, split: str, **_: Any) -> list[PairRef]:
 
 
 # -------------------------------------------------------------------------------------------------- Middlebury
+#: GT scale of the 2005 / 2006 layout: it depends on the image size, see :func:`middlebury_2005_scale`.
+BY_SIZE = "by size"
 # (left, right, left GT, right GT, GT scale) per layout; scale None = PFM with inf = unknown.
-_MIDDLEBURY_LAYOUTS: tuple[tuple[str, str, str, str, float | None], ...] = (
+_MIDDLEBURY_LAYOUTS: tuple[tuple[str, str, str, str, float | str | None], ...] = (
     ("im0.png", "im1.png", "disp0GT.pfm", "disp1GT.pfm", None),  # MiddEval3 / 2014
     ("im2.png", "im6.png", "disp2.png", "disp6.png", 4.0),  # 2003 (cones, teddy), quarter size
     ("im2.ppm", "im6.ppm", "disp2.pgm", "disp6.pgm", 8.0),  # 2001 (venus, sawtooth, ...)
     ("im2.png", "im6.png", "disp2.pgm", "disp6.pgm", 8.0),
     ("im3.png", "im4.png", "disp3.pgm", "disp4.pgm", 16.0),  # 2001 tsukuba (truedisp scaled by 16)
     ("im3.ppm", "im4.ppm", "disp3.pgm", "disp4.pgm", 16.0),
+    ("view1.png", "view5.png", "disp1.png", "disp5.png", BY_SIZE),  # 2005 (Art, ...) / 2006 (Aloe, ...)
 )
+#: Middlebury 2005 / 2006: every size's 8-bit disparity maps hold the value of the full-size images (1 unit = 1
+#: full-size pixel), so the disparity of a map's own images is value / 1 (FullSize, 1110 rows), value / 2
+#: (HalfSize, 555 rows) or value / 3 (ThirdSize, 370 rows). The release folders are named by size.
+MIDDLEBURY_2005_SIZES: dict[str, tuple[int, float]] = {"FullSize": (1110, 1.0), "HalfSize": (555, 2.0),
+                                                       "ThirdSize": (370, 3.0)}
+
+
+def middlebury_2005_scale(left: Path) -> float:
+    """The GT divisor of a Middlebury 2005 / 2006 pair, from the size folder in its path (FullSize / HalfSize /
+    ThirdSize) or, without one, from the image height (1110 / 555 / 370 rows, the heights of every scene).
+
+    Raises:
+        InputError: the height is none of the three and no size folder names it, or the two disagree.
+    """
+    height = io.image_size(left)[0]
+    by_height = {rows: (name, scale) for name, (rows, scale) in MIDDLEBURY_2005_SIZES.items()}
+    folder = next((p for p in reversed(left.parts) if p in MIDDLEBURY_2005_SIZES), None)
+    if folder is not None:
+        rows, scale = MIDDLEBURY_2005_SIZES[folder]
+        if height in by_height and height != rows:
+            raise InputError(f"middlebury 2005/2006: {left} lies in a {folder} folder ({rows} rows) but has "
+                             f"{height} rows, the height of {by_height[height][0]}; which size is it?")
+        return scale
+    if height not in by_height:
+        raise InputError(f"middlebury 2005/2006: cannot tell the size of {left} (its GT scale depends on it): "
+                         f"{height} rows is none of 1110 / 555 / 370 (FullSize / HalfSize / ThirdSize) and no "
+                         "folder of its path is named FullSize, HalfSize or ThirdSize")
+    return by_height[height][1]
+
+
+def _middlebury_2005_gt(folder: Path, name: str) -> Path | None:
+    """A 2005 / 2006 GT map beside the views (the 2-view archives), else two levels up (``<scene>/Illum<i>/Exp<e>/``
+    views of the full archives, whose GT lies in ``<scene>/``)."""
+    beside = _first_existing(folder / name)
+    if beside is not None or not (folder.name.startswith("Exp") and folder.parent.name.startswith("Illum")):
+        return beside
+    return _first_existing(folder.parent.parent / name)
 
 
 def read_middlebury_calib(path: Path) -> dict[str, str]:
@@ -87,6 +127,10 @@ def _middlebury_ref(folder: Path, root: Path) -> PairRef | None:
             raise InputError(f"middlebury: left image {left} has no right image {right}")
         rel = folder.relative_to(root).as_posix()
         meta: dict[str, Any] = {"dataset": "middlebury", "gt_format": "pfm" if scale is None else "scaled"}
+        gt, gt_right = _first_existing(folder / gt_name), _first_existing(folder / gt_right_name)
+        if scale == BY_SIZE:
+            gt, gt_right = _middlebury_2005_gt(folder, gt_name), _middlebury_2005_gt(folder, gt_right_name)
+            scale = middlebury_2005_scale(left) if gt is not None or gt_right is not None else None
         if scale is not None:
             meta["gt_scale"] = scale
         mask = folder / "mask0nocc.png"
@@ -99,9 +143,9 @@ def _middlebury_ref(folder: Path, root: Path) -> PairRef | None:
             frame_id=_safe_id(folder.name if rel == "." else rel),
             left=left,
             right=right,
-            gt=_first_existing(folder / gt_name),
+            gt=gt,
             gt_noc=None,
-            gt_right=_first_existing(folder / gt_right_name),
+            gt_right=gt_right,
             meta=meta,
         )
     return None

@@ -12,7 +12,8 @@ import numpy.typing as npt
 
 from pvm_labeler.common.errors import InputError
 
-DATASETS: tuple[str, ...] = ("kitti15", "kitti12", "middlebury", "sceneflow", "folder", "kitti_unlabelled", "sample")
+DATASETS: tuple[str, ...] = ("kitti15", "kitti12", "middlebury", "eth3d", "sceneflow", "folder", "kitti_unlabelled",
+                             "sample")
 SPLITS: tuple[str, ...] = ("training", "testing")
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
@@ -65,7 +66,7 @@ class StereoSample:
             occlusion == False), NaN elsewhere; None if the dataset has no occlusion information.
         gt_right: (H, W) float32 right-view GT (right(x) matches left(x + d)), NaN = unknown; None if absent.
         sources: file paths used, by role.
-        max_disp: dataset hint for the search range (MiddEval3 calib ndisp), else None.
+        max_disp: dataset hint for the search range (MiddEval3 / ETH3D calib ndisp), else None.
     """
 
     frame_id: str
