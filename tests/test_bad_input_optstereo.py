@@ -166,6 +166,44 @@ class TestCheckpoints:
         assert "--backend onnxruntime" in result.output and not (tmp_path / "x.onnx").exists()
 
 
+class TestOnnxBackend:
+    """--backend onnxruntime refuses, before anything is loaded or run, every option it cannot honour (issue 51.4)."""
+
+    @pytest.mark.parametrize(("extra", "named"), [
+        (["--iters", "4"], "--iters 4 (the graph's GRU iterations are fixed by optstereo-export --iters)"),
+        (["--amp", "bf16"], "--amp bf16 (onnxruntime runs the graph in float32)"),
+        (["--device", "cuda"], "--device cuda (onnxruntime runs on the CPU here)"),
+        (["--sequence"], "--sequence"),
+        (["--min-confidence", "0.5"], "--min-confidence 0.5 (the confidence needs the torch model's passes)"),
+        (["--format", "conf-png"], "--format conf-png (the confidence needs"),
+        (["--format", "ply", "--calib", "calib.yaml"], "--format ply (depth and point clouds: torch backend); --calib"),
+        (["--max-depth", "80"], "--max-depth"),
+    ])
+    def test_refused_before_running(self, pair: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                    extra: list[str], named: str) -> None:
+        def ran(*_: object, **__: object) -> None:
+            raise AssertionError("the session was opened")
+
+        monkeypatch.setattr("optstereo.cli.predict.onnx_session", ran)
+        graph = tmp_path / "model.onnx"
+        graph.write_bytes(b"not opened")
+        (tmp_path / "calib.yaml").write_text("{fx: 1, cx: 1, cy: 1, baseline: 1}")
+        extra = [str(tmp_path / a) if a == "calib.yaml" else a for a in extra]
+        result = invoke(predict_main, "--backend", "onnxruntime", "--checkpoint", graph, *pair, "--out",
+                        tmp_path / "o", *extra)
+        assert result.exit_code == 2, result.output
+        assert f"--backend onnxruntime cannot honour {named}" in " ".join(result.output.split())
+        assert not (tmp_path / "o").exists()
+
+    def test_every_option_is_named_at_once(self, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        graph = tmp_path / "model.onnx"
+        graph.write_bytes(b"not opened")
+        result = invoke(predict_main, "--backend", "onnxruntime", "--checkpoint", graph, *pair, "--out",
+                        tmp_path / "o", "--iters", "2", "--amp", "bf16", "--format", "conf-npy")
+        text = " ".join(result.output.split())
+        assert result.exit_code == 2 and "--iters 2" in text and "--amp bf16" in text and "--format conf-npy" in text
+
+
 class TestOutputs:
     def test_predict_out_under_a_file(self, ckpt: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
         (tmp_path / "f").write_text("x")
