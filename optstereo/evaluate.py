@@ -36,7 +36,7 @@ from torch import nn
 from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.outputs import colorize
 from pvm_labeler.common.atomic import atomic_write_text
-from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.datasets import discover, load_pair, safe_stem
 from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.common.viz import error_map
@@ -108,9 +108,10 @@ def _save_maps(out_dir: Path, frame: Frame) -> None:
     maps = out_dir / "maps"
     maps.mkdir(parents=True, exist_ok=True)
     vmax = float(np.nanmax(frame.gt)) if frame.gt is not None and np.isfinite(frame.gt).any() else None
-    write_image(maps / f"{frame.frame_id}_disp.png", colorize(frame.pred, max_disp=vmax))
+    stem = safe_stem(frame.frame_id)  # a shard's ids come from files anyone can write
+    write_image(maps / f"{stem}_disp.png", colorize(frame.pred, max_disp=vmax))
     if frame.gt is not None:
-        write_image(maps / f"{frame.frame_id}_error.png", error_picture(frame.pred, frame.gt))
+        write_image(maps / f"{stem}_error.png", error_picture(frame.pred, frame.gt))
 
 
 def evaluate_frames(

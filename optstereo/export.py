@@ -49,6 +49,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from optstereo.checkpoint import model_inference
+from optstereo.checkpoint import CheckpointError, model_inference
 from optstereo.choices import EXPORT_FORMATS as FORMATS
 from optstereo.inference.cascade import grid_start
 from optstereo.inference.config import InferenceConfig
@@ -136,13 +137,56 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
 
 
 def onnx_session(path: Path | str, threads: int = 0):
-    """An onnxruntime CPU session of an exported file (``threads`` 0 = onnxruntime's default)."""
+    """An onnxruntime CPU session of an exported file (``threads`` 0 = onnxruntime's default), after
+    :func:`check_external_data`."""
     import onnxruntime as ort  # lazy: onnxruntime is optional
 
+    check_external_data(path)
     options = ort.SessionOptions()
     if threads:
         options.intra_op_num_threads = threads
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def check_external_data(path: Path | str) -> None:
+    """Raise CheckpointError naming ``path`` unless it is an ONNX model whose tensors are in the file itself or in
+    files inside its own folder (a relative location without ``..``).
+
+    An ONNX file may keep tensors in other files, named by paths in it; the file is a user's input, so what it names
+    is checked here rather than left to the installed onnxruntime (1.32 refuses such paths itself, with its own
+    exception). ``optstereo-export`` writes self-contained files.
+    """
+    import onnx  # lazy: onnx is optional (the export extra, with onnxruntime)
+    from google.protobuf.message import DecodeError  # lazy: protobuf comes with onnx
+
+    path = Path(path)
+    try:
+        model = onnx.load_model(str(path), load_external_data=False)
+    except (DecodeError, OSError, ValueError) as exc:
+        raise CheckpointError(f"cannot read ONNX file {path}: {exc}") from exc
+    for tensor in _tensors(model.graph, *(node for f in model.functions for node in f.node)):
+        if tensor.data_location != onnx.TensorProto.EXTERNAL:
+            continue
+        location = next((entry.value for entry in tensor.external_data if entry.key == "location"), "")
+        if not location or Path(location).is_absolute() or ".." in Path(location).parts:
+            raise CheckpointError(f"ONNX file {path}: tensor {tensor.name!r} keeps its data in {location!r}, outside "
+                                  f"the file's folder {path.parent}; refused (external data must sit beside the "
+                                  f"file; optstereo-export writes self-contained files)")
+
+
+def _tensors(graph, *nodes) -> Iterator:
+    """Every TensorProto of an ONNX graph: initializers (sparse ones' values and indices) and the tensors in node
+    attributes, subgraphs (If/Loop bodies) included, and in ``nodes`` (a model's functions)."""
+    yield from graph.initializer
+    for sparse in graph.sparse_initializer:
+        yield from (sparse.values, sparse.indices)
+    for node in (*graph.node, *nodes):
+        for attr in node.attribute:
+            yield from (attr.t, *attr.tensors)
+            for sparse in (attr.sparse_tensor, *attr.sparse_tensors):
+                yield from (sparse.values, sparse.indices)
+            for sub in (attr.g, *attr.graphs):
+                yield from _tensors(sub)
 
 
 def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],

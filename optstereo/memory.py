@@ -1,17 +1,23 @@
 """Peak-memory estimate of one inference, checked against the free memory before a large pair is decoded.
 
-Measured once (issue 45) with the shipped model (``optstereo-predict --checkpoint pretrained``, float32, default
-scale and refinement) on blurred random-texture pairs, on a 16-core x86 machine with an H100:
+Measured once (issue 45) with the model shipped then (version 14: input scale 1.625, three passes, wmedian;
+``optstereo-predict --checkpoint pretrained``, float32) on blurred random-texture pairs, on a 16-core x86 machine
+with an H100:
 
-| pair (H x W)  | CPU peak RSS of the process | CUDA peak allocated |
-| ------------- | --------------------------- | ------------------- |
-| 375 x 1242    | 1.18 GB                     | 1.02 GiB            |
-| 1500 x 2000   | 3.87 GB                     |                     |
-| 3000 x 4000   | 13.3 GB                     | 25.0 GiB            |
+| pair (H x W)  | pixels the network sees (x 1.625^2) | CPU peak RSS of the process | CUDA peak allocated |
+| ------------- | ----------------------------------- | --------------------------- | ------------------- |
+| 375 x 1242    | 1.23 MP                             | 1.18 GB                     | 1.02 GiB            |
+| 1500 x 2000   | 7.9 MP                              | 3.87 GB                     |                     |
+| 3000 x 4000   | 31.7 MP                             | 13.3 GB                     | 25.0 GiB            |
 
-Both grow linearly with the pixels the network sees: the CPU's by 1.06 GB per megapixel above a 0.7 GB base, the
-GPU's by 2.1 GiB per megapixel. :func:`estimate_peak_bytes` uses these lines; smaller models need less, so the
-estimate errs on the side of refusing.
+Both grow linearly with the pixels the NETWORK sees (the pair's pixels x scale^2): the CPU's by 0.40 GB per megapixel
+above a 0.7 GB base, the GPU's by 0.80 GiB per megapixel. The lines were first fitted per pixel of the pair
+(1.06 GB and 2.1 GiB per megapixel) and then multiplied by scale^2 again, which counted the measurement's own
+1.625^2 = 2.64 twice (issue 51). Version 15 (scale 1, one pass) confirms the CPU line on a 2-core x86 machine (2
+threads): 0.57 GB at 375 x 1242, 0.99 GB at 1000 x 1500 (0.41 GB per megapixel), and version 14 there gives 1.03 GB
+at 375 x 1242 (fewer threads than the 16 above). The CUDA line is the same correction of the H100 figures, not
+measured again. :func:`estimate_peak_bytes` uses these lines; the base covers the 16-thread, wmedian, three-pass
+case, so the estimate errs on the side of refusing (``tests/test_bad_input_optstereo.py`` checks a measured peak).
 """
 
 from __future__ import annotations
@@ -20,14 +26,17 @@ from pathlib import Path
 
 import torch
 
+#: 1.06 GB and 2.1 GiB per megapixel of the pair measured at input scale 1.625 (see above), per pixel the network sees
+MEASURED_SCALE = 1.625
 CPU_BASE_BYTES = 0.70e9
-CPU_BYTES_PER_PIXEL = 1060.0
+CPU_BYTES_PER_PIXEL = 1060.0 / MEASURED_SCALE**2  # ~401
 CUDA_BASE_BYTES = 0.05 * 2**30
-CUDA_BYTES_PER_PIXEL = 2.1 * 2**30 / 1e6
+CUDA_BYTES_PER_PIXEL = 2.1 * 2**30 / 1e6 / MEASURED_SCALE**2  # ~0.80 GiB per megapixel
 
 
 def estimate_peak_bytes(height: int, width: int, scale: float = 1.0, cuda: bool = False) -> float:
-    """Estimated peak memory (bytes) of one inference on an (H, W) pair run at input ``scale`` (CPU RSS or CUDA)."""
+    """Estimated peak memory (bytes) of one inference on an (H, W) pair run at input ``scale`` (CPU RSS or CUDA): a
+    base plus a cost per pixel the network sees (H x W x scale^2)."""
     pixels = height * width * max(scale, 0.0) ** 2
     if cuda:
         return CUDA_BASE_BYTES + CUDA_BYTES_PER_PIXEL * pixels

@@ -78,7 +78,8 @@ def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, 
     for name, model in models.items():
         ratios, model_s, sgbm_s = [], [], []
         config = getattr(model, "inference_config", None)
-        runs = 1 if config is not None and config.passes > 1 else repeats  # a multi-pass model: one timed run each
+        # a multi-pass model: one timed run each (KITTI frames are not small pairs: no adaptive pass)
+        runs = 1 if config is not None and config.passes_for(enlarged=False) > 1 else repeats
         for left, right in frames:
             t_sgbm = _seconds(functools.partial(sgbm.compute, left, right), runs)
             t_model = _seconds(functools.partial(infer, model, left, right), runs)

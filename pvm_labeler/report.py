@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from pvm_labeler.common.datasets import safe_stem
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator
@@ -87,10 +88,11 @@ def _pictures(sample: Any, picture_dir: Path) -> list[str]:
     picture_dir.mkdir(parents=True, exist_ok=True)
     gt = sample.gt
     vmax = float(np.nanmax(gt)) if gt is not None and np.isfinite(gt).any() else None
-    paths = [picture_dir / f"{sample.frame_id}_label.png"]
+    stem = safe_stem(sample.frame_id)  # a shard's ids come from files anyone can write
+    paths = [picture_dir / f"{stem}_label.png"]
     write_image(paths[0], colorize_disparity(sample.label, max_disp=vmax))
     if gt is not None:
-        paths.append(picture_dir / f"{sample.frame_id}_error.png")
+        paths.append(picture_dir / f"{stem}_error.png")
         write_image(paths[1], error_map(sample.label, gt, dilate=1))
     return [str(p) for p in paths]
 

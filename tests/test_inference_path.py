@@ -55,12 +55,15 @@ class TestConfig:
 
     @pytest.mark.parametrize(("config", "passes"), [
         (InferenceConfig(), 1), (InferenceConfig(scale=1.625, refine="wmedian"), 1),
-        (InferenceConfig(adaptive_ref_disp=40.0, adaptive_ref_pixels=100), 1),
+        (InferenceConfig(adaptive_ref_disp=40.0, adaptive_ref_pixels=100), 2),
         (InferenceConfig(coarse_start=True), 2), (InferenceConfig(coarse_start=True, select=True), 3),
-        (InferenceConfig(coarse_start=True, adaptive_ref_disp=40.0, adaptive_ref_pixels=100), 3), (SHIPPED, 3),
+        (InferenceConfig(coarse_start=True, adaptive_ref_disp=40.0, adaptive_ref_pixels=100), 3), (SHIPPED, 4),
     ])
     def test_passes(self, config: InferenceConfig, passes: int) -> None:
+        # all passes, the adaptive one included (it used to be left out); a pair the rule leaves alone skips it
         assert config.passes == passes
+        assert config.passes_for(enlarged=False) == passes - (config.adaptive and not (config.coarse_start and
+                                                                                        not config.select))
 
 
 class TestLegacy:
@@ -96,7 +99,7 @@ class TestLegacy:
 
         config = load_model("pretrained").inference_config
         assert config == InferenceConfig(scale=1.0, adaptive_ref_disp=60.1, adaptive_ref_pixels=465750)
-        assert config.passes == 1
+        assert config.passes_for(enlarged=False) == 1 and config.passes == 2
 
     def test_old_files_load_and_new_files_keep_their_own_key(self, tmp_path: Path) -> None:
         from safetensors.torch import save_file
@@ -167,8 +170,8 @@ def test_run_passes_in_order(changes: dict, calls: list, value: float, final: fl
     assert result.input_scale == final
     # away from the left border, where the two candidates' warps leave the image differently
     np.testing.assert_allclose(result.disparity[:, 30:], value, rtol=1e-5)
-    if final == 1.0:
-        assert len(calls) == InferenceConfig(**changes).passes
+    # passes counts what runs, the adaptive pass included (here it runs whenever the config has it)
+    assert len(calls) == InferenceConfig(**changes).passes == InferenceConfig(**changes).passes_for(final != 1.0)
 
 
 def test_run_selects_per_pixel() -> None:

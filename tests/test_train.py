@@ -20,7 +20,8 @@ from optstereo.training import loop
 from optstereo.training.analogy_config import AnalogyConfig
 from optstereo.training.checkpoints import config_for_resume
 from optstereo.training.config import TrainConfig, parse_crop
-from optstereo.training.sections import FLAT_KEYS, DataConfig
+from optstereo.training.layering import FLAT_KEYS
+from optstereo.training.sections import DataConfig
 from pvm_labeler.common.errors import ConfigError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

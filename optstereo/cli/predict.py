@@ -9,7 +9,7 @@ from typing import Any
 import click
 import torch
 
-from optstereo.choices import GEOMETRY_FORMATS, PREDICT_FORMATS
+from optstereo.choices import CONF_FORMATS, GEOMETRY_FORMATS, PREDICT_FORMATS
 from optstereo.cli import common
 from optstereo.export import infer_onnx, onnx_session
 from optstereo.geometry import read_calibration
@@ -45,7 +45,8 @@ logger = logging.getLogger(__name__)
                    "(fx, cx, cy, baseline [m], doffs).")
 @click.option("--max-depth", type=float, default=None, help="Drop depths beyond this many metres (depth and PLY).")
 @click.option("--backend", type=click.Choice(("torch", "onnxruntime")), default="torch",
-              help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats).")
+              help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats, "
+                   "--scale/--refine/--threads; the other options are refused).")
 @click.option("--submission", type=click.Path(path_type=Path),
               help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
 @common.device_option
@@ -63,6 +64,9 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    if backend == "onnxruntime":
+        _refuse_for_onnx(iters=iters, amp=amp, device=device, sequence=sequence, min_confidence=min_confidence,
+                         formats=formats, calib=calib, max_depth=max_depth)
     common.check_out(out)
     if backend == "onnxruntime":
         _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
@@ -101,6 +105,28 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                                           refine=refine)
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
+
+
+def _refuse_for_onnx(*, iters: int | None, amp: str, device: str, sequence: bool, min_confidence: float,
+                     formats: tuple[str, ...], calib: Path | None, max_depth: float | None) -> None:
+    """Exit 2 naming every option ``--backend onnxruntime`` cannot honour, before anything is loaded or run (it used
+    to ignore --iters, --amp and --min-confidence, and to fail on conf-* formats after running)."""
+    torch_only = "the torch model's passes"
+    unhonoured = [
+        (iters is not None, f"--iters {iters} (the graph's GRU iterations are fixed by optstereo-export --iters)"),
+        (amp != "none", f"--amp {amp} (onnxruntime runs the graph in float32)"),
+        (device == "cuda", "--device cuda (onnxruntime runs on the CPU here)"),
+        (sequence, "--sequence (a video of --dataset frames: torch backend)"),
+        (min_confidence > 0, f"--min-confidence {min_confidence:g} (the confidence needs {torch_only})"),
+        *((True, f"--format {f} (the confidence needs {torch_only})") for f in formats if f in CONF_FORMATS),
+        *((True, f"--format {f} (depth and point clouds: torch backend)") for f in formats if f in GEOMETRY_FORMATS),
+        (calib is not None, "--calib (depth and point clouds: torch backend)"),
+        (max_depth is not None, "--max-depth (depth and point clouds: torch backend)"),
+    ]
+    named = [text for given, text in unhonoured if given]
+    if named:
+        raise click.UsageError("--backend onnxruntime cannot honour " + "; ".join(named) + ". Leave them out, or "
+                               "run the checkpoint with --backend torch")
 
 
 def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...],

@@ -30,8 +30,8 @@ from optstereo.cli.common import (
 )
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig, read_yaml
+from optstereo.training.layering import merge
 from optstereo.training.loop import main
-from optstereo.training.sections import merge
 from pvm_labeler.common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -157,7 +157,7 @@ def _refuse_removed(**given: tuple[str, ...]) -> None:
 
 def _train_overrides(flags: dict[str, Any], set_opts: tuple[str, ...]) -> dict[str, Any]:
     """The command line as one config layer: flags under their flat names
-    (``optstereo.training.sections.FLAT_KEYS``), --set on top key by key (``--model NAME --set model.KEY=V``
+    (``optstereo.training.layering.FLAT_KEYS``), --set on top key by key (``--model NAME --set model.KEY=V``
     keeps NAME: the flag joins the model section)."""
     overrides: dict[str, Any] = {k: v for k, v in flags.items() if v is not None}
     if "model" in overrides:

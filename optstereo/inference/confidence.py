@@ -29,6 +29,7 @@ from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import model_inference_config, pass_at_scale, run, to_batch
 from optstereo.inference.padding import InputPadder, divisor_of
 from optstereo.training.augment import right_view
+from pvm_labeler.common.datasets import safe_stem
 from pvm_labeler.common.io import write_image
 
 Image = npt.NDArray[np.uint8]
@@ -155,7 +156,8 @@ def curve_area(curve: npt.NDArray[np.float64], densities: Iterable[float] = DENS
 
 def write_confidence(out_dir: Path, name: str, conf: Map, formats: Iterable[str]) -> dict[str, Path]:
     """Write ``conf`` as ``conf-png`` (``<name>_conf.png``, uint16 = round(conf x 65535)) and/or ``conf-npy``
-    (``<name>_conf.npy``, float32); format -> path."""
+    (``<name>_conf.npy``, float32); format -> path. ``name`` as ``optstereo.inference.outputs.write_disparity``'s."""
+    name = safe_stem(name)
     out_dir = Path(out_dir)
     paths: dict[str, Path] = {}
     for fmt in formats:

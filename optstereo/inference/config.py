@@ -59,10 +59,19 @@ class InferenceConfig:
 
     @property
     def passes(self) -> int:
-        """Network passes on a pair that needs no adaptive pass: the zero-start one (unless only a coarse-started
-        one is wanted), plus the half-scale pass and the pass started from it with ``coarse_start``."""
-        zero = not self.coarse_start or self.select or self.adaptive
-        return int(zero) + 2 * int(self.coarse_start)
+        """Network passes ``optstereo.inference.engine.run`` makes on a pair when all of this config's passes run,
+        the adaptive one included (a small pair's; :meth:`passes_for` counts a pair of either kind)."""
+        return self.passes_for(enlarged=self.adaptive)
+
+    def passes_for(self, enlarged: bool) -> int:
+        """Network passes ``optstereo.inference.engine.run`` makes on a pair: the zero-start one (unless only a
+        coarse-started one is wanted); when the adaptive rule ``enlarged`` the pair (only with ``adaptive_ref_disp``),
+        the zero-start pass again at the enlarged scale (unless only a coarse-started one is wanted); with
+        ``coarse_start`` the half-scale pass and the pass started from it."""
+        coarse_only = self.coarse_start and not self.select
+        zero = not coarse_only or self.adaptive
+        again = enlarged and self.adaptive and not coarse_only
+        return int(zero) + int(again) + 2 * int(self.coarse_start)
 
     def validate(self) -> InferenceConfig:
         """Raise ValueError naming the field if a value is out of range or of the wrong type; return self."""

@@ -23,7 +23,7 @@ from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
 from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
 from optstereo.inference.engine import infer
 from optstereo.submission import write_submission
-from pvm_labeler.common.datasets import discover, load_pair
+from pvm_labeler.common.datasets import discover, load_pair, safe_stem
 from pvm_labeler.common.io import read_image, write_image, write_kitti_disp, write_npy, write_pfm
 from pvm_labeler.common.viz import colorize_disparity
 
@@ -44,8 +44,10 @@ def write_disparity(
     """Write one disparity map in the requested formats; returns format -> path.
 
     With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
-    ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders.
+    ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders. A ``name`` that
+    is no plain file name (``../x``: a shard's frame id) is made one (``pvm_labeler.common.datasets.safe_stem``).
     """
+    name = safe_stem(name)
     formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
     unknown = sorted(set(formats) - set(DISPARITY_FORMATS))
     if unknown:
@@ -82,6 +84,7 @@ def write_geometry(
     if calib is None:
         raise ValueError(f"formats {wanted} need a calibration: pass --calib FILE")
     depth = disparity_to_depth(disp, calib, max_depth)
+    name = safe_stem(name)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}

@@ -12,7 +12,7 @@ Layout (one field, one place)::
     out, init, device, amp, seed, threads, max_minutes, log_every, image_every, ckpt_every, keep_ckpts, tensorboard
 
 Precedence (lowest to highest): dataclass defaults < ``--config FILE`` (YAML) < command-line flags; each layer may
-be nested or the old flat form (``optstereo.training.sections.nest``). The resolved config (model variant defaults
+be nested or the old flat form (``optstereo.training.layering.nest``). The resolved config (model variant defaults
 and the loss weights of the chosen supervision filled in) is written to ``RUN_DIR/config.yaml`` and stored in
 every checkpoint, so ``--resume RUN_DIR`` continues with exactly the same settings; flat configs of older runs
 still resume. The model section's old keys are those of its network (``NetworkConfig.RENAMED_KEYS``, e.g. HITNet's
@@ -33,16 +33,14 @@ from optstereo.choices import AMP_MODES, DEVICES, AmpMode, Device
 from optstereo.models import config_class, config_classes, model_config
 from optstereo.models.config import NetworkConfig
 from optstereo.training.analogy_config import AnalogyConfig
+from optstereo.training.layering import FLAT_KEYS, merge, nest
 from optstereo.training.sections import (
-    FLAT_KEYS,
     DataConfig,
     InferenceConfig,
     LossConfig,
     ModelConfig,
     OptimConfig,
     ValConfig,
-    merge,
-    nest,
     parse_crop,
     plain,
 )

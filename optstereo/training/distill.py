@@ -30,7 +30,7 @@ from tqdm import tqdm
 from optstereo.inference.engine import infer
 from optstereo.training.augment import right_view
 from pvm_labeler.common.atomic import atomic_path
-from pvm_labeler.common.datasets import load_pair
+from pvm_labeler.common.datasets import load_pair, safe_stem
 from pvm_labeler.shards import rewrite
 from pvm_labeler.shards.fills import add_fills, right_confidence
 
@@ -83,8 +83,8 @@ def _agree(disp: npt.NDArray[np.float32], other: npt.NDArray[np.float32], sign: 
 
 
 def map_path(maps_dir: Path, frame_id: str) -> Path:
-    """Where :func:`write_teacher_maps` keeps one pair's two views."""
-    return Path(maps_dir) / f"{frame_id}{MAP_SUFFIX}"
+    """Where :func:`write_teacher_maps` keeps one pair's two views (inside ``maps_dir`` whatever the id)."""
+    return Path(maps_dir) / f"{safe_stem(frame_id)}{MAP_SUFFIX}"
 
 
 def write_teacher_maps(model: nn.Module, refs: list[Any], maps_dir: Path, device: str = "cpu", amp: str = "none",

@@ -1,4 +1,4 @@
-"""Sections of the trainer's TrainConfig (no I/O, no torch) and the map from the old flat keys to them.
+"""Sections of the trainer's TrainConfig (no I/O, no torch).
 
 ``optstereo.training.config.TrainConfig`` composes ``model`` (the network's own config: ``ModelConfig`` for
 OptStereo, ``HITNetConfig`` for HITNet, picked by ``model.name``: ``optstereo.models.config_class``), ``loss``
@@ -6,8 +6,8 @@ OptStereo, ``HITNetConfig`` for HITNet, picked by ``model.name``: ``optstereo.mo
 few run-level fields. Every section is a frozen dataclass validated on construction; ``from_dict`` rejects unknown
 keys and ``to_dict`` gives YAML/JSON-friendly values (paths as str, tuples as lists).
 
-Run directories and checkpoints written before the sections existed hold ONE flat mapping (``lr: 1e-4``,
-``model_overrides: {...}``); ``nest`` reads it into the nested form, key by key (``FLAT_KEYS``).
+Reading one config layer (flat, nested or mixed) into the nested form and merging layers:
+``optstereo.training.layering``.
 """
 
 from __future__ import annotations
@@ -33,42 +33,13 @@ from optstereo.choices import (
     Supervision,
 )
 from optstereo.inference.config import InferenceConfig
-from optstereo.models.config import ModelConfig, rename_keys, split_legacy_model_dict
+from optstereo.models.config import ModelConfig
 from optstereo.training.analogy_config import AnalogyConfig
 from pvm_labeler.common.configtools import reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
-__all__ = [
-    "FLAT_KEYS", "DataConfig", "InferenceConfig", "LossConfig", "ModelConfig",
-    "OptimConfig", "ValConfig", "merge", "nest", "parse_crop",
-    "parse_scale_range",
-]
-
-
-# old flat key -> "section.key" (the trainer's config before issue 17 was one flat dataclass). The CLI's flags use
-# the same flat names (--lr -> lr -> optim.lr). "model_overrides" spreads into model.* (see nest).
-FLAT_KEYS: dict[str, str] = {
-    "model": "model.name", "iters": "model.iters",
-    "gamma": "loss.gamma", "lambda_r": "loss.lambda_r", "lambda_s": "loss.lambda_s", "alpha": "loss.alpha",
-    "photometric_iters": "loss.photometric_iters", "smoothness_norm": "loss.smoothness_norm",
-    "smoothness_order": "loss.smoothness_order",
-    "color_norm": "loss.color_norm",
-    "conf_weight": "loss.conf_weight", "lambda_t": "loss.lambda_t", "analogy": "loss.analogy",
-    "analogy_start": "loss.analogy_start", "analogy_every": "loss.analogy_every",
-    "labels": "data.labels", "supervision": "data.supervision", "batch_size": "data.batch_size",
-    "crop": "data.crop", "flip_swap_p": "data.flip_swap_p", "photometric": "data.photometric",
-    "occlude_p": "data.occlude_p", "scale_range": "data.scale_range", "cascade_p": "data.cascade_p",
-    "max_disp": "data.max_label_disp", "workers": "data.workers", "shuffle_buffer": "data.shuffle_buffer",
-    "steps": "optim.steps", "lr": "optim.lr", "weight_decay": "optim.weight_decay", "schedule": "optim.schedule",
-    "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
-    "val_dataset": "val.dataset", "val_root": "val.root", "val_limit": "val.limit",
-}
-SECTIONS = ("model", "inference", "loss", "data", "optim", "val")
-#: Section keys renamed since (issue 43): section -> {old key: field}. YAML files, saved run configs and
-#: ``--set data.max_disp=...`` written with the old name keep working: ``nest`` maps them quietly. The model
-#: section's old keys depend on the network (``NetworkConfig.RENAMED_KEYS`` of ``model.name``'s config class):
-#: TrainConfig upgrades them once every layer is read.
-RENAMED_KEYS: dict[str, dict[str, str]] = {"data": {"max_disp": "max_label_disp"}}
+__all__ = ["DataConfig", "InferenceConfig", "LossConfig", "ModelConfig", "OptimConfig", "ValConfig", "parse_crop",
+           "parse_scale_range", "plain"]
 
 
 def parse_crop(text: str | tuple[int, int] | list[int]) -> tuple[int, int]:
@@ -269,7 +240,7 @@ class DataConfig(_Section):
             TARGETS, not a search range: 256 keeps every KITTI GT disparity (up to ~230 px) for --supervision gt.
             The labeler's ``LabelerConfig.max_disp`` (192) is SGM's search range, so PVM labels never reach it; the
             two differ on purpose and neither is derived from the other. Called ``data.max_disp`` before issue 43
-            (still read: ``RENAMED_KEYS``).
+            (still read: ``optstereo.training.layering.RENAMED_KEYS``).
         workers: DataLoader worker processes per rank (0 = load in the main process).
         shuffle_buffer: size of the seeded shuffle buffer (in samples) of every worker.
     """
@@ -357,52 +328,3 @@ class ValConfig(_Section):
 
     def __post_init__(self) -> None:
         _require([(self.limit >= 0, f"--val-limit must be >= 0, got {self.limit}")])
-
-
-# -- flat -> nested ------------------------------------------------------------------------------------------------
-def nest(values: dict[str, Any]) -> dict[str, Any]:
-    """One config layer (flat, nested or mixed; '-' or '_' in keys) in the nested form.
-
-    Old flat keys go to their section (``FLAT_KEYS``), ``model_overrides`` spreads into ``model``; a section given as
-    a mapping (``optim: {lr: ...}``) wins over flat keys of the same layer. Keys neither flat nor a section stay at
-    the top level (run-level fields, or unknown keys that TrainConfig rejects). ``None`` sections mean empty.
-    The inference settings that older configs kept under ``model`` (``input_scale``, ``refine``, ``cascade``, ...:
-    ``optstereo.models.config.LEGACY_INFERENCE_KEYS``) move to their ``inference`` fields; an ``inference`` value of
-    the same layer wins over them. Renamed section keys (``RENAMED_KEYS``: data.max_disp) take their new names; the
-    model section's are left to TrainConfig, which knows the network (``model.name``) only once every layer is read.
-    """
-    out: dict[str, Any] = {}
-    sections: dict[str, dict[str, Any]] = {}
-    for raw_key, value in values.items():
-        key = raw_key.replace("-", "_")
-        if key in SECTIONS and (isinstance(value, dict) or value is None):
-            sections[key] = {k.replace("-", "_"): v for k, v in (value or {}).items()}
-        elif key == "model_overrides":
-            out.setdefault("model", {}).update(value or {})
-        elif key in FLAT_KEYS:
-            section, name = FLAT_KEYS[key].split(".")
-            out.setdefault(section, {})[name] = {} if key == "analogy" and value is None else value
-        else:
-            out[key] = value
-    nested = merge(out, sections)
-    for name, renamed in RENAMED_KEYS.items():
-        if isinstance(nested.get(name), dict):
-            nested = {**nested, name: rename_keys(nested[name], renamed, f"training config section {name!r}")}
-    if isinstance(nested.get("model"), dict):
-        model, legacy = split_legacy_model_dict(nested["model"])
-        if legacy:
-            inference = nested.get("inference")
-            nested = {**nested, "model": model,
-                      "inference": {**legacy, **(inference if isinstance(inference, dict) else {})}}
-    return nested
-
-
-def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    """Recursive dict merge: ``over``'s keys win, nested mappings merge key by key (neither input is changed)."""
-    out = dict(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge(out[key], value)
-        else:
-            out[key] = value
-    return out

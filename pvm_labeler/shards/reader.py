@@ -29,7 +29,8 @@ def read_index(shard_dir: Path | str) -> ShardIndex:
 
     Raises:
         ShardError: naming the file, when the index is missing/unparsable, has another schema name or version,
-            or lists a shard file that does not exist.
+            lists a shard file that does not exist, or one outside ``shard_dir`` (an absolute path or one through
+            ``..``: the index is a file anyone can write, and its entries are names inside the folder).
     """
     shard_dir = Path(shard_dir)
     path = shard_dir / INDEX_NAME
@@ -46,7 +47,13 @@ def read_index(shard_dir: Path | str) -> ShardIndex:
         raise ShardError(f"{path}: schema version {schema.get('version')!r}, this code reads version {SCHEMA_VERSION}")
     shards = []
     for entry in doc.get("shards", []):
-        shard_path = shard_dir / entry["file"]
+        name = entry.get("file") if isinstance(entry, dict) else None
+        if not isinstance(name, str) or not isinstance(entry.get("samples"), list):
+            raise ShardError(f"{path}: a shard entry must hold 'file' (a name) and 'samples' (a list), got {entry!r}")
+        if Path(name).is_absolute() or ".." in Path(name).parts or not Path(name).parts:
+            raise ShardError(f"{path}: lists shard {name!r}, which is not a file inside {shard_dir}; its shard "
+                             f"entries are file names in the index's own folder")
+        shard_path = shard_dir / name
         if not shard_path.is_file():
             raise ShardError(f"{path}: lists shard {shard_path}, which does not exist")
         shards.append((shard_path, list(entry["samples"])))

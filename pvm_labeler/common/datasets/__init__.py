@@ -57,12 +57,13 @@ from pvm_labeler.common.datasets.refs import (
     PairRef,
     StereoSample,
     _require_dir,
+    safe_stem,
 )
 from pvm_labeler.common.datasets.synthetic import SYNTHETIC_SCENES, _discover_sample, make_layered_scene
 from pvm_labeler.common.errors import InputError
 
 __all__ = ["DATASETS", "DEFAULT_MAX_DISP", "IMAGE_SUFFIXES", "SPLITS", "SYNTHETIC_SCENES", "PairRef", "StereoSample",
-           "check_pair_sizes", "discover", "load_pair", "make_layered_scene", "read_middlebury_calib"]
+           "check_pair_sizes", "discover", "load_pair", "make_layered_scene", "read_middlebury_calib", "safe_stem"]
 
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,6 +12,8 @@ import numpy as np
 import numpy.typing as npt
 
 from pvm_labeler.common.errors import InputError
+
+logger = logging.getLogger(__name__)
 
 DATASETS: tuple[str, ...] = ("kitti15", "kitti12", "middlebury", "eth3d", "sceneflow", "folder", "kitti_unlabelled",
                              "sample")
@@ -113,5 +116,20 @@ def _safe_id(text: str) -> str:
     """Make a string usable as an HDF5 group name and file-system friendly ("/" separates HDF5 groups)."""
     text = re.sub(r"[^A-Za-z0-9_.+-]+", "-", text).strip("-.")
     return text or "frame"
+
+
+def safe_stem(frame_id: str) -> str:
+    """``frame_id`` as the stem of a file written (or read) inside one output folder: unchanged when it is a plain
+    name, else made one by the readers' own rule (:func:`_safe_id`), with a warning naming both.
+
+    The readers' ids are plain names already; a shard's ids come from its file and its ``index.json``, which anyone
+    can write: ``../../x`` or ``/abs/x`` must not lead a map or a disparity file out of its folder.
+    """
+    text = str(frame_id)
+    if text not in ("", ".", "..") and not any(sep in text for sep in ("/", "\\", "\0")):
+        return text
+    stem = _safe_id(text)
+    logger.warning("frame id %r is no plain file name: its files are named %r", text, stem)
+    return stem
 
 
