@@ -109,6 +109,8 @@ _D = TrainConfig()
 @click.option("--val-dataset", help="Dataset evaluated on GT at the end (e.g. sample, kitti15).")
 @click.option("--val-root", type=EXISTING, help="Root folder of --val-dataset.")
 @click.option("--val-limit", type=int, help="Evaluate only the first N validation frames (0 = all).")
+@click.option("--val-set", type=EXISTING, help="GT-free validation set (optstereo-distill valset) scored at every "
+              "checkpoint; the best weights by it go to RUN_DIR/best.safetensors.")
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def train_main(config_file: Path | None, resume: Path | None, init: Path | None, print_config: bool,
                set_opts: tuple[str, ...], model_opt: tuple[str, ...], analogy_opt: tuple[str, ...], quiet: bool,

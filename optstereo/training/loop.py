@@ -14,7 +14,7 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,7 @@ from optstereo.training.checkpoints import TrainState, checkpoint_saver, init_we
 from optstereo.training.config import TrainConfig
 from optstereo.training.log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
 from optstereo.training.losses import PVStereoLoss
+from optstereo.training.validate import gtfree_hook
 
 logger = logging.getLogger(__name__)
 
@@ -299,6 +300,19 @@ def evaluate(model: nn.Module, cfg: TrainConfig, device: torch.device, out_dir: 
     return result.summary
 
 
+def _and_then(first: Callable[[TrainState], None],
+              then: Callable[[TrainState], None] | None) -> Callable[[TrainState], None]:
+    """``first(state)``, then ``then(state)`` when given (a checkpoint, then its GT-free validation)."""
+    if then is None:
+        return first
+
+    def both(state: TrainState) -> None:
+        first(state)
+        then(state)
+
+    return both
+
+
 # -- entry point ---------------------------------------------------------------------------------------------------
 def main(cfg: TrainConfig, resume: bool = False, progress: bool = True,
          init_ckpt: LoadedCheckpoint | None = None) -> dict[str, Any]:
@@ -350,7 +364,8 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     loss_fn = build_loss(cfg).to(device)
     run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
                            resume_step=state.step if ckpt is not None else None)
-    save = checkpoint_saver(run_dir, cfg, info)
+    save = _and_then(checkpoint_saver(run_dir, cfg, info),
+                     gtfree_hook(cfg, run_dir, run_logger, device) if info.is_main else None)
     start_step, t0 = state.step, time.perf_counter()
     try:
         if state.step < cfg.optim.steps:

@@ -311,20 +311,23 @@ class OptimConfig(_Section):
 
 @dataclass(frozen=True)
 class ValConfig(_Section):
-    """Evaluation on a dataset's GT at the end of the run (optional).
+    """Validation (optional): on a dataset's GT at the end of the run, and GT-free at every checkpoint.
 
     Attributes:
-        dataset: dataset name (pvm_labeler.common.datasets); None = no validation.
+        dataset: dataset name (pvm_labeler.common.datasets); None = no GT validation.
         root: root folder of the dataset.
-        limit: evaluate only the first N frames (0 = all).
+        limit: evaluate only the first N frames / validation pairs (0 = all).
+        valset: a GT-free validation set (``optstereo-distill valset``) scored at every checkpoint
+            (``optstereo.training.validate``: metrics.jsonl, best.safetensors); None = none.
     """
 
     NAME: ClassVar[str] = "val"
-    PATHS: ClassVar[tuple[str, ...]] = ("root",)
+    PATHS: ClassVar[tuple[str, ...]] = ("root", "valset")
 
     dataset: str | None = None
     root: Path | None = None
     limit: int = 0
+    valset: Path | None = None
 
     def __post_init__(self) -> None:
         _require([(self.limit >= 0, f"--val-limit must be >= 0, got {self.limit}")])
