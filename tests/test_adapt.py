@@ -1,53 +1,83 @@
-"""optstereo.adapt: the held-back tiles by hand, the guard, and the whole command end to end on a tiny folder with a
-tiny model (labels, hold-back, fine-tuning, report, checkpoint)."""
+"""optstereo.adapt: the held-back frames, the decision by hand, a learning rate that wrecks the weights (the start
+is kept), and the whole command end to end on a tiny folder with a tiny model."""
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
 from conftest import TINY
 
-from optstereo.adapt import AdaptConfig, guard, right_mask, tile_mask
+from optstereo.adapt import MIN_HELD, AdaptConfig, decide, split_frames
 from optstereo.checkpoint import save_checkpoint
 from optstereo.models import build_model
-from pvm_labeler.common.datasets import make_layered_scene
+from optstereo.validation import PairScore
+from pvm_labeler.common.datasets import discover, load_pair, make_layered_scene
 from pvm_labeler.common.io import write_image, write_pfm
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-def test_tile_mask_holds_back_whole_tiles() -> None:
-    mask = tile_mask((10, 13), 0.5, 4, np.random.default_rng(0))
-    assert mask.shape == (10, 13)
-    tiles = mask[::4, ::4]  # 3 x 4 tiles, the last ones cut by the frame
-    np.testing.assert_array_equal(mask, np.repeat(np.repeat(tiles, 4, 0), 4, 1)[:10, :13])
-    assert 0 < tiles.sum() < tiles.size
-    for fraction in (1e-9, 1 - 1e-9):  # never all or nothing
-        tiles = tile_mask((8, 8), fraction, 4, np.random.default_rng(1))[::4, ::4]
-        assert 0 < tiles.sum() < tiles.size
+
+def test_split_frames_holds_back_whole_frames() -> None:
+    ids = [f"{i:03d}" for i in range(10)]
+    train, held = split_frames(ids, 0.3, seed=0)
+    assert len(held) == 3 and sorted(train + held) == ids and not set(train) & set(held)
+    assert split_frames(ids, 0.3, seed=0) == (train, held) and split_frames(ids, 0.3, seed=1) != (train, held)
+    assert len(split_frames(ids, 0.5, 0)[1]) == 5
+    assert [len(x) for x in split_frames(ids[:4], 0.3, 0)] == [1, MIN_HELD]  # at least MIN_HELD, one to train
+    assert split_frames(ids[:3], 0.3, 0) == (ids[:3], [])  # too small: nothing held back, no decision
 
 
-def test_right_mask_follows_the_right_labels() -> None:
-    held = np.zeros((1, 6), bool)
-    held[0, 4] = True
-    label_right = np.array([[4.0, 2.0, 3.0, np.nan, 1.0, 9.0]], np.float32)
-    # right x matches left x + d: 0 -> 4 (held), 1 -> 3, 2 -> 5, 3 none, 4 -> 5, 5 -> 14 outside
-    np.testing.assert_array_equal(right_mask(held, label_right), [[True, False, False, False, False, False]])
+def _scores(bad: list[int], photo: list[float]) -> list[PairScore]:
+    return [PairScore(str(i), pvm_n=1000, pvm_bad=b, photo_sum=p * 100, photo_n=100)
+            for i, (b, p) in enumerate(zip(bad, photo, strict=True))]
 
 
-def test_guard() -> None:
-    # 8 bad pixels of 1000 before: up to 8 + 2 sqrt(9) = 14 allowed after, with EPE not higher
-    before = {"held_epe": 1.0, "held_bad3": 0.8, "held_pixels": 1000}
-    assert guard(before, {"held_epe": 0.9, "held_bad3": 0.8, "held_pixels": 1000})
-    assert guard(before, {"held_epe": 1.0, "held_bad3": 1.4, "held_pixels": 1000})
-    assert not guard(before, {"held_epe": 0.9, "held_bad3": 1.5, "held_pixels": 1000})
-    assert not guard(before, {"held_epe": 1.01, "held_bad3": 0.0, "held_pixels": 1000})
+def test_decide_by_hand() -> None:
+    before = _scores([50, 60, 40, 55], [0.20, 0.30, 0.25, 0.22])
+    better = decide(before, _scores([40, 49, 31, 44], [0.20, 0.30, 0.25, 0.22]))  # -1.0/-1.1/-0.9/-1.1 points
+    assert better.adapted and "pvm_bad3 better beyond noise" in better.reason
+    mean, margin = better.changes["pvm_bad3"]
+    assert mean == pytest.approx(-1.025) and margin == pytest.approx(2 * np.std([-1, -1.1, -0.9, -1.1], ddof=1) / 2)
+    noisy = decide(before, _scores([40, 70, 30, 60], [0.20, 0.30, 0.25, 0.22]))  # -1, +1, -1, +0.5: inside noise
+    assert not noisy.adapted and "no held-back score better beyond its noise" in noisy.reason
+    mixed = decide(before, _scores([40, 49, 31, 44], [0.30, 0.40, 0.36, 0.31]))  # labels better, photometric worse
+    assert not mixed.adapted and "worse beyond noise in photometric" in mixed.reason
+    few = decide(before[:2], _scores([0, 0], [0.0, 0.0]))
+    assert not few.adapted and few.reason.startswith("no decision can be made: 2 held-back frames")
     with pytest.raises(ValueError, match="--holdout"):
         AdaptConfig(dataset="folder", root=None, out=Path("x"), holdout=1.0).check()
+
+
+def test_a_wrecking_learning_rate_keeps_the_start(tmp_path: Path, shared_data: Path) -> None:
+    """Five KITTI 2015 frames at half size as a rig, the shipped default as the start, 3 steps at lr 0.05: the
+    adapted weights are ruined, the held-back frames say so, the start is kept (the GT is read after, and agrees)."""
+    from optstereo.cli import adapt_main
+
+    rig = tmp_path / "rig"
+    for ref in discover("kitti15", shared_data / "kitti15")[:5]:
+        pair = load_pair(ref)
+        for side, image in (("l", pair.left), ("r", pair.right)):
+            (rig / side).mkdir(parents=True, exist_ok=True)
+            write_image(rig / side / f"{ref.frame_id}.png", cv2.resize(image, None, fx=0.5, fy=0.5,
+                                                                       interpolation=cv2.INTER_AREA))
+    out = tmp_path / "adapt"
+    res = CliRunner().invoke(adapt_main, ["--root", str(rig), "--left", "l", "--right", "r", "--out", str(out),
+                                          "--steps", "3", "--lr", "0.05", "--max-disp", "96", "--device", "cpu",
+                                          "--quiet", "--holdout", "0.6"], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "report.json").read_text())
+    assert len(report["held_back_frames"]) == 3 and len(report["train_frames"]) == 2
+    assert not report["adapted"] and report["decision"].startswith("start kept: held-back frames worse")
+    assert report["after"]["held_bad3"] > report["before"]["held_bad3"] + 5
+    assert res.output.strip().splitlines()[-1].startswith("start kept:")
+    assert (out / "adapted.safetensors").read_bytes() == Path(report["init"]).read_bytes()
 
 
 def _rig(root: Path, n: int = 2) -> None:
@@ -64,7 +94,7 @@ def _rig(root: Path, n: int = 2) -> None:
 def test_adapt_end_to_end(tmp_path: Path) -> None:
     from optstereo.cli import adapt_main
 
-    _rig(tmp_path / "rig")
+    _rig(tmp_path / "rig", n=4)
     torch.manual_seed(0)
     ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
     out = tmp_path / "adapt"
@@ -73,22 +103,23 @@ def test_adapt_end_to_end(tmp_path: Path) -> None:
     res = CliRunner().invoke(adapt_main, args, catch_exceptions=False)
     assert res.exit_code == 0, res.output
     report = json.loads((out / "report.json").read_text())
-    assert report["pairs"] == 2 and report["config"]["steps"] == 3
+    assert report["pairs"] == 4 and report["config"]["steps"] == 3
+    held, train = report["held_back_frames"], report["train_frames"]
+    assert len(held) == MIN_HELD and len(train) == 1
     for side in ("before", "after"):
         assert report[side]["held_pixels"] > 0 and np.isfinite(report[side]["held_epe"])
-        assert "gt_bad3" in report[side]  # the folder has GT: scored, never trained on
-    assert report["adapted"] == guard(report["before"], report["after"])
+        assert math.isfinite(report[side]["photometric_holes"])
+        assert "gt_bad3" in report[side]  # the folder has GT: scored after the decision, never trained on
     assert Path(report["checkpoint"]).is_file() and (out / "report.md").is_file()
-    assert (out / "run" / "last.pt").is_file() and (out / "holdout.npz").is_file()
-    # the training shards hold no GT and none of the held-back labels
+    assert (out / "run" / "last.pt").is_file() and json.loads((out / "split.json").read_text())["held_back"] == held
+    # the training shards hold the training frame only, without GT
     from pvm_labeler.shards import open_shard, read_index, read_sample
 
-    masks = np.load(out / "holdout.npz")
-    for path, ids in read_index(out / "train_labels").shards:
+    index = read_index(out / "train_labels")
+    assert [i for _, ids in index.shards for i in ids] == train
+    for path, ids in index.shards:
         with open_shard(path) as h5:
-            for frame_id in ids:
-                sample = read_sample(h5, frame_id)
-                assert sample.gt is None and np.all(np.isnan(sample.label[masks[frame_id]]))
+            assert all(read_sample(h5, i).gt is None for i in ids)
     # a second call resumes: labels and training are done, the report is written again
     res = CliRunner().invoke(adapt_main, args, catch_exceptions=False)
     assert res.exit_code == 0, res.output

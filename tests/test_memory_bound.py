@@ -90,14 +90,14 @@ TRAIN_GROWTH_MIB = 6.0
 
 
 def test_train_peak_rss_does_not_grow_with_shards(tmp_path: Path) -> None:
-    """optstereo-train streams the shards: the same 200 steps (batch 2, so every frame of the large set is read
+    """optstereo-train streams the shards: the same 100 steps (batch 2, so every frame of the large set is read
     at least once) peak at the same RSS over 20 and over 200 frames (ten times the shards)."""
 
     def peak(n: int) -> float:
         labels = make_shards(tmp_path / f"shards{n}", n=n, shard_size=2, height=64, width=128)
         model = [f"--set=model.{k}={v}" for k, v in TINY.items()]
         return _peak_mib("optstereo.cli", "train_main", "--labels", str(labels), "--out", str(tmp_path / f"run{n}"),
-                         "--steps", "200", "--batch-size", "2", "--crop", "32x64", "--iters", "1", "--workers", "0",
+                         "--steps", "100", "--batch-size", "2", "--crop", "32x64", "--iters", "1", "--workers", "0",
                          "--threads", "1", "--device", "cpu", "--ckpt-every", "1000", "--log-every", "50",
                          "--set", "data.shuffle_buffer=8", "--set", "tensorboard=false", "--quiet", *model)
 

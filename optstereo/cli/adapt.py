@@ -25,18 +25,19 @@ from optstereo.cli.common import (
 @click.option("--root", type=EXISTING, help="The rig's folder (its pairs; GT, if any, is used only to score).")
 @reader_options
 @click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Output folder: labels/, train_labels/, run/, report.json/.md, adapted.* (resumable).")
+              help="Output folder: labels/, split.json, train_labels/, run/, report.json/.md, adapted.* (resumable).")
 @click.option("--init", default="pretrained", help="Start from this checkpoint (file, RUN_DIR or 'pretrained').")
 @click.option("--steps", type=click.IntRange(min=0), default=DEFAULT_STEPS,
               help="Fine-tuning steps (batch 1, 320x736 crops): the default is about 10 minutes on 2 CPU cores "
                    "(~4 s/step), plus labeling and scoring.")
 @click.option("--lr", type=float, default=DEFAULT_LR, help="Adam learning rate of the fine-tuning.")
-@click.option("--holdout", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.2,
-              help="Fraction of the labelled pixels (in 32x32 tiles) held back for the GT-free before/after check.")
+@click.option("--holdout", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.3,
+              help="Fraction of the rig's whole frames held back (never trained on) for the GT-free decision; at "
+                   "least 3 frames, with one more to train on, else no decision can be made and the start is kept.")
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N pairs.")
 @click.option("--max-disp", type=click.IntRange(min=8), default=None,
               help="The labeler's search range in px (default: pvm-label's, 192; it must be below the width).")
-@click.option("--seed", type=int, default=0, help="Seed of the held-back tiles and of the training.")
+@click.option("--seed", type=int, default=0, help="Seed of the held-back frames and of the training.")
 @device_option
 @click.option("--threads", type=click.IntRange(min=0), default=0, expose_value=False, callback=_set_threads,
               help="torch CPU threads (0 = torch's default, one per core).")
@@ -49,6 +50,4 @@ def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, ste
                       init=init, steps=steps, lr=lr, holdout=holdout, limit=limit, max_disp=max_disp, seed=seed,
                       device=device, quiet=quiet)
     report = run(cfg)
-    b, a = report["before"], report["after"]
-    click.echo(f"held-back labels EPE {b['held_epe']:.3f} -> {a['held_epe']:.3f} px, bad-3 {b['held_bad3']:.2f} -> "
-               f"{a['held_bad3']:.2f} %; {report['decision']}; checkpoint {report['checkpoint']}")
+    click.echo(f"{report['decision']}; checkpoint {report['checkpoint']}")
