@@ -50,11 +50,11 @@ FLOW_TOLERANCE = 1.0
 CUT_WIDTH = 16
 #: :func:`photometric_change` above which a frame is a scene cut (a new sequence). Measured on the KITTI frames of
 #: ../shared/data (2026-11-27): consecutive frames of a 10 fps video 0.02-0.05 (KITTI 2015 ``_10``/``_11``), every
-#: 4th frame of raw drives and odometry clips (0.4 s apart, the setting of results/sequence.json) 0.04-0.15, two
-#: unrelated KITTI 2015 scenes 0.03-0.41 (median 0.16). 0.16 sits above every video pair measured, so a drive keeps
-#: its sequence; the unrelated scenes it misses are those that look alike at 16 px (road below, sky above), and the
-#: datasets of unrelated scenes are refused by optstereo-predict --sequence altogether. A false cut costs one plain
-#: pass; a missed one starts the GRU from another scene's disparity.
+#: 4th frame of a raw drive and of odometry clips (0.4 s apart, as results/sequence.json runs its drive) 0.04-0.15,
+#: consecutive KITTI 2015 scenes (unrelated) 0.03-0.41 (median 0.16). 0.16 sits above every video pair measured, so a
+#: drive keeps its sequence; the unrelated scenes it misses are those that look alike at 16 px (road below, sky
+#: above), and the datasets of unrelated scenes are refused by optstereo-predict --sequence altogether. A false cut
+#: costs one plain pass; a missed one starts the GRU from another scene's disparity.
 SCENE_CUT = 0.16
 
 
@@ -107,12 +107,11 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
     if sequence_iters < 1:
         raise ValueError(f"sequence_iters must be >= 1, got {sequence_iters}")
     prev, thumb = state.disparity, thumbnail(left)
-    cut = state.thumbnail is not None and photometric_change(state.thumbnail, thumb) > SCENE_CUT
-    if cut:
-        logger.info("scene cut (photometric change %.3f > %.2f): a new sequence starts",
-                    photometric_change(state.thumbnail, thumb), SCENE_CUT)
+    change = 0.0 if state.thumbnail is None else photometric_change(state.thumbnail, thumb)
     state.thumbnail = thumb
-    if prev is None or prev.shape != left.shape[:2] or state.scale is None or cut:
+    if prev is None or prev.shape != left.shape[:2] or state.scale is None or change > SCENE_CUT:
+        if prev is not None and prev.shape == left.shape[:2]:
+            logger.info("scene cut (photometric change %.3f > %.2f): a new sequence starts", change, SCENE_CUT)
         result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
         state.disparity, state.scale = result.disparity, result.input_scale
         return result.disparity
