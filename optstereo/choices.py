@@ -12,9 +12,9 @@ from typing import Literal, get_args
 __all__ = [
     "AMP_MODES", "COLOR_NORMS", "CONF_FORMATS", "DEVICES", "DISPARITY_FORMATS", "EXPORT_FORMATS", "GEOMETRY_FORMATS",
     "PREDICT_FORMATS", "NORMS", "PHOTOMETRIC_ITERS", "REFINERS", "SCHEDULES", "SMOOTHNESS_NORMS", "SMOOTHNESS_ORDERS",
-    "SUPERVISIONS", "UPSAMPLERS", "AmpMode", "ColorNorm", "ConfFormat", "Device", "DisparityFormat", "ExportFormat",
-    "GeometryFormat", "Norm", "PhotometricIters", "Refiner", "Schedule", "SmoothnessNorm", "SmoothnessOrder",
-    "Supervision", "Upsampler",
+    "SUPERVISIONS", "UPSAMPLERS", "VIDEO_DATASETS", "AmpMode", "ColorNorm", "ConfFormat", "Device", "DisparityFormat",
+    "ExportFormat", "GeometryFormat", "Norm", "PhotometricIters", "Refiner", "Schedule", "SmoothnessNorm",
+    "SmoothnessOrder", "Supervision", "Upsampler", "VideoDataset",
 ]
 
 #: Precision of a forward pass (training's --amp and inference's): fp32, bfloat16 or float16 autocast.
@@ -60,6 +60,11 @@ ConfFormat = Literal["conf-png", "conf-npy"]
 CONF_FORMATS: tuple[str, ...] = get_args(ConfFormat)
 #: Every value of optstereo-predict's --format.
 PREDICT_FORMATS: tuple[str, ...] = DISPARITY_FORMATS + GEOMETRY_FORMATS + CONF_FORMATS
+
+#: ``--dataset`` readers whose frames are videos, which ``optstereo-predict --sequence`` takes; the others
+#: (kitti15, kitti12, middlebury, sample) hold unrelated scenes, one stereo pair each.
+VideoDataset = Literal["folder", "kitti_unlabelled", "sceneflow"]
+VIDEO_DATASETS: tuple[str, ...] = get_args(VideoDataset)
 
 # -- export ---------------------------------------------------------------------------------------------------------
 ExportFormat = Literal["onnx", "torchscript"]

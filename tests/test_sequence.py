@@ -4,15 +4,30 @@ the temporal-change measure on hand-made frames."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 from conftest import TINY, StartEcho
 
+from optstereo.choices import VIDEO_DATASETS
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import infer
-from optstereo.inference.sequence import SequenceState, infer_next, infer_sequence, temporal_change
+from optstereo.inference.predict_more import MoreOptions, predict_frames
+from optstereo.inference.sequence import (
+    SCENE_CUT,
+    SequenceState,
+    infer_next,
+    infer_sequence,
+    natural_key,
+    photometric_change,
+    temporal_change,
+    thumbnail,
+)
 from optstereo.models import build_model
+from pvm_labeler.common.datasets import DATASETS
+from pvm_labeler.common.io import write_image
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -103,6 +118,109 @@ def test_predict_cli_sequence_on_a_folder(tmp_path) -> None:
     ind = [np.load(tmp_path / "plain" / f"{i:04d}.npy") for i in range(3)]
     np.testing.assert_array_equal(seq[0], ind[0])
     assert not np.allclose(seq[1], ind[1])
+
+
+def _echo() -> StartEcho:
+    model = StartEcho()
+    model.inference_config = InferenceConfig()
+    return model
+
+
+def _uniform(value: int, shape: tuple[int, int] = (32, 64)) -> np.ndarray:
+    return np.full((*shape, 3), value, np.uint8)
+
+
+def _predict(frames: list[tuple[str, np.ndarray]], tmp_path) -> dict[str, np.ndarray]:
+    """StartEcho over (relative left path, image) frames (right = left), as optstereo-predict --sequence runs them;
+    frame name = the file's stem. Returns name -> disparity."""
+    listed = []
+    for rel, image in frames:
+        write_image(tmp_path / "in" / rel, image)
+        listed.append((Path(rel).stem, tmp_path / "in" / rel, tmp_path / "in" / rel))
+    written = predict_frames(_echo(), listed, tmp_path / "out", MoreOptions(sequence=True), formats=("npy",),
+                             progress=False)
+    return {Path(paths["npy"]).stem: np.load(paths["npy"]) for paths in written}
+
+
+def test_natural_order_of_frame_names(tmp_path) -> None:
+    assert sorted(["frame_10", "frame_2", "frame_1", "frame_9b"], key=natural_key) == \
+        ["frame_1", "frame_2", "frame_9b", "frame_10"]
+    assert sorted(["a10-7", "a2-10", "a2-9", "b"], key=natural_key) == ["a2-9", "a2-10", "a10-7", "b"]
+    # frame_9 (grey 20) runs first, then frame_10 (grey 30) starts from it and StartEcho hands its 20 px back; in the
+    # listing's (and the readers') lexical order frame_10 would run first and both would answer 30
+    out = _predict([("frame_10.png", _uniform(30)), ("frame_9.png", _uniform(20))], tmp_path)
+    np.testing.assert_allclose(out["frame_9"], 20.0)
+    np.testing.assert_allclose(out["frame_10"], 20.0)
+
+
+def test_a_folder_change_starts_a_new_sequence(tmp_path) -> None:
+    # grey 12 then 40 is no scene cut (0.11); the second drive's frame runs the plain path all the same
+    assert photometric_change(thumbnail(_uniform(12)), thumbnail(_uniform(40))) < SCENE_CUT
+    out = _predict([("drive_a/0000.png", _uniform(12)), ("drive_a/0001.png", _uniform(40)),
+                    ("drive_b/0002.png", _uniform(40))], tmp_path)
+    np.testing.assert_allclose(out["0001"], 12.0)  # same folder: started from frame 0000
+    np.testing.assert_allclose(out["0002"], 40.0)  # another folder: its own answer
+
+
+def _scene(kind: str, shift: int = 0) -> np.ndarray:
+    """(96, 192, 3) uint8: a brightness ramp (left to right, or top to bottom) with a fine texture, panned by
+    ``shift`` px."""
+    rng = np.random.default_rng(0)
+    ys, xs = np.mgrid[0:96, 0:192 + 16].astype(np.float32)
+    ramp = 200 * (xs / 208 if kind == "across" else ys / 96) + 20
+    image = np.clip(ramp + rng.normal(0, 10, ramp.shape), 0, 255).astype(np.uint8)[:, shift:shift + 192]
+    return np.repeat(image[..., None], 3, axis=2)
+
+
+def test_a_scene_cut_starts_a_new_sequence() -> None:
+    smooth = [_scene("across", shift) for shift in (0, 2, 4, 6)]
+    changes = [photometric_change(thumbnail(a), thumbnail(b)) for a, b in zip(smooth, smooth[1:], strict=False)]
+    cut = photometric_change(thumbnail(_scene("across")), thumbnail(_scene("down")))
+    assert max(changes) < 0.02 and cut > 0.25 and max(changes) < SCENE_CUT < cut
+    model = _echo()
+    # a smooth pan: the second frame starts from the first's answer, which StartEcho hands back on the 1/8 grid
+    first, second = list(infer_sequence(model, [(smooth[0], smooth[0]), (smooth[1], smooth[1])]))
+    cells = np.repeat(np.repeat(first.reshape(12, 8, 24, 8).mean(axis=(1, 3)), 8, axis=0), 8, axis=1)
+    np.testing.assert_allclose(second, cells, rtol=1e-5)
+    # two unrelated scenes: the second runs the plain path (its own red channel), not the first scene's answer
+    across, down = _scene("across"), _scene("down")
+    first, second = list(infer_sequence(model, [(across, across), (down, down)]))
+    np.testing.assert_array_equal(first, across[..., 0].astype(np.float32))
+    np.testing.assert_array_equal(second, down[..., 0].astype(np.float32))
+
+
+@pytest.mark.parametrize("dataset", sorted(set(DATASETS) - set(VIDEO_DATASETS)))
+def test_predict_refuses_a_sequence_of_unrelated_scenes(dataset: str, tmp_path) -> None:
+    from click.testing import CliRunner
+
+    from optstereo.cli import predict_main
+
+    result = CliRunner().invoke(predict_main, ["--checkpoint", str(tmp_path / "never-loaded.pt"), "--dataset",
+                                               dataset, "--root", str(tmp_path), "--out", str(tmp_path / "o"),
+                                               "--sequence"])
+    assert result.exit_code == 2, result.output
+    assert f"--sequence runs the frames of a video, and --dataset {dataset} holds unrelated scenes" in \
+        " ".join(result.output.split())
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_scene_cut_threshold_on_kitti_frames(shared_data) -> None:
+    """The measurements behind SCENE_CUT: no cut between the frames of a video (10 fps, and every 4th frame of a
+    raw drive), a cut between many of KITTI 2015's unrelated scenes."""
+    from pvm_labeler.common.io import read_image
+
+    def changes(paths: list[Path]) -> list[float]:
+        thumbs = [thumbnail(read_image(p)) for p in paths]
+        return [photometric_change(a, b) for a, b in zip(thumbs, thumbs[1:], strict=False)]
+
+    drive = sorted((shared_data / "kitti_unlabelled/kitti_raw").glob("*/image_02/*.png"))
+    testing = shared_data / "kitti_unlabelled/kitti15_testing/image_2"
+    ten_fps = [c for p in sorted(testing.glob("*_10.png")) if (p.parent / p.name.replace("_10", "_11")).is_file()
+               for c in changes([p, p.parent / p.name.replace("_10", "_11")])]
+    unrelated = changes(sorted((shared_data / "kitti15/training/image_2").glob("*_10.png")))
+    assert len(drive) > 10 and ten_fps and max(changes(drive)) < SCENE_CUT and max(ten_fps) < SCENE_CUT
+    assert sum(c > SCENE_CUT for c in unrelated) >= len(unrelated) // 3, np.round(unrelated, 3)
 
 
 @pytest.mark.slow

@@ -9,7 +9,7 @@ from typing import Any
 import click
 import torch
 
-from optstereo.choices import CONF_FORMATS, GEOMETRY_FORMATS, PREDICT_FORMATS
+from optstereo.choices import CONF_FORMATS, GEOMETRY_FORMATS, PREDICT_FORMATS, VIDEO_DATASETS
 from optstereo.cli import common
 from optstereo.export import infer_onnx, onnx_session
 from optstereo.geometry import read_calibration
@@ -64,6 +64,10 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    if sequence and dataset is not None and dataset not in VIDEO_DATASETS:
+        raise click.UsageError(f"--sequence runs the frames of a video, and --dataset {dataset} holds unrelated scenes "
+                               f"(one stereo pair each): each would start from another scene's disparity. Leave "
+                               f"--sequence out, or give video frames with --dataset {', '.join(VIDEO_DATASETS)}")
     if backend == "onnxruntime":
         _refuse_for_onnx(iters=iters, amp=amp, device=device, sequence=sequence, min_confidence=min_confidence,
                          formats=formats, calib=calib, max_depth=max_depth)

@@ -24,7 +24,7 @@ from optstereo.choices import CONF_FORMATS
 from optstereo.inference.confidence import confidence_of, write_confidence
 from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.outputs import write_disparity
-from optstereo.inference.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next
+from optstereo.inference.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next, natural_key
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.common.io import read_image
 
@@ -53,9 +53,10 @@ def more_options(fn):
     fn = click.option("--sequence-iters", type=click.IntRange(min=1), default=DEFAULT_SEQUENCE_ITERS,
                       help="--sequence: GRU iterations of every frame after the first.")(fn)
     return click.option("--sequence", is_flag=True,
-                        help="--dataset frames are a video in frame-id order: each frame's GRU starts from the "
-                             "previous frame's answer with --sequence-iters iterations (the first runs the plain "
-                             "path).")(fn)
+                        help="--dataset frames (folder, kitti_unlabelled, sceneflow) are a video in frame-name order "
+                             "(frame_2 before frame_10): each frame's GRU starts from the previous frame's answer with "
+                             "--sequence-iters iterations; the first frame, a frame of another folder or size, and a "
+                             "scene cut run the plain path.")(fn)
 
 
 def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], out_dir: Path, more: MoreOptions, *,
@@ -63,11 +64,12 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
                    device: torch.device | str = "cpu", amp: str = "none", scale: float | None = None,
                    refine: str | None = None, progress: bool = True) -> list[dict[str, Path]]:
     """Predict (name, left path, right path) frames in order and write each one's files; returns format -> path
-    per frame. With ``more.sequence`` each frame after the first starts from the one before
-    (optstereo.inference.sequence);
-    a frame from another folder than the one before (another drive of ``kitti_unlabelled``) starts a new sequence."""
+    per frame. With ``more.sequence`` the frames run in the natural order of their names
+    (``optstereo.inference.sequence.natural_key``: ``frame_2`` before ``frame_10``) and each frame after the first
+    starts from the one before (optstereo.inference.sequence); a frame from another folder than the one before
+    (another drive of ``kitti_unlabelled``), of another size, or after a scene cut starts a new sequence."""
     formats = tuple(formats)
-    frames = list(frames)
+    frames = sorted(frames, key=lambda frame: natural_key(frame[0])) if more.sequence else list(frames)
     state, folder = SequenceState(), None
     written = []
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):

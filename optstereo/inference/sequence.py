@@ -8,6 +8,10 @@ GRU iterations,
 then the same post-filter. Between consecutive frames of a video most disparities move by a fraction of a 1/8-grid
 cell, so a few iterations finish the walk that a zero start needs all of its iterations for.
 
+A frame starts a new sequence (the plain path again) when its size differs from the frame before, or at a scene cut:
+:func:`photometric_change` against the frame before above :data:`SCENE_CUT`. :func:`natural_key` orders frame names
+as a video's (``frame_2`` before ``frame_10``).
+
 :func:`temporal_change` is the stability measure of ``results/sequence.json``: the mean |d_t - d_{t-1}| on pixels
 whose previous value can be followed into the current frame (dense optical flow between the two left images,
 forward-backward consistent and photometrically consistent).
@@ -15,6 +19,8 @@ forward-backward consistent and photometrically consistent).
 
 from __future__ import annotations
 
+import logging
+import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
@@ -25,6 +31,8 @@ import torch
 from torch import nn
 
 from optstereo.inference.engine import apply_refine, model_inference_config, pass_at_scale, run
+
+logger = logging.getLogger(__name__)
 
 Image = npt.NDArray[np.uint8]
 Disparity = npt.NDArray[np.float32]
@@ -37,15 +45,49 @@ DEFAULT_SEQUENCE_ITERS = 4
 PHOTO_TOLERANCE = 0.04
 #: ... and those whose forward and backward flows disagree by more than this many pixels.
 FLOW_TOLERANCE = 1.0
+#: Width (px) of the grey thumbnails :func:`photometric_change` compares: at 16 px a cell spans ~80 px of a KITTI
+#: frame, so the motion between video frames mostly averages out while a new scene's layout and brightness do not.
+CUT_WIDTH = 16
+#: :func:`photometric_change` above which a frame is a scene cut (a new sequence). Measured on the KITTI frames of
+#: ../shared/data (2026-11-27): consecutive frames of a 10 fps video 0.02-0.05 (KITTI 2015 ``_10``/``_11``), every
+#: 4th frame of a raw drive and of odometry clips (0.4 s apart, as results/sequence.json runs its drive) 0.04-0.15,
+#: consecutive KITTI 2015 scenes (unrelated) 0.03-0.41 (median 0.16). 0.16 sits above every video pair measured, so a
+#: drive keeps its sequence; the unrelated scenes it misses are those that look alike at 16 px (road below, sky
+#: above), and the datasets of unrelated scenes are refused by optstereo-predict --sequence altogether. A false cut
+#: costs one plain pass; a missed one starts the GRU from another scene's disparity.
+SCENE_CUT = 0.16
 
 
 @dataclass
 class SequenceState:
-    """What a sequence carries from one frame to the next: the last disparity (input size and pixels) and the input
-    scale of the network's pass (the first frame's final one)."""
+    """What a sequence carries from one frame to the next: the last disparity (input size and pixels), the input
+    scale of the network's pass (the first frame's final one) and the last left image's thumbnail (scene cuts)."""
 
     disparity: Disparity | None = None
     scale: float | None = None
+    thumbnail: npt.NDArray[np.float32] | None = None
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a frame name with its digit runs compared as numbers: ``frame_2`` before ``frame_10``; names equal
+    as numbers (``07`` / ``7``) keep a fixed order."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)), name
+
+
+def thumbnail(image: Image) -> npt.NDArray[np.float32]:
+    """(h, CUT_WIDTH) float32 grey in [0, 1] of an (H, W, 3) uint8 image, by area averaging (h keeps the aspect)."""
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+    height = max(1, round(image.shape[0] * CUT_WIDTH / image.shape[1]))
+    return cv2.resize(grey, (CUT_WIDTH, height), interpolation=cv2.INTER_AREA)
+
+
+def photometric_change(previous: npt.NDArray[np.float32], current: npt.NDArray[np.float32]) -> float:
+    """Mean absolute difference of two :func:`thumbnail` s (0 = the same picture, 1 = black vs white); inf when
+    their shapes differ."""
+    if previous.shape != current.shape:
+        return float("inf")
+    return float(np.abs(previous - current).mean())
 
 
 def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState, *, iters: int | None = None,
@@ -56,15 +98,20 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
     Args:
         model: OptStereo-like model (``disp_init`` accepted by its forward).
         left, right: (H, W, 3) uint8 RGB of the frame.
-        state: the sequence so far (a fresh :class:`SequenceState` for the first frame, which runs the plain path).
+        state: the sequence so far (a fresh :class:`SequenceState` for the first frame, which runs the plain path, as
+            a frame of another size or a scene cut does: :data:`SCENE_CUT`).
         iters: GRU iterations of the first frame (None = the model's own).
         sequence_iters: GRU iterations of every later frame, started from the previous answer.
         scale, refine: as ``optstereo.inference.engine.infer``; later frames reuse the first frame's final scale.
     """
     if sequence_iters < 1:
         raise ValueError(f"sequence_iters must be >= 1, got {sequence_iters}")
-    prev = state.disparity
-    if prev is None or prev.shape != left.shape[:2] or state.scale is None:
+    prev, thumb = state.disparity, thumbnail(left)
+    change = 0.0 if state.thumbnail is None else photometric_change(state.thumbnail, thumb)
+    state.thumbnail = thumb
+    if prev is None or prev.shape != left.shape[:2] or state.scale is None or change > SCENE_CUT:
+        if prev is not None and prev.shape == left.shape[:2]:
+            logger.info("scene cut (photometric change %.3f > %.2f): a new sequence starts", change, SCENE_CUT)
         result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
         state.disparity, state.scale = result.disparity, result.input_scale
         return result.disparity
@@ -77,7 +124,7 @@ def infer_next(model: nn.Module, left: Image, right: Image, state: SequenceState
 
 def infer_sequence(model: nn.Module, frames: Iterable[tuple[Image, Image]], **kwargs) -> Iterator[Disparity]:
     """Disparities of an ordered iterable of (left, right) frames (:func:`infer_next`'s keyword arguments); a frame
-    of another size than the one before restarts the sequence from the plain path."""
+    of another size than the one before, or after a scene cut, restarts the sequence from the plain path."""
     state = SequenceState()
     for left, right in frames:
         yield infer_next(model, left, right, state, **kwargs)
