@@ -1,4 +1,4 @@
-"""The engineered CPU inference path (issue 52, optstereo.inference.fastpath): the plain path's outputs
+"""The engineered CPU inference path (issue 52, optstereo.inference.fastpath / .winograd): the plain path's outputs
 kept (a tiny random model, the shipped weights on a real KITTI crop), its parts against the plain ones, the cases
 that fall back to ``OptStereo.forward``, and the state dict left alone."""
 
@@ -9,12 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from conftest import TINY, TINY_HITNET, kitti_crop
 
 from optstereo.api import load_model
 from optstereo.inference import fastpath
 from optstereo.inference.engine import infer, network_pass
 from optstereo.inference.fastpath import EngineeredOptStereo, engineer, engineering
+from optstereo.inference.winograd import winograd_conv3x3, winograd_weight
 from optstereo.models import build_model
 from optstereo.models.correlation import build_pyramid, correlation_volume, lookup_pyramid
 
@@ -50,7 +52,7 @@ def assert_close_px(plain: np.ndarray | torch.Tensor, engineered: np.ndarray | t
 class TestEngineeredPass:
     @pytest.mark.parametrize("shape", [(1, 3, 64, 128), (1, 3, 40, 72), (2, 3, 32, 64)])
     def test_feature_tiny_model(self, shape: tuple[int, ...]) -> None:
-        """Random weights and images; odd 1/8 sizes (5 x 9); a batch of two."""
+        """Random weights and images; odd 1/8 sizes (5 x 9) cut the Winograd tiles; a batch takes direct convs."""
         torch.manual_seed(1)
         left, right = torch.rand(shape) * 255, torch.rand(shape) * 255
         assert_close_px(*both_paths(tiny_model(), left, right))
@@ -62,6 +64,12 @@ class TestEngineeredPass:
         assert_close_px(*both_paths(tiny_model(), left, right, iters=3, disp_init=start))
         with pytest.raises(ValueError, match="disp_init must be"):
             both_paths(tiny_model(), left, right, disp_init=start[..., :6])
+
+    def test_feature_without_winograd(self) -> None:
+        torch.manual_seed(3)
+        left, right = torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255
+        with engineering(True, winograd=False):
+            assert_close_px(*both_paths(tiny_model(), left, right))
 
     def test_feature_shipped_weights_on_kitti(self, shared_data: Path) -> None:
         """The shipped model, one pass on a real 128 x 512 KITTI crop: plain vs engineered."""
@@ -112,6 +120,17 @@ class TestFallbacks:
         convex = build_model("optstereo", **TINY, upsampler="convex")
         assert type(engineer(convex)) is EngineeredOptStereo  # the upsampler is called as it is
 
+    def test_winograd_weights_follow_the_parameters(self) -> None:
+        """A weight changed in place (as an optimiser step does) re-makes its cached transform."""
+        torch.manual_seed(5)
+        fast = engineer(tiny_model())
+        left, right = torch.rand(1, 3, 32, 64) * 255, torch.rand(1, 3, 32, 64) * 255
+        with torch.no_grad():
+            fast(left, right, test_mode=True)
+            fast.update_block.convq.weight.mul_(0.5)
+            fast.disp_head.conv1.weight.mul_(2.0)
+        assert_close_px(*both_paths(fast, left, right))
+
 
 class TestParts:
     def test_lookup_equals_plain(self) -> None:
@@ -125,3 +144,21 @@ class TestParts:
         disp = torch.rand(2, 1, 5, 37) * 60 - 15  # negative, in range and far beyond the row
         got = fastpath.lookup(volume, fastpath.lookup_taps(widths, 3, disp.device), disp).permute(0, 3, 1, 2)
         torch.testing.assert_close(got, lookup_pyramid(pyramid, disp, 3), rtol=1e-6, atol=1e-6)
+
+    @pytest.mark.parametrize(("c_in", "c_out", "h", "w"), [(5, 7, 1, 1), (3, 4, 5, 9), (16, 8, 12, 13), (8, 3, 8, 4)])
+    def test_winograd_equals_direct(self, c_in: int, c_out: int, h: int, w: int) -> None:
+        torch.manual_seed(7)
+        x = torch.randn(1, c_in, h, w).contiguous(memory_format=torch.channels_last)
+        weight, bias = torch.randn(c_out, c_in, 3, 3), torch.randn(c_out)
+        ref = F.conv2d(x.double(), weight.double(), bias.double(), padding=1)
+        got = winograd_conv3x3(x, winograd_weight(weight), bias)
+        assert got.shape == ref.shape
+        torch.testing.assert_close(got.double(), ref, rtol=0, atol=1e-4 * ref.abs().max().item())
+        torch.testing.assert_close(winograd_conv3x3(x, winograd_weight(weight), None).double(),
+                                   ref - bias.double().view(1, -1, 1, 1), rtol=0, atol=1e-4 * ref.abs().max().item())
+
+    def test_winograd_exception(self) -> None:
+        with pytest.raises(ValueError, match="3x3 kernel"):
+            winograd_weight(torch.zeros(4, 4, 5, 5))
+        with pytest.raises(ValueError, match="one image of 4 channels"):
+            winograd_conv3x3(torch.zeros(2, 4, 8, 8), winograd_weight(torch.zeros(4, 4, 3, 3)), None)

@@ -13,7 +13,9 @@ tracing). The path computes the same function with fewer passes over memory:
   gather of all levels and both taps with clamped indices (a clamped index lands on a zero column exactly where the
   plain lookup masks a tap outside the row) and no masks;
 - the GRU's static part stays one tensor, its adds and activations run in place, and the lookup's (B, H, W, C)
-  output enters the GRU as a channels-last view instead of a copy.
+  output enters the GRU as a channels-last view instead of a copy;
+- the GRU's three per-iteration 3x3 convolutions (z and r, q, the head's first) run as Winograd F(4x4, 3x3)
+  (``optstereo.inference.winograd``) on weights transformed once and cached (re-made when a weight changes).
 
 Outputs equal the plain path's to float32 rounding (oneDNN picks other kernels for channels-last convolutions):
 tests/test_fastpath.py holds them together on a tiny random model and on a real KITTI pair with the shipped weights.
@@ -24,12 +26,14 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from optstereo.inference.winograd import winograd_conv3x3, winograd_weight
 from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.extractor import FeatureEncoder
 from optstereo.models.layers import ResidualBlock
@@ -37,19 +41,28 @@ from optstereo.models.optstereo import OptStereo, normalize_image, resolve_iters
 from optstereo.models.update import ConvGRU, DispHead
 
 CHANNELS_LAST = torch.channels_last
-_switches = {"enabled": True}  # set by :func:`engineering` (A/B benches, tests)
+_switches = {"enabled": True, "winograd": True}  # set by :func:`engineering` (A/B benches, tests)
+Conv = Callable[[torch.Tensor], torch.Tensor]
 
 
 @contextlib.contextmanager
-def engineering(enabled: bool) -> Iterator[None]:
-    """Turn the engineered path on or off inside the block (plain ``OptStereo.forward`` when off), e.g. to time
-    both in one process."""
+def engineering(enabled: bool, *, winograd: bool = True) -> Iterator[None]:
+    """Turn the engineered path on or off inside the block (plain ``OptStereo.forward`` when off), and its Winograd
+    convolutions (direct ones when off), e.g. to time them in one process."""
     old = dict(_switches)
-    _switches.update(enabled=enabled)
+    _switches.update(enabled=enabled, winograd=winograd)
     try:
         yield
     finally:
         _switches.update(old)
+
+
+class LoopConvs(NamedTuple):
+    """The GRU loop's per-iteration 3x3 convolutions: W_zr, W_q (on [h, x] and [r * h, x]) and the head's first."""
+
+    zr: Conv
+    q: Conv
+    head: Conv
 
 
 def engineer(model: nn.Module) -> nn.Module:
@@ -88,8 +101,27 @@ class EngineeredOptStereo(OptStereo):
     def forward(self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False,
                 disp_init: torch.Tensor | None = None) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
         if test_mode and _fast_path_applies(left):
-            return engineered_pass(self, left, right, iters, disp_init)
+            return engineered_pass(self, left, right, iters, disp_init, self.loop_convs(left.shape[0]))
         return super().forward(left, right, iters=iters, test_mode=test_mode, disp_init=disp_init)
+
+    def loop_convs(self, batch: int) -> LoopConvs:
+        """Winograd versions of the loop's convolutions for one image (the modules themselves for a batch, or with
+        the switch off)."""
+        convs = (self.update_block.convzr, self.update_block.convq, self.disp_head.conv1)
+        if batch != 1 or not _switches["winograd"]:
+            return LoopConvs(*convs)
+        return LoopConvs(*(self._winograd(conv) for conv in convs))
+
+    def _winograd(self, conv: nn.Conv2d) -> Conv:
+        """``conv`` as a Winograd convolution; its transformed weight cached until the weight changes (an optimiser
+        step or ``load_state_dict`` bumps the tensor's version)."""
+        cache: dict[int, tuple[tuple[int, int], torch.Tensor]] = self.__dict__.setdefault("_winograd_cache", {})
+        key = (conv.weight.data_ptr(), conv.weight._version)
+        hit = cache.get(id(conv))
+        if hit is None or hit[0] != key:
+            hit = cache[id(conv)] = (key, winograd_weight(conv.weight))
+        u, bias = hit[1], conv.bias
+        return lambda x: winograd_conv3x3(x, u, bias)
 
 
 def _fast_path_applies(left: torch.Tensor) -> bool:
@@ -100,10 +132,12 @@ def _fast_path_applies(left: torch.Tensor) -> bool:
 
 
 def engineered_pass(model: OptStereo, left: torch.Tensor, right: torch.Tensor, iters: int | None = None,
-                    disp_init: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                    disp_init: torch.Tensor | None = None,
+                    convs: LoopConvs | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """``model(left, right, iters, test_mode=True, disp_init)`` computed as the module doc says: (D_s (B, 1, H/8,
-    W/8), D (B, 1, H, W))."""
-    gru = model.update_block
+    W/8), D (B, 1, H, W)). ``convs``: the loop's convolutions (None = the model's modules)."""
+    gru, head = model.update_block, model.disp_head
+    convs = convs or LoopConvs(gru.convzr, gru.convq, head.conv1)
     model._check_inputs(left, right)
     iters = resolve_iters(iters, model.iters)
     image_left = normalize_image(left)
@@ -125,8 +159,8 @@ def engineered_pass(model: OptStereo, left: torch.Tensor, right: torch.Tensor, i
     for _ in range(iters):
         sampled = lookup(volume, taps, disp)  # (B, H, W, L * (2d + 1))
         x = torch.cat([disp.permute(0, 2, 3, 1), sampled], dim=3).permute(0, 3, 1, 2)  # [D, M_l], channels-last
-        hidden = gru_step(gru, hidden, x, static)
-        disp = disp + model.disp_head(hidden)
+        hidden = gru_step(gru, convs, hidden, x, static)
+        disp = disp + head.conv2(head.relu(convs.head(hidden)))  # DispHead
     return disp, model._upsample(disp, hidden, image_left)
 
 
@@ -205,11 +239,12 @@ def lookup(volume: torch.Tensor, taps: tuple[torch.Tensor, ...], disp: torch.Ten
     return values[..., :n] * (1.0 - frac) + values[..., n:] * frac
 
 
-def gru_step(gru: ConvGRU, hidden: torch.Tensor, x: torch.Tensor, static: torch.Tensor) -> torch.Tensor:
+def gru_step(gru: ConvGRU, convs: LoopConvs, hidden: torch.Tensor, x: torch.Tensor,
+             static: torch.Tensor) -> torch.Tensor:
     """``ConvGRU.forward(hidden, x, precompute(F_l))`` with the static part as one (B, 3 * hidden) tensor, the adds
-    and activations in place (the same arithmetic)."""
+    and activations in place (the same arithmetic), the convolutions ``convs.zr`` and ``convs.q``."""
     n = gru.hidden_dim
-    zr = gru.convzr(torch.cat([hidden, x], dim=1)).add_(static[:, :2 * n]).sigmoid_()
+    zr = convs.zr(torch.cat([hidden, x], dim=1)).add_(static[:, :2 * n]).sigmoid_()
     z, r = zr.chunk(2, dim=1)
-    q = gru.convq(torch.cat([r * hidden, x], dim=1)).add_(static[:, 2 * n:]).tanh_()
+    q = convs.q(torch.cat([r * hidden, x], dim=1)).add_(static[:, 2 * n:]).tanh_()
     return (1 - z).mul_(hidden).add_(q.mul_(z))  # (1 - z) * h + z * q
