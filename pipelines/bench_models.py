@@ -2,10 +2,11 @@
 
 For every shipped name (``optstereo.pretrained.SHIPPED``) the end-to-end ``optstereo.inference.engine.infer`` of the
 model as ``optstereo.api.load_model`` gives it (the engineered CPU pass of ``optstereo.inference.fastpath``) with its
-own settings (resize, passes, post-filter; float32, 2 threads, model loaded once), and the same with the plain
+own settings (resize, passes, post-filter; float32, 2 threads, model loaded once), the same with direct GRU
+convolutions (``fastpath.engineering(True, winograd=False)``: issue 52's first step alone) and with the plain
 ``OptStereo.forward`` (``fastpath.engineering(False)``: the time before issue 52), timed on the same KITTI 2015 frames
 as OpenCV StereoSGBM (MODE_HH, 192 disparities, blockSize 5: the labeler bench's baseline; single-threaded in
-OpenCV), the three alternating frame by frame so that load on a shared machine hits them alike. The ratio is the
+OpenCV), all alternating frame by frame so that load on a shared machine hits them alike. The ratio is the
 median over frames of (model seconds / SGBM seconds on that frame); the default model's target is <= 2.0 (issue 52;
 issue 42's was 3.0), the fast model's <= 0.5. With CUDA present, a GPU row per model: ``infer`` in bf16 and
 float32, synchronised, median of 10 after 3 warm-up calls (issue 42's target for the default: <= 15 ms in bf16).
@@ -60,24 +61,33 @@ def plain_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> 
         return infer(model, left, right)
 
 
+def direct_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """``infer`` through the engineered pass with direct GRU convolutions (no Winograd): issue 52's first step."""
+    with engineering(True, winograd=False):
+        return infer(model, left, right)
+
+
 def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, np.ndarray]],
              repeats: int = REPEATS) -> list[dict[str, Any]]:
-    """Per model: median seconds per frame (the path users get, and the plain one), SGBM's on the same frames, and
-    the median per-frame ratios."""
+    """Per model: median seconds per frame (the path users get, the same without Winograd, the plain one), SGBM's on
+    the same frames, and the median per-frame ratios."""
     sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
     rows = []
     for name, model in models.items():
-        model_s, plain_s, sgbm_s = [], [], []
+        model_s, direct_s, plain_s, sgbm_s = [], [], [], []
         config = getattr(model, "inference_config", None)
         runs = 1 if config is not None and config.passes > 1 else repeats  # a multi-pass model: one timed run each
         for left, right in frames:
             sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), runs))
             model_s.append(_seconds(functools.partial(infer, model, left, right), runs))
+            direct_s.append(_seconds(functools.partial(direct_infer, model, left, right), runs))
             plain_s.append(_seconds(functools.partial(plain_infer, model, left, right), runs))
         ratio = statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))
         target = TARGETS.get(name)
         rows.append({"model": name, "s_per_frame": statistics.median(model_s), "sgbm_s": statistics.median(sgbm_s),
-                     "ratio": ratio, "plain_s_per_frame": statistics.median(plain_s),
+                     "ratio": ratio, "direct_s_per_frame": statistics.median(direct_s),
+                     "direct_ratio": statistics.median(d / s for d, s in zip(direct_s, sgbm_s, strict=True)),
+                     "plain_s_per_frame": statistics.median(plain_s),
                      "plain_ratio": statistics.median(p / s for p, s in zip(plain_s, sgbm_s, strict=True)),
                      "target": target,
                      "verdict": None if target is None else ("met" if ratio <= target else "not met")})
@@ -113,15 +123,17 @@ def run(shared: Path) -> dict[str, Any]:
     results = {"threads": THREADS, "repeats": REPEATS, "frames": [f"kitti15 {f}_10" for f in FRAMES], "cpu": rows,
                "gpu": gpu, "load_avg": os.getloadavg()[0]}
     lines = [f"Each shipped model with its own settings, end to end (`infer`: resize, passes, filter), float32, "
-             f"{THREADS} threads, as `load_model` gives it (the engineered CPU pass) and through the plain "
-             f"`OptStereo.forward`, beside OpenCV SGBM-HH (192 disparities) on the same {len(FRAMES)} KITTI 2015 "
+             f"{THREADS} threads, as `load_model` gives it (the engineered CPU pass), the same with direct GRU "
+             f"convolutions (no Winograd) and through the plain `OptStereo.forward`, beside OpenCV SGBM-HH "
+             f"(192 disparities) on the same {len(FRAMES)} KITTI 2015 "
              f"frames, alternating; median of {REPEATS} runs per frame (1 for a multi-pass model), ratio = median "
              "of the per-frame ratios.", "",
-             "| model | s / KITTI frame | plain s | OpenCV SGBM-HH s | x SGBM | plain x SGBM | target | |",
-             "|---|---:|---:|---:|---:|---:|---:|---|"]
+             "| model | s / KITTI frame | no-Winograd s | plain s | OpenCV SGBM-HH s | x SGBM | no-Winograd x SGBM "
+             "| plain x SGBM | target | |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        lines.append(f"| `{r['model']}` | {r['s_per_frame']:.2f} | {r['plain_s_per_frame']:.2f} | {r['sgbm_s']:.2f} "
-                     f"| {r['ratio']:.2f} | {r['plain_ratio']:.2f} | "
+        lines.append(f"| `{r['model']}` | {r['s_per_frame']:.2f} | {r['direct_s_per_frame']:.2f} | "
+                     f"{r['plain_s_per_frame']:.2f} | {r['sgbm_s']:.2f} | {r['ratio']:.2f} | {r['direct_ratio']:.2f} | "
+                     f"{r['plain_ratio']:.2f} | "
                      f"{'' if r['target'] is None else '<= ' + str(r['target'])} | {r['verdict'] or ''} |")
     if gpu:
         lines += ["", f"GPU ({gpu[0]['device']}), `infer` synchronised, median of 10:", "",
