@@ -107,20 +107,19 @@ class EngineeredOptStereo(OptStereo):
     def loop_convs(self, batch: int) -> LoopConvs:
         """Winograd versions of the loop's convolutions for one image (the modules themselves for a batch, or with
         the switch off)."""
-        convs = (self.update_block.convzr, self.update_block.convq, self.disp_head.conv1)
+        convs = LoopConvs(self.update_block.convzr, self.update_block.convq, self.disp_head.conv1)
         if batch != 1 or not _switches["winograd"]:
-            return LoopConvs(*convs)
-        return LoopConvs(*(self._winograd(conv) for conv in convs))
+            return convs
+        return LoopConvs(*(self._winograd(role, conv) for role, conv in zip(LoopConvs._fields, convs, strict=True)))
 
-    def _winograd(self, conv: nn.Conv2d) -> Conv:
-        """``conv`` as a Winograd convolution; its transformed weight cached until the weight changes (an optimiser
-        step or ``load_state_dict`` bumps the tensor's version)."""
-        cache: dict[int, tuple[tuple[int, int], torch.Tensor]] = self.__dict__.setdefault("_winograd_cache", {})
-        key = (conv.weight.data_ptr(), conv.weight._version)
-        hit = cache.get(id(conv))
-        if hit is None or hit[0] != key:
-            hit = cache[id(conv)] = (key, winograd_weight(conv.weight))
-        u, bias = hit[1], conv.bias
+    def _winograd(self, role: str, conv: nn.Conv2d) -> Conv:
+        """``conv`` as a Winograd convolution; its transformed weight cached until the weight changes (another
+        parameter, or the same one changed in place: an optimiser step or ``load_state_dict`` bumps its version)."""
+        cache: dict[str, tuple[torch.Tensor, int, torch.Tensor]] = self.__dict__.setdefault("_winograd_cache", {})
+        hit = cache.get(role)
+        if hit is None or hit[0] is not conv.weight or hit[1] != conv.weight._version:
+            hit = cache[role] = (conv.weight, conv.weight._version, winograd_weight(conv.weight))
+        u, bias = hit[2], conv.bias
         return lambda x: winograd_conv3x3(x, u, bias)
 
 
