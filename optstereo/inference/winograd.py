@@ -18,6 +18,8 @@ References:
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
@@ -32,6 +34,14 @@ A_T = torch.tensor([[1, 1, 1, 1, 1, 0], [0, 1, -1, 2, -2, 0], [0, 1, 1, 4, 4, 0]
                    dtype=torch.float64)
 # A^T's column 1 is all ones, so a constant added to M[1, 1] reaches each of the 16 outputs of a tile exactly once.
 BIAS_SLOT = 1 * SIDE + 1
+
+
+@functools.cache
+def _transforms(device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B^T, A^T) on ``device`` in ``dtype``, made once (not per call), as normal tensors even when first asked for
+    under inference mode (an inference tensor could not be saved for a later backward)."""
+    with torch.inference_mode(False):
+        return B_T.to(device=device, dtype=dtype), A_T.to(device=device, dtype=dtype)
 
 
 def winograd_weight(weight: torch.Tensor) -> torch.Tensor:
@@ -62,14 +72,13 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
     padded = F.pad(x.permute(0, 2, 3, 1), (0, 0, 1, tw * TILE + 1 - w, 1, th * TILE + 1 - h))[0]
     s = padded.stride()
     tiles = padded.as_strided((SIDE, SIDE, th, tw, c), (s[0], s[1], TILE * s[0], TILE * s[1], s[2]))
-    b_t = B_T.to(device=x.device, dtype=x.dtype)
+    b_t, a_t = _transforms(x.device, x.dtype)
     v = torch.mm(b_t, tiles.reshape(SIDE, -1)).view(SIDE, SIDE, -1)  # tile rows (reshape gathers the tiles)
     v = torch.matmul(b_t, v).view(SIDE * SIDE, th * tw, c)  # tile columns
     m = torch.bmm(v, u)  # (36, tiles, C_out)
     c_out = u.shape[-1]
     if bias is not None:
         m[BIAS_SLOT].add_(bias)
-    a_t = A_T.to(device=x.device, dtype=x.dtype)
     y = torch.mm(a_t, m.view(SIDE, -1)).view(TILE, SIDE, -1)
     y = torch.matmul(a_t, y).view(TILE, TILE, th, tw, c_out)
     out = y.permute(2, 0, 3, 1, 4).reshape(th * TILE, tw * TILE, c_out)[:h, :w]
