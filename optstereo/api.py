@@ -22,20 +22,22 @@ from optstereo.checkpoint import build_model_from_checkpoint
 from optstereo.distributed import resolve_device
 from optstereo.inference.confidence import infer_with_confidence
 from optstereo.inference.engine import infer
+from optstereo.inference.fastpath import engineer
 from optstereo.pretrained import resolve_checkpoint_spec
 
 Image = npt.NDArray[np.uint8]
 
 
 def load_model(checkpoint: str | Path = "pretrained", device: str | torch.device = "cpu") -> nn.Module:
-    """Build the model a checkpoint records and load its weights (eval mode, on ``device``).
+    """Build the model a checkpoint records and load its weights (eval mode, on ``device``), prepared for inference
+    (``optstereo.inference.fastpath.engineer``: the same parameters and state dict, a faster CPU pass).
 
     Args:
         checkpoint: ``"pretrained"`` (the shipped model), a .pt/.safetensors file or a training RUN_DIR.
         device: ``"cpu"``, ``"cuda"``, ``"auto"`` (cuda when available) or a torch.device.
     """
     dev = resolve_device(device) if isinstance(device, str) else device
-    return build_model_from_checkpoint(resolve_checkpoint_spec(checkpoint), dev)
+    return engineer(build_model_from_checkpoint(resolve_checkpoint_spec(checkpoint), dev))
 
 
 def _device_of(model: nn.Module) -> torch.device:

@@ -81,7 +81,8 @@ def test_demo_trains_in_bf16_only_where_the_cpu_has_it(tmp_path: Path, monkeypat
 
 
 def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypatch: pytest.MonkeyPatch) -> None:
-    """cpu_rows: the ratio is the median of per-frame (model / SGBM) times; a model of several passes is timed once."""
+    """cpu_rows: the ratio is the median of per-frame (model / SGBM) times, the engineered path without Winograd and
+    the plain one timed beside it; a model of several passes is timed once."""
     import itertools
 
     from optstereo.inference.config import InferenceConfig
@@ -95,9 +96,11 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
             self.inference_config = passes_config
 
     def fake_seconds(fn: object, repeats: int) -> float:
-        name = "sgbm" if getattr(fn, "func", None) is not bench_models_infer else "model"
+        func = getattr(fn, "func", None)
+        names = {bench_models_infer: "model", bench_models.direct_infer: "direct", bench_models.plain_infer: "plain"}
+        name = names.get(func, "sgbm")
         calls.append(f"{name}:{repeats}")
-        return 2.0 if name == "sgbm" else 3.0 + next(clock)
+        return 3.0 + next(clock) if name == "model" else {"sgbm": 2.0, "direct": 8.0, "plain": 10.0}[name]
 
     def bench_models_infer(*args: object) -> None:  # stands for optstereo.inference.engine.infer
         raise AssertionError("timed through fake_seconds only")
@@ -109,8 +112,10 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
     rows = bench_models.cpu_rows(models, frames, repeats=3)
     # model times 3, 4, 5 s against SGBM's 2 s: ratios 1.5, 2.0, 2.5 -> median 2.0; then 6, 7, 8 -> 3.5
     assert [r["ratio"] for r in rows] == [2.0, 3.5]
+    assert [(r["direct_ratio"], r["plain_ratio"]) for r in rows] == [(4.0, 5.0)] * 2  # timed beside it
     assert rows[0]["verdict"] == "met" and rows[1]["target"] is None
-    assert calls[:2] == ["sgbm:3", "model:3"] and calls[-2:] == ["sgbm:1", "model:1"]
+    assert calls[:4] == ["sgbm:3", "model:3", "direct:3", "plain:3"]
+    assert calls[-4:] == ["sgbm:1", "model:1", "direct:1", "plain:1"]
 
 
 def test_bench_models_match_row(monkeypatch: pytest.MonkeyPatch) -> None:

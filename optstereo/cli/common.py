@@ -15,6 +15,7 @@ import yaml
 from optstereo.checkpoint import CheckpointError, build_model_from_checkpoint
 from optstereo.choices import AMP_MODES, DEVICES, REFINERS
 from optstereo.distributed import resolve_device
+from optstereo.inference.fastpath import engineer
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training.loop import NonFiniteLossError
 from pvm_labeler.common.datasets import DATASETS
@@ -146,6 +147,7 @@ def _resolve_checkpoint(spec: Path | str) -> Path:
 
 
 def load_model(checkpoint: Path, device: str) -> tuple[Any, Any]:
-    """The model of ``checkpoint`` (a file, RUN_DIR or a shipped name) on ``device`` (auto/cpu/cuda), and the device."""
+    """The model of ``checkpoint`` (a file, RUN_DIR or a shipped name) on ``device`` (auto/cpu/cuda), prepared for
+    inference (``optstereo.inference.fastpath.engineer``), and the device."""
     dev = resolve_device(device)
-    return build_model_from_checkpoint(_resolve_checkpoint(checkpoint), dev), dev
+    return engineer(build_model_from_checkpoint(_resolve_checkpoint(checkpoint), dev)), dev

@@ -1,0 +1,249 @@
+"""CPU inference engineering of OptStereo's test-mode pass: the same weights and function, less CPU time (issue 52).
+
+``engineer(model)`` (called by ``optstereo.api.load_model`` and the CLIs' loader) returns an
+:class:`EngineeredOptStereo` that shares the model's modules and parameters (the same state dict, nothing saved
+changes). Its forward takes the path below for a float32 test-mode pass on the CPU without gradients, and
+``OptStereo.forward`` for anything else (training, autograd, autocast, CUDA, ONNX/TorchScript export, torch.compile
+tracing). The path computes the same function with fewer passes over memory:
+
+- the features stay channels-last from the encoder to the GRU (the encoder went back to NCHW; the correlation's
+  (B, H, W, C) view and every GRU convolution then copied layouts), and each residual block adds its shortcut in
+  place;
+- the cost-volume pyramid sits in one buffer, every level with a zero column on both sides, so the lookup is one
+  gather of all levels and both taps with clamped indices (a clamped index lands on a zero column exactly where the
+  plain lookup masks a tap outside the row) and no masks;
+- the GRU's static part stays one tensor, its adds and activations run in place, and the lookup's (B, H, W, C)
+  output enters the GRU as a channels-last view instead of a copy;
+- the GRU's three per-iteration 3x3 convolutions (z and r, q, the head's first) run as Winograd F(4x4, 3x3)
+  (``optstereo.inference.winograd``) on weights transformed once and cached (re-made when a weight changes).
+
+Outputs equal the plain path's to float32 rounding (oneDNN picks other kernels for channels-last convolutions):
+tests/test_fastpath.py holds them together on a tiny random model and on a real KITTI pair with the shipped weights.
+Measured in ``make bench`` (section ``models``); the steps tried and their ratios are in docs/optstereo.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from optstereo.inference.winograd import winograd_conv3x3, winograd_weight
+from optstereo.models.correlation import CorrBlock1D
+from optstereo.models.extractor import FeatureEncoder
+from optstereo.models.layers import ResidualBlock
+from optstereo.models.optstereo import OptStereo, normalize_image, resolve_iters
+from optstereo.models.update import ConvGRU, DispHead
+
+CHANNELS_LAST = torch.channels_last
+_switches = {"enabled": True, "winograd": True}  # set by :func:`engineering` (A/B benches, tests)
+Conv = Callable[[torch.Tensor], torch.Tensor]
+
+
+@contextlib.contextmanager
+def engineering(enabled: bool, *, winograd: bool = True) -> Iterator[None]:
+    """Turn the engineered path on or off inside the block (plain ``OptStereo.forward`` when off), and its Winograd
+    convolutions (direct ones when off), e.g. to time them in one process."""
+    old = dict(_switches)
+    _switches.update(enabled=enabled, winograd=winograd)
+    try:
+        yield
+    finally:
+        _switches.update(old)
+
+
+class LoopConvs(NamedTuple):
+    """The GRU loop's per-iteration 3x3 convolutions: W_zr, W_q (on [h, x] and [r * h, x]) and the head's first."""
+
+    zr: Conv
+    q: Conv
+    head: Conv
+
+
+def engineer(model: nn.Module) -> nn.Module:
+    """``model`` prepared for CPU inference: an :class:`EngineeredOptStereo` sharing its modules and parameters when
+    it is an OptStereo with the standard parts (encoder, 1-D correlation, GRU with a static part, disparity head),
+    else ``model`` itself."""
+    if type(model) is not OptStereo or not supported(model):
+        return model
+    return EngineeredOptStereo.from_model(model)
+
+
+def supported(model: OptStereo) -> bool:
+    """Whether the engineered path knows every part of ``model`` (the upsampler is called as it is)."""
+    encoder = model.feature_encoder
+    return (type(encoder) is FeatureEncoder and type(model.corr_block) is CorrBlock1D
+            and type(model.update_block) is ConvGRU and model.update_block.static is not None
+            and type(model.disp_head) is DispHead
+            and all(type(block) is ResidualBlock for layer in (encoder.layer1, encoder.layer2, encoder.layer3)
+                    for block in layer))
+
+
+class EngineeredOptStereo(OptStereo):
+    """OptStereo whose CPU float32 test-mode pass without gradients runs :func:`engineered_pass` (module doc)."""
+
+    @classmethod
+    def from_model(cls, model: OptStereo) -> EngineeredOptStereo:
+        """A view of ``model``: the same module objects (so the same parameters and state dict), its mode and its
+        ``inference_config``."""
+        new = cls(feature_encoder=model.feature_encoder, corr_block=model.corr_block, hidden_init=model.hidden_init,
+                  update_block=model.update_block, disp_head=model.disp_head, upsampler=model.upsampler,
+                  iters=model.iters, config=model.config, image_chunk=model.image_chunk)
+        if hasattr(model, "inference_config"):
+            new.inference_config = model.inference_config
+        return new.train(model.training)
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False,
+                disp_init: torch.Tensor | None = None) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
+        if test_mode and _fast_path_applies(left):
+            return engineered_pass(self, left, right, iters, disp_init, self.loop_convs(left.shape[0]))
+        return super().forward(left, right, iters=iters, test_mode=test_mode, disp_init=disp_init)
+
+    def loop_convs(self, batch: int) -> LoopConvs:
+        """Winograd versions of the loop's convolutions for one image (the modules themselves for a batch, or with
+        the switch off)."""
+        convs = LoopConvs(self.update_block.convzr, self.update_block.convq, self.disp_head.conv1)
+        if batch != 1 or not _switches["winograd"]:
+            return convs
+        return LoopConvs(*(self._winograd(role, conv) for role, conv in zip(LoopConvs._fields, convs, strict=True)))
+
+    def _winograd(self, role: str, conv: nn.Conv2d) -> Conv:
+        """``conv`` as a Winograd convolution; its transformed weight cached until the weight changes (another
+        parameter, or the same one changed in place: an optimiser step or ``load_state_dict`` bumps its version)."""
+        cache: dict[str, tuple[torch.Tensor, int, torch.Tensor]] = self.__dict__.setdefault("_winograd_cache", {})
+        hit = cache.get(role)
+        if hit is None or hit[0] is not conv.weight or hit[1] != conv.weight._version:
+            hit = cache[role] = (conv.weight, conv.weight._version, winograd_weight(conv.weight))
+        u, bias = hit[2], conv.bias
+        return lambda x: winograd_conv3x3(x, u, bias)
+
+
+def _fast_path_applies(left: torch.Tensor) -> bool:
+    """Float32 CPU inference in eager mode: no autograd, no autocast, no export or tracing."""
+    return (_switches["enabled"] and left.device.type == "cpu" and left.dtype == torch.float32
+            and not torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu") and not torch.jit.is_tracing()
+            and not torch.onnx.is_in_onnx_export() and not torch.compiler.is_compiling())
+
+
+def engineered_pass(model: OptStereo, left: torch.Tensor, right: torch.Tensor, iters: int | None = None,
+                    disp_init: torch.Tensor | None = None,
+                    convs: LoopConvs | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``model(left, right, iters, test_mode=True, disp_init)`` computed as the module doc says: (D_s (B, 1, H/8,
+    W/8), D (B, 1, H, W)). ``convs``: the loop's convolutions (None = the model's modules)."""
+    gru, head = model.update_block, model.disp_head
+    convs = convs or LoopConvs(gru.convzr, gru.convq, head.conv1)
+    model._check_inputs(left, right)
+    iters = resolve_iters(iters, model.iters)
+    image_left = normalize_image(left)
+    images = torch.cat([image_left, normalize_image(right)], dim=0)
+    chunk = model._chunk_size(images) if model._per_image_encoder else 0
+    feats = model._in_chunks(lambda x: encode(model.feature_encoder, x), chunk, images)
+    feat_left, feat_right = feats.chunk(2, dim=0)
+    corr = model.corr_block
+    volume, level_widths = padded_pyramid(feat_left, feat_right, corr.num_levels, corr.scale)
+    taps = lookup_taps(level_widths, corr.radius, left.device)
+    hidden = model.hidden_init(feat_left)
+    static = gru.static(feat_left)  # (B, 3 * hidden) = [z | r | q], channels-last
+    b, _, h8, w8 = feat_left.shape
+    disp = torch.zeros(b, 1, h8, w8, device=left.device, dtype=torch.float32)
+    if disp_init is not None:
+        if tuple(disp_init.shape) != (b, 1, h8, w8):
+            raise ValueError(f"disp_init must be (B, 1, H/8, W/8) = {(b, 1, h8, w8)}, got {tuple(disp_init.shape)}")
+        disp = disp_init.float().to(left.device)
+    for _ in range(iters):
+        sampled = lookup(volume, taps, disp)  # (B, H, W, L * (2d + 1))
+        x = torch.cat([disp.permute(0, 2, 3, 1), sampled], dim=3).permute(0, 3, 1, 2)  # [D, M_l], channels-last
+        hidden = gru_step(gru, convs, hidden, x, static)
+        disp = disp + head.conv2(head.relu(convs.head(hidden)))  # DispHead
+    return disp, model._upsample(disp, hidden, image_left)
+
+
+def encode(encoder: FeatureEncoder, x: torch.Tensor) -> torch.Tensor:
+    """``FeatureEncoder`` on (B, 3, H, W) -> (B, C, H/8, W/8), channels-last throughout, shortcuts added in place."""
+    x = encoder.stem(x.contiguous(memory_format=CHANNELS_LAST))
+    for layer in (encoder.layer1, encoder.layer2, encoder.layer3):
+        for block in layer:
+            y = block.relu(block.norm1(block.conv1(x)))
+            y = block.relu(block.norm2(block.conv2(y)))
+            x = y.add_(block.shortcut(x)).relu_()  # relu(shortcut(x) + y): the same sum, no new tensor
+    return encoder.proj(x)
+
+
+def padded_pyramid(feat_left: torch.Tensor, feat_right: torch.Tensor, num_levels: int,
+                   scale: bool) -> tuple[torch.Tensor, list[int]]:
+    """The correlation pyramid of ``optstereo.models.correlation`` in one (B, H, W, sum_k (W_k + 2)) float32 buffer:
+    level k's W_k entries between two zero columns, levels side by side. Returns the buffer and [W_0, ..., W_{L-1}].
+    """
+    b, c, h, w = feat_left.shape
+    fl = feat_left.float().permute(0, 2, 3, 1)  # (B, H, W, C): a view of channels-last features
+    fr = feat_right.float().permute(0, 2, 1, 3)  # (B, H, C, W)
+    level = torch.matmul(fl, fr)
+    if scale:
+        level.div_(math.sqrt(c))
+    widths = [w]
+    for _ in range(num_levels - 1):
+        widths.append(widths[-1] // 2)
+    volume = level.new_zeros(b, h, w, sum(wk + 2 for wk in widths))
+    start = 1
+    for k, wk in enumerate(widths):
+        if k:  # M_k = avg_pool(M_{k-1}) along the last dimension, as build_pyramid
+            level = F.avg_pool1d(level.reshape(b * h * w, 1, level.shape[-1]), kernel_size=2, stride=2)
+            level = level.reshape(b, h, w, wk)
+        volume[..., start:start + wk] = level
+        start += wk + 2
+    return volume, widths
+
+
+def lookup_taps(widths: list[int], radius: int, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """Per output channel k * (2d + 1) + (dj + d) of the lookup: (dj, 1 / 2^k, W_k, offset of level k's first entry
+    in the padded buffer), each (L * (2d + 1),) float32."""
+    n = 2 * radius + 1
+    starts, start = [], 1
+    for wk in widths:
+        starts.append(start)
+        start += wk + 2
+
+    def per_level(values: list[float]) -> torch.Tensor:
+        return torch.tensor(values, dtype=torch.float32, device=device).repeat_interleave(n)
+
+    offsets = torch.arange(-radius, radius + 1, dtype=torch.float32, device=device).repeat(len(widths))
+    return (offsets, per_level([0.5 ** k for k in range(len(widths))]), per_level([float(wk) for wk in widths]),
+            per_level([float(s) for s in starts]))
+
+
+def lookup(volume: torch.Tensor, taps: tuple[torch.Tensor, ...], disp: torch.Tensor) -> torch.Tensor:
+    """``optstereo.models.correlation.lookup_pyramid`` on the padded buffer: (B, 1, H, W) disparity -> (B, H, W,
+    L * (2d + 1)) float32 (the same values; the caller's permute gives the (B, C, H, W) channels-last view).
+
+    Positions j'/2^k + dj are the plain lookup's (times an exact power of two); a tap index clamped to [-1, W_k]
+    reads one of the level's zero columns exactly when the plain lookup masks it to zero.
+    """
+    offsets, inv_scale, width, start = taps
+    w = disp.shape[-1]
+    cols = torch.arange(w, device=disp.device, dtype=torch.float32).view(1, 1, w)
+    target = (cols - disp[:, 0].float()).unsqueeze(-1)  # (B, H, W, 1): j' = j - D
+    pos = target * inv_scale + offsets  # (B, H, W, L * (2d + 1))
+    x0 = torch.floor(pos)
+    frac = pos - x0
+    lowest = torch.full_like(width, -1.0)
+    index = torch.cat([torch.clamp(x0, lowest, width).add_(start), torch.clamp(x0 + 1, lowest, width).add_(start)],
+                      dim=3).long()
+    values = torch.gather(volume, 3, index)
+    n = pos.shape[-1]
+    return values[..., :n] * (1.0 - frac) + values[..., n:] * frac
+
+
+def gru_step(gru: ConvGRU, convs: LoopConvs, hidden: torch.Tensor, x: torch.Tensor,
+             static: torch.Tensor) -> torch.Tensor:
+    """``ConvGRU.forward(hidden, x, precompute(F_l))`` with the static part as one (B, 3 * hidden) tensor, the adds
+    and activations in place (the same arithmetic), the convolutions ``convs.zr`` and ``convs.q``."""
+    n = gru.hidden_dim
+    zr = convs.zr(torch.cat([hidden, x], dim=1)).add_(static[:, :2 * n]).sigmoid_()
+    z, r = zr.chunk(2, dim=1)
+    q = convs.q(torch.cat([r * hidden, x], dim=1)).add_(static[:, 2 * n:]).tanh_()
+    return (1 - z).mul_(hidden).add_(q.mul_(z))  # (1 - z) * h + z * q
