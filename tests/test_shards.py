@@ -125,7 +125,8 @@ class TestAtomic:
         path = tmp_path / "shard-00000.h5"
         with pytest.raises(RuntimeError), ShardWriter(path, {"k": 2}) as writer:
             writer.add(make_record(rng, "a", (8, 8)))
-            assert writer.tmp_path.exists() and not path.exists()
+            # the shard is built in memory: nothing is on disk before close() (issue 51's full-disk fix)
+            assert not writer.tmp_path.exists() and not path.exists()
             raise RuntimeError("worker died")
         assert list(tmp_path.iterdir()) == []
 
