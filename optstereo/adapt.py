@@ -9,7 +9,7 @@ Steps, each resumable from ``OUT``:
    photometric and smoothness losses.
 3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.training.loop.main``), ``steps`` steps.
 4. The decision (:func:`decide`), GT-free: the start and the adapted weights on the held-back frames, each frame
-   scored as the validation set scores its pairs (``optstereo.validation``): bad-3 against its PVM labels on PVM's
+   scored as the validation set scores its pairs (``optstereo.validation``): EPE against its PVM labels on PVM's
    pixels, and the photometric error in PVM's holes. The adapted weights are kept only when one score is better by
    more than its noise (``optstereo.validation.paired_difference``: 2 standard errors of the per-frame changes) and
    neither is worse by more than it; otherwise the start is kept. With fewer than ``MIN_HELD`` frames to hold back
@@ -56,8 +56,9 @@ SHARD_COMPRESSION = "lzf"
 DEFAULT_LR = 1e-5
 #: Held-back frames needed for a decision: the noise of a mean change is measured from the frames' own spread.
 MIN_HELD = 3
-#: The two GT-free scores of a held-back frame (``optstereo.validation.pooled``'s keys).
-SCORES = ("pvm_bad3", "photometric")
+#: The two GT-free scores of a held-back frame (``optstereo.validation.pooled``'s keys): EPE against its PVM labels
+#: (of the PVM scores, the one that ranked models closest to GT, RESULTS.md) and the photometric error in PVM's holes.
+SCORES = ("pvm_epe", "photometric")
 #: Standard errors a change must exceed to count (two-sided ~95 %).
 Z = 2.0
 

@@ -34,20 +34,22 @@ def test_split_frames_holds_back_whole_frames() -> None:
     assert split_frames(ids[:3], 0.3, 0) == (ids[:3], [])  # too small: nothing held back, no decision
 
 
-def _scores(bad: list[int], photo: list[float]) -> list[PairScore]:
-    return [PairScore(str(i), pvm_n=1000, pvm_bad=b, photo_sum=p * 100, photo_n=100)
-            for i, (b, p) in enumerate(zip(bad, photo, strict=True))]
+def _scores(err: list[int], photo: list[float]) -> list[PairScore]:
+    """Frames whose PVM EPE is err / 1000 px over 1000 labelled pixels (err = summed error in px)."""
+    return [PairScore(str(i), pvm_n=1000, pvm_err=float(e), photo_sum=p * 100, photo_n=100)
+            for i, (e, p) in enumerate(zip(err, photo, strict=True))]
 
 
 def test_decide_by_hand() -> None:
-    before = _scores([50, 60, 40, 55], [0.20, 0.30, 0.25, 0.22])
-    better = decide(before, _scores([40, 49, 31, 44], [0.20, 0.30, 0.25, 0.22]))  # -1.0/-1.1/-0.9/-1.1 points
-    assert better.adapted and "pvm_bad3 better beyond noise" in better.reason
-    mean, margin = better.changes["pvm_bad3"]
-    assert mean == pytest.approx(-1.025) and margin == pytest.approx(2 * np.std([-1, -1.1, -0.9, -1.1], ddof=1) / 2)
-    noisy = decide(before, _scores([40, 70, 30, 60], [0.20, 0.30, 0.25, 0.22]))  # -1, +1, -1, +0.5: inside noise
+    before = _scores([500, 600, 400, 550], [0.20, 0.30, 0.25, 0.22])
+    better = decide(before, _scores([400, 490, 310, 440], [0.20, 0.30, 0.25, 0.22]))  # EPE -0.1/-0.11/-0.09/-0.11
+    assert better.adapted and "pvm_epe better beyond noise" in better.reason
+    mean, margin = better.changes["pvm_epe"]
+    assert mean == pytest.approx(-0.1025)
+    assert margin == pytest.approx(2 * np.std([-0.1, -0.11, -0.09, -0.11], ddof=1) / 2)
+    noisy = decide(before, _scores([400, 700, 300, 600], [0.20, 0.30, 0.25, 0.22]))  # -0.1, +0.1, -0.1, +0.05
     assert not noisy.adapted and "no held-back score better beyond its noise" in noisy.reason
-    mixed = decide(before, _scores([40, 49, 31, 44], [0.30, 0.40, 0.36, 0.31]))  # labels better, photometric worse
+    mixed = decide(before, _scores([400, 490, 310, 440], [0.30, 0.40, 0.36, 0.31]))  # labels better, photo worse
     assert not mixed.adapted and "worse beyond noise in photometric" in mixed.reason
     few = decide(before[:2], _scores([0, 0], [0.0, 0.0]))
     assert not few.adapted and few.reason.startswith("no decision can be made: 2 held-back frames")

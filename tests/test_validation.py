@@ -159,7 +159,7 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
 
 def test_training_hook_logs_scores_and_keeps_the_best(tmp_path: Path) -> None:
     """--val-set: every checkpoint scores the model on the validation set (metrics.jsonl) and best.safetensors holds
-    the weights of the lowest PVM bad-3 so far (best.json names its step); a bad folder fails before training."""
+    the weights of the lowest PVM EPE so far (best.json names its step); a bad folder fails before training."""
     from conftest import tiny_config
 
     from optstereo.training.loop import main
@@ -169,14 +169,14 @@ def test_training_hook_logs_scores_and_keeps_the_best(tmp_path: Path) -> None:
     cfg = tiny_config(labels, tmp_path / "run", steps=6, ckpt_every=2, lr=1e-3, val_set=valset.root)
     main(cfg, progress=False)
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    scored = {r["step"]: r["gtfree_pvm_bad3"] for r in rows if "gtfree_pvm_bad3" in r}
-    assert sorted(scored) == [2, 4, 6]
+    scored = {r["step"]: r["gtfree_pvm_epe"] for r in rows if "gtfree_pvm_epe" in r}
+    assert sorted(scored) == [2, 4, 6] and all("gtfree_pvm_bad3" in r for r in rows if "gtfree_pvm_epe" in r)
     best = json.loads((tmp_path / "run" / "best.json").read_text())
-    assert best["pvm_bad3"] == min(scored.values()) and scored[best["step"]] == best["pvm_bad3"]
+    assert best["pvm_epe"] == min(scored.values()) and scored[best["step"]] == best["pvm_epe"]
     from optstereo.api import load_model
 
     again = validation.score(load_model(tmp_path / "run" / "best.safetensors", "cpu"), valset)
-    assert again.summary["pvm_bad3"] == pytest.approx(best["pvm_bad3"])
+    assert again.summary["pvm_epe"] == pytest.approx(best["pvm_epe"])
     with pytest.raises(ValueError, match="is not a validation set"):
         main(tiny_config(labels, tmp_path / "run2", val_set=tmp_path), progress=False)
     assert not (tmp_path / "run2" / "last.pt").exists()
