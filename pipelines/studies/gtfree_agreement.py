@@ -8,7 +8,8 @@ Middlebury pooled); the Spearman rank correlation between each GT-free score and
 
 Models: shipped versions from git (v1, v4, v7, v9, v12: each file with the InferenceConfig it shipped with), version
 14 as shipped (the validation set's teacher: its teacher score is left out) and in one pass, version 15 (the default)
-and candidate F2 (version 15's weights at input scale 0.5). Resumable: a model's scores are kept in OUT/NAME.json.
+and candidate F2 (version 15's weights at input scale 0.5). Resumable: each model's scores are kept in OUT/NAME.gt.json
+and OUT/NAME.val.json (``--part gt`` scores the GT frames alone, before the validation set exists).
 """
 
 from __future__ import annotations
@@ -39,13 +40,13 @@ MODELS: dict[str, tuple[str, dict[str, Any] | None]] = {
     "v7": ("git:3668ac0", None),
     "v9": ("git:8c58d41", None),
     "v12": ("git:05f74be", None),
-    "v14 (pretrained-accurate)": ("pretrained-accurate", None),
-    "v14 one pass": ("pretrained-accurate", {"one_pass": True}),
     "v15 (pretrained)": ("pretrained", None),
+    "v14 one pass": ("pretrained-accurate", {"one_pass": True}),
     "F2: v15 at scale 0.5": ("pretrained", {"scale": 0.5}),
+    "v14 (pretrained-accurate)": ("pretrained-accurate", None),  # last: the slowest (3 passes, filter)
 }
 GT_KEYS = ("kitti15", "kitti12", "middlebury")
-VAL_KEYS = ("pvm_bad3", "teacher_bad3", "photometric")
+VAL_KEYS = ("pvm_bad3", "pvm_epe", "teacher_bad3", "teacher_epe", "photometric")
 
 
 def checkpoint_file(spec: str, cache: Path) -> str:
@@ -107,13 +108,13 @@ def agreement(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def markdown(rows: dict[str, dict[str, Any]], agree: dict[str, dict[str, Any]]) -> str:
     """The table of scores and the rank correlations."""
-    lines = ["| model | val PVM bad-3 | val teacher bad-3 | val photometric | KITTI 2015 | KITTI 2012 | Middlebury "
-             "| s |", "|---|---|---|---|---|---|---|---|"]
-    for name, r in sorted(rows.items(), key=lambda kv: kv[1]["val"]["pvm_bad3"]):
+    lines = ["| model | PVM bad-3 / EPE | teacher bad-3 / EPE | photometric | KITTI 2015 | KITTI 2012 | Middlebury |",
+             "|---|---|---|---|---|---|---|"]
+    for name, r in sorted(rows.items(), key=lambda kv: kv[1]["gt"]["kitti15"]):
         v, g = r["val"], r["gt"]
-        teacher = "(teacher)" if v["own_teacher"] else f"{v['teacher_bad3']:.2f}"
-        lines.append(f"| {name} | {v['pvm_bad3']:.2f} | {teacher} | {v['photometric']:.4f} | {g['kitti15']:.2f} | "
-                     f"{g['kitti12']:.2f} | {g['middlebury']:.2f} | {r['seconds']:.0f} |")
+        teacher = "(its own maps)" if v["own_teacher"] else f"{v['teacher_bad3']:.2f} / {v['teacher_epe']:.3f}"
+        lines.append(f"| {name} | {v['pvm_bad3']:.2f} / {v['pvm_epe']:.3f} | {teacher} | {v['photometric']:.4f} | "
+                     f"{g['kitti15']:.2f} | {g['kitti12']:.2f} | {g['middlebury']:.2f} |")
     lines += ["", "| Spearman rho | KITTI 2015 | KITTI 2012 | Middlebury |", "|---|---|---|---|"]
     for vkey, by_gt in agree.items():
         cells = " | ".join(f"{by_gt[g]['rho']:+.2f} ({by_gt[g]['models']})" for g in GT_KEYS)
@@ -123,29 +124,37 @@ def markdown(rows: dict[str, dict[str, Any]], agree: dict[str, dict[str, Any]]) 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--valset", type=Path, required=True)
+    parser.add_argument("--valset", type=Path, default=None)
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "gtfree")
-    parser.add_argument("--only", nargs="*", default=None, help="model names to (re)score")
+    parser.add_argument("--part", choices=("gt", "val", "all"), default="all",
+                        help="score only the GT frames or only the validation set (each kept apart; resumable)")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    valset = validation.open_valset(args.valset)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = {}
     for name, (spec, changes) in MODELS.items():
-        path = args.out / (name.replace(" ", "_").replace(":", "").replace("(", "").replace(")", "") + ".json")
-        if path.exists() and (args.only is None or name not in args.only):
-            rows[name] = json.loads(path.read_text())
-            continue
-        if args.only is not None and name not in args.only:
-            continue
-        t0 = time.perf_counter()
-        model = build(spec, changes, args.out / "weights")
-        val = validation.score(model, valset, progress=sys.stderr.isatty(), what=name).summary
-        gt = gt_scores(model, args.shared)
-        rows[name] = {"spec": spec, "changes": changes, "val": val, "gt": gt, "seconds": time.perf_counter() - t0}
-        atomic_write_text(path, json.dumps(rows[name], indent=2) + "\n")
-        print(f"{name}: {validation.summary_line(val)}; GT {gt}", flush=True)
+        stem = name.replace(" ", "_").replace(":", "").replace("(", "").replace(")", "")
+        row = {"spec": spec, "changes": changes}
+        for part in ("gt", "val"):
+            path = args.out / f"{stem}.{part}.json"
+            if not path.exists() and args.part in (part, "all"):
+                t0 = time.perf_counter()
+                model = build(spec, changes, REPO / "out" / "gtfree_weights")  # never committed
+                if part == "val":
+                    scores = validation.score(model, validation.open_valset(args.valset),
+                                              progress=sys.stderr.isatty(), what=name).summary
+                else:
+                    scores = gt_scores(model, args.shared)
+                atomic_write_text(path, json.dumps({"scores": scores, "seconds": time.perf_counter() - t0}) + "\n")
+                print(f"{name} {part}: {scores}", flush=True)
+            if path.exists():
+                doc = json.loads(path.read_text())
+                row[part], row[f"{part}_seconds"] = doc["scores"], doc["seconds"]
+        if "gt" in row and "val" in row:
+            rows[name] = {**row, "seconds": row["gt_seconds"] + row["val_seconds"]}
+    if not rows:
+        return
     agree = agreement(rows)
     atomic_write_text(args.out / "agreement.json", json.dumps({"models": rows, "spearman": agree}, indent=2) + "\n")
     atomic_write_text(args.out / "agreement.md", markdown(rows, agree))
