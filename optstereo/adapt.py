@@ -40,10 +40,10 @@ from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig
 from optstereo.training.loop import main
-from optstereo.validation import PairScore, paired_difference, pooled, pvm_label, score_pair
+from optstereo.validation import PairScore, paired_difference, pooled, pvm_label, score_pair, shard_samples
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.metrics import MetricAccumulator
-from pvm_labeler.shards import ShardRecord, open_shard, read_index, read_sample, write_shard_dir
+from pvm_labeler.shards import ShardRecord, read_index, write_shard_dir
 
 logger = logging.getLogger(__name__)
 
@@ -109,21 +109,16 @@ def split_frames(ids: list[str], fraction: float, seed: int) -> tuple[list[str],
         return list(ids), []
     order = np.random.default_rng(seed).permutation(len(ids))
     held = sorted(ids[i] for i in order[:held_n])
-    return [i for i in ids if i not in set(held)], held
+    held_set = set(held)
+    return [i for i in ids if i not in held_set], held
 
 
 def write_train_labels(cfg: AdaptConfig, labels: Path, train_ids: list[str]) -> Path:
     """Step 2: OUT/train_labels with the training frames only, their GT dropped."""
     index = read_index(labels)
-    keep, records = set(train_ids), []
-    for path, ids in index.shards:
-        with open_shard(path) as h5:
-            for frame_id in ids:
-                if frame_id in keep:
-                    s = read_sample(h5, frame_id)
-                    records.append(ShardRecord(frame_id=frame_id, left=s.left, right=s.right, label=s.label,
-                                               label_right=s.label_right, confidence=s.confidence,
-                                               confidence_right=s.confidence_right, attrs=s.attrs))
+    records = [ShardRecord(frame_id=s.frame_id, left=s.left, right=s.right, label=s.label, label_right=s.label_right,
+                           confidence=s.confidence, confidence_right=s.confidence_right, attrs=s.attrs)
+               for s in shard_samples(labels, set(train_ids))]
     train = cfg.out / "train_labels"
     if train.exists():
         shutil.rmtree(train)
@@ -155,20 +150,12 @@ def score_frames(checkpoint: str | Path, labels: Path, ids: list[str], device: s
     right view warped by the prediction onto the left) in PVM's holes. GT is not read."""
     model = load_model(checkpoint, device)
     dev = next(model.parameters()).device
-    wanted, scores = set(ids), []
-    bar = tqdm(total=len(ids), desc=f"score {what}".strip(), unit="pair", disable=quiet)
-    for path, frame_ids in read_index(labels).shards:
-        with open_shard(path) as h5:
-            for frame_id in frame_ids:
-                if frame_id not in wanted:
-                    continue
-                s = read_sample(h5, frame_id)
-                disp = infer(model, s.left, s.right, device=dev)
-                holes = ~np.isfinite(s.label)
-                cost = photometric_costs(s.left, s.right, [disp], window=1)[0]
-                scores.append(score_pair(frame_id, disp, s.label, None, cost[holes]))
-                bar.update()
-    bar.close()
+    scores = []
+    for s in tqdm(shard_samples(labels, set(ids)), total=len(ids), desc=f"score {what}".strip(), unit="pair",
+                  disable=quiet):
+        disp = infer(model, s.left, s.right, device=dev)
+        cost = photometric_costs(s.left, s.right, [disp], window=1)[0]
+        scores.append(score_pair(s.frame_id, disp, s.label, None, cost[~np.isfinite(s.label)]))
     return scores
 
 
@@ -197,14 +184,10 @@ def gt_scores(checkpoint: str | Path, labels: Path, device: str = "auto", quiet:
     model = load_model(checkpoint, device)
     dev = next(model.parameters()).device
     pooled_acc, frames = MetricAccumulator(), {}
-    for path, ids in read_index(labels).shards:
-        with open_shard(path) as h5:
-            for frame_id in tqdm(ids, desc=f"GT {what}".strip(), unit="pair", disable=quiet):
-                s = read_sample(h5, frame_id)
-                if s.gt is None or not np.isfinite(s.gt).any():
-                    continue
-                disp = infer(model, s.left, s.right, device=dev)
-                frames[frame_id] = pooled_acc.update(disp, s.gt)["bad3"]
+    for s in tqdm(shard_samples(labels), desc=f"GT {what}".strip(), unit="pair", disable=quiet):
+        if s.gt is not None and np.isfinite(s.gt).any():
+            disp = infer(model, s.left, s.right, device=dev)
+            frames[s.frame_id] = pooled_acc.update(disp, s.gt)["bad3"]
     if not pooled_acc.n_covered:
         return {}
     gt = pooled_acc.compute()

@@ -207,16 +207,20 @@ def pooled(pairs: list[PairScore]) -> dict[str, float]:
             "pairs": float(len(pairs)), "pvm_pixels": float(pvm_n), "teacher_pixels": float(teacher_n)}
 
 
-def valset_pairs(valset: ValSet, only: set[str] | None = None) -> Iterator[tuple[Any, npt.NDArray[np.float32]]]:
-    """(shard sample, the teacher's left-right consistent left view) of every pair (or of ``only``'s ids)."""
-    for path, ids in read_index(valset.labels).shards:
+def shard_samples(labels: Path, only: set[str] | None = None) -> Iterator[Any]:
+    """Every sample of a shard directory (or only those whose id is in ``only``), one at a time, in index order."""
+    for path, ids in read_index(labels).shards:
         with open_shard(path) as h5:
             for frame_id in ids:
-                if only is not None and frame_id not in only:
-                    continue
-                sample = read_sample(h5, frame_id)
-                views = read_teacher_maps(valset.maps, frame_id, sample.label.shape)
-                yield sample, consistent_views(*views)[0]
+                if only is None or frame_id in only:
+                    yield read_sample(h5, frame_id)
+
+
+def valset_pairs(valset: ValSet, only: set[str] | None = None) -> Iterator[tuple[Any, npt.NDArray[np.float32]]]:
+    """(shard sample, the teacher's left-right consistent left view) of every pair (or of ``only``'s ids)."""
+    for sample in shard_samples(valset.labels, only):
+        views = read_teacher_maps(valset.maps, sample.frame_id, sample.label.shape)
+        yield sample, consistent_views(*views)[0]
 
 
 def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", amp: str = "none",
