@@ -1,57 +1,107 @@
-"""The distillation pack: every unlabelled training pair of ../shared/data as one JPEG ``folder`` dataset.
+"""The distillation packs: every unlabelled training pair at hand as small ``folder`` datasets for a lent GPU.
 
-kitti_unlabelled (87 pairs) and each sub-folder of unlabelled_more (57 pairs) go to ``OUT/{left,right}/<set>_<id>.jpg``
-at JPEG quality 92: ~44 MB, which with the tracked tree fits the lent GPU's 64 MiB carry (PNG: 200 MB). No GT file is
-read or copied. Used by ``pipelines/studies/gpu/distill.sh``:
+Part ``shared``: kitti_unlabelled (87 pairs) and each sub-folder of unlabelled_more (57) of ../shared/data. Part
+``more``: each sub-folder (``image_2`` / ``image_3``) of the folder ``fetch_unlabelled_more.sh`` fills (324 pairs),
+less the pairs whose left image is byte-identical to one of part ``shared`` (57 of them). Each pair goes to
+``OUT/{left,right}/<set>_<id>.<format>``; the quality is the highest of ``QUALITIES`` whose pack stays under
+``--budget-mb`` (the lent GPU's carry is 64 MiB with the tracked tree's ~24 MB). No GT file is read or copied.
 
-    python -m pipelines.studies.gpu.distill_pack .carry/distill
+    python -m pipelines.studies.gpu.distill_pack .carry/A --part shared --format webp --budget-mb 37
+    python -m pipelines.studies.gpu.distill_pack .carry/B --part more --more /work/unl_more --format webp --budget-mb 37
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import shutil
 from pathlib import Path
 
 import cv2
+import numpy as np
 from tqdm import tqdm
 
-from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.datasets import PairRef, discover
 from pvm_labeler.common.errors import InputError
 from pvm_labeler.common.io import read_image
 
 SHARED = Path("../shared/data")
-QUALITY = 92
+QUALITIES = (92, 90, 88, 85, 82, 80, 75)
+PARAMS = {"jpg": cv2.IMWRITE_JPEG_QUALITY, "webp": cv2.IMWRITE_WEBP_QUALITY}
+SetSpec = tuple[str, str, Path, dict[str, str]]
 
 
-def training_sets(shared: Path) -> list[tuple[str, str, Path, dict[str, str]]]:
-    """(prefix, reader, root, reader options) of every unlabelled training folder under ``shared``."""
-    sets = [("ku", "kitti_unlabelled", shared / "kitti_unlabelled", {})]
+def shared_sets(shared: Path) -> list[SetSpec]:
+    """(prefix, reader, root, reader options) of every unlabelled training folder of ../shared/data."""
+    sets: list[SetSpec] = [("ku", "kitti_unlabelled", shared / "kitti_unlabelled", {})]
     for folder in sorted(p for p in (shared / "unlabelled_more").iterdir() if p.is_dir()):
         sets.append((f"um_{folder.name}", "folder", folder, {"left": "image_2", "right": "image_3"}))
     return sets
 
 
-def write_pack(shared: Path, out: Path, quality: int = QUALITY) -> int:
-    """Write every pair of :func:`training_sets` as JPEG into ``out/left`` and ``out/right``; returns the pairs."""
-    for view in ("left", "right"):
-        (out / view).mkdir(parents=True, exist_ok=True)
-    refs = [(prefix, ref) for prefix, reader, root, kw in training_sets(shared) for ref in discover(reader, root, **kw)]
-    for prefix, ref in tqdm(refs, desc="pack", unit="pair"):
-        for view, path in (("left", ref.left), ("right", ref.right)):
-            target = out / view / f"{prefix}_{ref.frame_id}.jpg"
-            bgr = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2BGR)
-            if not cv2.imwrite(str(target), bgr, [cv2.IMWRITE_JPEG_QUALITY, quality]):
-                raise InputError(f"cannot write {target}")
-    return len(refs)
+def more_sets(more: Path) -> list[SetSpec]:
+    """The sub-folders of the folder ``fetch_unlabelled_more.sh`` writes, as ``folder`` datasets."""
+    return [(f"fm_{p.name}", "folder", p, {"left": "image_2", "right": "image_3"})
+            for p in sorted(more.iterdir()) if (p / "image_2").is_dir()]
+
+
+def _digest(path: Path) -> str:
+    return hashlib.md5(path.read_bytes()).hexdigest()
+
+
+def pairs(sets: list[SetSpec], exclude: set[str] = frozenset()) -> list[tuple[str, PairRef]]:
+    """(prefix, pair) of every pair of ``sets`` whose left file's MD5 is not in ``exclude``."""
+    return [(prefix, ref) for prefix, reader, root, kw in sets for ref in discover(reader, root, **kw)
+            if _digest(Path(ref.left)) not in exclude]
+
+
+def encode(rgb: np.ndarray, fmt: str, quality: int) -> bytes:
+    """(H, W, 3) uint8 RGB -> the encoded file's bytes."""
+    ok, buffer = cv2.imencode(f".{fmt}", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [PARAMS[fmt], quality])
+    if not ok:
+        raise InputError(f"cv2 cannot encode {fmt} at quality {quality}")
+    return buffer.tobytes()
+
+
+def write_pack(refs: list[tuple[str, PairRef]], out: Path, fmt: str, budget_mb: float) -> tuple[int, int, int]:
+    """Encode every pair at the highest quality of ``QUALITIES`` that fits ``budget_mb``; (pairs, quality, bytes)."""
+    images = [(f"{prefix}_{ref.frame_id}", read_image(ref.left), read_image(ref.right))
+              for prefix, ref in tqdm(refs, desc="read", unit="pair")]
+    for quality in QUALITIES:
+        files = {}
+        for name, left, right in tqdm(images, desc=f"{fmt} q{quality}", unit="pair"):
+            files[f"left/{name}.{fmt}"] = encode(left, fmt, quality)
+            files[f"right/{name}.{fmt}"] = encode(right, fmt, quality)
+        size = sum(len(b) for b in files.values())
+        if size <= budget_mb * 1e6:
+            break
+    else:
+        raise InputError(f"{len(images)} pairs need {size / 1e6:.1f} MB at quality {QUALITIES[-1]}: over {budget_mb} MB")
+    shutil.rmtree(out, ignore_errors=True)
+    for rel, data in files.items():
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_bytes(data)
+    return len(images), quality, size
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
+    parser.add_argument("--part", choices=("shared", "more"), default="shared")
     parser.add_argument("--shared", type=Path, default=SHARED)
-    parser.add_argument("--quality", type=int, default=QUALITY)
+    parser.add_argument("--more", type=Path, help="The folder fetch_unlabelled_more.sh filled (--part more).")
+    parser.add_argument("--format", choices=tuple(PARAMS), default="jpg")
+    parser.add_argument("--budget-mb", type=float, default=44.0)
     args = parser.parse_args(argv)
-    print(f"{write_pack(args.shared, args.out, args.quality)} pairs -> {args.out}")
+    if args.part == "shared":
+        refs = pairs(shared_sets(args.shared))
+    else:
+        if args.more is None:
+            parser.error("--part more needs --more DIR")
+        seen = {_digest(Path(ref.left)) for _, ref in pairs(shared_sets(args.shared))}
+        refs = pairs(more_sets(args.more), exclude=seen)
+    n, quality, size = write_pack(refs, args.out, args.format, args.budget_mb)
+    print(f"{n} pairs -> {args.out} ({args.format} q{quality}, {size / 1e6:.1f} MB)")
 
 
 if __name__ == "__main__":

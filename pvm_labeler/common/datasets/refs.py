@@ -18,7 +18,7 @@ logger = logging.getLogger(__name__)
 DATASETS: tuple[str, ...] = ("kitti15", "kitti12", "middlebury", "eth3d", "sceneflow", "folder", "kitti_unlabelled",
                              "sample")
 SPLITS: tuple[str, ...] = ("training", "testing")
-IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".webp", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
 #: Search range that comfortably covers a dataset when the user gives no --max-disp (sample GT max is 59.9 px).
 DEFAULT_MAX_DISP: dict[str, int] = {"sample": 64}

@@ -1,0 +1,113 @@
+"""Helpers of ``teacher_all.sh``: merge shard folders, write the teacher's hole fills as KITTI PNGs, export snapshots.
+
+    python -m pipelines.studies.gpu.teacher_all merge DEST SRC [SRC ...]    one shard folder of several (symlinks)
+    python -m pipelines.studies.gpu.teacher_all fills LABELS MAPS OUT      <id>_{left,right}.png per pair
+    python -m pipelines.studies.gpu.teacher_all snapshots RUN OUT          RUN/ckpt-*.pt -> OUT/<name>-<step>.safetensors
+
+``fills`` writes what the distilled shards add to PVM's labels: the teacher's left-right consistent disparity in PVM's
+holes (``optstereo.training.distill``'s rule), as 16-bit PNG (disparity x 256, 0 = no fill: the KITTI convention), so
+a machine that recomputes the PVM labels (seeded per pair) can rebuild the distilled shards without the teacher.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
+from optstereo.training.distill import MAX_LR_DIFF, consistent_views, read_teacher_maps
+from optstereo.validation import shard_samples
+from pvm_labeler.common.datasets import safe_stem
+from pvm_labeler.shards.reader import INDEX_NAME, read_index
+
+
+def merge(dest: Path, sources: list[Path]) -> int:
+    """Write ``dest/index.json`` listing every shard of ``sources`` (symlinked as ``s<i>-<name>``); the samples."""
+    dest.mkdir(parents=True, exist_ok=True)
+    doc: dict = {}
+    shards = []
+    for i, src in enumerate(sources):
+        index = read_index(src)
+        if not doc:
+            doc = copy.deepcopy(index.raw)
+        for path, ids in index.shards:
+            name = f"s{i}-{path.name}"
+            link = dest / name
+            if link.is_symlink() or link.exists():
+                link.unlink()
+            os.symlink(path.resolve(), link)
+            shards.append({"file": name, "samples": ids, "count": len(ids)})
+    doc["shards"] = shards
+    doc["num_samples"] = sum(s["count"] for s in shards)
+    doc["merged_from"] = [str(s) for s in sources]
+    (dest / INDEX_NAME).write_text(json.dumps(doc, indent=2))
+    return doc["num_samples"]
+
+
+def to_png16(disp: np.ndarray) -> np.ndarray:
+    """(H, W) float32 disparity with NaN = none -> uint16 x 256, 0 = none (KITTI's disparity PNG)."""
+    return np.where(np.isfinite(disp) & (disp > 0), np.clip(np.round(disp * 256.0), 1, 65535), 0).astype(np.uint16)
+
+
+def write_fills(labels: Path, maps: Path, out: Path, max_lr_diff: float = MAX_LR_DIFF) -> tuple[int, float]:
+    """``out/<id>_left.png`` / ``_right.png`` of every pair of ``labels`` with a teacher map; (pairs, mean fill %)."""
+    out.mkdir(parents=True, exist_ok=True)
+    n, filled = 0, 0.0
+    for sample in shard_samples(labels):
+        try:
+            views = consistent_views(*read_teacher_maps(maps, sample.frame_id, sample.label.shape), max_lr_diff)
+        except (FileNotFoundError, ValueError):
+            continue
+        for side, label, teacher in (("left", sample.label, views[0]), ("right", sample.label_right, views[1])):
+            fill = np.where(np.isfinite(label), np.nan, teacher)
+            filled += float(np.isfinite(fill).mean()) / 2
+            if not cv2.imwrite(str(out / f"{safe_stem(sample.frame_id)}_{side}.png"), to_png16(fill)):
+                raise OSError(f"cannot write {out}")
+        n += 1
+    return n, 100.0 * filled / max(n, 1)
+
+
+def snapshots(run: Path, out: Path, name: str) -> list[Path]:
+    """Every ``run/ckpt-*.pt`` as ``out/<name>-<step>.safetensors`` (weights and the run's settings, no optimizer)."""
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for path in sorted(run.glob("ckpt-*.pt")):
+        ckpt = load_checkpoint(path)
+        model = build_model_from_checkpoint(ckpt)
+        written.append(export_safetensors(out / f"{name}-{ckpt.step}.safetensors", model, ckpt.step,
+                                          ckpt.inference_config))
+    return written
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    m = sub.add_parser("merge")
+    m.add_argument("dest", type=Path)
+    m.add_argument("sources", type=Path, nargs="+")
+    f = sub.add_parser("fills")
+    f.add_argument("labels", type=Path)
+    f.add_argument("maps", type=Path)
+    f.add_argument("out", type=Path)
+    s = sub.add_parser("snapshots")
+    s.add_argument("run", type=Path)
+    s.add_argument("out", type=Path)
+    s.add_argument("--name", default="snap")
+    args = parser.parse_args(argv)
+    if args.cmd == "merge":
+        print(f"{merge(args.dest, args.sources)} samples in {args.dest}")
+    elif args.cmd == "fills":
+        n, pct = write_fills(args.labels, args.maps, args.out)
+        print(f"{n} pairs' fills in {args.out} ({pct:.1f} % of pixels filled per view)")
+    else:
+        print("\n".join(str(p) for p in snapshots(args.run, args.out, args.name)))
+
+
+if __name__ == "__main__":
+    main()
