@@ -241,6 +241,17 @@ class TestFolder:
         with pytest.raises(InputError, match=r"count mismatch: 2 images in .*000\[01\].png vs 3 in"):
             discover("folder", None, left=str(tmp_path / "left/000[01].png"), right=str(tmp_path / "right/*.png"))
 
+    def test_webp(self, tmp_path: Path) -> None:
+        # lossless WebP (quality > 100): the pair decodes to the pixels written, RGB order kept
+        rng = np.random.default_rng(0)
+        rgb = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+        for view in ("left", "right"):
+            (tmp_path / view).mkdir()
+            assert cv2.imwrite(str(tmp_path / view / "a.webp"), rgb[..., ::-1], [cv2.IMWRITE_WEBP_QUALITY, 101])
+        refs = discover("folder", tmp_path)
+        assert [r.frame_id for r in refs] == ["a"]
+        np.testing.assert_array_equal(load_pair(refs[0]).left, rgb)
+
     def test_count_mismatch(self, tmp_path: Path) -> None:
         self._make(tmp_path)
         (tmp_path / "right/0002.png").unlink()
