@@ -93,6 +93,8 @@ class TestGraphedPassCPU:
             graphed(left, right.astype(np.float32))
         with pytest.raises(ValueError, match="fp16 needs a CUDA device"):
             GraphedPass(model, (40, 96), device="cpu", amp="fp16")
+        with pytest.raises(ValueError, match="parameters are on meta, GraphedPass was asked for cpu"):
+            GraphedPass(_tiny_model().to("meta"), (40, 96), device="cpu")
 
 
 @pytest.mark.parametrize(("config", "match"), [

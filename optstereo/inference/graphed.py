@@ -95,6 +95,10 @@ class GraphedPass:
         self.model = model
         self.height, self.width = (int(v) for v in shape)
         self.device = torch.device(device)
+        param = next(model.parameters(), None)
+        if param is not None and param.device.type != self.device.type:
+            raise ValueError(f"the model's parameters are on {param.device}, GraphedPass was asked for {self.device}: "
+                             "move the model first")
         self.amp = amp
         inference_autocast(amp, self.device)  # validates amp (fp16 needs CUDA) and warns on emulated CPU bf16
         self.config = model_inference_config(model, iters, scale)
@@ -144,7 +148,7 @@ class GraphedPass:
         if self._resize is not None:
             rows, cols = self._resize[2], self._resize[3]
             disp = (torch.matmul(torch.matmul(rows, disp.double()), cols.T) * (self.width / disp.shape[1])).float()
-        return disp
+        return disp.contiguous()  # the unpadded view copied inside the graph: the copy out needs no staging tensor
 
     def _autocast(self) -> contextlib.AbstractContextManager:
         """Autocast as ``inference_autocast`` on the CPU; on CUDA without its weight-cast cache, whose tensors are
