@@ -8,6 +8,8 @@
 - ``cascade``: the coarse-to-fine start and the per-pixel choice; ``refine_torch``: the post-filter on a GPU
 - ``confidence``: per-pixel confidence and the sparsification curve; ``sequence``: video, each frame started from
   the last; ``predict_more``: optstereo-predict's ``--sequence`` / confidence loop; ``outputs``: disparity files
+- ``fastpath``: the engineered CPU pass; ``graphed``: ``GraphedPass``, the one-pass default of a fixed size as one
+  CUDA graph
 
 Importing this package stays torch-free (``config`` is read by the torch-free config layer); ``run`` and ``infer``
 are loaded on first use.

@@ -4,11 +4,13 @@ Times the network alone (inputs already on the GPU, padded 375x1242 -> 376x1248,
 median of ``--repeats`` calls after ``--warmup``, each bracketed by ``torch.cuda.synchronize()``; and once
 end to end through :func:`optstereo.inference.engine.infer` (uint8 numpy in, numpy out: host copies and padding
 included). Rows: the shipped model (C = 128) and the paper-size network (C = 256, random weights: the time does
-not depend on them), float32 / TF32 / bf16 / fp16 autocast; then the float32 and TF32 forwards captured as CUDA
-graphs and replayed (no Python or kernel-launch overhead); and the shipped post-filter (wmedian) on the CPU and on the
-GPU. "fp32" means TF32 off for convolutions too, which PyTorch leaves on by default.
+not depend on them), float32 / TF32 / bf16 / fp16 autocast; then the whole one-pass default at KITTI size as one
+CUDA graph (:class:`optstereo.inference.graphed.GraphedPass`: uint8 numpy in, numpy out, replayed with no Python or
+kernel-launch overhead) in bf16 / fp32 / TF32; and the shipped post-filter (wmedian) on the CPU and on the GPU. "fp32"
+means TF32 off for convolutions too, which PyTorch leaves on by default.
 
     python -m pipelines.studies.gpu.cuda_timing --out $OUT/cuda_timing.json
+    python -m pipelines.studies.gpu.cuda_timing --graphs-only --out $OUT/graphs.json   # GraphedPass beside infer()
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import torch
 
 from optstereo.api import load_model
 from optstereo.inference.engine import infer, inference_autocast
+from optstereo.inference.graphed import GraphedPass
 from optstereo.models import build_model
 
 KITTI_HW = (375, 1242)
@@ -84,34 +87,43 @@ def set_tf32(on: bool) -> None:
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
 
 
-def graph_row(model: torch.nn.Module, label: str, precision: str, repeats: int, warmup: int) -> dict[str, Any]:
-    """The forward (``fp32`` or ``tf32``) captured once as a CUDA graph and replayed: no Python or launch overhead."""
-    set_tf32(precision == "tf32")
-    left, right = gpu_pair()
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side), torch.inference_mode():  # warm-up off the default stream, as capture wants
-        for _ in range(3):
-            model(left, right, iters=ITERS, test_mode=True)
-    torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.inference_mode(), torch.cuda.graph(graph):
-        model(left, right, iters=ITERS, test_mode=True)
-    seconds = cuda_median_s(graph.replay, repeats, warmup)
+def graphed_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int,
+                 eager: bool = False) -> list[dict[str, Any]]:
+    """``optstereo.inference.graphed.GraphedPass`` end to end at KITTI size (uint8 numpy in, numpy out: the host
+    copies, padding and the network captured as one CUDA graph and replayed), bf16 / fp32 (TF32 off) / TF32; with
+    ``eager`` each beside ``infer`` at the same precision. A failed capture is a row with its error, not a crash."""
+    left, right = kitti_pair()
+    rows = []
+    for precision in ("bf16", "fp32", "tf32"):
+        set_tf32(precision == "tf32")  # read when the graph is captured: the kernels are fixed in it
+        amp = "bf16" if precision == "bf16" else "none"
+        row: dict[str, Any] = {"model": label, "precision": precision, "what": "GraphedPass end to end (CUDA graph)"}
+        try:
+            graphed = GraphedPass(model, KITTI_HW, device="cuda", iters=ITERS, amp=amp)
+            row["ms"] = round(cuda_median_s(lambda graphed=graphed: graphed(left, right), repeats, warmup) * 1e3, 2)
+            row["vs_paper_100ms"] = round(row["ms"] / PAPER_MS, 3)
+            del graphed  # its graph's memory pool goes with it
+        except (RuntimeError, ValueError) as exc:  # a capture can fail (a host sync inside forward): record why
+            row["error"] = f"{type(exc).__name__}: {str(exc)[:300]}"
+        rows.append(row)
+        print(row, flush=True)
+        if eager:
+            rows.append(end_to_end_row(model, repeats, warmup, label, amp, ITERS) | {"precision": precision})
     set_tf32(False)
-    row = {"model": label, "precision": precision, "what": "CUDA graph replay", "ms": round(seconds * 1e3, 2),
-           "vs_paper_100ms": round(seconds * 1e3 / PAPER_MS, 3)}
-    print(row, flush=True)
-    return row
+    return rows
+
+
+def kitti_pair() -> tuple[np.ndarray, np.ndarray]:
+    """A fixed random KITTI-size uint8 pair (the time does not depend on it), the right view shifted by 8 px."""
+    left = np.random.default_rng(0).integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8)
+    return left, np.ascontiguousarray(np.roll(left, -8, axis=1))
 
 
 def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int, label: str = "shipped", amp: str = "bf16",
                    iters: int | None = ITERS) -> dict[str, Any]:
     """``infer`` on uint8 numpy arrays of KITTI size (host-to-device, the model's resizing and passes, padding,
     unpadding, its post-filter and the copy back)."""
-    rng = np.random.default_rng(0)
-    left = rng.integers(0, 256, (*KITTI_HW, 3), dtype=np.uint8)
-    right = np.roll(left, -8, axis=1)
+    left, right = kitti_pair()
     seconds = cuda_median_s(lambda: infer(model, left, right, iters=iters, device="cuda", amp=amp),
                             repeats, warmup)
     row = {"model": label, "precision": amp, "what": "infer() end to end", "ms": round(seconds * 1e3, 2)}
@@ -143,7 +155,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=5)
-    parser.add_argument("--graphs-only", action="store_true", help="only the CUDA-graph rows")
+    parser.add_argument("--graphs-only", action="store_true",
+                        help="only the CUDA-graph rows (GraphedPass) and the shipped model's infer() beside them")
     parser.add_argument("--end-to-end", nargs="+", metavar="NAME=CHECKPOINT",
                         help="only infer() end to end (bf16 and none) of these checkpoints, with their own settings")
     args = parser.parse_args()
@@ -169,13 +182,8 @@ def main() -> None:
         rows += network_rows(paper, "paper size (C=256)", args.repeats, args.warmup)
         rows.append(end_to_end_row(shipped, args.repeats, args.warmup))
         rows += wmedian_rows(args.repeats, args.warmup)
-    for model, label in ((shipped, "shipped (C=128)"), (paper, "paper size (C=256)")):
-        for precision in ("fp32", "tf32"):
-            try:
-                rows.append(graph_row(model, label, precision, args.repeats, args.warmup))
-            except RuntimeError as exc:  # a capture can fail (a host sync inside forward): record why, go on
-                rows.append({"model": label, "precision": precision, "what": "CUDA graph replay",
-                             "error": str(exc)[:300]})
+    rows += graphed_rows(shipped, "shipped (C=128)", args.repeats, args.warmup, eager=args.graphs_only)
+    rows += graphed_rows(paper, "paper size (C=256)", args.repeats, args.warmup)
     report = {"device": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
               "input": f"{KITTI_HW[0]}x{KITTI_HW[1]} padded to {PADDED_HW[0]}x{PADDED_HW[1]}", "iters": ITERS,
               "repeats": args.repeats, "warmup": args.warmup, "rows": rows}
