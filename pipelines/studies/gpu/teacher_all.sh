@@ -43,7 +43,7 @@ if [ "$GRAPH" = 1 ]; then
   timeout 100 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_graphed.py \
     > "$OUTD/gpu_tests.txt" 2>&1
   echo "gpu tests: exit $? at $(elapsed) ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
-  timeout 90 $PY -m pipelines.studies.gpu.cuda_timing --out "$OUTD/cuda_timing.json" --repeats 20 --warmup 5 \
+  timeout 90 $PY -m pipelines.studies.gpu.cuda_timing --graphs-only --out "$OUTD/cuda_timing.json" --repeats 10 --warmup 3 \
     > "$W/timing.log" 2>&1
   echo "cuda timing: exit $? at $(elapsed)"; tail -n 30 "$W/timing.log"
 fi
