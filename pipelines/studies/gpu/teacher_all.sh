@@ -51,7 +51,7 @@ fi
 ( $PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels_$PART" --jobs "$JOBS" \
     --compression lzf --quiet > "$W/labels_$PART.log" 2>&1 && touch "$W/labels_$PART.ok" ) &
 labeller=$!
-$PY -m optstereo.cli distill maps --checkpoint "$TEACHER" --root "$PACK" --out "$W/maps" --device "$DEVICE" \
+timeout "${TEACHER_S:-170}" $PY -m optstereo.cli distill maps --checkpoint "$TEACHER" --root "$PACK" --out "$W/maps" --device "$DEVICE" \
   > "$W/maps_$PART.log" 2>&1
 echo "teacher maps: exit $? at $(elapsed); $(ls "$W/maps" | wc -l) pairs in $W/maps"
 wait "$labeller"
