@@ -118,6 +118,14 @@ def test_adaptive_pass_that_cannot_run_is_captured() -> None:
         check_capturable(config, (300, 1000))
 
 
+def test_cuda_captures_scale_one_only() -> None:
+    # checked without a GPU: the rule that refuses a CUDA resize comes before any CUDA call
+    check_capturable(InferenceConfig(scale=1.0), KITTI_HW, "cuda")
+    check_capturable(InferenceConfig(scale=0.5), KITTI_HW, "cpu")
+    with pytest.raises(ValueError, match=r"scale 1 only on CUDA \(scale=0.5\)"):
+        check_capturable(InferenceConfig(scale=0.5), KITTI_HW, "cuda")
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 class TestGraphedPassCUDA:
@@ -145,11 +153,10 @@ class TestGraphedPassCUDA:
         _assert_close(second, infer(model, left, right2, device="cuda", amp=amp), amp)
         assert np.abs(second - first).mean() > 0.5  # the new pair's answer, not the last one's
 
-    def test_resize(self) -> None:
-        model = _tiny_model().cuda()
-        left, right = _pair(*KITTI_HW, shift=12)
-        graphed = GraphedPass(model, KITTI_HW, device="cuda", scale=0.5)
-        _assert_close(graphed(left, right), infer(model, left, right, device="cuda", scale=0.5), "none")
+    def test_resize_refused(self) -> None:
+        # an H200 run (2026-11-27) found the graphed resize 0.23 px off infer's at scale 0.5: CUDA captures scale 1
+        with pytest.raises(ValueError, match=r"scale 1 only on CUDA \(scale=0.5\)"):
+            GraphedPass(_tiny_model().cuda(), KITTI_HW, device="cuda", scale=0.5)
 
 
 def _kitti_like_pair() -> tuple[np.ndarray, np.ndarray]:

@@ -76,7 +76,8 @@ def write_pack(refs: list[tuple[str, PairRef]], out: Path, fmt: str, budget_mb: 
         if size <= budget_mb * 1e6:
             break
     else:
-        raise InputError(f"{len(images)} pairs need {size / 1e6:.1f} MB at quality {QUALITIES[-1]}: over {budget_mb} MB")
+        raise InputError(f"{len(images)} pairs need {size / 1e6:.1f} MB at quality {QUALITIES[-1]}: "
+                         f"over {budget_mb} MB")
     shutil.rmtree(out, ignore_errors=True)
     for rel, data in files.items():
         (out / rel).parent.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,7 @@
 
     python -m pipelines.studies.gpu.teacher_all merge DEST SRC [SRC ...]    one shard folder of several (symlinks)
     python -m pipelines.studies.gpu.teacher_all fills LABELS MAPS OUT      <id>_{left,right}.png per pair
-    python -m pipelines.studies.gpu.teacher_all snapshots RUN OUT          RUN/ckpt-*.pt -> OUT/<name>-<step>.safetensors
+    python -m pipelines.studies.gpu.teacher_all snapshots RUN OUT       RUN/ckpt-*.pt -> OUT/<name>-<step>.safetensors
 
 ``fills`` writes what the distilled shards add to PVM's labels: the teacher's left-right consistent disparity in PVM's
 holes (``optstereo.training.distill``'s rule), as 16-bit PNG (disparity x 256, 0 = no fill: the KITTI convention), so
