@@ -11,6 +11,7 @@ Paper symbol -> module:
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -62,6 +63,12 @@ class OptStereo(nn.Module):
             (left(x) matches right(x - d)), in full-resolution pixels.
         test_mode=True: returns (D_s^{N_s} (B, 1, H/8, W/8) in 1/8-resolution pixels, D^{N_s} (B, 1, H, W));
             only the last iteration is upsampled.
+        features: (2B, C, H/8, W/8) = [F_l; F_r], the encoder's output for (left, right) computed beforehand (a
+            cache of fixed crops, pipelines/studies/recipe_table.py); None = run the encoder. The images are
+            still needed (the upsampler reads I_l).
+
+    ``freeze_encoder()`` fixes the feature encoder for training: no gradient, run under ``torch.no_grad`` (no
+    activations kept), and kept in eval mode by ``train()`` (batch-norm running statistics stay as loaded).
     """
 
     divisor: ClassVar[int] = DIVISOR  # what optstereo.inference.padding.divisor_of reads to pad inputs for this network
@@ -92,6 +99,21 @@ class OptStereo(nn.Module):
         # Batch statistics tie the images of a batch together; every other normalisation is per image.
         self._per_image_encoder = not any(isinstance(m, nn.modules.batchnorm._BatchNorm)
                                           for m in feature_encoder.modules())
+        self.encoder_frozen = False  # a training choice (optim.freeze_encoder), not part of the weights
+
+    def freeze_encoder(self) -> OptStereo:
+        """Fix the feature encoder: requires_grad False, forward under no_grad, eval mode whatever ``train()`` says."""
+        self.encoder_frozen = True
+        self.feature_encoder.requires_grad_(False)
+        self.feature_encoder.eval()
+        return self
+
+    def train(self, mode: bool = True) -> OptStereo:
+        """nn.Module.train, except that a frozen encoder stays in eval mode (its batch norms keep their statistics)."""
+        super().train(mode)
+        if self.encoder_frozen:
+            self.feature_encoder.eval()
+        return self
 
     def _chunk_size(self, images: torch.Tensor) -> int:
         """Images per call of the full- and half-resolution modules (encoder, upsampler); 0 = all at once.
@@ -120,7 +142,8 @@ class OptStereo(nn.Module):
     def _encode(self, images: torch.Tensor) -> torch.Tensor:
         """F for a stack of images (2B, 3, H, W) -> (2B, C, H/8, W/8), per image on CPU (see _chunk_size)."""
         chunk = self._chunk_size(images) if self._per_image_encoder else 0
-        return self._in_chunks(self.feature_encoder, chunk, images)
+        with torch.no_grad() if self.encoder_frozen else contextlib.nullcontext():
+            return self._in_chunks(self.feature_encoder, chunk, images)
 
     def _upsample(self, disp: torch.Tensor, hidden: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
         """D^k (B, 1, H, W) from D_s^k, h^k and I_l, per image on CPU (see _chunk_size)."""
@@ -140,15 +163,21 @@ class OptStereo(nn.Module):
 
     def forward(
         self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False,
-        disp_init: torch.Tensor | None = None,
+        disp_init: torch.Tensor | None = None, features: torch.Tensor | None = None,
     ) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
         """``disp_init``: (B, 1, H/8, W/8) start D_s^0 in 1/8-grid pixels (a coarse-to-fine start,
-        optstereo.inference.cascade), detached; None = the paper's zero start."""
+        optstereo.inference.cascade), detached; None = the paper's zero start. ``features``: see the class."""
         self._check_inputs(left, right)
         iters = resolve_iters(iters, self.iters)
         image_left = normalize_image(left)
-        image_right = normalize_image(right)
-        feats = self._encode(torch.cat([image_left, image_right], dim=0))
+        if features is None:
+            feats = self._encode(torch.cat([image_left, normalize_image(right)], dim=0))
+        else:
+            b, _, h, w = left.shape
+            if features.ndim != 4 or (features.shape[0], *features.shape[-2:]) != (2 * b, h // DIVISOR, w // DIVISOR):
+                raise ValueError(f"features must be [F_l; F_r] (2B, C, H/8, W/8) with (2B, H/8, W/8) = "
+                                 f"{(2 * b, h // DIVISOR, w // DIVISOR)}, got {tuple(features.shape)}")
+            feats = features.to(left.device)
         feat_left, feat_right = feats.chunk(2, dim=0)
 
         pyramid = self.corr_block.build_pyramid(feat_left, feat_right)

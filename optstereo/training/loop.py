@@ -61,9 +61,11 @@ def build_loss(cfg: TrainConfig) -> nn.Module:
 
 
 def build_optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Optimizer, Any | None]:
-    """Adam (cfg.optim.lr) and, for schedule "onecycle", OneCycleLR over optim.steps (linear, RAFT-Stereo style)."""
+    """Adam (cfg.optim.lr) over the trainable parameters (a frozen encoder's are left out) and, for schedule
+    "onecycle", OneCycleLR over optim.steps (linear, RAFT-Stereo style)."""
     opt = cfg.optim
-    optimizer = torch.optim.Adam(model.parameters(), lr=opt.lr, weight_decay=opt.weight_decay)
+    trainable = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.Adam(trainable, lr=opt.lr, weight_decay=opt.weight_decay)
     if opt.schedule == "constant":
         return optimizer, None
     # torch ends the warm-up at pct_start * steps - 1 and divides by that: it must be >= 1, or a short run (under
@@ -353,6 +355,8 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     model = build_model(cfg)
     if ckpt is None and cfg.init is not None:
         init_weights(model, init_ckpt if init_ckpt is not None else cfg.init)
+    if cfg.optim.freeze_encoder:
+        model.freeze_encoder()  # before the optimiser is built: it takes the trainable parameters only
     model = model.to(device)
     optimizer, scheduler = build_optimizer(model, cfg)
     scaler = torch.amp.GradScaler(device.type, enabled=cfg.amp == "fp16" and device.type == "cuda")
