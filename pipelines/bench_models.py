@@ -162,11 +162,11 @@ def gpu_rows(models: dict[str, torch.nn.Module], left: np.ndarray, right: np.nda
         model = model.cuda()
         for amp, precision in (("bf16", "bf16"), ("none", "fp32")):
             row = {"model": name, "path": "eager", "precision": precision, "device": torch.cuda.get_device_name()}
-            rows.append(row | {"ms": 1e3 * _cuda_seconds(functools.partial(infer, model, left, right, device="cuda",
+            rows.append(row | {"ms": 1e3 * cuda_seconds(functools.partial(infer, model, left, right, device="cuda",
                                                                             amp=amp))})
             try:
                 graphed = GraphedPass(model, left.shape[:2], device="cuda", amp=amp)
-                ms = 1e3 * _cuda_seconds(functools.partial(graphed, left, right))
+                ms = 1e3 * cuda_seconds(functools.partial(graphed, left, right))
                 rows.append(row | {"path": "graphed", "ms": ms})
                 del graphed  # frees its graph's memory pool before the next capture
             except (RuntimeError, ValueError) as exc:  # settings it cannot capture, or a failed capture: say why
@@ -175,8 +175,8 @@ def gpu_rows(models: dict[str, torch.nn.Module], left: np.ndarray, right: np.nda
     return rows
 
 
-def _cuda_seconds(fn: Callable[[], Any], repeats: int = 10, warmup: int = 3) -> float:
-    """Median wall seconds of ``fn`` (numpy out, so the GPU has finished) with the GPU drained before each call."""
+def cuda_seconds(fn: Callable[[], Any], repeats: int = 10, warmup: int = 3) -> float:
+    """Median wall seconds of ``fn`` with the GPU drained before and after each call (also the GPU studies' timer)."""
     for _ in range(warmup):
         fn()
     times = []

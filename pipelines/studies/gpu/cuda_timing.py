@@ -17,9 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,26 +27,12 @@ from optstereo.api import load_model
 from optstereo.inference.engine import infer, inference_autocast
 from optstereo.inference.graphed import GraphedPass
 from optstereo.models import build_model
+from pipelines.bench_models import cuda_seconds
 
 KITTI_HW = (375, 1242)
 PADDED_HW = (376, 1248)
 ITERS = 8
 PAPER_MS = 100.0  # the paper's OptStereo on an RTX 2080 Ti
-
-
-def cuda_median_s(fn: Callable[[], Any], repeats: int, warmup: int) -> float:
-    """Median wall seconds of ``fn`` with the GPU drained before and after each call."""
-    for _ in range(warmup):
-        fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(repeats):
-        torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        fn()
-        torch.cuda.synchronize()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def gpu_pair() -> tuple[torch.Tensor, torch.Tensor]:
@@ -73,7 +56,7 @@ def network_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int) 
                 model(left, right, iters=ITERS, test_mode=True)
 
         torch.cuda.reset_peak_memory_stats()
-        seconds = cuda_median_s(forward, repeats, warmup)
+        seconds = cuda_seconds(forward, repeats, warmup)
         rows.append({"model": label, "precision": precision, "ms": round(seconds * 1e3, 2),
                      "vs_paper_100ms": round(seconds * 1e3 / PAPER_MS, 3),
                      "peak_gpu_mib": round(torch.cuda.max_memory_allocated() / 2**20, 1)})
@@ -100,7 +83,7 @@ def graphed_rows(model: torch.nn.Module, label: str, repeats: int, warmup: int,
         row: dict[str, Any] = {"model": label, "precision": precision, "what": "GraphedPass end to end (CUDA graph)"}
         try:
             graphed = GraphedPass(model, KITTI_HW, device="cuda", iters=ITERS, amp=amp)
-            row["ms"] = round(cuda_median_s(lambda graphed=graphed: graphed(left, right), repeats, warmup) * 1e3, 2)
+            row["ms"] = round(cuda_seconds(lambda graphed=graphed: graphed(left, right), repeats, warmup) * 1e3, 2)
             row["vs_paper_100ms"] = round(row["ms"] / PAPER_MS, 3)
             del graphed  # its graph's memory pool goes with it
         except (RuntimeError, ValueError) as exc:  # a capture can fail (a host sync inside forward): record why
@@ -124,7 +107,7 @@ def end_to_end_row(model: torch.nn.Module, repeats: int, warmup: int, label: str
     """``infer`` on uint8 numpy arrays of KITTI size (host-to-device, the model's resizing and passes, padding,
     unpadding, its post-filter and the copy back)."""
     left, right = kitti_pair()
-    seconds = cuda_median_s(lambda: infer(model, left, right, iters=iters, device="cuda", amp=amp),
+    seconds = cuda_seconds(lambda: infer(model, left, right, iters=iters, device="cuda", amp=amp),
                             repeats, warmup)
     row = {"model": label, "precision": amp, "what": "infer() end to end", "ms": round(seconds * 1e3, 2)}
     print(row, flush=True)
@@ -144,7 +127,7 @@ def wmedian_rows(repeats: int, warmup: int) -> list[dict[str, Any]]:
     rows = []
     for what, fn in (("wmedian, numba on the CPU", lambda: weighted_median(disp, image)),
                      ("wmedian, torch on CUDA", lambda: weighted_median_torch(disp, image, device="cuda"))):
-        seconds = cuda_median_s(fn, max(3, repeats // 4), min(warmup, 2))
+        seconds = cuda_seconds(fn, max(3, repeats // 4), min(warmup, 2))
         rows.append({"what": what, "input": f"{KITTI_HW[0]}x{KITTI_HW[1]}", "ms": round(seconds * 1e3, 2)})
         print(rows[-1], flush=True)
     return rows
