@@ -1,6 +1,8 @@
-"""Training with the feature encoder frozen (optim.freeze_encoder, --freeze-encoder) and the forward's
-``features=`` hook: the encoder (weights and batch-norm statistics) stays bit-identical while the rest trains, its
-forward keeps no graph, resume works, and precomputed features give the same output as the encoder itself."""
+"""OptStereo's frozen encoder (``freeze_encoder``) and the forward's ``features=`` hook, which issue 49's recipe table
+(pipelines/studies/recipe_table.py) trains with: the trainer has no flag for them since that table chose the whole
+network, so these tests freeze the model the trainer builds as the study does. The encoder (weights and batch-norm
+statistics) stays bit-identical while the rest trains, its forward keeps no graph, resume works, and precomputed
+features give the same output as the encoder itself."""
 
 from __future__ import annotations
 
@@ -8,17 +10,13 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
-from click.testing import CliRunner
 from conftest import TINY, tiny_config
 
 from optstereo.checkpoint import load_checkpoint
-from optstereo.cli import train_main
 from optstereo.models import build_model
 from optstereo.models.optstereo import normalize_image
 from optstereo.training import loop
 from optstereo.training.checkpoints import config_for_resume
-from pvm_labeler.common.errors import ConfigError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -31,13 +29,21 @@ def _pair(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.rand(2, 3, 32, 64, generator=g) * 255, torch.rand(2, 3, 32, 64, generator=g) * 255
 
 
+@pytest.fixture
+def frozen_trainer(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every model the trainer builds is frozen before its weights load and its optimiser is built (the study's way)."""
+    build = loop.build_model
+    monkeypatch.setattr(loop, "build_model", lambda cfg: build(cfg).freeze_encoder())
+
+
 def _frozen_run(labels: Path, out: Path, **changes) -> dict:
-    return loop.main(tiny_config(labels, out, freeze_encoder=True, model_overrides=TINY_BN, **changes))
+    return loop.main(tiny_config(labels, out, model_overrides=TINY_BN, **changes))
 
 
+@pytest.mark.usefixtures("frozen_trainer")
 class TestFrozenTraining:
     def test_encoder_bit_identical_and_the_rest_trains(self, tiny_shards: Path, tmp_path: Path) -> None:
-        cfg = tiny_config(tiny_shards, tmp_path / "run", freeze_encoder=True, model_overrides=TINY_BN, steps=3)
+        cfg = tiny_config(tiny_shards, tmp_path / "run", model_overrides=TINY_BN, steps=3)
         torch.manual_seed(cfg.seed)  # what loop._run does before building the model: the same init
         init = loop.build_model(cfg).state_dict()
         loop.main(cfg)
@@ -50,8 +56,8 @@ class TestFrozenTraining:
         assert any(k.startswith("update_block.") for k in changed) and any(k.startswith("upsampler.") for k in changed)
 
     def test_optimizer_holds_only_trainable_parameters(self, tiny_shards: Path, tmp_path: Path) -> None:
-        cfg = tiny_config(tiny_shards, tmp_path / "run", freeze_encoder=True, model_overrides=TINY_BN)
-        model = loop.build_model(cfg).freeze_encoder()
+        cfg = tiny_config(tiny_shards, tmp_path / "run", model_overrides=TINY_BN)
+        model = loop.build_model(cfg)
         optimizer, _ = loop.build_optimizer(model, cfg)
         held = {id(p) for group in optimizer.param_groups for p in group["params"]}
         trainable = {id(p) for n, p in model.named_parameters() if not n.startswith("feature_encoder.")}
@@ -63,7 +69,6 @@ class TestFrozenTraining:
         resumed = loop.main(config_for_resume(tmp_path / "part", {"steps": 4}), resume=True)
         assert resumed["start_step"] == 2 and resumed["step"] == 4
         a, b = load_checkpoint(tmp_path / "full"), load_checkpoint(tmp_path / "part")
-        assert b.train_config["optim"]["freeze_encoder"] is True
         for key in a.model_state:
             torch.testing.assert_close(b.model_state[key], a.model_state[key], rtol=1e-5, atol=1e-6)
         assert (tmp_path / "part" / "model.safetensors").is_file()
@@ -114,15 +119,3 @@ class TestFeaturesHook:
         left, right = _pair()
         with pytest.raises(ValueError, match=r"features must be \[F_l; F_r\].*\(4, 4, 8\), got \(2, 16, 4, 8\)"):
             model(left, right, features=torch.zeros(2, 16, 4, 8))
-
-
-class TestConfig:
-    @pytest.mark.parametrize("args", [["--freeze-encoder"], ["--set", "optim.freeze_encoder=true"]])
-    def test_flag_and_set(self, args: list[str]) -> None:
-        result = CliRunner().invoke(train_main, [*args, "--print-config"])
-        assert result.exit_code == 0, result.output
-        assert yaml.safe_load(result.output)["optim"]["freeze_encoder"] is True
-
-    def test_exception_hitnet_has_no_encoder_to_freeze(self, tmp_path: Path) -> None:
-        with pytest.raises(ConfigError, match="--freeze-encoder fixes OptStereo's feature encoder; model 'hitnet'"):
-            tiny_config(tmp_path, tmp_path, model="hitnet", model_overrides={}, freeze_encoder=True)

@@ -63,8 +63,6 @@ _D = TrainConfig()
 @click.option("--batch-size", type=int, help=f"Samples per step per rank. [default: {_D.data.batch_size}]")
 @click.option("--lr", type=float, help=f"Adam learning rate (paper: 1e-4). [default: {_D.optim.lr}]")
 @click.option("--schedule", type=click.Choice(SCHEDULES), help=f"LR schedule. [default: {_D.optim.schedule}]")
-@click.option("--freeze-encoder/--no-freeze-encoder", default=None,
-              help="Train with the feature encoder fixed (no gradient, batch norms in eval mode). [default: off]")
 @click.option("--clip-grad", type=float, help=f"Max gradient norm, <= 0 disables. [default: {_D.optim.clip_grad}]")
 @click.option("--gamma", type=float, help=f"Sequence weight base of L_P. [default: {_D.loss.gamma}]")
 @click.option("--lambda-r", type=float, help="Weight of L_R. [default: 0.1 for pvm, 0 for gt]")

@@ -115,8 +115,6 @@ class TrainConfig:
             (self.amp in AMP_MODES, f"--amp must be one of {AMP_MODES}, got {self.amp!r}"),
             (self.device in DEVICES, f"--device must be one of {DEVICES}, got {self.device!r}"),
             (self.log_every >= 1 and self.ckpt_every >= 1, "log_every and ckpt_every must be >= 1"),
-            (not self.optim.freeze_encoder or isinstance(self.model, ModelConfig),
-             f"--freeze-encoder fixes OptStereo's feature encoder; model {self.model.name!r} has none"),
         ]
         for ok, message in checks:
             if not ok:

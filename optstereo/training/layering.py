@@ -30,7 +30,7 @@ FLAT_KEYS: dict[str, str] = {
     "occlude_p": "data.occlude_p", "scale_range": "data.scale_range", "cascade_p": "data.cascade_p",
     "max_disp": "data.max_label_disp", "workers": "data.workers", "shuffle_buffer": "data.shuffle_buffer",
     "steps": "optim.steps", "lr": "optim.lr", "weight_decay": "optim.weight_decay", "schedule": "optim.schedule",
-    "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad", "freeze_encoder": "optim.freeze_encoder",
+    "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
     "val_dataset": "val.dataset", "val_root": "val.root", "val_limit": "val.limit",
     "val_set": "val.valset",
 }

@@ -355,8 +355,6 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     model = build_model(cfg)
     if ckpt is None and cfg.init is not None:
         init_weights(model, init_ckpt if init_ckpt is not None else cfg.init)
-    if cfg.optim.freeze_encoder:
-        model.freeze_encoder()  # before the optimiser is built: it takes the trainable parameters only
     model = model.to(device)
     optimizer, scheduler = build_optimizer(model, cfg)
     scaler = torch.amp.GradScaler(device.type, enabled=cfg.amp == "fp16" and device.type == "cuda")

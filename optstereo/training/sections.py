@@ -287,9 +287,6 @@ class OptimConfig(_Section):
         schedule: "constant" or "onecycle" (linear warm-up over pct_start, linear decay).
         pct_start: OneCycle warm-up fraction.
         clip_grad: max global gradient norm (<= 0 disables clipping).
-        freeze_encoder: train with the feature encoder fixed (OptStereo's ``freeze_encoder``): no gradient, no
-            activations kept, batch norms in eval mode; the optimiser holds only the other parameters. The frozen
-            weights are still saved in every checkpoint and export.
     """
 
     NAME: ClassVar[str] = "optim"
@@ -300,7 +297,6 @@ class OptimConfig(_Section):
     schedule: Schedule = "constant"
     pct_start: float = 0.05
     clip_grad: float = 1.0
-    freeze_encoder: bool = False
 
     def __post_init__(self) -> None:
         _require([

@@ -9,7 +9,8 @@ is scored on a GT-free validation set (``optstereo-eval --valset``); row 0 is th
 Recipes (one change each against ``whole``):
 
     whole        the whole network (the trainer's CPU recipe: its crop and N_s)
-    frozen       --freeze-encoder: the feature encoder fixed, no backward through it
+    frozen       the feature encoder fixed, no backward through it (``OptStereo.freeze_encoder``; the trainer has no
+                 flag for it since this table chose ``whole``: the study runs the trainer with the model frozen)
     cached       the encoder's features of ONE fixed crop per training pair (bottom rows, centred) precomputed into
                  OUT/cached/cache/*.npz, then the rest (correlation, GRU, upsampler) trained on them with the same
                  losses (L_P confidence-weighted, L_R, L_S); no augmentation is possible (the features belong to the
@@ -44,6 +45,8 @@ import numpy as np
 #: from whatever checkout the environment's console scripts were installed from (a git worktree shares one .venv).
 REPO = Path(__file__).resolve().parents[2]
 TRAIN = [sys.executable, "-m", "optstereo.cli", "train"]
+#: The trainer with OptStereo's encoder frozen before the optimiser is built (``python -m ... train-frozen FLAGS``).
+TRAIN_FROZEN = [sys.executable, "-m", "pipelines.studies.recipe_table", "train-frozen"]
 EVAL = [sys.executable, "-m", "optstereo.cli", "eval"]
 RECIPE = Path(__file__).resolve().parent / "recipes" / "cpu_main.yaml"
 RECIPES = ("whole", "frozen", "cached", "small_crop", "fewer_iters", "bf16")
@@ -71,7 +74,7 @@ def recipe_flags(name: str) -> list[str]:
 
     recipe = TrainConfig.load(RECIPE)
     crop = half_area(recipe.data.crop)
-    return {"whole": [], "frozen": ["--freeze-encoder"], "cached": ["--freeze-encoder"],
+    return {"whole": [], "frozen": [], "cached": [],
             "small_crop": ["--crop", f"{crop[0]}x{crop[1]}"], "fewer_iters": ["--iters", str(recipe.model.iters // 2)],
             "bf16": ["--amp", "bf16"]}[name]
 
@@ -208,14 +211,15 @@ def run_recipe(name: str, args: argparse.Namespace) -> dict[str, Any]:
         if name == "cached":
             train_cached(run_dir, flags, args.threads)
         elif not model.is_file():
-            _run([*TRAIN, *flags, "--out", str(run_dir)], args.threads)
+            _run([*(TRAIN_FROZEN if name == "frozen" else TRAIN), *flags, "--out", str(run_dir)], args.threads)
     scores = score(model, args.valset, run_dir / "val", args.threads)
     summary = json.loads((run_dir / "summary.json").read_text())
     from optstereo.training.config import TrainConfig
 
     batch = TrainConfig.load(RECIPE).data.batch_size
     steps = summary["step"] - summary["start_step"]
-    change = "fixed crops, cached encoder features" if name == "cached" else " ".join(recipe_flags(name))
+    change = {"cached": "fixed crops, cached encoder features", "frozen": "encoder frozen"}.get(
+        name, " ".join(recipe_flags(name)))
     row = {"recipe": name, "flags": change or "(the recipe)", "steps": steps, "seconds": summary["seconds"],
            "steps_per_s": steps / summary["seconds"], "samples_per_s": steps * batch / summary["seconds"], **scores}
     if "cache_seconds" in summary:
@@ -268,5 +272,19 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     return rows
 
 
+def train_frozen(argv: list[str]) -> None:
+    """``optstereo-train ARGV`` with every OptStereo the trainer builds frozen (``OptStereo.freeze_encoder``), before
+    its weights are loaded and its optimiser (which takes the trainable parameters only) is built."""
+    from optstereo.cli.train import train_main
+    from optstereo.training import loop
+
+    build = loop.build_model
+    loop.build_model = lambda cfg: build(cfg).freeze_encoder()
+    train_main.main(args=argv, prog_name="optstereo-train (encoder frozen)")
+
+
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:2] == ["train-frozen"]:
+        train_frozen(sys.argv[2:])
+    else:
+        main()

@@ -12,7 +12,7 @@ import torch
 from conftest import TINY, make_shards
 
 from optstereo import validation
-from optstereo.checkpoint import export_safetensors
+from optstereo.checkpoint import export_safetensors, load_checkpoint
 from optstereo.models import build_model
 from optstereo.training import distill
 from pipelines.studies import recipe_table
@@ -54,7 +54,13 @@ def test_table_end_to_end_and_resumes(tmp_path: Path, monkeypatch: pytest.Monkey
     from optstereo.inference.engine import cpu_has_native_bf16
     assert ("steps" in rows["bf16"]) == cpu_has_native_bf16()
     table = (tmp_path / "out" / "table.md").read_text()
-    assert "| frozen | --freeze-encoder |" in table
+    assert "| frozen | encoder frozen |" in table
+    start, frozen, whole = (load_checkpoint(p).model_state for p in
+                            (init, tmp_path / "out" / "frozen" / "model.safetensors",
+                             tmp_path / "out" / "whole" / "model.safetensors"))
+    encoder = [k for k in start if k.startswith("feature_encoder.")]
+    assert all(torch.equal(frozen[k], start[k]) for k in encoder)  # the frozen run kept its encoder
+    assert not all(torch.equal(whole[k], start[k]) for k in encoder)  # the whole one trained it
     assert json.loads((tmp_path / "out" / "table.json").read_text())["rows"][1]["recipe"] == "whole"
 
     def no_training(cmd: list[str], threads: int) -> None:
