@@ -1,24 +1,17 @@
 """The default one-pass inference of a fixed (H, W) as one CUDA graph: uint8 pair in, disparity out (issue 52).
 
 :class:`GraphedPass` holds static buffers for one input size and runs, on the device, what
-``optstereo.inference.engine.run`` does for a plain one-pass config: the uint8 -> float batch of ``to_batch``, the
-resize by ``InferenceConfig.scale`` (as ``optstereo.inference.rescale.rescaled_pair``), the padding
-(``InputPadder``), the network in test mode (with the caller's autocast), the unpadding and the disparity back at the
-input's size and pixels (``disparity_to_size``). On CUDA the whole of it is captured once as a ``torch.cuda.CUDAGraph``
-and each call replays it: no Python, no kernel launches, no allocations per frame. On the CPU the same static-buffer
-pipeline runs eagerly, so tests/test_graphed.py holds it equal to ``infer`` on machines without a GPU.
+``optstereo.inference.engine.run`` does for a plain one-pass config at input scale 1: the uint8 -> float batch of
+``to_batch``, the padding (``InputPadder``), the network in test mode (with the caller's autocast) and the unpadding.
+On CUDA the whole of it is captured once as a ``torch.cuda.CUDAGraph`` and each call replays it: no Python, no kernel
+launches, no allocations per frame. On the CPU the same static-buffer pipeline runs eagerly, so tests/test_graphed.py
+holds it equal to ``infer`` on machines without a GPU.
 
 Only configs whose pass does not depend on the data can be captured: ``coarse_start``, ``select`` and a post-filter
 (``refine``) are refused by name; the adaptive second pass (``adaptive_ref_disp``) only where it can never run at
 this size (its pixel bound keeps the factor below ``ADAPTIVE_MIN_GAIN``: every KITTI size for the shipped model).
-
-On CUDA only scale 1 is captured (the shipped default's scale on KITTI frames): the resize below agreed with
-``infer`` on the CPU but not on an H200 (0.23 px at scale 0.5). The resize (``scale`` < 1, CPU) is a dense
-matrix per axis built once with OpenCV's ``INTER_AREA`` weights, and the
-disparity goes back with ``INTER_LINEAR``'s, both applied in float64: the images equal ``rescaled_pair``'s exactly
-and the disparity ``disparity_to_size``'s to float32 rounding (tests/test_graphed.py: <= 1e-4 px). An enlarging
-``scale`` (> 1) is refused: OpenCV's uint8 bilinear resize works in 11-bit fixed point, which float weights miss by
-one grey level at ~10 % of the pixels (0.4 px of disparity on a random tiny model).
+A resize (``scale`` != 1) is refused: on an H200 (2026-11-27) a device-side resize at scale 0.5 differed from
+``infer``'s OpenCV resize by 0.23 px, and the shipped default runs KITTI frames at scale 1.
 """
 
 from __future__ import annotations
@@ -35,40 +28,11 @@ from optstereo.choices import AmpMode
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import inference_autocast, model_inference_config
 from optstereo.inference.padding import InputPadder, divisor_of
-from optstereo.inference.rescale import ADAPTIVE_MIN_GAIN, scaled_size
+from optstereo.inference.rescale import ADAPTIVE_MIN_GAIN
 
-__all__ = ["GraphedPass", "resize_weights"]
+__all__ = ["GraphedPass", "check_capturable"]
 
 WARMUP_CALLS = 3  # eager calls on a side stream before capture (cuDNN/cuBLAS workspaces, lazy inits)
-
-
-def resize_weights(n_in: int, n_out: int, area: bool) -> npt.NDArray[np.float64]:
-    """(n_out, n_in) float64 matrix of OpenCV's 1-D resize weights: ``cv2.INTER_AREA`` (``area``, for shrinking) or
-    ``cv2.INTER_LINEAR`` (pixel centres at +0.5, edge samples clamped). ``R @ x`` resizes a column of length n_in."""
-    weights = np.zeros((n_out, n_in))
-    step = n_in / n_out
-    for i in range(n_out):
-        if area and n_out < n_in:  # the overlap of [i, i + 1) * step with each source pixel: computeResizeAreaTab
-            lo, hi = i * step, (i + 1) * step
-            cell = min(step, n_in - lo)
-            first, last = math.ceil(lo), min(math.floor(hi), n_in - 1)  # the source pixels fully inside
-            first = min(first, last)
-            if first - lo > 1e-3:  # OpenCV drops slivers of at most 1e-3 pixel at both ends
-                weights[i, first - 1] = (first - lo) / cell
-            weights[i, first:last] = 1.0 / cell
-            if hi - last > 1e-3:
-                weights[i, last] = min(hi - last, 1.0, cell) / cell
-        else:
-            pos = (i + 0.5) * step - 0.5
-            j = math.floor(pos)
-            frac = pos - j
-            if j < 0:
-                j, frac = 0, 0.0
-            if j >= n_in - 1:
-                j, frac = n_in - 1, 0.0
-            weights[i, j] += 1.0 - frac
-            weights[i, min(j + 1, n_in - 1)] += frac
-    return weights
 
 
 class GraphedPass:
@@ -84,8 +48,8 @@ class GraphedPass:
         shape: (H, W) of every input pair.
         device: where it runs; CUDA captures a graph, the CPU runs the same pipeline eagerly.
         iters: GRU iterations (None = the model's InferenceConfig, else its default).
-        scale: input resize factor (None = the model's ``InferenceConfig.scale``; given, the adaptive pass is off,
-            as in ``infer``).
+        scale: input scale (None = the model's ``InferenceConfig.scale``; given, the adaptive pass is off, as in
+            ``infer``); only 1 is captured.
         amp: ``none`` (float32), ``bf16`` or ``fp16`` (CUDA), as ``infer``.
 
     Raises:
@@ -104,12 +68,8 @@ class GraphedPass:
         self.amp = amp
         inference_autocast(amp, self.device)  # validates amp (fp16 needs CUDA) and warns on emulated CPU bf16
         self.config = model_inference_config(model, iters, scale)
-        check_capturable(self.config, (self.height, self.width), self.device)
-        #: (h, w) the network sees before padding: rescaled_pair's size
-        self.resized = (self.height, self.width) if self.config.scale == 1.0 else \
-            scaled_size((self.height, self.width), self.config.scale)
-        self.padder = InputPadder(self.resized, divis_by=divisor_of(model))
-        self._build_resize()
+        check_capturable(self.config, (self.height, self.width))
+        self.padder = InputPadder((self.height, self.width), divis_by=divisor_of(model))
         self.graph: torch.cuda.CUDAGraph | None = None
         pin = self.device.type == "cuda"
         self._pair = torch.zeros((2, self.height, self.width, 3), dtype=torch.uint8, device=self.device)
@@ -119,25 +79,10 @@ class GraphedPass:
         if self.device.type == "cuda":
             self._capture()
 
-    def _build_resize(self) -> None:
-        """The device's resize matrices: images (h, H), (w, W); disparity back (H, h), (W, w); None at scale 1."""
-        self._resize = None
-        if self.config.scale == 1.0:
-            return
-        (h, w), (big_h, big_w) = self.resized, (self.height, self.width)
-        # rescaled_pair shrinks with INTER_AREA (check_capturable refused enlarging), disparity_to_size: INTER_LINEAR
-        mats = (resize_weights(big_h, h, True), resize_weights(big_w, w, True),
-                resize_weights(h, big_h, False), resize_weights(w, big_w, False))
-        self._resize = tuple(torch.from_numpy(m).to(self.device) for m in mats)
-
     @torch.inference_mode()
     def _pipeline(self) -> torch.Tensor:
         """Static uint8 pair -> (H, W) float32 disparity, all on the device, no host syncs (capturable)."""
         pair = self._pair.permute(0, 3, 1, 2).contiguous().float()  # (2, 3, H, W), as to_batch
-        if self._resize is not None:
-            rows, cols = self._resize[0], self._resize[1]
-            resized = torch.matmul(torch.matmul(rows, pair.double()), cols.T)
-            pair = resized.round_().clamp_(0, 255).float()  # rescaled_pair returns uint8: round like saturate_cast
         left, right = self.padder.pad(pair[:1], pair[1:])
         was_training = self.model.training
         self.model.eval()
@@ -146,11 +91,8 @@ class GraphedPass:
                 _, full = self.model(left, right, iters=self.config.iters, test_mode=True)
         finally:
             self.model.train(was_training)
-        disp = self.padder.unpad(full)[0, 0].float()
-        if self._resize is not None:
-            rows, cols = self._resize[2], self._resize[3]
-            disp = (torch.matmul(torch.matmul(rows, disp.double()), cols.T) * (self.width / disp.shape[1])).float()
-        return disp.contiguous()  # the unpadded view copied inside the graph: the copy out needs no staging tensor
+        # the unpadded view copied inside the graph: the copy out needs no staging tensor
+        return self.padder.unpad(full)[0, 0].float().contiguous()
 
     def _autocast(self) -> contextlib.AbstractContextManager:
         """Autocast as ``inference_autocast`` on the CPU; on CUDA without its weight-cast cache, whose tensors are
@@ -195,26 +137,20 @@ class GraphedPass:
         return self._host_out.numpy().copy()
 
 
-def check_capturable(config: InferenceConfig, shape: tuple[int, int],
-                     device: torch.device | str = "cpu") -> None:
-    """Raise ValueError naming the setting unless ``config`` makes one zero-start pass at a scale <= 1 (exactly 1 on
-    CUDA) on an (H, W) pair whatever its content: no coarse start (so no selection), no post-filter, and an adaptive
-    pass only where its pixel bound keeps it from ever running (``optstereo.inference.rescale.adaptive_factor``)."""
+def check_capturable(config: InferenceConfig, shape: tuple[int, int]) -> None:
+    """Raise ValueError naming the setting unless ``config`` makes one zero-start pass at input scale 1 on an (H, W)
+    pair whatever its content: no resize, no coarse start (so no selection), no post-filter, and an adaptive pass
+    only where its pixel bound keeps it from ever running (``optstereo.inference.rescale.adaptive_factor``)."""
     config.validate()
-    if torch.device(device).type == "cuda" and config.scale != 1.0:
-        # measured on an H200 (2026-11-27): at scale 0.5 the graphed disparity differed from infer's by up to 0.23 px
-        # (a random tiny model) while at scale 1 it agreed within 1e-3 px; not captured until that is understood
-        raise ValueError(f"GraphedPass captures scale 1 only on CUDA (scale={config.scale}): its resize disagreed "
-                         "with infer's on a GPU; use infer, or scale=1")
+    if config.scale != 1.0:
+        raise ValueError(f"GraphedPass captures input scale 1 only (scale={config.scale}): a device-side resize "
+                         "disagreed with infer's on a GPU; use infer, or scale=1")
     if config.coarse_start:
         raise ValueError(f"GraphedPass runs one zero-start pass: coarse_start=True (select={config.select}) needs "
                          "more passes, use infer")
     if config.refine != "none":
         raise ValueError(f"GraphedPass runs no post-filter: refine={config.refine!r} is not captured, use infer "
                          "or refine='none'")
-    if config.scale > 1:
-        raise ValueError(f"GraphedPass does not reproduce an enlarging resize (scale={config.scale} > 1: OpenCV's "
-                         "fixed-point uint8 bilinear); use infer, or a scale <= 1")
     if config.adaptive:
         h, w = shape
         bound = math.sqrt(config.adaptive_ref_pixels / (h * w))

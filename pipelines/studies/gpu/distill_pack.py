@@ -52,7 +52,7 @@ def _digest(path: Path) -> str:
 def pairs(sets: list[SetSpec], exclude: set[str] = frozenset()) -> list[tuple[str, PairRef]]:
     """(prefix, pair) of every pair of ``sets`` whose left file's MD5 is not in ``exclude``."""
     return [(prefix, ref) for prefix, reader, root, kw in sets for ref in discover(reader, root, **kw)
-            if _digest(Path(ref.left)) not in exclude]
+            if not exclude or _digest(Path(ref.left)) not in exclude]
 
 
 def encode(rgb: np.ndarray, fmt: str, quality: int) -> bytes:
