@@ -53,14 +53,8 @@ def write_disparity(out_dir: Path, name: str, disp: np.ndarray, formats: tuple[s
     out_dir.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
     for fmt in formats:
-        path = out_dir / f"{name}.{fmt}"
-        if fmt == "png":
-            io.write_kitti_disp(path, disp)
-        elif fmt == "pfm":
-            io.write_pfm(path, disp)
-        else:
-            io.write_npy(path, disp.astype(np.float32))
-        paths[fmt] = path
+        paths[fmt] = out_dir / f"{name}.{fmt}"
+        io.write_disparity_file(paths[fmt], disp)
     return paths
 
 

@@ -71,6 +71,25 @@ class TestKittiDisp:
             io.read_kitti_disp(tmp_path / "eight.png")
 
 
+class TestDisparityFile:
+    def test_each_suffix_round_trips(self, tmp_path: Path) -> None:
+        disp = np.array([[1.5, np.nan], [40.25, 0.0]], np.float32)
+        io.write_disparity_file(tmp_path / "d.png", disp)
+        io.write_disparity_file(tmp_path / "d.pfm", disp)
+        io.write_disparity_file(tmp_path / "d.npy", disp.astype(np.float64))
+        kitti = io.read_kitti_disp(tmp_path / "d.png")  # x 256 exactly here; 0 and NaN are "no disparity"
+        np.testing.assert_array_equal(kitti, np.array([[1.5, np.nan], [40.25, np.nan]], np.float32))
+        np.testing.assert_array_equal(io.read_pfm(tmp_path / "d.pfm"), disp)
+        npy = np.load(tmp_path / "d.npy")
+        assert npy.dtype == np.float32
+        np.testing.assert_array_equal(npy, disp)
+
+    def test_exception(self, tmp_path: Path) -> None:
+        with pytest.raises(InputError, match=r"d.tif: a disparity file is one of png, pfm, npy"):
+            io.write_disparity_file(tmp_path / "d.tif", np.zeros((2, 2), np.float32))
+        assert not (tmp_path / "d.tif").exists()
+
+
 class TestReadImage:
     def test_rgb_order(self, tmp_path: Path) -> None:
         bgr = np.zeros((2, 3, 3), np.uint8)

@@ -24,7 +24,7 @@ from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_
 from optstereo.inference.engine import infer
 from optstereo.submission import write_submission
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
-from pvm_labeler.common.io import read_image, write_image, write_kitti_disp, write_npy, write_pfm
+from pvm_labeler.common.io import read_image, write_disparity_file, write_image, write_npy, write_pfm
 from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)
@@ -58,18 +58,12 @@ def write_disparity(
     for fmt in formats:
         folder = out_dir / folders.get(fmt, "")
         folder.mkdir(parents=True, exist_ok=True)
-        if fmt == "png":
-            paths[fmt] = folder / f"{name}.png"
-            write_kitti_disp(paths[fmt], disp)
-        elif fmt == "pfm":
-            paths[fmt] = folder / f"{name}.pfm"
-            write_pfm(paths[fmt], disp.astype(np.float32))
-        elif fmt == "npy":
-            paths[fmt] = folder / f"{name}.npy"
-            write_npy(paths[fmt], disp.astype(np.float32))
-        else:
+        if fmt == "color":
             paths[fmt] = folder / f"{name}_color.png"
             write_image(paths[fmt], colorize(disp, max_disp))
+        else:
+            paths[fmt] = folder / f"{name}.{fmt}"
+            write_disparity_file(paths[fmt], disp)
     return paths
 
 

@@ -226,3 +226,19 @@ def image_size(path: Path | str) -> tuple[int, int]:
     except (UnidentifiedImageError, OSError) as exc:
         raise InputError(f"corrupt or unreadable image header: {path} ({exc})") from exc
     return int(height), int(width)
+
+
+#: The disparity file formats every command writes, by suffix: KITTI 16-bit PNG, PFM, NumPy (float32 both).
+DISPARITY_SUFFIXES = ("png", "pfm", "npy")
+
+
+def write_disparity_file(path: Path | str, disp: np.ndarray) -> None:
+    """Write an (H, W) disparity in the format its suffix names (``DISPARITY_SUFFIXES``), atomically."""
+    suffix = Path(path).suffix.lstrip(".").lower()
+    if suffix == "png":
+        write_kitti_disp(path, disp)
+    elif suffix in ("pfm", "npy"):
+        (write_pfm if suffix == "pfm" else write_npy)(path, np.asarray(disp, dtype=np.float32))
+    else:
+        raise InputError(f"{path}: a disparity file is one of {', '.join(DISPARITY_SUFFIXES)}")
+

@@ -17,13 +17,13 @@ import json
 import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 from optstereo.training.distill import MAX_LR_DIFF, consistent_views, read_teacher_maps
 from optstereo.validation import shard_samples
 from pvm_labeler.common.datasets import safe_stem
+from pvm_labeler.common.io import write_kitti_disp
 from pvm_labeler.shards.reader import INDEX_NAME, read_index
 
 
@@ -50,11 +50,6 @@ def merge(dest: Path, sources: list[Path]) -> int:
     return doc["num_samples"]
 
 
-def to_png16(disp: np.ndarray) -> np.ndarray:
-    """(H, W) float32 disparity with NaN = none -> uint16 x 256, 0 = none (KITTI's disparity PNG)."""
-    return np.where(np.isfinite(disp) & (disp > 0), np.clip(np.round(disp * 256.0), 1, 65535), 0).astype(np.uint16)
-
-
 def write_fills(labels: Path, maps: Path, out: Path, max_lr_diff: float = MAX_LR_DIFF) -> tuple[int, float]:
     """``out/<id>_left.png`` / ``_right.png`` of every pair of ``labels`` with a teacher map; (pairs, mean fill %)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -67,8 +62,7 @@ def write_fills(labels: Path, maps: Path, out: Path, max_lr_diff: float = MAX_LR
         for side, label, teacher in (("left", sample.label, views[0]), ("right", sample.label_right, views[1])):
             fill = np.where(np.isfinite(label), np.nan, teacher)
             filled += float(np.isfinite(fill).mean()) / 2
-            if not cv2.imwrite(str(out / f"{safe_stem(sample.frame_id)}_{side}.png"), to_png16(fill)):
-                raise OSError(f"cannot write {out}")
+            write_kitti_disp(out / f"{safe_stem(sample.frame_id)}_{side}.png", fill)
         n += 1
     return n, 100.0 * filled / max(n, 1)
 
