@@ -8,6 +8,9 @@ less the pairs whose left image is byte-identical to one of part ``shared`` (57 
 
     python -m pipelines.studies.gpu.distill_pack .carry/A --part shared --format webp --budget-mb 37
     python -m pipelines.studies.gpu.distill_pack .carry/B --part more --more /work/unl_more --format webp --budget-mb 37
+
+``--format link`` writes symbolic links to the original files instead (same names, lossless, no budget): the packs a
+CPU run reads here, e.g. the teacher's maps of every pair (``optstereo-distill maps --root PACK``).
 """
 
 from __future__ import annotations
@@ -85,13 +88,24 @@ def write_pack(refs: list[tuple[str, PairRef]], out: Path, fmt: str, budget_mb: 
     return len(images), quality, size
 
 
+def link_pack(refs: list[tuple[str, PairRef]], out: Path) -> int:
+    """Symbolic links ``out/{left,right}/<prefix>_<frame id><suffix>`` to every pair's original files; the pairs."""
+    shutil.rmtree(out, ignore_errors=True)
+    for side in ("left", "right"):
+        (out / side).mkdir(parents=True)
+    for prefix, ref in refs:
+        for side, path in (("left", Path(ref.left)), ("right", Path(ref.right))):
+            (out / side / f"{prefix}_{ref.frame_id}{path.suffix.lower()}").symlink_to(path.resolve())
+    return len(refs)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
     parser.add_argument("--part", choices=("shared", "more"), default="shared")
     parser.add_argument("--shared", type=Path, default=SHARED)
     parser.add_argument("--more", type=Path, help="The folder fetch_unlabelled_more.sh filled (--part more).")
-    parser.add_argument("--format", choices=tuple(PARAMS), default="jpg")
+    parser.add_argument("--format", choices=(*PARAMS, "link"), default="jpg")
     parser.add_argument("--budget-mb", type=float, default=44.0)
     args = parser.parse_args(argv)
     if args.part == "shared":
@@ -101,6 +115,9 @@ def main(argv: list[str] | None = None) -> None:
             parser.error("--part more needs --more DIR")
         seen = {_digest(Path(ref.left)) for _, ref in pairs(shared_sets(args.shared))}
         refs = pairs(more_sets(args.more), exclude=seen)
+    if args.format == "link":
+        print(f"{link_pack(refs, args.out)} pairs -> {args.out} (links to the originals)")
+        return
     n, quality, size = write_pack(refs, args.out, args.format, args.budget_mb)
     print(f"{n} pairs -> {args.out} ({args.format} q{quality}, {size / 1e6:.1f} MB)")
 

@@ -1,0 +1,65 @@
+"""The distillation packs of issue 49 (pipelines/studies/gpu/distill_pack.py): pairs named ``<set>_<frame id>``,
+the byte-identical left images of another part excluded, the encoded pack under its budget, and ``--format link``
+packs that the folder reader reads with the originals' pixels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipelines.studies.gpu import distill_pack
+from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.io import read_image
+
+
+def _rig(root: Path, names: list[str], seed: int) -> None:
+    """A ``fetch_unlabelled_more.sh``-style set: ``root/{image_2,image_3}/<name>.png``, random pixels."""
+    rng = np.random.default_rng(seed)
+    for side in ("image_2", "image_3"):
+        (root / side).mkdir(parents=True)
+        for name in names:
+            cv2.imwrite(str(root / side / f"{name}.png"), rng.integers(0, 256, (24, 40, 3), dtype=np.uint8))
+
+
+@pytest.fixture()
+def more(tmp_path: Path) -> Path:
+    _rig(tmp_path / "more" / "desk", ["a", "b"], seed=0)
+    _rig(tmp_path / "more" / "road", ["c"], seed=1)
+    return tmp_path / "more"
+
+
+def test_link_pack_reads_the_originals(more: Path, tmp_path: Path) -> None:
+    refs = distill_pack.pairs(distill_pack.more_sets(more))
+    assert distill_pack.link_pack(refs, tmp_path / "pack") == 3
+    packed = discover("folder", tmp_path / "pack", left="left", right="right")
+    assert sorted(ref.frame_id for ref in packed) == ["fm_desk_a", "fm_desk_b", "fm_road_c"]
+    for ref in packed:
+        assert Path(ref.left).is_symlink()
+        _, name = ref.frame_id.rsplit("_", 1)
+        folder = "desk" if name in "ab" else "road"
+        for got, side in ((ref.left, "image_2"), (ref.right, "image_3")):
+            np.testing.assert_array_equal(read_image(got), read_image(more / folder / side / f"{name}.png"))
+
+
+def test_link_pack_replaces_an_older_pack(more: Path, tmp_path: Path) -> None:
+    (tmp_path / "pack" / "left").mkdir(parents=True)
+    (tmp_path / "pack" / "left" / "stale.png").write_bytes(b"x")
+    distill_pack.link_pack(distill_pack.pairs(distill_pack.more_sets(more)), tmp_path / "pack")
+    assert not (tmp_path / "pack" / "left" / "stale.png").exists()
+
+
+def test_exclude_drops_byte_identical_left_images(more: Path) -> None:
+    seen = {distill_pack._digest(more / "desk" / "image_2" / "a.png")}
+    refs = distill_pack.pairs(distill_pack.more_sets(more), exclude=seen)
+    assert sorted(ref.frame_id for _, ref in refs) == ["b", "c"]
+
+
+def test_write_pack_fits_the_budget(more: Path, tmp_path: Path) -> None:
+    refs = distill_pack.pairs(distill_pack.more_sets(more))
+    n, quality, size = distill_pack.write_pack(refs, tmp_path / "pack", "webp", budget_mb=1.0)
+    assert (n, quality) == (3, distill_pack.QUALITIES[0])
+    files = sorted((tmp_path / "pack").rglob("*.webp"))
+    assert len(files) == 6 and sum(f.stat().st_size for f in files) == size
