@@ -1,0 +1,256 @@
+"""Issue 49.3: one distillation run that continues over days, in chapters, on whatever machine is at hand.
+
+The run is a folder. Each chapter trains from the weights the previous chapter ended with (version 15 for the first)
+on every unlabelled pair that has the teacher's maps by then, for a wall-clock budget, and appends one line to the
+run's ledger (``RUN/ledger.jsonl``): the machine, steps, hours and the GT-free validation score at each checkpoint.
+A chapter that was cut off is resumed (``optstereo-train --resume``) on the same data; a new chapter takes the
+pairs whose maps arrived since.
+
+One chapter:
+1. PVM labels of each pack (``pvm-label run --shard-size 1``: one pair per shard, resumable across chapters);
+2. the teacher's fills of the pairs whose maps exist (``optstereo-distill fill --allow-missing``, into the chapter);
+3. the chapter's training set: the filled shards of the pairs WITH maps (a pair without one would train on PVM's
+   sparse labels alone, which moved version 15 away from its distilled optimum: results/recipes/);
+4. ``optstereo-train --init PREVIOUS`` (or ``--resume``) with ``--val-set``: the student recipe of version 15 at the
+   CPU's size (``RECIPE`` below), ``best.safetensors`` by PVM EPE on the validation set;
+5. a ledger line.
+
+    python -m pipelines.studies.long_run chapter --run /work/runs/g2 --packs /work/pack/extra /work/pack/shared \
+        --maps /work/teacher_maps --valset /work/valset --minutes 120
+    python -m pipelines.studies.long_run curve --run /work/runs/g2 --out results/long_run    # curve.{md,json,png}
+
+No GT is read: the packs are unlabelled pairs (``distill_pack.py --format link``), and ``optstereo-distill fill``
+refuses shards that carry GT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from optstereo.training.distill import map_path
+from pvm_labeler.shards.reader import INDEX_NAME, read_index
+
+REPO = Path(__file__).resolve().parents[2]
+CPU_RECIPE = REPO / "pipelines" / "studies" / "recipes" / "cpu_main.yaml"
+#: G2's recipe (docs/registrations.md), on top of cpu_main.yaml: version 15's losses (L_P weighted by confidence +
+#: 0.1 L_R + 0.1 L_S, no L_T), a constant small learning rate (the run continues a converged student; a OneCycle
+#: schedule would restart at every chapter), no scale augmentation (the default runs at scale 1).
+RECIPE = ["--lambda-t", "0", "--conf-weight", "--schedule", "constant", "--lr", "2e-5", "--scale-range", "1.0,1.0",
+          "--batch-size", "2", "--crop", "256x640", "--iters", "4"]
+LEDGER = "ledger.jsonl"
+NO_STEP_CAP = 10**9
+
+
+def run_cmd(cmd: list[str], log: Path) -> None:
+    """Run ``cmd`` from the repository with its output appended to ``log``; raise naming the log on failure."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with log.open("a") as handle:
+        handle.write(f"$ {' '.join(cmd)}\n")
+        handle.flush()
+        code = subprocess.call(cmd, cwd=REPO, stdout=handle, stderr=subprocess.STDOUT)
+    if code:
+        raise SystemExit(f"{cmd[2:4]} failed (exit {code}): see {log}")
+
+
+def chapters(run: Path) -> list[Path]:
+    """The run's chapter folders ``ch01``, ``ch02``, ... in order."""
+    return sorted(p for p in run.glob("ch[0-9][0-9]") if p.is_dir())
+
+
+def with_maps(shard_dir: Path, maps: Path) -> list[tuple[Path, list[str]]]:
+    """(shard path, sample ids) of the shards of ``shard_dir`` all of whose pairs have a teacher map in ``maps``."""
+    return [(path, ids) for path, ids in read_index(shard_dir).shards
+            if all(map_path(maps, frame_id).is_file() for frame_id in ids)]
+
+
+def merge_selected(dest: Path, selected: list[tuple[Path, list[str]]], template: Path) -> int:
+    """``dest/index.json`` listing ``selected`` shards (symlinked as ``s<i>-<name>``), the rest of the index taken
+    from ``template``'s; the number of samples. An existing ``dest`` is replaced."""
+    shutil.rmtree(dest, ignore_errors=True)
+    dest.mkdir(parents=True)
+    doc = json.loads((template / INDEX_NAME).read_text())
+    shards = []
+    for i, (path, ids) in enumerate(selected):
+        name = f"s{i:04d}-{path.name}"
+        os.symlink(path.resolve(), dest / name)
+        shards.append({"file": name, "samples": ids, "count": len(ids)})
+    doc.update(shards=shards, num_samples=sum(s["count"] for s in shards))
+    (dest / INDEX_NAME).write_text(json.dumps(doc, indent=2))
+    return doc["num_samples"]
+
+
+def machine() -> dict[str, Any]:
+    """What ran the chapter: the CPU's model name and vector flags, the cores, the GPU if torch sees one."""
+    flags = ""
+    model = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and not model:
+                model = line.split(":", 1)[1].strip()
+            if line.startswith("flags"):
+                flags = line
+                break
+    except OSError:
+        pass
+    isa = "avx512" if "avx512f" in flags else "avx2" if "avx2" in flags else "other"
+    import torch
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return {"cpu": model or "unknown", "isa": isa, "cores": os.cpu_count(), "gpu": gpu}
+
+
+def val_curve(metrics: Path) -> list[dict[str, float]]:
+    """The validation rows of a run's ``metrics.jsonl``: step and every ``gtfree_*`` value."""
+    rows = []
+    for line in metrics.read_text().splitlines() if metrics.is_file() else []:
+        row = json.loads(line)
+        values = {k: v for k, v in row.items() if k.startswith("gtfree_")}
+        if values:
+            rows.append({"step": row["step"], **values})
+    return rows
+
+
+def chapter(args: argparse.Namespace) -> Path:
+    """Run (or resume) the run's current chapter; returns its folder."""
+    run: Path = args.run
+    done = chapters(run)
+    current = done[-1] if done and not (done[-1] / "done.json").is_file() else None
+    if current is None:
+        current = run / f"ch{len(done) + 1:02d}"
+        current.mkdir(parents=True)
+        previous = done[-1] / "run" / "model.safetensors" if done else None
+        (current / "start.json").write_text(json.dumps({"init": str(previous) if previous else args.init}))
+    init = json.loads((current / "start.json").read_text())["init"]
+    py = sys.executable
+    train_dir = current / "train"
+    if not (train_dir / INDEX_NAME).is_file():
+        selected: list[tuple[Path, list[str]]] = []
+        template = None
+        for pack in args.packs:
+            labels = run / "labels" / pack.name
+            run_cmd([py, "-m", "pvm_labeler.cli", "run", "--dataset", "folder", "--root", str(pack), "--out",
+                     str(labels), "--shard-size", "1", "--compression", "lzf", "--jobs", str(args.jobs), "--quiet"],
+                    run / "labels.log")
+            filled = current / "distill" / pack.name
+            run_cmd([py, "-m", "optstereo.cli", "distill", "fill", str(labels), str(args.maps), str(filled),
+                     "--compression", "lzf", "--allow-missing"], current / "fill.log")
+            selected += with_maps(filled, args.maps)
+            template = template or filled
+        if not selected:
+            raise SystemExit(f"no pair of {[str(p) for p in args.packs]} has a teacher map in {args.maps}")
+        n = merge_selected(train_dir, selected, template)
+        print(f"chapter {current.name}: {n} pairs with the teacher's maps")
+    out = current / "run"
+    train = [py, "-m", "optstereo.cli", "train", "--max-minutes", str(args.minutes), "--threads", str(args.threads),
+             "--quiet"]
+    resuming = (out / "last.pt").is_file()
+    if resuming:  # the run's saved config: same data, recipe and seed
+        train += ["--resume", str(out)]
+    else:
+        train += ["--config", str(CPU_RECIPE), *RECIPE, "--labels", str(train_dir), "--val-set", str(args.valset),
+                  "--val-limit", str(args.val_limit), "--steps", str(NO_STEP_CAP), "--ckpt-every", str(args.ckpt_every),
+                  "--seed", str(int(current.name[2:]) - 1), "--init", init, "--out", str(out)]
+    t0 = time.time()
+    run_cmd(train, current / "train.log")
+    summary = json.loads((out / "summary.json").read_text())
+    line = {"chapter": current.name, "init": init, "resumed": resuming, "pairs": read_index(train_dir).num_samples,
+            "steps": summary["step"], "hours": round((time.time() - t0) / 3600, 3), "machine": machine(),
+            "date": time.strftime("%Y-%m-%d"), "val": val_curve(out / "metrics.jsonl")}
+    with (run / LEDGER).open("a") as handle:
+        handle.write(json.dumps(line) + "\n")
+    (current / "done.json").write_text(json.dumps(line))
+    return current
+
+
+def curve(run: Path, out: Path, start: dict[str, float] | None = None) -> list[dict[str, Any]]:
+    """The run's learning curve over all chapters: one row per validation, cumulative steps and hours; written to
+    ``out/curve.json``, ``out/curve.md`` and ``out/curve.png``. ``start``: the init's own score (step 0). Hours are
+    summed over a chapter's ledger lines (one per session that ran it) and shown at its last validation."""
+    rows: list[dict[str, Any]] = [{"chapter": "start", "step": 0, "hours": 0.0, **(start or {})}] if start else []
+    by_chapter: dict[str, list[dict[str, Any]]] = {}
+    for text in (run / LEDGER).read_text().splitlines():
+        if text.strip():
+            line = json.loads(text)
+            by_chapter.setdefault(line["chapter"], []).append(line)
+    steps, hours = 0, 0.0
+    for name, lines in by_chapter.items():  # a resumed chapter's last line holds its whole run (metrics.jsonl)
+        last = lines[-1]
+        for row in last["val"]:
+            rows.append({"chapter": name, "machine": last["machine"]["gpu"] or last["machine"]["isa"],
+                         "step": steps + int(row["step"]), **{k: v for k, v in row.items() if k != "step"}})
+        steps += int(last["steps"])
+        hours += sum(line["hours"] for line in lines)
+        if rows:
+            rows[-1]["hours"] = round(hours, 2)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "curve.json").write_text(json.dumps(rows, indent=1))
+    keys = ("gtfree_pvm_epe", "gtfree_teacher_epe", "gtfree_photometric")
+    md = ["| chapter | machine | step | hours | " + " | ".join(k[7:] for k in keys) + " |",
+          "|---|---|---:|---:|" + "---:|" * len(keys)]
+    for row in rows:
+        md.append(f"| {row['chapter']} | {row.get('machine', '')} | {row['step']} | {row.get('hours', '')} | "
+                  + " | ".join(f"{row[k]:.4f}" if k in row else "" for k in keys) + " |")
+    (out / "curve.md").write_text("\n".join(md) + "\n")
+    _plot(rows, out / "curve.png")
+    return rows
+
+
+def _plot(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    points = [(r["step"], r["gtfree_pvm_epe"]) for r in rows if "gtfree_pvm_epe" in r]
+    if points:
+        ax.plot(*zip(*points, strict=True), marker="o")
+        ax.axhline(points[0][1], color="grey", lw=0.8, ls="--", label="start")
+    ax.set_xlabel("steps (all chapters)")
+    ax.set_ylabel("validation PVM EPE (px)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("chapter", help="run or resume the run's current chapter")
+    c.add_argument("--run", type=Path, required=True)
+    c.add_argument("--packs", type=Path, nargs="+", required=True)
+    c.add_argument("--maps", type=Path, required=True)
+    c.add_argument("--valset", type=Path, required=True)
+    c.add_argument("--init", default="pretrained", help="the first chapter's start")
+    c.add_argument("--minutes", type=float, default=120.0)
+    c.add_argument("--ckpt-every", type=int, default=100)
+    c.add_argument("--threads", type=int, default=2)
+    c.add_argument("--jobs", type=int, default=2)
+    c.add_argument("--val-limit", type=int, default=0, help="score only the first N validation pairs (0 = all)")
+    v = sub.add_parser("curve", help="the learning curve over all chapters")
+    v.add_argument("--run", type=Path, required=True)
+    v.add_argument("--out", type=Path, required=True)
+    v.add_argument("--start", type=Path, help="gtfree.json of the init (optstereo-eval --valset): the step-0 row")
+    args = parser.parse_args(argv)
+    if args.cmd == "chapter":
+        print(chapter(args))
+    else:
+        start = None
+        if args.start:
+            summary = json.loads(args.start.read_text())["summary"]
+            start = {f"gtfree_{k}": v for k, v in summary.items() if isinstance(v, float)}
+        curve(args.run, args.out, start)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,59 @@
+"""Issue 49.3's chaptered run (pipelines/studies/long_run.py): a chapter trains only on the pairs that have the
+teacher's maps, and the learning curve adds up steps and hours over chapters, a resumed chapter counted once."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from conftest import make_shards
+
+from pipelines.studies import long_run
+from pvm_labeler.shards.reader import read_index
+
+
+def _maps(folder: Path, ids: list[str]) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for frame_id in ids:
+        np.savez(folder / f"{frame_id}.npz", left=np.zeros((2, 2), np.float32), right=np.zeros((2, 2), np.float32))
+    return folder
+
+
+def test_only_the_pairs_with_maps_train(tmp_path: Path) -> None:
+    shards = make_shards(tmp_path / "labels", n=5, shard_size=1, with_gt=False)
+    maps = _maps(tmp_path / "maps", ["frame-001", "frame-003"])
+    selected = long_run.with_maps(shards, maps)
+    assert [ids for _, ids in selected] == [["frame-001"], ["frame-003"]]
+    assert long_run.merge_selected(tmp_path / "train", selected, shards) == 2
+    index = read_index(tmp_path / "train")
+    assert [ids for _, ids in index.shards] == [["frame-001"], ["frame-003"]]
+    assert index.num_samples == 2 and all(path.is_file() for path, _ in index.shards)
+
+
+def test_a_shard_with_one_pair_missing_its_map_is_left_out(tmp_path: Path) -> None:
+    shards = make_shards(tmp_path / "labels", n=4, shard_size=2, with_gt=False)
+    maps = _maps(tmp_path / "maps", ["frame-000", "frame-001", "frame-002"])
+    assert [ids for _, ids in long_run.with_maps(shards, maps)] == [["frame-000", "frame-001"]]
+
+
+def _ledger_line(chapter: str, steps: int, hours: float, val: list[tuple[int, float]], resumed: bool = False) -> dict:
+    return {"chapter": chapter, "resumed": resumed, "steps": steps, "hours": hours,
+            "machine": {"gpu": None, "isa": "avx2"},
+            "val": [{"step": s, "gtfree_pvm_epe": e} for s, e in val]}
+
+
+def test_curve_adds_up_chapters(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    lines = [_ledger_line("ch01", 200, 1.0, [(100, 0.52), (200, 0.51)]),
+             # ch02 cut off at step 100 of its own run, then resumed: the second line holds its whole metrics.jsonl
+             _ledger_line("ch02", 100, 0.5, [(100, 0.50)]),
+             _ledger_line("ch02", 300, 1.0, [(100, 0.50), (200, 0.49), (300, 0.48)], resumed=True)]
+    (run / long_run.LEDGER).write_text("".join(json.dumps(line) + "\n" for line in lines))
+    rows = long_run.curve(run, tmp_path / "out", start={"gtfree_pvm_epe": 0.519})
+    assert [r["step"] for r in rows] == [0, 100, 200, 300, 400, 500]
+    assert [r["gtfree_pvm_epe"] for r in rows] == [0.519, 0.52, 0.51, 0.50, 0.49, 0.48]
+    assert rows[-1]["hours"] == 2.5
+    assert (tmp_path / "out" / "curve.png").stat().st_size > 0
+    assert "| ch02 | avx2 | 500 | 2.5 | 0.4800 |" in (tmp_path / "out" / "curve.md").read_text()
