@@ -57,3 +57,20 @@ def test_curve_adds_up_chapters(tmp_path: Path) -> None:
     assert rows[-1]["hours"] == 2.5
     assert (tmp_path / "out" / "curve.png").stat().st_size > 0
     assert "| ch02 | avx2 | 500 | 2.5 | 0.4800 |" in (tmp_path / "out" / "curve.md").read_text()
+
+
+def _gtfree(errs: list[float], photo: list[float]) -> dict:
+    pairs = [{"frame_id": f"p{i}", "pvm_n": 100, "pvm_err": 100 * e, "pvm_bad": 0, "photo_sum": 100 * f, "photo_n": 100}
+             for i, (e, f) in enumerate(zip(errs, photo, strict=True))]
+    return {"summary": {"pvm_epe": sum(errs) / len(errs)}, "pairs": pairs}
+
+
+def test_the_rule_needs_a_gain_beyond_noise() -> None:
+    base = _gtfree([0.5, 0.6, 0.7, 0.8], [0.1] * 4)
+    # lower on every pair by 0.05 +- 0.01: mean -0.05, margin 2 * 0.0129 / 2 = 0.0129 -> a candidate
+    assert long_run.candidate(base, _gtfree([0.44, 0.56, 0.64, 0.76], [0.1] * 4))[0]
+    # the same mean gain, but one pair carries it: inside the noise
+    assert not long_run.candidate(base, _gtfree([0.3, 0.6, 0.7, 0.8], [0.1] * 4))[0]
+    # lower EPE but a photometric error worse on every pair
+    ok, why = long_run.candidate(base, _gtfree([0.44, 0.56, 0.64, 0.76], [0.11, 0.12, 0.11, 0.12]))
+    assert not ok and why.startswith("not a candidate")

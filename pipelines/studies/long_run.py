@@ -18,6 +18,7 @@ One chapter:
     python -m pipelines.studies.long_run chapter --run /work/runs/g2 --packs /work/pack/extra /work/pack/shared \
         --maps /work/teacher_maps --valset /work/valset --minutes 120
     python -m pipelines.studies.long_run curve --run /work/runs/g2 --out results/long_run    # curve.{md,json,png}
+    python -m pipelines.studies.long_run compare BASE.json CAND.json   # the registered rule on two gtfree.json
 
 No GT is read: the packs are unlabelled pairs (``distill_pack.py --format link``), and ``optstereo-distill fill``
 refuses shards that carry GT.
@@ -37,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from optstereo.training.distill import map_path
+from optstereo.validation import PairScore, paired_difference
 from pvm_labeler.shards.reader import INDEX_NAME, read_index
 
 REPO = Path(__file__).resolve().parents[2]
@@ -204,6 +206,21 @@ def curve(run: Path, out: Path, start: dict[str, float] | None = None) -> list[d
     return rows
 
 
+def candidate(base: dict[str, Any], cand: dict[str, Any], z: float = 2.0) -> tuple[bool, str]:
+    """G2's rule (docs/registrations.md) on two ``optstereo-eval --valset`` results (``gtfree.json``, the same
+    pairs): a candidate when its PVM EPE is lower by more than ``z`` standard errors of the per-pair differences and its
+    photometric error is not higher by more than ``z`` of its own; (verdict, one line saying why)."""
+    def pairs(doc: dict[str, Any]) -> list[PairScore]:
+        return [PairScore(**p) for p in doc["pairs"]]
+
+    epe, epe_margin = paired_difference(pairs(base), pairs(cand), "pvm_epe", z)
+    photo, photo_margin = paired_difference(pairs(base), pairs(cand), "photometric", z)
+    ok = epe < -epe_margin and photo <= photo_margin
+    why = (f"PVM EPE {cand['summary']['pvm_epe']:.3f} vs {base['summary']['pvm_epe']:.3f} px (per-pair change "
+           f"{epe:+.3f}, noise {epe_margin:.3f}); photometric {photo:+.4f} (noise {photo_margin:.4f})")
+    return ok, ("candidate: " if ok else "not a candidate: ") + why
+
+
 def _plot(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib
 
@@ -233,7 +250,7 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--valset", type=Path, required=True)
     c.add_argument("--init", default="pretrained", help="the first chapter's start")
     c.add_argument("--minutes", type=float, default=120.0)
-    c.add_argument("--ckpt-every", type=int, default=100)
+    c.add_argument("--ckpt-every", type=int, default=150)
     c.add_argument("--threads", type=int, default=2)
     c.add_argument("--jobs", type=int, default=2)
     c.add_argument("--val-limit", type=int, default=0, help="score only the first N validation pairs (0 = all)")
@@ -241,9 +258,14 @@ def main(argv: list[str] | None = None) -> None:
     v.add_argument("--run", type=Path, required=True)
     v.add_argument("--out", type=Path, required=True)
     v.add_argument("--start", type=Path, help="gtfree.json of the init (optstereo-eval --valset): the step-0 row")
+    k = sub.add_parser("compare", help="the registered rule: is CAND a candidate against BASE?")
+    k.add_argument("base", type=Path, help="gtfree.json of the start (version 15)")
+    k.add_argument("cand", type=Path, help="gtfree.json of the checkpoint")
     args = parser.parse_args(argv)
     if args.cmd == "chapter":
         print(chapter(args))
+    elif args.cmd == "compare":
+        print(candidate(json.loads(args.base.read_text()), json.loads(args.cand.read_text()))[1])
     else:
         start = None
         if args.start:
