@@ -74,3 +74,37 @@ def test_the_rule_needs_a_gain_beyond_noise() -> None:
     # lower EPE but a photometric error worse on every pair
     ok, why = long_run.candidate(base, _gtfree([0.44, 0.56, 0.64, 0.76], [0.11, 0.12, 0.11, 0.12]))
     assert not ok and why.startswith("not a candidate")
+
+
+def test_record_appends_a_gpu_chapter_scored_here(tmp_path: Path) -> None:
+    """Snapshots sent back by a lent GPU become a chapter: each scored on the validation set by optstereo-eval, the
+    last one the weights the next chapter starts from."""
+    import torch
+    from conftest import TINY
+
+    from optstereo import validation
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.models import build_model
+    from optstereo.training import distill
+    from pvm_labeler.common.atomic import atomic_write_text
+
+    val = tmp_path / "val"
+    make_shards(val / "labels", n=3, with_gt=False, compression="lzf")
+    for _, ids in read_index(val / "labels").shards:
+        for frame_id in ids:
+            (val / "maps").mkdir(parents=True, exist_ok=True)
+            np.savez(distill.map_path(val / "maps", frame_id), left=np.full((32, 64), 3.0, np.float32),
+                     right=np.full((32, 64), 3.0, np.float32))
+    atomic_write_text(val / validation.MANIFEST, json.dumps({"teacher": {"digest": "none"}}))
+    torch.manual_seed(0)
+    snaps = [tmp_path / "G-4.safetensors", tmp_path / "G-2.safetensors"]
+    for snap in snaps:
+        export_safetensors(snap, build_model("optstereo", **TINY, iters=1))
+    run = tmp_path / "run"
+    chapter = long_run.record(run, snaps, val, "NVIDIA H100", 0.2)
+    line = json.loads((run / long_run.LEDGER).read_text())
+    assert chapter.name == "ch01" and line["machine"]["gpu"] == "NVIDIA H100" and line["steps"] == 4
+    assert [row["step"] for row in line["val"]] == [2, 4] and line["val"][0]["gtfree_pairs"] == 3.0
+    assert (chapter / "run" / "model.safetensors").read_bytes() == snaps[0].read_bytes()
+    rows = long_run.curve(run, tmp_path / "curve")
+    assert [(r["machine"], r["step"]) for r in rows] == [("NVIDIA H100", 2), ("NVIDIA H100", 4)]

@@ -20,6 +20,12 @@ One chapter:
     python -m pipelines.studies.long_run curve --run /work/runs/g2 --out results/long_run    # curve.{md,json,png}
     python -m pipelines.studies.long_run compare BASE.json CAND.json   # the registered rule on two gtfree.json
 
+On a lent GPU the run goes on as one chapter there: copy the last chapter's ``run/model.safetensors`` into the carry
+and run ``INIT=.carry/B/init.safetensors PART=B TRAIN=1 bash pipelines/studies/gpu/teacher_all.sh`` (its header: the
+GPU labels and maps its pack itself, trains, and sends back snapshots); back here,
+``python -m pipelines.studies.long_run record --run RUN --valset VAL --machine "NVIDIA H100" --hours H SNAPSHOT...``
+scores the snapshots on the validation set and appends them to the run as a chapter the next CPU chapter starts from.
+
 No GT is read: the packs are unlabelled pairs (``distill_pack.py --format link``), and ``optstereo-distill fill``
 refuses shards that carry GT.
 """
@@ -173,6 +179,33 @@ def chapter(args: argparse.Namespace) -> Path:
     return current
 
 
+def record(run: Path, snapshots: list[Path], valset: Path, gpu: str, hours: float) -> Path:
+    """Append a chapter trained elsewhere (a lent GPU): ``snapshots`` named ``<name>-<step>.safetensors`` (the
+    study's ``snapshots`` export), each scored on ``valset`` here; the last becomes the chapter's weights."""
+    done = chapters(run)
+    if done and not (done[-1] / "done.json").is_file():
+        raise SystemExit(f"{done[-1]} is unfinished: run its chapter to the end before recording another")
+    current = run / f"ch{len(done) + 1:02d}"
+    (current / "run").mkdir(parents=True)
+    snapshots = sorted(snapshots, key=lambda p: int(p.stem.rsplit("-", 1)[1]))
+    val = []
+    for snap in snapshots:
+        out = current / "val" / snap.stem
+        run_cmd([sys.executable, "-m", "optstereo.cli", "eval", "--checkpoint", str(snap), "--valset", str(valset),
+                 "--out", str(out)], current / "eval.log")
+        summary = json.loads((out / "gtfree.json").read_text())["summary"]
+        val.append({"step": int(snap.stem.rsplit("-", 1)[1]),
+                    **{f"gtfree_{k}": v for k, v in summary.items() if k != "own_teacher"}})
+    shutil.copy2(snapshots[-1], current / "run" / "model.safetensors")
+    init = str(done[-1] / "run" / "model.safetensors") if done else "pretrained"
+    line = {"chapter": current.name, "init": init, "resumed": False, "pairs": None, "steps": val[-1]["step"],
+            "hours": hours, "machine": {**machine(), "gpu": gpu}, "date": time.strftime("%Y-%m-%d"), "val": val}
+    with (run / LEDGER).open("a") as handle:
+        handle.write(json.dumps(line) + "\n")
+    (current / "done.json").write_text(json.dumps(line))
+    return current
+
+
 def curve(run: Path, out: Path, start: dict[str, float] | None = None) -> list[dict[str, Any]]:
     """The run's learning curve over all chapters: one row per validation, cumulative steps and hours; written to
     ``out/curve.json``, ``out/curve.md`` and ``out/curve.png``. ``start``: the init's own score (step 0). Hours are
@@ -261,8 +294,16 @@ def main(argv: list[str] | None = None) -> None:
     k = sub.add_parser("compare", help="the registered rule: is CAND a candidate against BASE?")
     k.add_argument("base", type=Path, help="gtfree.json of the start (version 15)")
     k.add_argument("cand", type=Path, help="gtfree.json of the checkpoint")
+    r = sub.add_parser("record", help="append a chapter trained on a lent GPU (its returned snapshots)")
+    r.add_argument("snapshots", type=Path, nargs="+", help="<name>-<step>.safetensors files")
+    r.add_argument("--run", type=Path, required=True)
+    r.add_argument("--valset", type=Path, required=True)
+    r.add_argument("--machine", required=True, help="the GPU, e.g. 'NVIDIA H100'")
+    r.add_argument("--hours", type=float, required=True, help="the device time the chapter took")
     args = parser.parse_args(argv)
-    if args.cmd == "chapter":
+    if args.cmd == "record":
+        print(record(args.run, args.snapshots, args.valset, args.machine, args.hours))
+    elif args.cmd == "chapter":
         print(chapter(args))
     elif args.cmd == "compare":
         print(candidate(json.loads(args.base.read_text()), json.loads(args.cand.read_text()))[1])
