@@ -141,6 +141,26 @@ def make_shards(
                            compression=compression or DEFAULT_COMPRESSION)
 
 
+def make_valset(root: Path, teacher_digest: str) -> Path:
+    """A GT-free validation set folder by hand: three tiny shards without GT (``make_shards``), teacher maps of a
+    constant 3 px, a manifest naming ``teacher_digest``."""
+    import json
+
+    from optstereo import validation
+    from optstereo.training import distill
+    from pvm_labeler.common.atomic import atomic_write_text
+    from pvm_labeler.shards import read_index
+
+    make_shards(root / "labels", n=3, with_gt=False, compression="lzf")
+    (root / "maps").mkdir(parents=True, exist_ok=True)
+    for _, ids in read_index(root / "labels").shards:
+        for frame_id in ids:
+            np.savez(distill.map_path(root / "maps", frame_id), left=np.full((32, 64), 3.0, np.float32),
+                     right=np.full((32, 64), 3.0, np.float32))
+    atomic_write_text(root / validation.MANIFEST, json.dumps({"teacher": {"digest": teacher_digest}}))
+    return root
+
+
 @pytest.fixture(scope="module")
 def tiny_shards(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The training tests' shard directory: 4 synthetic 32x72 pairs in 2 shards (read-only: tests must not write)."""

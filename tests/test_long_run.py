@@ -80,22 +80,12 @@ def test_record_appends_a_gpu_chapter_scored_here(tmp_path: Path) -> None:
     """Snapshots sent back by a lent GPU become a chapter: each scored on the validation set by optstereo-eval, the
     last one the weights the next chapter starts from."""
     import torch
-    from conftest import TINY
+    from conftest import TINY, make_valset
 
-    from optstereo import validation
     from optstereo.checkpoint import export_safetensors
     from optstereo.models import build_model
-    from optstereo.training import distill
-    from pvm_labeler.common.atomic import atomic_write_text
 
-    val = tmp_path / "val"
-    make_shards(val / "labels", n=3, with_gt=False, compression="lzf")
-    for _, ids in read_index(val / "labels").shards:
-        for frame_id in ids:
-            (val / "maps").mkdir(parents=True, exist_ok=True)
-            np.savez(distill.map_path(val / "maps", frame_id), left=np.full((32, 64), 3.0, np.float32),
-                     right=np.full((32, 64), 3.0, np.float32))
-    atomic_write_text(val / validation.MANIFEST, json.dumps({"teacher": {"digest": "none"}}))
+    val = make_valset(tmp_path / "val", teacher_digest="none")
     torch.manual_seed(0)
     snaps = [tmp_path / "G-4.safetensors", tmp_path / "G-2.safetensors"]
     for snap in snaps:

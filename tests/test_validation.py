@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from conftest import TINY, make_folder, make_shards
+from conftest import TINY, make_folder, make_shards, make_valset
 
 from optstereo import validation
 from optstereo.checkpoint import export_safetensors
@@ -20,7 +20,6 @@ from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import infer
 from optstereo.models import build_model
 from optstereo.training import distill
-from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.shards import open_shard, read_index, read_sample
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -74,15 +73,7 @@ def test_weights_digest_sees_every_weight() -> None:
 
 def _handmade_valset(tmp_path: Path, teacher_digest: str) -> validation.ValSet:
     """Three tiny shards without GT, teacher maps of constant 3 px, a manifest naming ``teacher_digest``."""
-    root = tmp_path / "val"
-    make_shards(root / "labels", n=3, with_gt=False, compression="lzf")
-    for _, ids in read_index(root / "labels").shards:
-        for frame_id in ids:
-            (root / "maps").mkdir(parents=True, exist_ok=True)
-            np.savez(distill.map_path(root / "maps", frame_id), left=np.full((32, 64), 3.0, np.float32),
-                     right=np.full((32, 64), 3.0, np.float32))
-    atomic_write_text(root / validation.MANIFEST, json.dumps({"teacher": {"digest": teacher_digest}}))
-    return validation.open_valset(root)
+    return validation.open_valset(make_valset(tmp_path / "val", teacher_digest))
 
 
 def test_score_equals_a_numpy_reference_and_leaves_out_its_own_maps(tmp_path: Path) -> None:
