@@ -90,8 +90,9 @@ def test_teacher_views_mirror_the_right_view() -> None:
     np.testing.assert_array_equal(disp_right, mirrored[:, ::-1])
 
 
-def test_cli_maps_and_fill_end_to_end(tmp_path: Path) -> None:
-    """maps over a folder of the shards' own images (resumable), then fill: labels kept, holes filled, index says so."""
+def test_cli_maps_and_fill_end_to_end(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """maps over a folder of the shards' own images (resumable, on the engineered CPU pass), then fill: labels kept,
+    holes filled, index says so."""
     shards = make_shards(tmp_path / "labels", n=2, with_gt=False)
     index = read_index(shards)
     folder = tmp_path / "pairs"
@@ -105,14 +106,27 @@ def test_cli_maps_and_fill_end_to_end(tmp_path: Path) -> None:
     torch.manual_seed(0)
     teacher = tmp_path / "teacher.safetensors"
     export_safetensors(teacher, build_model("optstereo", **TINY, iters=1))
+    import optstereo.cli.distill as distill_cli
     from optstereo.cli import distill_main as cli
 
+    engineered, original = [], distill_cli.engineer
+    monkeypatch.setattr(distill_cli, "engineer", lambda m: engineered.append(original(m)) or engineered[-1])
     maps = tmp_path / "maps"
     first = CliRunner().invoke(cli, ["maps", "--checkpoint", str(teacher), "--root", str(folder), "--out", str(maps)])
     assert first.exit_code == 0, first.output
     assert "2 new teacher maps" in first.output
     again = CliRunner().invoke(cli, ["maps", "--checkpoint", str(teacher), "--root", str(folder), "--out", str(maps)])
     assert "0 new teacher maps" in again.output  # resumed: nothing recomputed
+    assert len(engineered) == 2 and all(type(m).__name__ == "EngineeredOptStereo" for m in engineered)
+    # the CLI runs the engineered CPU pass (fastpath); its maps are the plain model's to float rounding
+    from optstereo.checkpoint import build_model_from_checkpoint
+
+    plain = build_model_from_checkpoint(teacher)
+    for frame_id, sample in samples.items():
+        with np.load(distill.map_path(maps, frame_id)) as data:
+            for got, want in zip((data["left"], data["right"]), distill.teacher_views(plain, sample.left,
+                                                                                      sample.right), strict=True):
+                assert np.abs(got - want).mean() <= 0.01 and np.abs(got - want).max() <= 0.05
     for frame_id in samples:  # a random tiny teacher says nothing useful: known views, consistent where x >= 3
         with np.load(distill.map_path(maps, frame_id)) as data:
             assert data["left"].shape == samples[frame_id].label.shape
