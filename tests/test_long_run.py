@@ -98,3 +98,36 @@ def test_record_appends_a_gpu_chapter_scored_here(tmp_path: Path) -> None:
     assert (chapter / "run" / "model.safetensors").read_bytes() == snaps[0].read_bytes()
     rows = long_run.curve(run, tmp_path / "curve")
     assert [(r["machine"], r["step"]) for r in rows] == [("NVIDIA H100", 2), ("NVIDIA H100", 4)]
+
+
+def test_a_chapter_end_to_end_then_the_next_from_its_weights(tmp_path: Path) -> None:
+    """Two chapters on a folder of 3 pairs, 2 with teacher maps: the labeler, the fill, the merge of the 2 pairs with
+    maps, the trainer with the validation set, a ledger line each; the second starts from the first's weights."""
+    import shutil
+    from argparse import Namespace
+
+    import torch
+    from conftest import TINY, make_folder, make_valset
+
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.models import build_model
+
+    pack = make_folder(tmp_path / "pack", n=3, size=(64, 128))
+    shutil.rmtree(pack / "gt")  # unlabelled pairs
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for frame_id in ("000", "002"):
+        np.savez(maps / f"{frame_id}.npz", left=np.full((64, 128), 4.0, np.float32),
+                 right=np.full((64, 128), 4.0, np.float32))
+    torch.manual_seed(0)
+    init = tmp_path / "init.safetensors"
+    export_safetensors(init, build_model("optstereo", **TINY, iters=1))
+    args = Namespace(run=tmp_path / "run", packs=[pack], maps=maps, valset=make_valset(tmp_path / "val", "none"),
+                     init=str(init), minutes=0.02, ckpt_every=1, threads=1, jobs=1, val_limit=0, max_disp=16)
+    first = long_run.chapter(args)
+    assert [ids for _, ids in read_index(first / "train").shards] == [["000"], ["002"]]
+    second = long_run.chapter(args)
+    assert json.loads((second / "start.json").read_text())["init"] == str(first / "run" / "model.safetensors")
+    lines = [json.loads(t) for t in (args.run / long_run.LEDGER).read_text().splitlines()]
+    assert [(line["chapter"], line["pairs"]) for line in lines] == [("ch01", 2), ("ch02", 2)]
+    assert all(line["steps"] >= 1 and line["val"] and line["val"][0]["gtfree_pairs"] == 3.0 for line in lines)

@@ -146,8 +146,8 @@ def chapter(args: argparse.Namespace) -> Path:
         for pack in args.packs:
             labels = run / "labels" / pack.name
             run_cmd([py, "-m", "pvm_labeler.cli", "run", "--dataset", "folder", "--root", str(pack), "--out",
-                     str(labels), "--shard-size", "1", "--compression", "lzf", "--jobs", str(args.jobs), "--quiet"],
-                    run / "labels.log")
+                     str(labels), "--shard-size", "1", "--compression", "lzf", "--jobs", str(args.jobs), "--quiet",
+                     *(["--max-disp", str(args.max_disp)] if args.max_disp else [])], run / "labels.log")
             filled = current / "distill" / pack.name
             run_cmd([py, "-m", "optstereo.cli", "distill", "fill", str(labels), str(args.maps), str(filled),
                      "--compression", "lzf", "--allow-missing"], current / "fill.log")
@@ -286,6 +286,7 @@ def main(argv: list[str] | None = None) -> None:
     c.add_argument("--ckpt-every", type=int, default=150)
     c.add_argument("--threads", type=int, default=2)
     c.add_argument("--jobs", type=int, default=2)
+    c.add_argument("--max-disp", type=int, default=0, help="the labeler's search range (0 = pvm-label's default)")
     c.add_argument("--val-limit", type=int, default=0, help="score only the first N validation pairs (0 = all)")
     v = sub.add_parser("curve", help="the learning curve over all chapters")
     v.add_argument("--run", type=Path, required=True)
