@@ -98,8 +98,7 @@ def merge_selected(dest: Path, selected: list[tuple[Path, list[str]]], template:
 
 def machine() -> dict[str, Any]:
     """What ran the chapter: the CPU's model name and vector flags, the cores, the GPU if torch sees one."""
-    flags = ""
-    model = platform.processor()
+    flags = model = ""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name") and not model:
@@ -113,7 +112,7 @@ def machine() -> dict[str, Any]:
     import torch
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    return {"cpu": model or "unknown", "isa": isa, "cores": os.cpu_count(), "gpu": gpu}
+    return {"cpu": model or platform.processor() or "unknown", "isa": isa, "cores": os.cpu_count(), "gpu": gpu}
 
 
 def val_curve(metrics: Path) -> list[dict[str, float]]:
