@@ -109,8 +109,8 @@ def test_cli_maps_and_fill_end_to_end(tmp_path: Path, monkeypatch: pytest.Monkey
     import optstereo.cli.distill as distill_cli
     from optstereo.cli import distill_main as cli
 
-    engineered, original = [], distill_cli.engineer
-    monkeypatch.setattr(distill_cli, "engineer", lambda m: engineered.append(original(m)) or engineered[-1])
+    engineered, original = [], distill_cli.load_model
+    monkeypatch.setattr(distill_cli, "load_model", lambda *a: engineered.append(original(*a)) or engineered[-1])
     maps = tmp_path / "maps"
     first = CliRunner().invoke(cli, ["maps", "--checkpoint", str(teacher), "--root", str(folder), "--out", str(maps)])
     assert first.exit_code == 0, first.output

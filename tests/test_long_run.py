@@ -25,7 +25,7 @@ def test_only_the_pairs_with_maps_train(tmp_path: Path) -> None:
     maps = _maps(tmp_path / "maps", ["frame-001", "frame-003"])
     selected = long_run.with_maps(shards, maps)
     assert [ids for _, ids in selected] == [["frame-001"], ["frame-003"]]
-    assert long_run.merge_selected(tmp_path / "train", selected, shards) == 2
+    assert long_run.merge_shards(tmp_path / "train", selected, shards) == 2
     index = read_index(tmp_path / "train")
     assert [ids for _, ids in index.shards] == [["frame-001"], ["frame-003"]]
     assert index.num_samples == 2 and all(path.is_file() for path, _ in index.shards)
@@ -131,3 +131,15 @@ def test_a_chapter_end_to_end_then_the_next_from_its_weights(tmp_path: Path) -> 
     lines = [json.loads(t) for t in (args.run / long_run.LEDGER).read_text().splitlines()]
     assert [(line["chapter"], line["pairs"]) for line in lines] == [("ch01", 2), ("ch02", 2)]
     assert all(line["steps"] >= 1 and line["val"] and line["val"][0]["gtfree_pairs"] == 3.0 for line in lines)
+
+
+def test_teacher_all_merge_lists_every_shard_of_every_source(tmp_path: Path) -> None:
+    """The GPU study's merge is the same function over all shards: one index, the sources recorded."""
+    from pipelines.studies.gpu import teacher_all
+
+    a = make_shards(tmp_path / "a", n=2, shard_size=1, with_gt=False)
+    b = make_shards(tmp_path / "b", n=3, shard_size=2, with_gt=False, seed=1)
+    assert teacher_all.merge(tmp_path / "all", [a, b]) == 5
+    index = read_index(tmp_path / "all")
+    assert [len(ids) for _, ids in index.shards] == [1, 1, 2, 1]
+    assert index.raw["merged_from"] == [str(a), str(b)]

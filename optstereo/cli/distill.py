@@ -10,11 +10,9 @@ from pathlib import Path
 import click
 
 from optstereo import validation
-from optstereo.checkpoint import build_model_from_checkpoint
+from optstereo.api import load_model
 from optstereo.choices import AMP_MODES
 from optstereo.cli.common import GuardedCommand
-from optstereo.inference.fastpath import engineer
-from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill
 from pvm_labeler.common.datasets import discover
 
@@ -38,8 +36,7 @@ def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str
          amp: str) -> None:
     kwargs = {"left": left, "right": right} if dataset == "folder" else {}
     refs = discover(dataset, root, **kwargs)
-    # the engineered CPU pass (fastpath): the same weights and outputs to float rounding, ~17 % less time
-    model = engineer(build_model_from_checkpoint(resolve_checkpoint_spec(checkpoint), device=device))
+    model = load_model(checkpoint, device)  # the engineered CPU pass, as every inference command loads it
     written = distill.write_teacher_maps(model, refs, out, device, amp, progress=True)
     click.echo(f"{written} new teacher maps ({len(refs)} pairs) in {out}")
 

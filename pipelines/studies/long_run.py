@@ -45,6 +45,7 @@ from typing import Any
 
 from optstereo.training.distill import map_path
 from optstereo.validation import PairScore, paired_difference
+from pipelines.studies.gpu.teacher_all import merge_shards
 from pvm_labeler.shards.reader import INDEX_NAME, read_index
 
 REPO = Path(__file__).resolve().parents[2]
@@ -78,22 +79,6 @@ def with_maps(shard_dir: Path, maps: Path) -> list[tuple[Path, list[str]]]:
     """(shard path, sample ids) of the shards of ``shard_dir`` all of whose pairs have a teacher map in ``maps``."""
     return [(path, ids) for path, ids in read_index(shard_dir).shards
             if all(map_path(maps, frame_id).is_file() for frame_id in ids)]
-
-
-def merge_selected(dest: Path, selected: list[tuple[Path, list[str]]], template: Path) -> int:
-    """``dest/index.json`` listing ``selected`` shards (symlinked as ``s<i>-<name>``), the rest of the index taken
-    from ``template``'s; the number of samples. An existing ``dest`` is replaced."""
-    shutil.rmtree(dest, ignore_errors=True)
-    dest.mkdir(parents=True)
-    doc = json.loads((template / INDEX_NAME).read_text())
-    shards = []
-    for i, (path, ids) in enumerate(selected):
-        name = f"s{i:04d}-{path.name}"
-        os.symlink(path.resolve(), dest / name)
-        shards.append({"file": name, "samples": ids, "count": len(ids)})
-    doc.update(shards=shards, num_samples=sum(s["count"] for s in shards))
-    (dest / INDEX_NAME).write_text(json.dumps(doc, indent=2))
-    return doc["num_samples"]
 
 
 def machine() -> dict[str, Any]:
@@ -154,7 +139,7 @@ def chapter(args: argparse.Namespace) -> Path:
             template = template or filled
         if not selected:
             raise SystemExit(f"no pair of {[str(p) for p in args.packs]} has a teacher map in {args.maps}")
-        n = merge_selected(train_dir, selected, template)
+        n = merge_shards(train_dir, selected, template)
         print(f"chapter {current.name}: {n} pairs with the teacher's maps")
     out = current / "run"
     train = [py, "-m", "optstereo.cli", "train", "--max-minutes", str(args.minutes), "--threads", str(args.threads),

@@ -15,6 +15,7 @@ import argparse
 import copy
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -28,24 +29,24 @@ from pvm_labeler.shards.reader import INDEX_NAME, read_index
 
 
 def merge(dest: Path, sources: list[Path]) -> int:
-    """Write ``dest/index.json`` listing every shard of ``sources`` (symlinked as ``s<i>-<name>``); the samples."""
-    dest.mkdir(parents=True, exist_ok=True)
-    doc: dict = {}
-    shards = []
-    for i, src in enumerate(sources):
-        index = read_index(src)
-        if not doc:
-            doc = copy.deepcopy(index.raw)
-        for path, ids in index.shards:
-            name = f"s{i}-{path.name}"
-            link = dest / name
-            if link.is_symlink() or link.exists():
-                link.unlink()
-            os.symlink(path.resolve(), link)
-            shards.append({"file": name, "samples": ids, "count": len(ids)})
-    doc["shards"] = shards
-    doc["num_samples"] = sum(s["count"] for s in shards)
-    doc["merged_from"] = [str(s) for s in sources]
+    """Write ``dest/index.json`` listing every shard of ``sources`` (symlinked); the samples."""
+    shards = [shard for src in sources for shard in read_index(src).shards]
+    return merge_shards(dest, shards, sources[0], {"merged_from": [str(s) for s in sources]})
+
+
+def merge_shards(dest: Path, shards: list[tuple[Path, list[str]]], template: Path,
+                 extra: dict | None = None) -> int:
+    """``dest/index.json`` listing ``shards`` ((path, sample ids), symlinked as ``s<i>-<name>``), the rest of the
+    index (config, dataset) taken from ``template``'s, plus ``extra``; the number of samples. ``dest`` is replaced."""
+    shutil.rmtree(dest, ignore_errors=True)
+    dest.mkdir(parents=True)
+    doc = copy.deepcopy(read_index(template).raw)
+    entries = []
+    for i, (path, ids) in enumerate(shards):
+        name = f"s{i:04d}-{path.name}"
+        os.symlink(path.resolve(), dest / name)
+        entries.append({"file": name, "samples": ids, "count": len(ids)})
+    doc.update(shards=entries, num_samples=sum(e["count"] for e in entries), **(extra or {}))
     (dest / INDEX_NAME).write_text(json.dumps(doc, indent=2))
     return doc["num_samples"]
 
