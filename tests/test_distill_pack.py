@@ -63,3 +63,26 @@ def test_write_pack_fits_the_budget(more: Path, tmp_path: Path) -> None:
     assert (n, quality) == (3, distill_pack.QUALITIES[0])
     files = sorted((tmp_path / "pack").rglob("*.webp"))
     assert len(files) == 6 and sum(f.stat().st_size for f in files) == size
+
+
+def test_select_keeps_and_drops_sets_by_folder_name(more: Path) -> None:
+    sets = distill_pack.more_sets(more)
+    assert [s[0] for s in distill_pack.select(sets, only=["desk"])] == ["fm_desk"]
+    assert [s[0] for s in distill_pack.select(sets, skip=["desk"])] == ["fm_road"]
+    assert distill_pack.select(sets, only=["desk"], skip=["desk"]) == []
+
+
+def test_halve_pack_writes_half_size_area_averages(more: Path, tmp_path: Path) -> None:
+    refs = distill_pack.pairs(distill_pack.select(distill_pack.more_sets(more), only=["desk"]))
+    assert distill_pack.halve_pack(refs, tmp_path / "pack") == 2
+    packed = discover("folder", tmp_path / "pack", left="left", right="right")
+    assert sorted(ref.frame_id for ref in packed) == ["fm_desk_a_half", "fm_desk_b_half"]
+    for ref in packed:
+        name = ref.frame_id.split("_")[2]
+        for got, side in ((ref.left, "image_2"), (ref.right, "image_3")):
+            full = read_image(more / "desk" / side / f"{name}.png").astype(np.float64)
+            # INTER_AREA at exactly 1/2 is the mean of each 2x2 block (24x40 -> 12x20), rounded to uint8
+            blocks = full.reshape(12, 2, 20, 2, 3).mean(axis=(1, 3))
+            half = read_image(got).astype(np.float64)
+            assert half.shape == (12, 20, 3)
+            assert np.abs(half - blocks).max() <= 0.5 + 1e-9

@@ -143,3 +143,24 @@ def test_teacher_all_merge_lists_every_shard_of_every_source(tmp_path: Path) -> 
     index = read_index(tmp_path / "all")
     assert [len(ids) for _, ids in index.shards] == [1, 1, 2, 1]
     assert index.raw["merged_from"] == [str(a), str(b)]
+
+
+def test_coverage_counts_maps_and_the_pixels_both_views_agree_on(tmp_path: Path) -> None:
+    import cv2
+
+    pack = tmp_path / "pack"
+    for side in ("left", "right"):
+        (pack / side).mkdir(parents=True)
+        for name in ("a", "b"):
+            cv2.imwrite(str(pack / side / f"{name}.png"), np.zeros((2, 4, 3), np.uint8))
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    # pair a: constant disparity 1 in both views. Left columns 1..3 find their match (x - 1) in the right view;
+    # column 0 looks off the image: 6 of 8 left pixels agree. Pair b has no map.
+    ones = np.ones((2, 4), np.float32)
+    np.savez(maps / "a.npz", left=ones, right=ones)
+    rows = long_run.coverage([pack], maps, tmp_path / "out")
+    assert rows == [{"pack": "pack", "pairs": 2, "maps": 1, "consistent": 0.75}]
+    table = (tmp_path / "out" / "maps_coverage.md").read_text()
+    assert "| pack | 2 | 1 | 75.0 % |" in table and "| all | 2 | 1 | |" in table
+    assert json.loads((tmp_path / "out" / "maps_coverage.json").read_text()) == rows

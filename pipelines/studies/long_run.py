@@ -19,6 +19,7 @@ One chapter:
         --maps /work/teacher_maps --valset /work/valset --minutes 120
     python -m pipelines.studies.long_run curve --run /work/runs/g2 --out results/long_run    # curve.{md,json,png}
     python -m pipelines.studies.long_run compare BASE.json CAND.json   # the registered rule on two gtfree.json
+    python -m pipelines.studies.long_run coverage --packs PACK... --maps MAPS --out results/long_run   # maps per pack
 
 On a lent GPU the run goes on as one chapter there: copy the last chapter's ``run/model.safetensors`` into the carry
 and run ``INIT=.carry/B/init.safetensors PART=B TRAIN=1 bash pipelines/studies/gpu/teacher_all.sh`` (its header: the
@@ -43,9 +44,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from optstereo.training.distill import map_path
+import numpy as np
+
+from optstereo.training.distill import consistent_views, map_path
 from optstereo.validation import PairScore, paired_difference
 from pipelines.studies.gpu.teacher_all import merge_shards
+from pvm_labeler.common.datasets import discover
 from pvm_labeler.shards.reader import INDEX_NAME, read_index
 
 REPO = Path(__file__).resolve().parents[2]
@@ -238,6 +242,36 @@ def candidate(base: dict[str, Any], cand: dict[str, Any], z: float = 2.0) -> tup
     return ok, ("candidate: " if ok else "not a candidate: ") + why
 
 
+def consistent_fraction(path: Path) -> float:
+    """The share of a teacher map's left-view pixels that its right view confirms (``consistent_views``)."""
+    with np.load(path) as data:
+        left, right = data["left"], data["right"]
+    return float(np.isfinite(consistent_views(left, right)[0]).mean())
+
+
+def coverage(packs: list[Path], maps: Path, out: Path | None = None) -> list[dict[str, Any]]:
+    """One row per pack (``folder`` dataset): pairs, pairs with teacher maps, and the mean share of left-view pixels
+    the teacher's two views agree on (the fill's reach); written to ``OUT/maps_coverage.{json,md}`` when ``out``."""
+    rows = []
+    for pack in packs:
+        refs = discover("folder", pack, left="left", right="right")
+        present = [map_path(maps, ref.frame_id) for ref in refs if map_path(maps, ref.frame_id).is_file()]
+        shares = [consistent_fraction(path) for path in present]
+        rows.append({"pack": pack.name, "pairs": len(refs), "maps": len(present),
+                     "consistent": round(float(np.mean(shares)), 4) if shares else None})
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "maps_coverage.json").write_text(json.dumps(rows, indent=1) + "\n")
+        lines = ["| pack | pairs | with teacher maps | left pixels both views agree on (mean) |", "|---|---|---|---|"]
+        for r in rows:
+            share = "-" if r["consistent"] is None else f"{100 * r['consistent']:.1f} %"
+            lines.append(f"| {r['pack']} | {r['pairs']} | {r['maps']} | {share} |")
+        total = sum(r["pairs"] for r in rows), sum(r["maps"] for r in rows)
+        lines.append(f"| all | {total[0]} | {total[1]} | |")
+        (out / "maps_coverage.md").write_text("\n".join(lines) + "\n")
+    return rows
+
+
 def _plot(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib
 
@@ -285,8 +319,15 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--valset", type=Path, required=True)
     r.add_argument("--machine", required=True, help="the GPU, e.g. 'NVIDIA H100'")
     r.add_argument("--hours", type=float, required=True, help="the device time the chapter took")
+    g = sub.add_parser("coverage", help="pairs with the teacher's maps, per pack")
+    g.add_argument("--packs", type=Path, nargs="+", required=True)
+    g.add_argument("--maps", type=Path, required=True)
+    g.add_argument("--out", type=Path, help="write maps_coverage.{json,md} here")
     args = parser.parse_args(argv)
-    if args.cmd == "record":
+    if args.cmd == "coverage":
+        for row in coverage(args.packs, args.maps, args.out):
+            print(row)
+    elif args.cmd == "record":
         print(record(args.run, args.snapshots, args.valset, args.machine, args.hours))
     elif args.cmd == "chapter":
         print(chapter(args))

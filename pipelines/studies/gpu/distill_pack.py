@@ -10,7 +10,14 @@ less the pairs whose left image is byte-identical to one of part ``shared`` (57 
     python -m pipelines.studies.gpu.distill_pack .carry/B --part more --more /work/unl_more --format webp --budget-mb 37
 
 ``--format link`` writes symbolic links to the original files instead (same names, lossless, no budget): the packs a
-CPU run reads here, e.g. the teacher's maps of every pair (``optstereo-distill maps --root PACK``).
+CPU run reads here, e.g. the teacher's maps of every pair (``optstereo-distill maps --root PACK``). ``--only`` /
+``--skip`` keep or drop sets by folder name; ``--halve`` writes each pair at half size (lossless PNG, cv2.INTER_AREA,
+names ending ``_half``): the table-top pairs, whose 205-290 px disparities are beyond the labeler's 192 at full size.
+
+    python -m pipelines.studies.gpu.distill_pack /work/pack/more --part more --more /work/unl_more --format link \
+        --skip indoor_rccube_lattermann
+    python -m pipelines.studies.gpu.distill_pack /work/pack/tabletop_half --part more --more /work/unl_more \
+        --only indoor_rccube_lattermann --halve
 """
 
 from __future__ import annotations
@@ -88,6 +95,27 @@ def write_pack(refs: list[tuple[str, PairRef]], out: Path, fmt: str, budget_mb: 
     return len(images), quality, size
 
 
+def select(sets: list[SetSpec], only: list[str] | None = None, skip: list[str] | None = None) -> list[SetSpec]:
+    """The sets whose root folder's name is in ``only`` (all when None) and not in ``skip``."""
+    return [spec for spec in sets if (only is None or spec[2].name in only) and spec[2].name not in (skip or [])]
+
+
+def halve_pack(refs: list[tuple[str, PairRef]], out: Path) -> int:
+    """Write ``out/{left,right}/<prefix>_<frame id>_half.png``: every pair at half size (cv2.INTER_AREA, both sides
+    floored), lossless; the pairs. A pair's disparities halve with it."""
+    shutil.rmtree(out, ignore_errors=True)
+    for side in ("left", "right"):
+        (out / side).mkdir(parents=True)
+    for prefix, ref in tqdm(refs, desc="halve", unit="pair"):
+        for side, path in (("left", ref.left), ("right", ref.right)):
+            rgb = read_image(path)
+            small = cv2.resize(rgb, (rgb.shape[1] // 2, rgb.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            target = out / side / f"{prefix}_{ref.frame_id}_half.png"
+            if not cv2.imwrite(str(target), cv2.cvtColor(small, cv2.COLOR_RGB2BGR)):
+                raise InputError(f"cv2 cannot write {target}")
+    return len(refs)
+
+
 def link_pack(refs: list[tuple[str, PairRef]], out: Path) -> int:
     """Symbolic links ``out/{left,right}/<prefix>_<frame id><suffix>`` to every pair's original files; the pairs."""
     shutil.rmtree(out, ignore_errors=True)
@@ -107,14 +135,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--more", type=Path, help="The folder fetch_unlabelled_more.sh filled (--part more).")
     parser.add_argument("--format", choices=(*PARAMS, "link"), default="jpg")
     parser.add_argument("--budget-mb", type=float, default=44.0)
+    parser.add_argument("--only", nargs="+", help="Keep only the sets of these folder names.")
+    parser.add_argument("--skip", nargs="+", help="Drop the sets of these folder names.")
+    parser.add_argument("--halve", action="store_true", help="Write every pair at half size (lossless PNG).")
     args = parser.parse_args(argv)
     if args.part == "shared":
-        refs = pairs(shared_sets(args.shared))
+        refs = pairs(select(shared_sets(args.shared), args.only, args.skip))
     else:
         if args.more is None:
             parser.error("--part more needs --more DIR")
         seen = {_digest(Path(ref.left)) for _, ref in pairs(shared_sets(args.shared))}
-        refs = pairs(more_sets(args.more), exclude=seen)
+        refs = pairs(select(more_sets(args.more), args.only, args.skip), exclude=seen)
+    if not refs:
+        raise InputError("no pair left after --only / --skip: check the folder names")
+    if args.halve:
+        print(f"{halve_pack(refs, args.out)} pairs -> {args.out} (half size, PNG)")
+        return
     if args.format == "link":
         print(f"{link_pack(refs, args.out)} pairs -> {args.out} (links to the originals)")
         return
