@@ -164,3 +164,4 @@ def test_coverage_counts_maps_and_the_pixels_both_views_agree_on(tmp_path: Path)
     table = (tmp_path / "out" / "maps_coverage.md").read_text()
     assert "| pack | 2 | 1 | 75.0 % |" in table and "| all | 2 | 1 | |" in table
     assert json.loads((tmp_path / "out" / "maps_coverage.json").read_text()) == rows
+    assert (tmp_path / "out" / "maps_examples.png").stat().st_size > 0

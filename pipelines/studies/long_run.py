@@ -252,13 +252,15 @@ def consistent_fraction(path: Path) -> float:
 def coverage(packs: list[Path], maps: Path, out: Path | None = None) -> list[dict[str, Any]]:
     """One row per pack (``folder`` dataset): pairs, pairs with teacher maps, and the mean share of left-view pixels
     the teacher's two views agree on (the fill's reach); written to ``OUT/maps_coverage.{json,md}`` when ``out``."""
-    rows = []
+    rows, examples = [], []
     for pack in packs:
         refs = discover("folder", pack, left="left", right="right")
         present = [map_path(maps, ref.frame_id) for ref in refs if map_path(maps, ref.frame_id).is_file()]
         shares = [consistent_fraction(path) for path in present]
         rows.append({"pack": pack.name, "pairs": len(refs), "maps": len(present),
                      "consistent": round(float(np.mean(shares)), 4) if shares else None})
+        if present:
+            examples.append((pack.name, next(r for r in refs if map_path(maps, r.frame_id) == present[0]), present[0]))
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         (out / "maps_coverage.json").write_text(json.dumps(rows, indent=1) + "\n")
@@ -269,7 +271,40 @@ def coverage(packs: list[Path], maps: Path, out: Path | None = None) -> list[dic
         total = sum(r["pairs"] for r in rows), sum(r["maps"] for r in rows)
         lines.append(f"| all | {total[0]} | {total[1]} | |")
         (out / "maps_coverage.md").write_text("\n".join(lines) + "\n")
+        if examples:
+            _plot_examples(examples, out / "maps_examples.png")
     return rows
+
+
+def _plot_examples(examples: list[tuple[str, Any, Path]], path: Path) -> None:
+    """One row per pack: its first mapped pair's left image, the teacher's left view, and that view where the right
+    view agrees (``consistent_views``; white = dropped, the fill leaves these to PVM's labels)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pvm_labeler.common.io import read_image
+
+    fig, axes = plt.subplots(len(examples), 3, figsize=(10, 2.4 * len(examples)), squeeze=False)
+    for row, (name, ref, map_file) in zip(axes, examples, strict=True):
+        with np.load(map_file) as data:
+            left, right = data["left"], data["right"]
+        kept = consistent_views(left, right)[0]
+        vmax = float(np.nanpercentile(left, 99))
+        row[0].imshow(read_image(ref.left))
+        row[1].imshow(left, cmap="magma", vmin=0, vmax=vmax)
+        row[2].imshow(kept, cmap="magma", vmin=0, vmax=vmax)
+        row[0].set_ylabel(name)
+        row[0].set_title(ref.frame_id, fontsize=8)
+        row[1].set_title("teacher, left view", fontsize=8)
+        row[2].set_title(f"both views agree: {100 * np.isfinite(kept).mean():.0f} %", fontsize=8)
+        for ax in row:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
 
 
 def _plot(rows: list[dict[str, Any]], path: Path) -> None:
