@@ -7,6 +7,11 @@ Steps, each resumable from ``OUT``:
 2. ``OUT/train_labels``: the pairs that train, without GT. A fraction ``holdout`` of the rig's whole frames (at least
    :data:`MIN_HELD` of them, drawn with ``seed``; ``OUT/split.json``) is held back: never trained on, not even by the
    photometric and smoothness losses.
+   With ``teacher`` (``--teacher pretrained-accurate``), the training frames' PVM holes take the teacher's
+   left-right consistent disparities at weight 0.5 (``OUT/teacher_maps``, ``OUT/train_filled``: the distillation of
+   ``optstereo.training.distill``) and L_P is confidence-weighted; the held-back frames are never seen by it. On the
+   table-top rig PVM labels ~4 % of the pixels: trained on them alone the network learns those and forgets the rest
+   (RESULTS.md).
 3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.training.loop.main``), ``steps`` steps.
 4. The decision (:func:`decide`), GT-free: the start and the adapted weights on the held-back frames, each frame
    scored as the validation set scores its pairs (``optstereo.validation``): EPE against its PVM labels on PVM's
@@ -37,11 +42,12 @@ from optstereo.checkpoint import load_checkpoint
 from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import infer
 from optstereo.pretrained import resolve_checkpoint_spec
+from optstereo.training import distill
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig
 from optstereo.training.loop import main
 from optstereo.validation import PairScore, paired_difference, pooled, pvm_label, score_pair, shard_samples
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import atomic_path, atomic_write_text
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.shards import ShardRecord, read_index, write_shard_dir
 
@@ -81,6 +87,7 @@ class AdaptConfig:
     limit: int | None = None
     max_disp: int | None = None  # the labeler's search range (None = pvm-label's default, 192)
     device: str = "auto"
+    teacher: str | Path | None = None  # fill the training frames' PVM holes with this model's consistent views
     train_overrides: dict[str, Any] = field(default_factory=dict)  # more TrainConfig flat keys (tests: tiny model)
     quiet: bool = False
 
@@ -127,12 +134,31 @@ def write_train_labels(cfg: AdaptConfig, labels: Path, train_ids: list[str]) -> 
     return train
 
 
+def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
+    """Step 2b (``cfg.teacher``): the teacher's two views of every training frame (``OUT/teacher_maps``, resumable)
+    and ``OUT/train_filled``: the training shards with them in PVM's holes where they agree (weight 0.5)."""
+    maps = cfg.out / "teacher_maps"
+    maps.mkdir(parents=True, exist_ok=True)
+    teacher = None  # loaded at the first frame without maps (a resumed run may need none)
+    for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples, desc="teacher",
+                  unit="pair", disable=cfg.quiet):
+        target = distill.map_path(maps, s.frame_id)
+        if target.is_file():
+            continue
+        teacher = teacher or load_model(cfg.teacher, cfg.device)
+        views = distill.teacher_views(teacher, s.left, s.right, str(next(teacher.parameters()).device))
+        with atomic_path(target) as tmp, open(tmp, "wb") as handle:
+            np.savez(handle, left=views[0], right=views[1])
+    return distill.fill(train_labels, maps, cfg.out / "train_filled", compression=SHARD_COMPRESSION,
+                        progress=not cfg.quiet)
+
+
 def finetune(cfg: AdaptConfig, train_labels: Path) -> Path:
     """Step 3: fine-tune from cfg.init on the training labels; returns the run's checkpoint (resumes a run)."""
     run_dir = cfg.out / "run"
     overrides = {"labels": train_labels, "out": run_dir, "steps": cfg.steps, "lr": cfg.lr, "batch_size": cfg.batch_size,
                  "crop": list(cfg.crop), "device": cfg.device, "workers": 0, "seed": cfg.seed, "tensorboard": False,
-                 **cfg.train_overrides}
+                 **({"conf_weight": True} if cfg.teacher is not None else {}), **cfg.train_overrides}
     if (run_dir / "last.pt").exists():
         train_cfg = config_for_resume(run_dir, {"steps": cfg.steps})
         main(train_cfg, resume=True, progress=not cfg.quiet)
@@ -204,7 +230,8 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
     train_ids, held_ids = split_frames(ids, cfg.holdout, cfg.seed)
     atomic_write_text(cfg.out / "split.json", json.dumps({"train": train_ids, "held_back": held_ids}, indent=2))
     init = resolve_checkpoint_spec(cfg.init)
-    trained = finetune(cfg, write_train_labels(cfg, labels, train_ids))
+    train = write_train_labels(cfg, labels, train_ids)
+    trained = finetune(cfg, distill_train_labels(cfg, train) if cfg.teacher is not None else train)
     before = score_frames(init, labels, held_ids, cfg.device, cfg.quiet, "before")
     after = score_frames(trained, labels, held_ids, cfg.device, cfg.quiet, "after")
     decision = decide(before, after)

@@ -125,3 +125,68 @@ def test_adapt_end_to_end(tmp_path: Path) -> None:
     # a second call resumes: labels and training are done, the report is written again
     res = CliRunner().invoke(adapt_main, args, catch_exceptions=False)
     assert res.exit_code == 0, res.output
+
+
+def _holey_shards(out: Path) -> Path:
+    """Two synthetic frames whose PVM labels cover only the right half (the table-top case: few labelled pixels)."""
+    from conftest import make_synthetic_pair
+
+    from pvm_labeler.shards import ShardRecord, write_shard_dir
+
+    rng = np.random.default_rng(0)
+    records = []
+    for i in range(2):
+        left, right = make_synthetic_pair(rng, 32, 64, 4)
+        label = np.full((32, 64), 4.0 + i / 100, np.float32)
+        label[:, :32] = np.nan
+        conf = np.isfinite(label).astype(np.float32)
+        records.append(ShardRecord(f"frame-{i}", left, right, label, label.copy(), conf))
+    return write_shard_dir(out, records, config={"k": 1}, shard_size=1)
+
+
+def test_teacher_fills_only_the_training_frames_holes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from optstereo import adapt
+    from optstereo.training.distill import FILL_CONFIDENCE, map_path
+    from optstereo.validation import shard_samples
+
+    # a teacher that says 3 px everywhere, in both views: a left pixel x >= 3 finds its match in the right view,
+    # the first 3 columns look off the image (inconsistent); so the holes (x < 32) are filled at 3..31, empty at 0..2
+    calls = []
+
+    def teacher_views(model, left, right, device="cpu", amp="none"):
+        calls.append(left.shape)
+        return np.full(left.shape[:2], 3.0, np.float32), np.full(left.shape[:2], 3.0, np.float32)
+
+    monkeypatch.setattr(adapt.distill, "teacher_views", teacher_views)
+    train = _holey_shards(tmp_path / "train")
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+    cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", teacher=str(ckpt), device="cpu", quiet=True)
+    filled = adapt.distill_train_labels(cfg, train)
+    originals = {s.frame_id: s for s in shard_samples(train)}
+    assert sorted(p.stem for p in (cfg.out / "teacher_maps").iterdir()) == sorted(originals) and len(calls) == 2
+    for s in shard_samples(filled):
+        o = originals[s.frame_id]
+        assert map_path(cfg.out / "teacher_maps", s.frame_id).is_file()
+        np.testing.assert_array_equal(s.label[:, 32:], o.label[:, 32:])  # PVM's labels never change
+        np.testing.assert_array_equal(s.label[:, 3:32], 3.0)
+        assert np.isnan(s.label[:, :3]).all()
+        np.testing.assert_allclose(s.confidence[:, 3:32].astype(np.float32), FILL_CONFIDENCE, atol=1e-3)
+        np.testing.assert_array_equal(s.confidence[:, 32:].astype(np.float32), 1.0)
+    adapt.distill_train_labels(cfg, train)  # a second call finds every map: the teacher is not run again
+    assert len(calls) == 2
+
+
+def test_a_teacher_run_trains_with_confidence_weights(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from optstereo import adapt
+
+    seen = {}
+    monkeypatch.setattr(adapt, "main", lambda cfg, **kw: seen.setdefault("cfg", cfg))
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+    for teacher, expected in ((None, False), (str(ckpt), True)):
+        seen.clear()
+        cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / f"out{expected}", init=str(ckpt),
+                          teacher=teacher, device="cpu", quiet=True)
+        adapt.finetune(cfg, tmp_path / "labels")
+        assert seen["cfg"].loss.conf_weight is expected
