@@ -47,7 +47,7 @@ from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig
 from optstereo.training.loop import main
 from optstereo.validation import PairScore, paired_difference, pooled, pvm_label, score_pair, shard_samples
-from pvm_labeler.common.atomic import atomic_path, atomic_write_text
+from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.shards import ShardRecord, read_index, write_shard_dir
 
@@ -146,9 +146,8 @@ def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
         if target.is_file():
             continue
         teacher = teacher or load_model(cfg.teacher, cfg.device)
-        views = distill.teacher_views(teacher, s.left, s.right, str(next(teacher.parameters()).device))
-        with atomic_path(target) as tmp, open(tmp, "wb") as handle:
-            np.savez(handle, left=views[0], right=views[1])
+        distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right,
+                                                                str(next(teacher.parameters()).device)))
     return distill.fill(train_labels, maps, cfg.out / "train_filled", compression=SHARD_COMPRESSION,
                         progress=not cfg.quiet)
 

@@ -100,11 +100,16 @@ def write_teacher_maps(model: nn.Module, refs: list[Any], maps_dir: Path, device
         if target.exists():
             continue
         sample = load_pair(ref)
-        disp_left, disp_right = teacher_views(model, sample.left, sample.right, device, amp)
-        with atomic_path(target) as tmp, open(tmp, "wb") as handle:
-            np.savez(handle, left=disp_left, right=disp_right)
+        save_teacher_map(target, *teacher_views(model, sample.left, sample.right, device, amp))
         written += 1
     return written
+
+
+def save_teacher_map(target: Path, left: npt.NDArray[np.float32], right: npt.NDArray[np.float32]) -> None:
+    """Write one pair's two (H, W) float32 views to ``target`` (.npz, ``left`` / ``right``) through a temporary
+    name, so a killed run leaves no partial map."""
+    with atomic_path(target) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, left=left, right=right)
 
 
 def read_teacher_maps(maps_dir: Path, frame_id: str,
