@@ -266,7 +266,9 @@ def report_markdown(report: dict[str, Any]) -> str:
             ("held-back frames: photometric error in PVM's holes", "photometric_holes"),
             ("GT bad-3 (%), every frame, score only", "gt_bad3"), ("GT EPE (px), score only", "gt_epe")]
     lines = ["# optstereo-adapt report", "", f"{report['pairs']} pairs ({len(report['held_back_frames'])} held back); "
-             f"start `{report['init']}`; {report['config']['steps']} steps.", "", "| | before | after |",
+             f"start `{report['init']}`; {report['config']['steps']} steps"
+             + (f"; the teacher `{report['config']['teacher']}` in PVM's holes." if report["config"].get("teacher")
+                else "."), "", "| | before | after |",
              "| --- | --- | --- |"]
     for name, key in rows:
         if key in report["before"] and not math.isnan(float(report["before"][key])):

@@ -190,3 +190,14 @@ def test_a_teacher_run_trains_with_confidence_weights(tmp_path: Path, monkeypatc
                           teacher=teacher, device="cpu", quiet=True)
         adapt.finetune(cfg, tmp_path / "labels")
         assert seen["cfg"].loss.conf_weight is expected
+
+
+def test_the_report_names_the_teacher() -> None:
+    from optstereo.adapt import report_markdown
+
+    base = {"pairs": 5, "held_back_frames": ["a", "b", "c"], "init": "v15.safetensors", "before": {}, "after": {},
+            "decision": "start kept", "checkpoint": "adapted.safetensors"}
+    plain = report_markdown({**base, "config": {"steps": 150, "teacher": None}})
+    taught = report_markdown({**base, "config": {"steps": 150, "teacher": "pretrained-accurate"}})
+    assert "150 steps." in plain and "teacher" not in plain
+    assert "150 steps; the teacher `pretrained-accurate` in PVM's holes." in taught
