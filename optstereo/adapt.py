@@ -145,9 +145,10 @@ def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
         target = distill.map_path(maps, s.frame_id)
         if target.is_file():
             continue
-        teacher = teacher or load_model(cfg.teacher, cfg.device)
-        distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right,
-                                                                str(next(teacher.parameters()).device)))
+        if teacher is None:
+            teacher = load_model(cfg.teacher, cfg.device)
+            device = str(next(teacher.parameters()).device)
+        distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right, device))
     return distill.fill(train_labels, maps, cfg.out / "train_filled", compression=SHARD_COMPRESSION,
                         progress=not cfg.quiet)
 

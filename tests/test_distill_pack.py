@@ -52,7 +52,7 @@ def test_link_pack_replaces_an_older_pack(more: Path, tmp_path: Path) -> None:
 
 
 def test_exclude_drops_byte_identical_left_images(more: Path) -> None:
-    seen = {distill_pack._digest(more / "desk" / "image_2" / "a.png")}
+    seen = {distill_pack.file_digest(more / "desk" / "image_2" / "a.png")}
     refs = distill_pack.pairs(distill_pack.more_sets(more), exclude=seen)
     assert sorted(ref.frame_id for _, ref in refs) == ["b", "c"]
 

@@ -1,6 +1,6 @@
 """The CPU training pack of candidate F3 (issue 42): every unlabelled real pair, as one ``folder`` dataset of links.
 
-The 144 pairs of ``../shared/data`` (``distill_pack.training_sets``) plus the pairs that
+The 144 pairs of ``../shared/data`` (``distill_pack.shared_sets``) plus the pairs that
 ``../shared/data/fetch_unlabelled_more.sh DEST MIRRORS`` copies out of public git snapshots (sections A-F; the three
 single captures of section G are not fetched), with every pair whose left image is byte-identical to one already
 taken dropped (the fetched drive and clips hold the every-4th frames of ``unlabelled_more``). Pairs are symbolic links
@@ -13,40 +13,23 @@ labeler's 192) are written halved (INTER_AREA) instead. No GT file is read. Neve
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
 from pathlib import Path
 
-import cv2
-
-from pipelines.studies.gpu.distill_pack import SHARED, training_sets
+from pipelines.studies.gpu.distill_pack import SHARED, file_digest, halve_file, shared_sets
 from pvm_labeler.common.datasets import discover
-from pvm_labeler.common.errors import InputError
 
 HALVED = ("indoor_rccube_lattermann",)  # fetched folders written at half size
-
-
-def _digest(path: Path) -> str:
-    return hashlib.md5(path.read_bytes()).hexdigest()
 
 
 def candidate_pairs(shared: Path, fetched: Path | None) -> list[tuple[str, Path, Path, bool]]:
     """(name stem, left, right, halve) of every pair in order: the shared sets, then each fetched folder."""
     pairs = [(f"{prefix}_{ref.frame_id}".replace("/", "_"), Path(ref.left), Path(ref.right), False)
-             for prefix, reader, root, kw in training_sets(shared) for ref in discover(reader, root, **kw)]
+             for prefix, reader, root, kw in shared_sets(shared) for ref in discover(reader, root, **kw)]
     for folder in sorted(p for p in (fetched.iterdir() if fetched else ()) if p.is_dir()):
         for left in sorted((folder / "image_2").iterdir()):
             pairs.append((f"fm_{folder.name}_{left.stem}", left, folder / "image_3" / left.name, folder.name in HALVED))
     return pairs
-
-
-def _halve(src: Path, dst: Path) -> None:
-    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise InputError(f"cannot read image {src}")
-    small = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    if not cv2.imwrite(str(dst), small):
-        raise InputError(f"cannot write {dst}")
 
 
 def write_pack(shared: Path, fetched: Path | None, out: Path) -> int:
@@ -55,7 +38,7 @@ def write_pack(shared: Path, fetched: Path | None, out: Path) -> int:
         (out / view).mkdir(parents=True, exist_ok=True)
     seen: set[str] = set()
     for stem, left, right, halve in candidate_pairs(shared, fetched):
-        digest = _digest(left)
+        digest = file_digest(left)
         if digest in seen:
             continue
         seen.add(digest)
@@ -64,7 +47,7 @@ def write_pack(shared: Path, fetched: Path | None, out: Path) -> int:
             if dst.exists() or dst.is_symlink():
                 dst.unlink()
             if halve:
-                _halve(src, dst)
+                halve_file(src, dst)
             else:
                 os.symlink(src.resolve(), dst)
     return len(seen)

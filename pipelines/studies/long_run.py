@@ -255,12 +255,12 @@ def coverage(packs: list[Path], maps: Path, out: Path | None = None) -> list[dic
     rows, examples = [], []
     for pack in packs:
         refs = discover("folder", pack, left="left", right="right")
-        present = [map_path(maps, ref.frame_id) for ref in refs if map_path(maps, ref.frame_id).is_file()]
-        shares = [consistent_fraction(path) for path in present]
+        present = [(ref, path) for ref in refs if (path := map_path(maps, ref.frame_id)).is_file()]
+        shares = [consistent_fraction(path) for _, path in present]
         rows.append({"pack": pack.name, "pairs": len(refs), "maps": len(present),
                      "consistent": round(float(np.mean(shares)), 4) if shares else None})
         if present:
-            examples.append((pack.name, next(r for r in refs if map_path(maps, r.frame_id) == present[0]), present[0]))
+            examples.append((pack.name, *present[0]))
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         (out / "maps_coverage.json").write_text(json.dumps(rows, indent=1) + "\n")

@@ -55,14 +55,15 @@ def more_sets(more: Path) -> list[SetSpec]:
             for p in sorted(more.iterdir()) if (p / "image_2").is_dir()]
 
 
-def _digest(path: Path) -> str:
+def file_digest(path: Path) -> str:
+    """The MD5 of a file's bytes (byte-identical pairs are dropped by it)."""
     return hashlib.md5(path.read_bytes()).hexdigest()
 
 
 def pairs(sets: list[SetSpec], exclude: set[str] = frozenset()) -> list[tuple[str, PairRef]]:
     """(prefix, pair) of every pair of ``sets`` whose left file's MD5 is not in ``exclude``."""
     return [(prefix, ref) for prefix, reader, root, kw in sets for ref in discover(reader, root, **kw)
-            if not exclude or _digest(Path(ref.left)) not in exclude]
+            if not exclude or file_digest(Path(ref.left)) not in exclude]
 
 
 def encode(rgb: np.ndarray, fmt: str, quality: int) -> bytes:
@@ -108,12 +109,19 @@ def halve_pack(refs: list[tuple[str, PairRef]], out: Path) -> int:
         (out / side).mkdir(parents=True)
     for prefix, ref in tqdm(refs, desc="halve", unit="pair"):
         for side, path in (("left", ref.left), ("right", ref.right)):
-            rgb = read_image(path)
-            small = cv2.resize(rgb, (rgb.shape[1] // 2, rgb.shape[0] // 2), interpolation=cv2.INTER_AREA)
-            target = out / side / f"{prefix}_{ref.frame_id}_half.png"
-            if not cv2.imwrite(str(target), cv2.cvtColor(small, cv2.COLOR_RGB2BGR)):
-                raise InputError(f"cv2 cannot write {target}")
+            halve_file(Path(path), out / side / f"{prefix}_{ref.frame_id}_half.png")
     return len(refs)
+
+
+def halve_file(src: Path, dst: Path) -> None:
+    """Write the image ``src`` at half size (cv2.INTER_AREA, both sides floored, channels and depth as stored) to
+    ``dst``, whose suffix picks the format; InputError naming the file that cannot be read or written."""
+    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(f"cannot read image {src}")
+    small = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    if not cv2.imwrite(str(dst), small):
+        raise InputError(f"cannot write {dst}")
 
 
 def link_pack(refs: list[tuple[str, PairRef]], out: Path) -> int:
@@ -144,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
     else:
         if args.more is None:
             parser.error("--part more needs --more DIR")
-        seen = {_digest(Path(ref.left)) for _, ref in pairs(shared_sets(args.shared))}
+        seen = {file_digest(Path(ref.left)) for _, ref in pairs(shared_sets(args.shared))}
         refs = pairs(select(more_sets(args.more), args.only, args.skip), exclude=seen)
     if not refs:
         raise InputError("no pair left after --only / --skip: check the folder names")
