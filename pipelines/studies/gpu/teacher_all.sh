@@ -15,6 +15,9 @@
 #      (`pretrained`, version 15) + the student recipe of version 15 (L_P confidence-weighted + 0.1 L_R + 0.1 L_S, no
 #      L_T, bf16, batch 8, 320x960, N_s 8, flip-swap, OneCycle peak LR), snapshots at half and at the end.
 # $OUT: session_$PART.log, fills_$PART.tar.part0N (cat them), cuda_timing.json, gpu_tests.txt; G1-<step>.safetensors, g1_metrics.jsonl.
+# Knobs of later chapters (defaults = G1's): NAME (snapshot prefix, G1), SCHEDULE (onecycle | constant), SNAPS (snapshots
+# evenly over the run, 2), SPLIT (teacher processes side by side on the GPU, 1), FILLS (1: send the fills back, 0: skip
+# them), GPUTESTS (1: the gpu-marked tests in the background while the data is made, $OUT/gpu_tests.txt).
 # CPU smoke run: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 PROBE=2 END_S=100000 STEPS_MAX=4 WORKERS=0 \
 #   THREADS=2 JOBS=2 TEACHER=<small checkpoint> INIT=<small checkpoint> PACK=<small pack> PART=A TRAIN=1 bash ...
 set -uo pipefail
@@ -28,6 +31,8 @@ DEVICE=${DEVICE:-cuda} AMP=${AMP:-bf16} BATCH=${BATCH:-8} CROP=${CROP:-320x960} 
 LR=${LR:-5e-5} SEED=${SEED:-49} PROBE=${PROBE:-20} STEPS_MAX=${STEPS_MAX:-100000}
 TEACHER=${TEACHER:-pretrained-accurate} INIT=${INIT:-pretrained}
 WORKERS=${WORKERS:-6} THREADS=${THREADS:-4} JOBS=${JOBS:-$(nproc)}
+NAME=${NAME:-G1} SCHEDULE=${SCHEDULE:-onecycle} SNAPS=${SNAPS:-2} SPLIT=${SPLIT:-1} FILLS=${FILLS:-1}
+GPUTESTS=${GPUTESTS:-0}
 W=${WORK:-/tmp/pv}
 OUTD=${OUT:-/tmp/out}
 PY=${PY:-python3}
@@ -48,18 +53,31 @@ if [ "$GRAPH" = 1 ]; then
   echo "cuda timing: exit $? at $(elapsed)"; tail -n 30 "$W/timing.log"
 fi
 
-( $PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels_$PART" --jobs "$JOBS" \
+if [ "$GPUTESTS" = 1 ]; then
+  ( timeout 150 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_graphed.py \
+      > "$OUTD/gpu_tests.txt" 2>&1; echo "gpu tests: exit $? ($(tail -n 1 "$OUTD/gpu_tests.txt"))" ) &
+fi
+( nice -n 5 $PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels_$PART" --jobs "$JOBS" \
     --compression lzf --quiet > "$W/labels_$PART.log" 2>&1 && touch "$W/labels_$PART.ok" ) &
 labeller=$!
-timeout "${TEACHER_S:-170}" $PY -m optstereo.cli distill maps --checkpoint "$TEACHER" --root "$PACK" --out "$W/maps" --device "$DEVICE" \
-  > "$W/maps_$PART.log" 2>&1
-echo "teacher maps: exit $? at $(elapsed); $(ls "$W/maps" | wc -l) pairs in $W/maps"
+# SPLIT teacher processes, each over its share of the pairs (link packs; one maps folder)
+teachers=()
+for ((i = 0; i < SPLIT; i++)); do
+  sub="$W/teacher_pack_$PART$i"; rm -rf "$sub"; mkdir -p "$sub/left" "$sub/right"
+  ls "$PACK/left" | awk -v n="$SPLIT" -v i="$i" 'NR % n == i' | while read -r f; do
+    ln -s "$(realpath "$PACK/left/$f")" "$sub/left/$f"; ln -s "$(realpath "$PACK/right/$f")" "$sub/right/$f"; done
+  timeout "${TEACHER_S:-170}" $PY -m optstereo.cli distill maps --checkpoint "$TEACHER" --root "$sub" --out "$W/maps" \
+    --device "$DEVICE" > "$W/maps_$PART$i.log" 2>&1 &
+  teachers+=($!)
+done
+for t in "${teachers[@]}"; do wait "$t"; echo "teacher maps (pid $t): exit $? at $(elapsed)"; done
+echo "teacher maps: $(ls "$W/maps" | wc -l) pairs in $W/maps"
 wait "$labeller"
 echo "labels: exit $? at $(elapsed); $(tail -n 1 "$W/labels_$PART.log")"
 $PY -m optstereo.cli distill fill "$W/labels_$PART" "$W/maps" "$W/distill_$PART" --compression lzf --allow-missing \
   > "$W/fill_$PART.log" 2>&1
 echo "fill: exit $? at $(elapsed); $(tail -n 1 "$W/fill_$PART.log")"
-( $PY -m pipelines.studies.gpu.teacher_all fills "$W/labels_$PART" "$W/maps" "$W/fills_$PART" \
+[ "$FILLS" = 1 ] && ( $PY -m pipelines.studies.gpu.teacher_all fills "$W/labels_$PART" "$W/maps" "$W/fills_$PART" \
     && tar -cf "$W/fills_$PART.tar" -C "$W" "fills_$PART" && echo "fills tar $(du -m "$W/fills_$PART.tar" | cut -f1) MB" ) \
   > "$W/fills_$PART.log" 2>&1 &
 filler=$!
@@ -70,7 +88,7 @@ if [ "$TRAIN" = 1 ]; then
     $PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 \
       --conf-weight --labels "$W/distill_all" --out "$1" --steps "$2" --lr "$LR" --seed "$SEED" --device "$DEVICE" \
       --amp "$AMP" --batch-size "$BATCH" --crop "$CROP" --iters "$ITERS" --workers "$WORKERS" --threads "$THREADS" \
-      --scale-range 1.0,1.0 --schedule onecycle --quiet "${@:3}"
+      --scale-range 1.0,1.0 --schedule "$SCHEDULE" --quiet "${@:3}"
   }
   rm -rf "$W/probe"
   train "$W/probe" "$PROBE" --log-every 2 --ckpt-every 100000 --schedule constant
@@ -81,17 +99,22 @@ half = rows[len(rows) // 2:]
 print(sum(r['step_time_s'] for r in half) / len(half))" 2>/dev/null || echo 0.2)
   budget=$(( T0 + END_S - $(date +%s) - 30 ))  # 30 s: start-up, snapshots, copies
   steps=$($PY -c "print(min($STEPS_MAX, max(3, int(0.9 * $budget / $step_s) // 2 * 2)))")
-  echo "probe: $step_s s/step; $budget s left -> G1: $steps steps at $(elapsed)"
+  echo "probe: $step_s s/step; $budget s left -> $NAME: $steps steps at $(elapsed)"
   rm -rf "$W/g1"
-  train "$W/g1" "$steps" --ckpt-every $(( steps / 2 )) --set keep_ckpts=2 --max-minutes "$($PY -c "print(max($budget, 6) / 60)")"
-  echo "G1: exit $? at $(elapsed); $(tail -n 1 "$W/g1/metrics.jsonl" 2>/dev/null | cut -c1-300)"
-  $PY -m pipelines.studies.gpu.teacher_all snapshots "$W/g1" "$OUTD" --name G1
-  cp "$W/g1/metrics.jsonl" "$OUTD/g1_metrics.jsonl" 2>/dev/null
+  train "$W/g1" "$steps" --ckpt-every $(( steps / SNAPS )) --set keep_ckpts="$SNAPS" \
+    --max-minutes "$($PY -c "print(max($budget, 6) / 60)")"
+  echo "$NAME: exit $? at $(elapsed); $(tail -n 1 "$W/g1/metrics.jsonl" 2>/dev/null | cut -c1-300)"
+  $PY -m pipelines.studies.gpu.teacher_all snapshots "$W/g1" "$OUTD" --name "$NAME"
+  cp "$W/g1/metrics.jsonl" "$OUTD/${NAME,,}_metrics.jsonl" 2>/dev/null
 fi
-wait "$filler"; echo "fills: exit $? at $(elapsed); $(tail -n 2 "$W/fills_$PART.log" | tr '\n' ' ')"
+if [ "$FILLS" = 1 ]; then
+  wait "$filler"; echo "fills: exit $? at $(elapsed); $(tail -n 2 "$W/fills_$PART.log" | tr '\n' ' ')"
+fi
 # $OUT brings back at most 8 files of <= 16 MiB, 64 MiB in all: the fills go in 15 MiB parts while they fit
 room=$(( 62 * 1024 * 1024 - $(du -cb "$OUTD" | tail -n 1 | cut -f1) ))
-if [ -f "$W/fills_$PART.tar" ] && [ "$(stat -c %s "$W/fills_$PART.tar")" -le "$room" ]; then
+if [ "$FILLS" != 1 ]; then
+  echo "fills not sent back (FILLS=$FILLS)"
+elif [ -f "$W/fills_$PART.tar" ] && [ "$(stat -c %s "$W/fills_$PART.tar")" -le "$room" ]; then
   split -b 15m -d "$W/fills_$PART.tar" "$OUTD/fills_$PART.tar.part"
 else
   echo "fills_$PART.tar ($(stat -c %s "$W/fills_$PART.tar" 2>/dev/null) bytes) does not fit the $room bytes left in \$OUT: not sent back"

@@ -1,0 +1,63 @@
+"""Pack C for G3's device call: the indoor and table-top pairs as WebP beside the KITTI pairs of pack A.
+
+One folder pack (``OUT/{left,right}/<name>.webp``, the names of the link packs): every pair of ``/work/pack/extra``
+(74: 50 InStereo2K rooms, 24 ZED frames) and ``/work/pack/tabletop_half`` (57 table-tops at half size) re-encoded at
+WebP quality ``Q``, plus pack A's (``.carry/A``, WebP q90) 87 ``kitti_unlabelled`` pairs and its four single
+``unlabelled_more`` pairs (``um_misc_*``, ``um_sid_*``), copied; ``--every N`` keeps every N-th of those. At q88: 222
+pairs, 36.1 MB, which with the ~25 MB tracked tree fits the device's 64 MiB carry.
+
+    python -m pipelines.studies.gpu.pack_c .carry/C --quality 88
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+
+import cv2
+
+LINK_PACKS = (Path("/work/pack/extra"), Path("/work/pack/tabletop_half"))
+PACK_A = Path(".carry/A")
+A_PREFIXES = ("ku_", "um_misc", "um_sid")
+
+
+def encode(src: Path, dst: Path, quality: int) -> int:
+    """Re-encode one image file as WebP at ``quality``; the bytes written."""
+    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{src}: not a readable image")
+    if not cv2.imwrite(str(dst), img, [cv2.IMWRITE_WEBP_QUALITY, quality]):
+        raise OSError(f"{dst}: could not be written")
+    return dst.stat().st_size
+
+
+def build(out: Path, quality: int, every: int = 1) -> tuple[int, int]:
+    """Write pack C to ``out``; (pairs, bytes)."""
+    for side in ("left", "right"):
+        (out / side).mkdir(parents=True, exist_ok=True)
+    total = 0
+    for pack in LINK_PACKS:
+        for f in sorted((pack / "left").iterdir()):
+            for side in ("left", "right"):
+                total += encode(pack / side / f.name, out / side / f"{f.stem}.webp", quality)
+    names = sorted(p.name for p in (PACK_A / "left").iterdir() if p.name.startswith(A_PREFIXES))[::every]
+    for name in names:
+        for side in ("left", "right"):
+            shutil.copy(PACK_A / side / name, out / side / name)
+            total += (out / side / name).stat().st_size
+    return len(list((out / "left").iterdir())), total
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--quality", type=int, default=88)
+    parser.add_argument("--every", type=int, default=1)
+    args = parser.parse_args()
+    pairs, size = build(args.out, args.quality, args.every)
+    print(f"{pairs} pairs, {size / 1e6:.1f} MB in {args.out}")
+
+
+if __name__ == "__main__":
+    main()
