@@ -145,6 +145,19 @@ def test_teacher_all_merge_lists_every_shard_of_every_source(tmp_path: Path) -> 
     assert index.raw["merged_from"] == [str(a), str(b)]
 
 
+def test_teacher_all_merge_with_maps_drops_the_shards_the_teacher_missed(tmp_path: Path) -> None:
+    """MISSING=drop: a shard with one pair the teacher's box did not reach does not train (G1 and G3 kept them)."""
+    from pipelines.studies.gpu import teacher_all
+
+    a = make_shards(tmp_path / "a", n=4, shard_size=2, with_gt=False)
+    maps = _maps(tmp_path / "maps", ["frame-000", "frame-001", "frame-003"])
+    assert teacher_all.merge(tmp_path / "all", [a], maps) == 2
+    index = read_index(tmp_path / "all")
+    assert [ids for _, ids in index.shards] == [["frame-000", "frame-001"]]
+    assert index.raw["only_pairs_with_maps_in"] == str(maps)
+    assert teacher_all.merge(tmp_path / "every", [a]) == 4
+
+
 def test_coverage_counts_maps_and_the_pixels_both_views_agree_on(tmp_path: Path) -> None:
     import cv2
 

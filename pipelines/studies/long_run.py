@@ -48,7 +48,7 @@ import numpy as np
 
 from optstereo.training.distill import consistent_views, map_path
 from optstereo.validation import PairScore, paired_difference
-from pipelines.studies.gpu.teacher_all import merge_shards
+from pipelines.studies.gpu.teacher_all import merge_shards, with_maps
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.shards.reader import INDEX_NAME, read_index
 
@@ -77,12 +77,6 @@ def run_cmd(cmd: list[str], log: Path) -> None:
 def chapters(run: Path) -> list[Path]:
     """The run's chapter folders ``ch01``, ``ch02``, ... in order."""
     return sorted(p for p in run.glob("ch[0-9][0-9]") if p.is_dir())
-
-
-def with_maps(shard_dir: Path, maps: Path) -> list[tuple[Path, list[str]]]:
-    """(shard path, sample ids) of the shards of ``shard_dir`` all of whose pairs have a teacher map in ``maps``."""
-    return [(path, ids) for path, ids in read_index(shard_dir).shards
-            if all(map_path(maps, frame_id).is_file() for frame_id in ids)]
 
 
 def machine() -> dict[str, Any]:

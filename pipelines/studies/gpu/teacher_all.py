@@ -21,17 +21,29 @@ from pathlib import Path
 import numpy as np
 
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
-from optstereo.training.distill import MAX_LR_DIFF, consistent_views, read_teacher_maps
+from optstereo.training.distill import MAX_LR_DIFF, consistent_views, map_path, read_teacher_maps
 from optstereo.validation import shard_samples
 from pvm_labeler.common.datasets import safe_stem
 from pvm_labeler.common.io import write_kitti_disp
 from pvm_labeler.shards.reader import INDEX_NAME, read_index
 
 
-def merge(dest: Path, sources: list[Path]) -> int:
-    """Write ``dest/index.json`` listing every shard of ``sources`` (symlinked); the samples."""
-    shards = [shard for src in sources for shard in read_index(src).shards]
-    return merge_shards(dest, shards, sources[0], {"merged_from": [str(s) for s in sources]})
+def with_maps(shard_dir: Path, maps: Path) -> list[tuple[Path, list[str]]]:
+    """(shard path, sample ids) of the shards of ``shard_dir`` all of whose pairs have a teacher map in ``maps``."""
+    return [(path, ids) for path, ids in read_index(shard_dir).shards
+            if all(map_path(maps, frame_id).is_file() for frame_id in ids)]
+
+
+def merge(dest: Path, sources: list[Path], maps: Path | None = None) -> int:
+    """Write ``dest/index.json`` listing every shard of ``sources`` (symlinked), or with ``maps`` only the shards all
+    of whose pairs have a teacher map there (a pair the teacher's box missed would train on PVM's labels alone); the
+    samples."""
+    shards = [shard for src in sources
+              for shard in (read_index(src).shards if maps is None else with_maps(src, maps))]
+    extra: dict = {"merged_from": [str(s) for s in sources]}
+    if maps is not None:
+        extra["only_pairs_with_maps_in"] = str(maps)
+    return merge_shards(dest, shards, sources[0], extra)
 
 
 def merge_shards(dest: Path, shards: list[tuple[Path, list[str]]], template: Path,
@@ -86,6 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     m = sub.add_parser("merge")
     m.add_argument("dest", type=Path)
     m.add_argument("sources", type=Path, nargs="+")
+    m.add_argument("--maps", type=Path, help="Keep only the shards all of whose pairs have a map here.")
     f = sub.add_parser("fills")
     f.add_argument("labels", type=Path)
     f.add_argument("maps", type=Path)
@@ -96,7 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     s.add_argument("--name", default="snap")
     args = parser.parse_args(argv)
     if args.cmd == "merge":
-        print(f"{merge(args.dest, args.sources)} samples in {args.dest}")
+        print(f"{merge(args.dest, args.sources, args.maps)} samples in {args.dest}")
     elif args.cmd == "fills":
         n, pct = write_fills(args.labels, args.maps, args.out)
         print(f"{n} pairs' fills in {args.out} ({pct:.1f} % of pixels filled per view)")

@@ -17,7 +17,9 @@
 # $OUT: session_$PART.log, fills_$PART.tar.part0N (cat them), cuda_timing.json, gpu_tests.txt; G1-<step>.safetensors, g1_metrics.jsonl.
 # Knobs of later chapters (defaults = G1's): NAME (snapshot prefix, G1), SCHEDULE (onecycle | constant), SNAPS (snapshots
 # evenly over the run, 2), SPLIT (teacher processes side by side on the GPU, 1), FILLS (1: send the fills back, 0: skip
-# them), GPUTESTS (1: the gpu-marked tests in the background while the data is made, $OUT/gpu_tests.txt).
+# them), GPUTESTS (1: the gpu-marked tests in the background while the data is made, $OUT/gpu_tests.txt), MISSING
+# (keep: a pair the teacher's box missed trains on PVM's labels alone, as G1 and G3 did; drop: only the shards all of
+# whose pairs have maps train).
 # CPU smoke run: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 PROBE=2 END_S=100000 STEPS_MAX=4 WORKERS=0 \
 #   THREADS=2 JOBS=2 TEACHER=<small checkpoint> INIT=<small checkpoint> PACK=<small pack> PART=A TRAIN=1 bash ...
 set -uo pipefail
@@ -32,7 +34,7 @@ LR=${LR:-5e-5} SEED=${SEED:-49} PROBE=${PROBE:-20} STEPS_MAX=${STEPS_MAX:-100000
 TEACHER=${TEACHER:-pretrained-accurate} INIT=${INIT:-pretrained}
 WORKERS=${WORKERS:-6} THREADS=${THREADS:-4} JOBS=${JOBS:-$(nproc)}
 NAME=${NAME:-G1} SCHEDULE=${SCHEDULE:-onecycle} SNAPS=${SNAPS:-2} SPLIT=${SPLIT:-1} FILLS=${FILLS:-1}
-GPUTESTS=${GPUTESTS:-0}
+GPUTESTS=${GPUTESTS:-0} MISSING=${MISSING:-keep}
 W=${WORK:-/tmp/pv}
 OUTD=${OUT:-/tmp/out}
 PY=${PY:-python3}
@@ -83,7 +85,8 @@ echo "fill: exit $? at $(elapsed); $(tail -n 1 "$W/fill_$PART.log")"
 filler=$!
 
 if [ "$TRAIN" = 1 ]; then
-  $PY -m pipelines.studies.gpu.teacher_all merge "$W/distill_all" "$W"/distill_?
+  keep=(); [ "$MISSING" = drop ] && keep=(--maps "$W/maps")
+  $PY -m pipelines.studies.gpu.teacher_all merge "$W/distill_all" "$W"/distill_? "${keep[@]}"
   train() {  # out dir, steps, extra args
     $PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 \
       --conf-weight --labels "$W/distill_all" --out "$1" --steps "$2" --lr "$LR" --seed "$SEED" --device "$DEVICE" \
