@@ -2,6 +2,10 @@
 # Issue 49 on a lent GPU in TWO back-to-back device calls (a warm machine keeps /tmp/pv for 30 s between calls):
 #   call 1: run(command="PART=A GRAPH=1 bash pipelines/studies/gpu/teacher_all.sh", carry=[".carry/A"], timeout_s=330)
 #   call 2: run(command="PART=B TRAIN=1 bash pipelines/studies/gpu/teacher_all.sh", carry=[".carry/B"], timeout_s=480)
+# Or ONE call, a whole chapter on one pack (G3; the next, G4, as registered in docs/registrations.md):
+#   run(command="NAME=G4 PART=D TRAIN=1 SCHEDULE=constant LR=2e-5 SNAPS=3 SPLIT=2 MISSING=drop FILLS=0 SEED=51
+#       JOBS=10 END_S=540 TEACHER_S=300 bash pipelines/studies/gpu/teacher_all.sh", carry=[".carry/D"], timeout_s=590)
+#   (pack D: python -m pipelines.studies.gpu.pack_c .carry/D --quality 88 --exclude pipelines/studies/valset_indoor.txt)
 # Packs, here, once (WebP, the highest quality under 37 MB each; pipelines/studies/gpu/distill_pack.py):
 #   A = the 144 unlabelled pairs of ../shared/data; B = the 267 more that fetch_unlabelled_more.sh copies (less the 57
 #   that are byte-identical to A's).
