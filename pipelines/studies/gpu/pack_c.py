@@ -17,21 +17,12 @@ import argparse
 import shutil
 from pathlib import Path
 
-import cv2
+from pipelines.studies.gpu.distill_pack import encode
+from pvm_labeler.common.io import read_image
 
 LINK_PACKS = (Path("/work/pack/extra"), Path("/work/pack/tabletop_half"))
 PACK_A = Path(".carry/A")
 A_PREFIXES = ("ku_", "um_misc", "um_sid")
-
-
-def encode(src: Path, dst: Path, quality: int) -> int:
-    """Re-encode one image file as WebP at ``quality``; the bytes written."""
-    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{src}: not a readable image")
-    if not cv2.imwrite(str(dst), img, [cv2.IMWRITE_WEBP_QUALITY, quality]):
-        raise OSError(f"{dst}: could not be written")
-    return dst.stat().st_size
 
 
 def names_in(path: Path | None) -> set[str]:
@@ -43,16 +34,20 @@ def names_in(path: Path | None) -> set[str]:
 
 
 def build(out: Path, quality: int, every: int = 1, exclude: set[str] = frozenset()) -> tuple[int, int]:
-    """Write pack C (less the pairs named in ``exclude``) to ``out``; (pairs, bytes)."""
+    """Write pack C (less the pairs named in ``exclude``) to ``out``, replacing what was there (a pair left from an
+    earlier build would travel unseen); (pairs, bytes)."""
+    shutil.rmtree(out, ignore_errors=True)
     for side in ("left", "right"):
-        (out / side).mkdir(parents=True, exist_ok=True)
+        (out / side).mkdir(parents=True)
     total = 0
     for pack in LINK_PACKS:
         for f in sorted((pack / "left").iterdir()):
             if f.stem in exclude:
                 continue
             for side in ("left", "right"):
-                total += encode(pack / side / f.name, out / side / f"{f.stem}.webp", quality)
+                data = encode(read_image(pack / side / f.name), "webp", quality)
+                (out / side / f"{f.stem}.webp").write_bytes(data)
+                total += len(data)
     names = sorted(p.name for p in (PACK_A / "left").iterdir() if p.name.startswith(A_PREFIXES)
                    and Path(p.name).stem not in exclude)[::every]
     for name in names:

@@ -45,23 +45,24 @@ PY=${PY:-python3}
 mkdir -p "$OUTD" "$W"
 exec > >(tee -a "$OUTD/session_$PART.log") 2>&1
 elapsed() { echo "+$(( $(date +%s) - T0 )) s"; }
+gpu_tests() {  # limit in s -> $OUT/gpu_tests.txt and one line here
+  timeout "$1" $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_graphed.py > "$OUTD/gpu_tests.txt" 2>&1
+  echo "gpu tests: exit $? at $(elapsed) ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
+}
 echo "teacher_all $PART start $(date -u +%FT%TZ); earlier parts here: $(ls -d "$W"/distill_* 2>/dev/null | tr '\n' ' ')"
 { git rev-parse --short HEAD 2>/dev/null; nproc; command -v nvidia-smi > /dev/null && nvidia-smi -L
   $PY -c "import torch, cv2; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'cv2', cv2.__version__)"
 } 2>&1
 
 if [ "$GRAPH" = 1 ]; then
-  timeout 100 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_graphed.py \
-    > "$OUTD/gpu_tests.txt" 2>&1
-  echo "gpu tests: exit $? at $(elapsed) ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
+  gpu_tests 100
   timeout 90 $PY -m pipelines.studies.gpu.cuda_timing --graphs-only --out "$OUTD/cuda_timing.json" --repeats 10 --warmup 3 \
     > "$W/timing.log" 2>&1
   echo "cuda timing: exit $? at $(elapsed)"; tail -n 30 "$W/timing.log"
 fi
 
 if [ "$GPUTESTS" = 1 ]; then
-  ( timeout 150 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_graphed.py \
-      > "$OUTD/gpu_tests.txt" 2>&1; echo "gpu tests: exit $? ($(tail -n 1 "$OUTD/gpu_tests.txt"))" ) &
+  gpu_tests 150 &  # beside the data stage
 fi
 ( nice -n 5 $PY -m pvm_labeler.cli run --dataset folder --root "$PACK" --out "$W/labels_$PART" --jobs "$JOBS" \
     --compression lzf --quiet > "$W/labels_$PART.log" 2>&1 && touch "$W/labels_$PART.ok" ) &
