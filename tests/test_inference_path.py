@@ -277,7 +277,13 @@ def test_init_carries_the_inference_settings(tmp_path: Path) -> None:
                                 inference=InferenceConfig(scale=1.5, refine="wmedian"))
     out = CliRunner().invoke(train_main, ["--init", str(parent), "--print-config"])
     assert out.exit_code == 0, out.output
-    assert yaml.safe_load(out.output)["inference"] == InferenceConfig(scale=1.5, refine="wmedian").to_dict()
+    # the parent's N_s (2, its model's) becomes the run's inference N_s: training at another N_s leaves it
+    assert yaml.safe_load(out.output)["inference"] == InferenceConfig(scale=1.5, refine="wmedian", iters=2).to_dict()
+    out = CliRunner().invoke(train_main, ["--init", str(parent), "--iters", "1", "--print-config"])
+    assert out.exit_code == 0, out.output
+    assert yaml.safe_load(out.output)["model"]["iters"] == 1 and yaml.safe_load(out.output)["inference"]["iters"] == 2
+    out = CliRunner().invoke(train_main, ["--init", str(parent), "--set", "inference.iters=3", "--print-config"])
+    assert yaml.safe_load(out.output)["inference"]["iters"] == 3
     out = CliRunner().invoke(train_main, ["--init", str(parent), "--set", "inference.scale=1.0", "--print-config"])
     assert yaml.safe_load(out.output)["inference"]["scale"] == 1.0
     assert yaml.safe_load(out.output)["inference"]["refine"] == "wmedian"

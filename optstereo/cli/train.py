@@ -58,7 +58,9 @@ _D = TrainConfig()
 @click.option("--model-opt", multiple=True, hidden=True, help="Removed: use --set model.KEY=VALUE.")
 @click.option("--supervision", type=click.Choice(SUPERVISIONS),
               help=f"pvm = PVM pseudo-labels (PVStereo), gt = ground truth. [default: {_D.data.supervision}]")
-@click.option("--iters", type=int, help=f"GRU iterations N_s during training. [default: {_D.model.iters}]")
+@click.option("--iters", type=int,
+              help=f"GRU iterations N_s during training (under --init the run still infers at the init's N_s; "
+                   f"--set inference.iters=N changes that). [default: {_D.model.iters}]")
 @click.option("--steps", type=int, help=f"Total optimiser steps. [default: {_D.optim.steps}]")
 @click.option("--batch-size", type=int, help=f"Samples per step per rank. [default: {_D.data.batch_size}]")
 @click.option("--lr", type=float, help=f"Adam learning rate (paper: 1e-4). [default: {_D.optim.lr}]")

@@ -117,11 +117,17 @@ def init_settings(source: Path | LoadedCheckpoint) -> dict[str, Any]:
     """{"model": {name, feature_dim, ...}, "inference": {...}}: a config layer rebuilding a checkpoint's network for
     --init, with the inference settings its exports are run with (flags and --set inference.* override them).
 
-    N_s (``iters``) is left out: it is a training choice of the new run (--iters or the recipe), not of the weights.
+    N_s of training (``model.iters``) is left out: it is a choice of the new run (--iters or the recipe). N_s of
+    inference is not: ``inference.iters`` keeps the checkpoint's (its model's N_s where its file leaves it to the
+    model), so a run that trains at N_s = 4 to save CPU time still infers, validates and ships at the N_s of the
+    weights it started from (``--set inference.iters=N`` changes it).
     """
     ckpt = _as_checkpoint(source)
+    inference = ckpt.inference_config.to_dict()
+    if inference.get("iters") is None and ckpt.model_config.get("iters") is not None:
+        inference["iters"] = int(ckpt.model_config["iters"])
     return {"model": {**{k: v for k, v in ckpt.model_config.items() if k != "iters"}, "name": ckpt.model_name},
-            "inference": ckpt.inference_config.to_dict()}
+            "inference": inference}
 
 
 def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
