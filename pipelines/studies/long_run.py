@@ -56,9 +56,10 @@ REPO = Path(__file__).resolve().parents[2]
 CPU_RECIPE = REPO / "pipelines" / "studies" / "recipes" / "cpu_main.yaml"
 #: G2's recipe (docs/registrations.md), on top of cpu_main.yaml: version 15's losses (L_P weighted by confidence +
 #: 0.1 L_R + 0.1 L_S, no L_T), a constant small learning rate (the run continues a converged student; a OneCycle
-#: schedule would restart at every chapter), no scale augmentation (the default runs at scale 1).
+#: schedule would restart at every chapter), no scale augmentation (the default runs at scale 1); N_s = 4 in
+#: training, version 15's 8 at inference (chapter 1's files carry 4: a chapter started from one would inherit it).
 RECIPE = ["--lambda-t", "0", "--conf-weight", "--schedule", "constant", "--lr", "2e-5", "--scale-range", "1.0,1.0",
-          "--batch-size", "2", "--crop", "256x640", "--iters", "4"]
+          "--batch-size", "2", "--crop", "256x640", "--iters", "4", "--set", "inference.iters=8"]
 LEDGER = "ledger.jsonl"
 NO_STEP_CAP = 10**9
 
