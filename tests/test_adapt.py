@@ -184,12 +184,17 @@ def test_a_teacher_run_trains_with_confidence_weights(tmp_path: Path, monkeypatc
     monkeypatch.setattr(adapt, "main", lambda cfg, **kw: seen.setdefault("cfg", cfg))
     torch.manual_seed(0)
     ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
-    for teacher, expected in ((None, False), (str(ckpt), True)):
+    # (teacher, --lr, confidence weights, the rate trained with): 1e-4 with a teacher by default (A1), 1e-5 without
+    for teacher, lr, weighted, rate in ((None, None, False, 1e-5), (str(ckpt), None, True, 1e-4),
+                                        (str(ckpt), 3e-5, True, 3e-5), (None, 2e-4, False, 2e-4)):
         seen.clear()
-        cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / f"out{expected}", init=str(ckpt),
-                          teacher=teacher, device="cpu", quiet=True)
+        cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / f"out{weighted}{lr}", init=str(ckpt),
+                          teacher=teacher, lr=lr, device="cpu", quiet=True)
         adapt.finetune(cfg, tmp_path / "labels")
-        assert seen["cfg"].loss.conf_weight is expected
+        assert seen["cfg"].loss.conf_weight is weighted
+        assert seen["cfg"].optim.lr == pytest.approx(rate)
+    with pytest.raises(ValueError, match="--lr must be > 0"):
+        AdaptConfig(dataset="folder", root=None, out=tmp_path, lr=0.0).check()
 
 
 def test_the_report_names_the_teacher() -> None:
@@ -201,3 +206,5 @@ def test_the_report_names_the_teacher() -> None:
     taught = report_markdown({**base, "config": {"steps": 150, "teacher": "pretrained-accurate"}})
     assert "150 steps." in plain and "teacher" not in plain
     assert "150 steps; the teacher `pretrained-accurate` in PVM's holes." in taught
+    rated = report_markdown({**base, "lr": 1e-4, "config": {"steps": 150, "teacher": "pretrained-accurate"}})
+    assert "150 steps at lr 0.0001; the teacher" in rated

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from optstereo.adapt import DEFAULT_LR, DEFAULT_STEPS, AdaptConfig, run
+from optstereo.adapt import DEFAULT_LR, DEFAULT_STEPS, DEFAULT_TEACHER_LR, AdaptConfig, run
 from optstereo.cli.common import (
     EXISTING,
     GuardedCommand,
@@ -30,7 +30,9 @@ from optstereo.cli.common import (
 @click.option("--steps", type=click.IntRange(min=0), default=DEFAULT_STEPS,
               help="Fine-tuning steps (batch 1, 320x736 crops): the default is about 10 minutes on 2 CPU cores "
                    "(~4 s/step), plus labeling and scoring.")
-@click.option("--lr", type=float, default=DEFAULT_LR, help="Adam learning rate of the fine-tuning.")
+@click.option("--lr", type=float, default=None,
+              help=f"Adam learning rate of the fine-tuning. "
+                   f"[default: {DEFAULT_LR:g}; {DEFAULT_TEACHER_LR:g} with --teacher]")
 @click.option("--holdout", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.3,
               help="Fraction of the rig's whole frames held back (never trained on) for the GT-free decision; at "
                    "least 3 frames, with one more to train on, else no decision can be made and the start is kept.")
@@ -45,9 +47,9 @@ from optstereo.cli.common import (
 @click.option("--threads", type=click.IntRange(min=0), default=0, expose_value=False, callback=_set_threads,
               help="torch CPU threads (0 = torch's default, one per core).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, steps: int, lr: float, holdout: float,
-               limit: int | None, max_disp: int | None, seed: int, teacher: str | None, device: str, quiet: bool,
-               **reader: Any) -> None:
+def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, steps: int, lr: float | None,
+               holdout: float, limit: int | None, max_disp: int | None, seed: int, teacher: str | None, device: str,
+               quiet: bool, **reader: Any) -> None:
     """Adapt to your rig without GT: optstereo-adapt --root MY_RIG --left cam0 --right cam1 --out out/adapt."""
     setup_logging(quiet)
     cfg = AdaptConfig(dataset=dataset or "folder", root=root, out=out, reader_options=collect_reader_options(**reader),
