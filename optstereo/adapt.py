@@ -168,8 +168,8 @@ def finetune(cfg: AdaptConfig, train_labels: Path) -> Path:
     """Step 3: fine-tune from cfg.init on the training labels; returns the run's checkpoint (resumes a run)."""
     run_dir = cfg.out / "run"
     overrides = {"labels": train_labels, "out": run_dir, "steps": cfg.steps, "lr": cfg.learning_rate(),
-                 "batch_size": cfg.batch_size,
-                 "crop": list(cfg.crop), "device": cfg.device, "workers": 0, "seed": cfg.seed, "tensorboard": False,
+                 "batch_size": cfg.batch_size, "crop": list(cfg.crop), "device": cfg.device, "workers": 0,
+                 "seed": cfg.seed, "tensorboard": False,
                  **({"conf_weight": True} if cfg.teacher is not None else {}), **cfg.train_overrides}
     if (run_dir / "last.pt").exists():
         train_cfg = config_for_resume(run_dir, {"steps": cfg.steps})
