@@ -22,7 +22,7 @@ from pvm_labeler.shards.reader import read_index
 
 
 def pick(labels: Path, maps: Path, match: str, every: int, count: int) -> set[str]:
-    """Every ``every``-th pair of ``labels`` whose id contains ``match`` and that has a teacher map, at most ``count``."""
+    """Every ``every``-th pair of ``labels`` whose id contains ``match`` and has a teacher map; ``count`` at most."""
     ids = [i for _, shard in read_index(labels).shards for i in shard]
     return set([i for i in ids if match in i and map_path(maps, i).is_file()][::every][:count])
 
