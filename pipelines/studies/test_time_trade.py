@@ -1,0 +1,188 @@
+"""T1 (docs/registrations.md): the default's test-time trade of input scale against N_s, same weights.
+
+Three steps, each resumable and writing under ``--out`` (default results/test_time_trade):
+
+``stamp``: one copy of the shipped default per setting, ``s<scale>_n<iters>.safetensors`` (version 15's weights, its
+    InferenceConfig with ``scale`` and ``iters`` replaced), under ``--files`` (outside the repository).
+``time``: per setting, seconds per KITTI 2015 frame of ``optstereo.inference.engine.infer`` (the engineered pass
+    ``load_model`` gives, 2 threads, the model loaded once) alternating frame by frame with OpenCV SGBM-HH as
+    ``make bench`` (pipelines/bench_models.py) does; the median of the per-frame ratios -> ``timing.json``.
+``score``: ``optstereo-eval --valset`` of each stamped file on the validation sets -> ``<set>/<name>/gtfree.json``.
+``table``: the registered rule over the three -> ``table.md`` / ``table.json``.
+
+    python -m pipelines.studies.test_time_trade stamp --files /work/runs/t1
+    python -m pipelines.studies.test_time_trade time --files /work/runs/t1
+    python -m pipelines.studies.test_time_trade score --files /work/runs/t1 --valset /work/valset
+    python -m pipelines.studies.test_time_trade table --valset-name valset
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import torch
+
+from optstereo.api import load_model
+from optstereo.checkpoint import export_safetensors, model_inference
+from optstereo.inference.engine import infer
+from optstereo.validation import PairScore, paired_difference
+from pipelines.bench_labeler import _opencv
+from pipelines.bench_models import THREADS, _frames, _seconds
+
+SCALES = (1.0, 1.125, 1.25, 1.375)
+ITERS = (3, 4, 6, 8)
+BUDGET = 3.0  # issue 49: the default's seconds per KITTI frame / OpenCV SGBM-HH's
+TODAY = (1.0, 8)
+OUT = Path("results/test_time_trade")
+SHARED = Path("../shared/data")
+
+
+def name_of(scale: float, iters: int) -> str:
+    """File stem of one setting: ``s1.125_n4``."""
+    return f"s{scale:g}_n{iters}"
+
+
+def settings() -> list[tuple[float, int]]:
+    """The registered grid, today's default first."""
+    grid = [(s, n) for s in SCALES for n in ITERS]
+    grid.remove(TODAY)
+    return [TODAY, *grid]
+
+
+def stamp(files: Path) -> list[Path]:
+    """Write one safetensors file per setting (skipping those present); their paths."""
+    model = load_model("pretrained")
+    base = model_inference(model)
+    files.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for scale, iters in settings():
+        path = files / f"{name_of(scale, iters)}.safetensors"
+        if not path.exists():
+            export_safetensors(path, model, inference=base.replace(scale=scale, iters=iters))
+        paths.append(path)
+    return paths
+
+
+def time_settings(files: Path, shared: Path, repeats: int) -> dict[str, dict[str, float]]:
+    """Per setting: median seconds per frame and median per-frame ratio to SGBM-HH timed beside it."""
+    torch.set_num_threads(THREADS)
+    sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
+    frames = _frames(shared)
+    out = {}
+    for scale, iters in settings():
+        name = name_of(scale, iters)
+        model = load_model(files / f"{name}.safetensors")
+        model_s, sgbm_s = [], []
+        for left, right in frames:
+            sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), repeats))
+            model_s.append(_seconds(functools.partial(infer, model, left, right), repeats))
+        ratio = statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))
+        out[name] = {"scale": scale, "iters": iters, "s_per_frame": statistics.median(model_s),
+                     "sgbm_s": statistics.median(sgbm_s), "ratio": ratio}
+        print(f"{name}: {out[name]['s_per_frame']:.2f} s per frame, {ratio:.2f}x SGBM-HH", flush=True)
+    return out
+
+
+def score(files: Path, valset: Path, out: Path, threads: int, eligible_only: bool = False) -> None:
+    """``optstereo-eval --valset`` of every stamped file whose ``gtfree.json`` is missing (``eligible_only``: of the
+    settings within the budget by ``timing.json`` only)."""
+    timing = json.loads((out / "timing.json").read_text()) if eligible_only else {}
+    for scale, iters in settings():
+        name = name_of(scale, iters)
+        if eligible_only and timing[name]["ratio"] > BUDGET and (scale, iters) != TODAY:
+            continue
+        dest = out / valset.name / name
+        if (dest / "gtfree.json").exists():
+            continue
+        cmd = [str(Path(sys.executable).parent / "optstereo-eval"), "--checkpoint", str(files / f"{name}.safetensors"),
+               "--valset", str(valset), "--out", str(dest), "--threads", str(threads), "--device", "cpu"]
+        print(" ".join(cmd), flush=True)
+        subprocess.run(cmd, check=True)
+
+
+def _pairs(doc: dict[str, Any]) -> list[PairScore]:
+    return [PairScore(**p) for p in doc["pairs"]]
+
+
+def table(out: Path, valset_name: str, z: float = 2.0) -> dict[str, Any]:
+    """The registered rule over ``timing.json`` and the scores: rows, the accuracy pick and the speed pick."""
+    timing = json.loads((out / "timing.json").read_text())
+    docs = {name: json.loads((out / valset_name / name / "gtfree.json").read_text())
+            for name in timing if (out / valset_name / name / "gtfree.json").exists()}
+    base = docs[name_of(*TODAY)]
+    rows = []
+    for name, t in timing.items():
+        if name not in docs:
+            continue
+        row = {"setting": name, **t, "eligible": t["ratio"] <= BUDGET, **docs[name]["summary"]}
+        for key in ("pvm_epe", "teacher_epe", "photometric"):
+            change, margin = paired_difference(_pairs(base), _pairs(docs[name]), key, z)
+            row[f"{key}_change"], row[f"{key}_noise"] = change, margin
+        rows.append(row)
+    eligible = [r for r in rows if r["eligible"] and r["setting"] != name_of(*TODAY)]
+    best = min(eligible, key=lambda r: r["pvm_epe"], default=None)
+    accuracy = best if best is not None and best["pvm_epe_change"] < -best["pvm_epe_noise"] \
+        and best["photometric_change"] <= best["photometric_noise"] else None
+    speed = None
+    if accuracy is None:
+        today = timing[name_of(*TODAY)]["ratio"]
+        fine = [r for r in eligible if r["pvm_epe_change"] <= 0 and r["teacher_epe_change"] <= 0
+                and abs(r["photometric_change"]) <= r["photometric_noise"] and r["ratio"] < today]
+        speed = min(fine, key=lambda r: r["ratio"], default=None)
+    result = {"rows": rows, "budget": BUDGET, "best_eligible": None if best is None else best["setting"],
+              "accuracy_candidate": None if accuracy is None else accuracy["setting"],
+              "speed_candidate": None if speed is None else speed["setting"]}
+    (out / f"table_{valset_name}.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / f"table_{valset_name}.md").write_text(_markdown(result) + "\n")
+    return result
+
+
+def _markdown(result: dict[str, Any]) -> str:
+    lines = ["| setting | s / frame | x SGBM-HH | PVM bad-3 / EPE | teacher EPE | photometric | "
+             "per-pair PVM EPE change (2 SE) | teacher EPE change (2 SE) |", "|---|---:|---:|---|---:|---:|---|---|"]
+    for r in sorted(result["rows"], key=lambda r: (r["scale"], r["iters"])):
+        mark = "" if r["eligible"] else " (over budget)"
+        lines.append(f"| {r['setting']}{mark} | {r['s_per_frame']:.2f} | {r['ratio']:.2f} | {r['pvm_bad3']:.2f} / "
+                     f"{r['pvm_epe']:.3f} | {r['teacher_epe']:.3f} | {r['photometric']:.4f} | "
+                     f"{r['pvm_epe_change']:+.3f} ({r['pvm_epe_noise']:.3f}) | "
+                     f"{r['teacher_epe_change']:+.3f} ({r['teacher_epe_noise']:.3f}) |")
+    lines.append("")
+    lines.append(f"Best eligible (<= {result['budget']}x): {result['best_eligible']}; accuracy candidate: "
+                 f"{result['accuracy_candidate']}; speed candidate: {result['speed_candidate']}.")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("cmd", choices=("stamp", "time", "score", "table"))
+    parser.add_argument("--files", type=Path, default=Path("/work/runs/t1"))
+    parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--valset", type=Path, default=Path("/work/valset"))
+    parser.add_argument("--valset-name", default="valset")
+    parser.add_argument("--shared", type=Path, default=SHARED)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--eligible-only", action="store_true", help="score: only the settings within the budget")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.cmd == "stamp":
+        print("\n".join(map(str, stamp(args.files))))
+    elif args.cmd == "time":
+        result = time_settings(args.files, args.shared, args.repeats)
+        (args.out / "timing.json").write_text(json.dumps(result, indent=1) + "\n")
+    elif args.cmd == "score":
+        score(args.files, args.valset, args.out, args.threads, args.eligible_only)
+    else:
+        print(_markdown(table(args.out, args.valset_name)))
+
+
+if __name__ == "__main__":
+    main()
