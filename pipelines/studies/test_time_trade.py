@@ -25,7 +25,7 @@ import statistics
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import torch
@@ -40,64 +40,80 @@ from pipelines.bench_models import THREADS, _frames, _seconds
 SCALES = (1.0, 1.125, 1.25, 1.375)
 ITERS = (3, 4, 6, 8)
 BUDGET = 3.0  # issue 49: the default's seconds per KITTI frame / OpenCV SGBM-HH's
-TODAY = (1.0, 8)
+REFINERS = ("none", "wmedian")  # T1's grid has no filter; T2 adds wmedian to T1's scale-1 settings
 OUT = Path("results/test_time_trade")
 SHARED = Path("../shared/data")
 
 
-def name_of(scale: float, iters: int) -> str:
-    """File stem of one setting: ``s1.125_n4``."""
-    return f"s{scale:g}_n{iters}"
+class Setting(NamedTuple):
+    """One test-time setting of the default's weights."""
+
+    scale: float
+    iters: int
+    refine: str = "none"
+
+    @property
+    def name(self) -> str:
+        """File stem: ``s1.125_n4``, ``s1_n4_wmedian``."""
+        return f"s{self.scale:g}_n{self.iters}" + ("" if self.refine == "none" else f"_{self.refine}")
 
 
-def settings() -> list[tuple[float, int]]:
-    """The registered grid, today's default first."""
-    grid = [(s, n) for s in SCALES for n in ITERS]
-    grid.remove(TODAY)
-    return [TODAY, *grid]
+TODAY = Setting(1.0, 8)
 
 
-def stamp(files: Path) -> list[Path]:
-    """Write one safetensors file per setting (skipping those present); their paths."""
+def settings(refine: str = "none") -> list[Setting]:
+    """The registered grid, today's default first: T1's (``none``) or T2's (``wmedian``: T1's scale-1 settings with
+    the filter; today's default first all the same, the base of both rules)."""
+    if refine == "none":
+        grid = [Setting(s, n) for s in SCALES for n in ITERS]
+    else:
+        grid = [Setting(1.0, n, refine) for n in ITERS]
+    return [TODAY, *[g for g in grid if g != TODAY]]
+
+
+def stamp(files: Path, refine: str = "none") -> list[Path]:
+    """Write one safetensors file per setting of the grid (skipping those present); their paths."""
     model = load_model("pretrained")
     base = model_inference(model)
     files.mkdir(parents=True, exist_ok=True)
     paths = []
-    for scale, iters in settings():
-        path = files / f"{name_of(scale, iters)}.safetensors"
+    for setting in settings(refine):
+        path = files / f"{setting.name}.safetensors"
         if not path.exists():
-            export_safetensors(path, model, inference=base.replace(scale=scale, iters=iters))
+            inference = base.replace(scale=setting.scale, iters=setting.iters, refine=setting.refine)
+            export_safetensors(path, model, inference=inference)
         paths.append(path)
     return paths
 
 
-def time_settings(files: Path, shared: Path, repeats: int) -> dict[str, dict[str, float]]:
-    """Per setting: median seconds per frame and median per-frame ratio to SGBM-HH timed beside it."""
+def time_settings(files: Path, shared: Path, repeats: int, refine: str = "none") -> dict[str, dict[str, Any]]:
+    """Per setting of the grid: median seconds per frame and median per-frame ratio to SGBM-HH timed beside it."""
     torch.set_num_threads(THREADS)
     sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
     frames = _frames(shared)
     out = {}
-    for scale, iters in settings():
-        name = name_of(scale, iters)
+    for setting in settings(refine):
+        name = setting.name
         model = load_model(files / f"{name}.safetensors")
         model_s, sgbm_s = [], []
         for left, right in frames:
             sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), repeats))
             model_s.append(_seconds(functools.partial(infer, model, left, right), repeats))
         ratio = statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))
-        out[name] = {"scale": scale, "iters": iters, "s_per_frame": statistics.median(model_s),
+        out[name] = {**setting._asdict(), "s_per_frame": statistics.median(model_s),
                      "sgbm_s": statistics.median(sgbm_s), "ratio": ratio}
         print(f"{name}: {out[name]['s_per_frame']:.2f} s per frame, {ratio:.2f}x SGBM-HH", flush=True)
     return out
 
 
-def score(files: Path, valset: Path, out: Path, threads: int, eligible_only: bool = False) -> None:
+def score(files: Path, valset: Path, out: Path, threads: int, eligible_only: bool = False,
+          refine: str = "none") -> None:
     """``optstereo-eval --valset`` of every stamped file whose ``gtfree.json`` is missing (``eligible_only``: of the
     settings within the budget by ``timing.json`` only)."""
     timing = json.loads((out / "timing.json").read_text()) if eligible_only else {}
-    for scale, iters in settings():
-        name = name_of(scale, iters)
-        if eligible_only and timing[name]["ratio"] > BUDGET and (scale, iters) != TODAY:
+    for setting in settings(refine):
+        name = setting.name
+        if eligible_only and timing[name]["ratio"] > BUDGET and setting != TODAY:
             continue
         dest = out / valset.name / name
         if (dest / "gtfree.json").exists():
@@ -112,12 +128,14 @@ def _pairs(doc: dict[str, Any]) -> list[PairScore]:
     return [PairScore(**p) for p in doc["pairs"]]
 
 
-def table(out: Path, valset_name: str, z: float = 2.0) -> dict[str, Any]:
-    """The registered rule over ``timing.json`` and the scores: rows, the accuracy pick and the speed pick."""
-    timing = json.loads((out / "timing.json").read_text())
+def table(out: Path, valset_name: str, refine: str = "none", z: float = 2.0) -> dict[str, Any]:
+    """The registered rule over ``timing.json`` and the scores of one grid (``refine``: T1's or T2's): rows, the
+    accuracy pick and (T1 only) the speed pick."""
+    grid = {s.name for s in settings(refine)}
+    timing = {k: v for k, v in json.loads((out / "timing.json").read_text()).items() if k in grid}
     docs = {name: json.loads((out / valset_name / name / "gtfree.json").read_text())
             for name in timing if (out / valset_name / name / "gtfree.json").exists()}
-    base = docs[name_of(*TODAY)]
+    base = docs[TODAY.name]
     rows = []
     for name, t in timing.items():
         if name not in docs:
@@ -127,28 +145,29 @@ def table(out: Path, valset_name: str, z: float = 2.0) -> dict[str, Any]:
             change, margin = paired_difference(_pairs(base), _pairs(docs[name]), key, z)
             row[f"{key}_change"], row[f"{key}_noise"] = change, margin
         rows.append(row)
-    eligible = [r for r in rows if r["eligible"] and r["setting"] != name_of(*TODAY)]
+    eligible = [r for r in rows if r["eligible"] and r["setting"] != TODAY.name]
     best = min(eligible, key=lambda r: r["pvm_epe"], default=None)
     accuracy = best if best is not None and best["pvm_epe_change"] < -best["pvm_epe_noise"] \
         and best["photometric_change"] <= best["photometric_noise"] else None
     speed = None
-    if accuracy is None:
-        today = timing[name_of(*TODAY)]["ratio"]
+    if accuracy is None and refine == "none":
+        today = timing[TODAY.name]["ratio"]
         fine = [r for r in eligible if r["pvm_epe_change"] <= 0 and r["teacher_epe_change"] <= 0
                 and abs(r["photometric_change"]) <= r["photometric_noise"] and r["ratio"] < today]
         speed = min(fine, key=lambda r: r["ratio"], default=None)
     result = {"rows": rows, "budget": BUDGET, "best_eligible": None if best is None else best["setting"],
               "accuracy_candidate": None if accuracy is None else accuracy["setting"],
               "speed_candidate": None if speed is None else speed["setting"]}
-    (out / f"table_{valset_name}.json").write_text(json.dumps(result, indent=1) + "\n")
-    (out / f"table_{valset_name}.md").write_text(_markdown(result) + "\n")
+    stem = f"table_{valset_name}" + ("" if refine == "none" else f"_{refine}")
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / f"{stem}.md").write_text(_markdown(result) + "\n")
     return result
 
 
 def _markdown(result: dict[str, Any]) -> str:
     lines = ["| setting | s / frame | x SGBM-HH | PVM bad-3 / EPE | teacher EPE | photometric | "
              "per-pair PVM EPE change (2 SE) | teacher EPE change (2 SE) |", "|---|---:|---:|---|---:|---:|---|---|"]
-    for r in sorted(result["rows"], key=lambda r: (r["scale"], r["iters"])):
+    for r in sorted(result["rows"], key=lambda r: (r.get("refine", "none"), r["scale"], r["iters"])):
         mark = "" if r["eligible"] else " (over budget)"
         lines.append(f"| {r['setting']}{mark} | {r['s_per_frame']:.2f} | {r['ratio']:.2f} | {r['pvm_bad3']:.2f} / "
                      f"{r['pvm_epe']:.3f} | {r['teacher_epe']:.3f} | {r['photometric']:.4f} | "
@@ -170,18 +189,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--shared", type=Path, default=SHARED)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--refine", choices=REFINERS, default="none", help="the grid: T1's (none) or T2's (wmedian)")
     parser.add_argument("--eligible-only", action="store_true", help="score: only the settings within the budget")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.cmd == "stamp":
-        print("\n".join(map(str, stamp(args.files))))
+        print("\n".join(map(str, stamp(args.files, args.refine))))
     elif args.cmd == "time":
-        result = time_settings(args.files, args.shared, args.repeats)
-        (args.out / "timing.json").write_text(json.dumps(result, indent=1) + "\n")
+        path = args.out / "timing.json"
+        timing = json.loads(path.read_text()) if path.exists() else {}
+        timing.update(time_settings(args.files, args.shared, args.repeats, args.refine))  # the same run's SGBM rows
+        path.write_text(json.dumps(timing, indent=1) + "\n")
     elif args.cmd == "score":
-        score(args.files, args.valset, args.out, args.threads, args.eligible_only)
+        score(args.files, args.valset, args.out, args.threads, args.eligible_only, args.refine)
     else:
-        print(_markdown(table(args.out, args.valset_name)))
+        print(_markdown(table(args.out, args.valset_name, args.refine)))
 
 
 if __name__ == "__main__":

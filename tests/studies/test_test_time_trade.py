@@ -26,15 +26,19 @@ def _write(out: Path, name: str, epes: list[float], teacher: float = 1.0) -> Non
 def _timing(out: Path, ratios: dict[str, float]) -> None:
     doc = {}
     for name, ratio in ratios.items():
-        scale, iters = name[1:].split("_n")
-        doc[name] = {"scale": float(scale), "iters": int(iters), "s_per_frame": ratio, "sgbm_s": 1.0, "ratio": ratio}
+        scale, rest = name[1:].split("_n")
+        iters, _, refine = rest.partition("_")
+        doc[name] = {"scale": float(scale), "iters": int(iters), "refine": refine or "none", "s_per_frame": ratio,
+                     "sgbm_s": 1.0, "ratio": ratio}
     (out / "timing.json").write_text(json.dumps(doc))
 
 
 def test_grid_starts_with_today_and_holds_every_setting_once() -> None:
     grid = t1.settings()
     assert grid[0] == t1.TODAY and len(grid) == len(set(grid)) == len(t1.SCALES) * len(t1.ITERS)
-    assert t1.name_of(1.125, 4) == "s1.125_n4" and t1.name_of(1.0, 8) == "s1_n8"
+    assert t1.Setting(1.125, 4).name == "s1.125_n4" and t1.TODAY.name == "s1_n8"
+    t2 = t1.settings("wmedian")  # today's default, then the scale-1 settings with the filter
+    assert [s.name for s in t2] == ["s1_n8", "s1_n3_wmedian", "s1_n4_wmedian", "s1_n6_wmedian", "s1_n8_wmedian"]
 
 
 def test_accuracy_pick_is_the_lowest_eligible_epe_beyond_the_noise(tmp_path: Path) -> None:
@@ -69,3 +73,17 @@ def test_a_worse_teacher_score_bars_the_speed_pick(tmp_path: Path) -> None:
     _write(tmp_path, "s1_n8", base)
     _write(tmp_path, "s1_n4", base, teacher=1.2)
     assert t1.table(tmp_path, "val")["speed_candidate"] is None
+
+
+def test_t2_rule_reads_only_its_grid_and_has_no_speed_pick(tmp_path: Path) -> None:
+    base = [0.50, 0.52, 0.48, 0.51, 0.49]
+    _timing(tmp_path, {"s1_n8": 2.4, "s1_n4": 1.6, "s1_n4_wmedian": 2.9, "s1_n8_wmedian": 3.1})
+    _write(tmp_path, "s1_n8", base)
+    _write(tmp_path, "s1_n4", [e - 0.05 for e in base])  # T1's row: not in T2's table
+    _write(tmp_path, "s1_n4_wmedian", base)
+    _write(tmp_path, "s1_n8_wmedian", [e - 0.05 for e in base])  # better, but over the budget
+    result = t1.table(tmp_path, "val", "wmedian")
+    assert {r["setting"] for r in result["rows"]} == {"s1_n8", "s1_n4_wmedian", "s1_n8_wmedian"}
+    assert result["best_eligible"] == "s1_n4_wmedian"
+    assert result["accuracy_candidate"] is None and result["speed_candidate"] is None
+    assert (tmp_path / "table_val_wmedian.md").exists()
