@@ -8,7 +8,8 @@ Three steps, each resumable and writing under ``--out`` (default results/test_ti
     ``load_model`` gives, 2 threads, the model loaded once) alternating frame by frame with OpenCV SGBM-HH as
     ``make bench`` (pipelines/bench_models.py) does; the median of the per-frame ratios -> ``timing.json``.
 ``score``: ``optstereo-eval --valset`` of each stamped file on the validation sets -> ``<set>/<name>/gtfree.json``.
-``table``: the registered rule over the three -> ``table.md`` / ``table.json``.
+``table``: the registered rule over the three -> ``table_<set>[_wmedian].md`` / ``.json``.
+``gt``: a finalist's bad-3 on the GT frames of ``../shared`` -> ``gt/<name>.json`` (after the rule, never before).
 
     python -m pipelines.studies.test_time_trade stamp --files /work/runs/t1
     python -m pipelines.studies.test_time_trade time --files /work/runs/t1
@@ -32,6 +33,7 @@ import torch
 
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors, model_inference
+from optstereo.evaluate import evaluate_model
 from optstereo.inference.engine import infer
 from optstereo.validation import PairScore, paired_difference
 from pipelines.bench_labeler import _opencv
@@ -124,6 +126,21 @@ def score(files: Path, valset: Path, out: Path, threads: int, eligible_only: boo
         subprocess.run(cmd, check=True)
 
 
+def gt_scores(files: Path, name: str, shared: Path, out: Path) -> dict[str, float]:
+    """bad-3 (%) of one stamped setting on the GT frames of ``shared`` (KITTI 2015 pooled, KITTI 2012, each
+    Middlebury scene, as tests/test_shipped_accuracy.py reads them) -> ``gt/<name>.json``. Finalists only."""
+    torch.set_num_threads(THREADS)
+    model = load_model(files / f"{name}.safetensors")
+    figures = {"kitti15": evaluate_model(model, "kitti15", shared / "kitti15").summary["bad3"],
+               "kitti12": evaluate_model(model, "kitti12", shared / "kitti12").summary["bad3"]}
+    middlebury = evaluate_model(model, "middlebury", shared)
+    figures.update({row["frame_id"]: row["bad3"] for row in middlebury.rows})
+    figures["middlebury"] = middlebury.summary["bad3"]
+    (out / "gt").mkdir(parents=True, exist_ok=True)
+    (out / "gt" / f"{name}.json").write_text(json.dumps(figures, indent=1) + "\n")
+    return figures
+
+
 def _pairs(doc: dict[str, Any]) -> list[PairScore]:
     return [PairScore(**p) for p in doc["pairs"]]
 
@@ -181,7 +198,8 @@ def _markdown(result: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("cmd", choices=("stamp", "time", "score", "table"))
+    parser.add_argument("cmd", choices=("stamp", "time", "score", "table", "gt"))
+    parser.add_argument("--name", help="gt: the finalist's setting (its file stem)")
     parser.add_argument("--files", type=Path, default=Path("/work/runs/t1"))
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--valset", type=Path, default=Path("/work/valset"))
@@ -202,6 +220,8 @@ def main(argv: list[str] | None = None) -> None:
         path.write_text(json.dumps(timing, indent=1) + "\n")
     elif args.cmd == "score":
         score(args.files, args.valset, args.out, args.threads, args.eligible_only, args.refine)
+    elif args.cmd == "gt":
+        print(gt_scores(args.files, args.name, args.shared, args.out))
     else:
         print(_markdown(table(args.out, args.valset_name, args.refine)))
 
