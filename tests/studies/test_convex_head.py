@@ -75,3 +75,15 @@ def test_training_resumes_and_export_keeps_every_other_weight(tmp_path: Path) ->
     for key, value in new.state_dict().items():
         want = head[key.removeprefix("upsampler.")] if key.startswith("upsampler.") else old.state_dict()[key]
         assert torch.equal(value, want), key
+
+
+def test_edge_band_marks_the_pixels_near_a_depth_step_only() -> None:
+    from pipelines.studies import edge_band
+
+    teacher = np.full((40, 60), 10.0, np.float32)
+    teacher[:, 30:] = 30.0  # one vertical depth step between columns 29 and 30
+    band = edge_band.edge_band(teacher)
+    cols = np.flatnonzero(band.any(axis=0))
+    # the Sobel response covers columns 29-30; the band adds RADIUS either side
+    assert cols.min() == 29 - edge_band.RADIUS and cols.max() == 30 + edge_band.RADIUS
+    assert band[:, cols].all() and not band[:, :20].any()
