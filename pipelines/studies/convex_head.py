@@ -11,12 +11,15 @@ done, ``train`` continues from its last state.
     python -m pipelines.studies.convex_head cache --labels SHARDS --cache DIR
     python -m pipelines.studies.convex_head train --cache DIR --run RUN --minutes 30
     python -m pipelines.studies.convex_head export --run RUN --out FILE.safetensors
+    python -m pipelines.studies.convex_head train-hybrid --cache DIR --labels SHARDS --run RUN2 --minutes 10
+    python -m pipelines.studies.convex_head score-hybrid --state RUN2/hybrid.pt --valset VAL --out DIR
     python -m pipelines.studies.convex_head time v15=pretrained u1=FILE.safetensors --out timing.json
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import functools
 import json
@@ -36,9 +39,10 @@ from optstereo.checkpoint import export_safetensors, model_inference
 from optstereo.inference.engine import infer, to_batch
 from optstereo.inference.padding import InputPadder
 from optstereo.models import build_from_config
+from optstereo.models.optstereo import normalize_image
 from optstereo.models.upsample import ConvexUpsampler
 from optstereo.training.losses import huber
-from optstereo.validation import shard_samples
+from optstereo.validation import open_valset, score, shard_samples
 from pipelines.bench_labeler import _opencv
 from pipelines.bench_models import THREADS, _frames, _seconds
 
@@ -98,7 +102,11 @@ def pair_loss(head: ConvexUpsampler, item: dict[str, Any]) -> torch.Tensor:
     """L_P's confidence-weighted Huber of the head's full-resolution disparity against the pair's label."""
     disp = torch.from_numpy(item["disp"])[None, None]
     hidden = torch.from_numpy(item["hidden"].astype(np.float32))[None]
-    full = unpad(head(disp, hidden, None), item["pads"])[0, 0]
+    return weighted_huber(unpad(head(disp, hidden, None), item["pads"])[0, 0], item)
+
+
+def weighted_huber(full: torch.Tensor, item: dict[str, Any]) -> torch.Tensor:
+    """L_P's confidence-weighted Huber of an (H, W) disparity against a cached pair's label."""
     label = torch.from_numpy(item["label"])
     weight = torch.from_numpy(item["confidence"].astype(np.float32))
     valid = torch.isfinite(label) & (weight > 0)
@@ -175,6 +183,111 @@ def export(run: Path, out: Path, base_spec: str | Path = BASE) -> Path:
     return export_safetensors(out, model, step=head["state"]["step"])
 
 
+def bilinear_logits(factor: int = 8) -> torch.Tensor:
+    """(9 * f * f,) mask logits (before ConvexUpsampler's 0.25 scale) whose softmax over the 3x3 coarse neighbours are
+    the weights of bilinear upsampling (align_corners=False), in the mask's (neighbour, sub-row, sub-column) order."""
+    weights = np.zeros((3, 3, factor, factor))
+
+    def taps(i: int) -> dict[int, float]:
+        d = (i + 0.5) / factor - 0.5  # the sub-pixel's offset from its coarse pixel's centre, in coarse pixels
+        return {0: -d, 1: 1 + d} if d < 0 else {1: 1 - d, 2: d}
+
+    for i in range(factor):
+        for j in range(factor):
+            for ky, wy in taps(i).items():
+                for kx, wx in taps(j).items():
+                    weights[ky, kx, i, j] = wy * wx
+    return torch.from_numpy(4 * np.log(weights.reshape(-1) + 1e-12)).float()
+
+
+class HybridUpsampler(nn.Module):
+    """U2: the paper's upsampler with its bilinear step replaced by a convex combination of the 3x3 coarse
+    neighbours (replicate-padded) from a mask head on h: D = U + conv2(ReLU(conv1([U / f, I_l]))).
+
+    Built from a trained ``ConvUpsampler`` (its two convolutions, shared) with the mask's last layer zero and its
+    biases at :func:`bilinear_logits`, so that it starts as that upsampler exactly.
+    Shapes: disp_low (B, 1, h, w), hidden (B, C, h, w), image (B, 3, f h, f w) in [-1, 1] -> (B, 1, f h, f w).
+    """
+
+    def __init__(self, conv: nn.Module, hidden_dim: int, factor: int = 8) -> None:
+        super().__init__()
+        self.convex = ConvexUpsampler(hidden_dim, factor)
+        last = self.convex.mask[2]
+        nn.init.zeros_(last.weight)
+        with torch.no_grad():
+            last.bias.copy_(bilinear_logits(factor))
+        self.conv = conv
+        self.factor = factor
+
+    def coarse(self, disp_low: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
+        """U: the convex combination, (B, 1, f h, f w)."""
+        b, _, h, w = disp_low.shape
+        f = self.factor
+        mask = (0.25 * self.convex.mask(hidden)).float().view(b, 1, 9, f, f, h, w).softmax(dim=2)
+        padded = torch.nn.functional.pad(f * disp_low, (1, 1, 1, 1), mode="replicate")
+        neigh = torch.nn.functional.unfold(padded, kernel_size=3).view(b, 1, 9, 1, 1, h, w)
+        return (mask * neigh).sum(dim=2).permute(0, 1, 4, 2, 5, 3).reshape(b, 1, f * h, f * w)
+
+    def forward(self, disp_low: torch.Tensor, hidden: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        up = self.coarse(disp_low, hidden)
+        x = torch.cat([up / self.factor, image.to(up.dtype)], dim=1)
+        return up + self.conv.conv2(self.conv.relu(self.conv.conv1(x)))
+
+
+def hybrid_model(base_spec: str | Path = BASE, state: Path | None = None) -> nn.Module:
+    """``base_spec`` (version 15) with a :class:`HybridUpsampler` built on its upsampler (loaded from ``state``, a
+    ``train-hybrid`` run's ``hybrid.pt``, when given): the model object the validation set scores."""
+    model = load_model(base_spec)
+    hybrid = HybridUpsampler(copy.deepcopy(model.upsampler), model.config.hidden_dim)
+    if state is not None:
+        hybrid.load_state_dict(torch.load(state, weights_only=True))
+    model.upsampler = hybrid
+    return model
+
+
+def train_hybrid(cache_dir: Path, labels: Path, run: Path, minutes: float, lr: float = 1e-4, seed: int = 0,
+                 holdout_every: int = 10) -> Path:
+    """U2: fit a :class:`HybridUpsampler` (both parts) on the cached pairs but every ``holdout_every``-th (their mean
+    loss is printed at the start and every LOG_EVERY * 10 steps); returns ``run/hybrid.pt``."""
+    torch.set_num_threads(THREADS)
+    torch.manual_seed(seed)
+    hybrid = hybrid_model().upsampler
+    files = sorted(cache_dir.glob("*.npz"))
+    held = {f.stem for f in files[::holdout_every]}
+    images = {s.frame_id: s.left for s in shard_samples(labels)}
+
+    def loss_of(stem: str) -> torch.Tensor:
+        with np.load(cache_dir / f"{stem}.npz") as data:
+            item = {k: data[k] for k in data.files}
+        pads = tuple(int(p) for p in item["pads"])
+        image = torch.from_numpy(images[stem]).permute(2, 0, 1)[None].float()
+        image = normalize_image(torch.nn.functional.pad(image, pads, mode="replicate"))
+        full = unpad(hybrid(torch.from_numpy(item["disp"])[None, None],
+                            torch.from_numpy(item["hidden"].astype(np.float32))[None], image), item["pads"])[0, 0]
+        return weighted_huber(full, item)
+
+    def held_loss() -> float:
+        with torch.no_grad():
+            return float(np.mean([loss_of(stem).item() for stem in sorted(held)]))
+
+    print(f"held-out loss at the start: {held_loss():.4f}", flush=True)
+    opt = torch.optim.Adam(hybrid.parameters(), lr=lr)
+    train_ids = [f.stem for f in files if f.stem not in held]
+    rng, end, step = random.Random(seed), time.monotonic() + 60 * minutes, 0
+    while time.monotonic() < end:
+        loss = loss_of(rng.choice(train_ids))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        step += 1
+        if step % (LOG_EVERY * 10) == 0:
+            print(f"step {step}: held-out loss {held_loss():.4f}", flush=True)
+    print(f"step {step}: held-out loss {held_loss():.4f}", flush=True)
+    run.mkdir(parents=True, exist_ok=True)
+    torch.save(hybrid.state_dict(), run / "hybrid.pt")
+    return run / "hybrid.pt"
+
+
 def time_models(paths: dict[str, str | Path], shared: Path, repeats: int = 3) -> dict[str, dict[str, float]]:
     """Per model: median seconds per KITTI 2015 frame of ``infer`` and the median per-frame ratio to OpenCV
     SGBM-HH, all models and SGBM alternating frame by frame (2 threads, as ``make bench``)."""
@@ -202,6 +315,15 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--run", type=Path, required=True)
     t.add_argument("--minutes", type=float, default=30.0)
     t.add_argument("--lr", type=float, default=1e-4)
+    h = sub.add_parser("train-hybrid", help="U2: the hybrid upsampler, both parts")
+    h.add_argument("--cache", type=Path, required=True)
+    h.add_argument("--labels", type=Path, required=True, help="the shards the cache came from (their left images)")
+    h.add_argument("--run", type=Path, required=True)
+    h.add_argument("--minutes", type=float, default=10.0)
+    v = sub.add_parser("score-hybrid", help="U2 on a validation set -> OUT/gtfree.json")
+    v.add_argument("--state", type=Path, required=True)
+    v.add_argument("--valset", type=Path, required=True)
+    v.add_argument("--out", type=Path, required=True)
     m = sub.add_parser("time")
     m.add_argument("models", nargs="+", help="NAME=CHECKPOINT")
     m.add_argument("--shared", type=Path, default=Path("../shared/data"))
@@ -214,6 +336,15 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{cache(args.labels, args.cache)} pairs cached")
     elif args.cmd == "train":
         print(train(args.cache, args.run, args.minutes, args.lr))
+    elif args.cmd == "train-hybrid":
+        print(train_hybrid(args.cache, args.labels, args.run, args.minutes))
+    elif args.cmd == "score-hybrid":
+        torch.set_num_threads(THREADS)
+        result = score(hybrid_model(state=args.state), open_valset(args.valset), progress=True, what="U2")
+        args.out.mkdir(parents=True, exist_ok=True)
+        doc = {"checkpoint": f"version 15 + {args.state}", "valset": str(args.valset), **result.to_dict()}
+        (args.out / "gtfree.json").write_text(json.dumps(doc, indent=2) + "\n")
+        print(result.summary)
     elif args.cmd == "time":
         result = time_models(dict(m.split("=", 1) for m in args.models), args.shared)
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -87,3 +87,17 @@ def test_edge_band_marks_the_pixels_near_a_depth_step_only() -> None:
     # the Sobel response covers columns 29-30; the band adds RADIUS either side
     assert cols.min() == 29 - edge_band.RADIUS and cols.max() == 30 + edge_band.RADIUS
     assert band[:, cols].all() and not band[:, :20].any()
+
+
+def test_the_hybrid_upsampler_starts_as_the_papers() -> None:
+    from optstereo.models.upsample import ConvUpsampler
+
+    torch.manual_seed(0)
+    conv = ConvUpsampler(width=8)
+    hybrid = convex_head.HybridUpsampler(conv, hidden_dim=6)
+    disp, hidden = torch.rand(2, 1, 5, 7) * 10, torch.randn(2, 6, 5, 7)
+    image = torch.rand(2, 3, 40, 56) * 2 - 1
+    with torch.no_grad():
+        assert torch.allclose(hybrid(disp, hidden, image), conv(disp, hidden, image), atol=1e-4)
+        hybrid.convex.mask[2].weight.normal_()  # once the mask moves, it is another function
+        assert not torch.allclose(hybrid(disp, hidden, image), conv(disp, hidden, image), atol=1e-2)
