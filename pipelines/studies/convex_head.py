@@ -83,13 +83,18 @@ def cache(labels: Path, out: Path, base: str | Path = BASE) -> int:
         if path.exists():
             continue
         disp, hidden, pads = upsampler_inputs(model, sample.left, sample.right)
-        tmp = path.with_suffix(".tmp.npz")
+        tmp = out / f"{sample.frame_id}.partial.npz"  # ends in .npz: np.savez keeps the name
         np.savez(tmp, disp=disp, hidden=hidden, pads=np.array(pads), label=sample.label.astype(np.float32),
                  confidence=sample.confidence.astype(np.float16))
         tmp.rename(path)
         done += 1
         print(f"{sample.frame_id} {hidden.shape}", flush=True)
     return done
+
+
+def cached(cache_dir: Path) -> list[Path]:
+    """The complete pairs of a cache (a file an interrupted ``cache`` left half-written ends in .partial.npz)."""
+    return sorted(p for p in cache_dir.glob("*.npz") if not p.name.endswith(".partial.npz"))
 
 
 def unpad(full: torch.Tensor, pads: np.ndarray) -> torch.Tensor:
@@ -127,7 +132,7 @@ def train(cache_dir: Path, run: Path, minutes: float, lr: float = 1e-4, seed: in
     """Fit the mask head for ``minutes`` more (resuming ``run``); returns the head's state file."""
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
-    files = sorted(cache_dir.glob("*.npz"))
+    files = cached(cache_dir)
     if not files:
         raise SystemExit(f"no cached pairs in {cache_dir}: run `cache` first")
     run.mkdir(parents=True, exist_ok=True)
@@ -252,7 +257,7 @@ def train_hybrid(cache_dir: Path, labels: Path, run: Path, minutes: float, lr: f
     torch.set_num_threads(THREADS)
     torch.manual_seed(seed)
     hybrid = hybrid_model().upsampler
-    files = sorted(cache_dir.glob("*.npz"))
+    files = cached(cache_dir)
     held = {f.stem for f in files[::holdout_every]}
     images = {s.frame_id: s.left for s in shard_samples(labels)}
 
