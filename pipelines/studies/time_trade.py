@@ -1,6 +1,6 @@
 """T1 (docs/registrations.md): the default's test-time trade of input scale against N_s, same weights.
 
-Three steps, each resumable and writing under ``--out`` (default results/test_time_trade):
+Three steps, each resumable and writing under ``--out`` (default results/time_trade):
 
 ``stamp``: one copy of the shipped default per setting, ``s<scale>_n<iters>.safetensors`` (version 15's weights, its
     InferenceConfig with ``scale`` and ``iters`` replaced), under ``--files`` (outside the repository).
@@ -11,10 +11,10 @@ Three steps, each resumable and writing under ``--out`` (default results/test_ti
 ``table``: the registered rule over the three -> ``table_<set>[_wmedian].md`` / ``.json``.
 ``gt``: a finalist's bad-3 on the GT frames of ``../shared`` -> ``gt/<name>.json`` (after the rule, never before).
 
-    python -m pipelines.studies.test_time_trade stamp --files /work/runs/t1
-    python -m pipelines.studies.test_time_trade time --files /work/runs/t1
-    python -m pipelines.studies.test_time_trade score --files /work/runs/t1 --valset /work/valset
-    python -m pipelines.studies.test_time_trade table --valset-name valset
+    python -m pipelines.studies.time_trade stamp --files /work/runs/t1
+    python -m pipelines.studies.time_trade time --files /work/runs/t1
+    python -m pipelines.studies.time_trade score --files /work/runs/t1 --valset /work/valset
+    python -m pipelines.studies.time_trade table --valset-name valset
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ SCALES = (1.0, 1.125, 1.25, 1.375)
 ITERS = (3, 4, 6, 8)
 BUDGET = 3.0  # issue 49: the default's seconds per KITTI frame / OpenCV SGBM-HH's
 REFINERS = ("none", "wmedian")  # T1's grid has no filter; T2 adds wmedian to T1's scale-1 settings
-OUT = Path("results/test_time_trade")
+OUT = Path("results/time_trade")
 SHARED = Path("../shared/data")
 
 

@@ -1,11 +1,11 @@
-"""pipelines/studies/test_time_trade.py: T1's registered rule over hand-made timings and per-pair scores."""
+"""pipelines/studies/time_trade.py: T1's registered rule over hand-made timings and per-pair scores."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from pipelines.studies import test_time_trade as t1
+from pipelines.studies import time_trade as t1
 
 
 def _pair(i: int, epe: float, teacher: float = 1.0, photo: float = 0.1) -> dict:
