@@ -13,7 +13,6 @@ done, ``train`` continues from its last state.
     python -m pipelines.studies.convex_head export --run RUN --out FILE.safetensors
     python -m pipelines.studies.convex_head train-hybrid --cache DIR --labels SHARDS --run RUN2 --minutes 10
     python -m pipelines.studies.convex_head score-hybrid --state RUN2/hybrid.pt --valset VAL --out DIR
-    python -m pipelines.studies.convex_head time v15=pretrained u1=FILE.safetensors --out timing.json
 """
 
 from __future__ import annotations
@@ -21,30 +20,26 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import functools
 import json
 import random
-import statistics
 import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from torch import nn
 
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors, model_inference
-from optstereo.inference.engine import infer, to_batch
+from optstereo.inference.engine import to_batch
 from optstereo.inference.padding import InputPadder
 from optstereo.models import build_from_config
 from optstereo.models.optstereo import normalize_image
 from optstereo.models.upsample import ConvexUpsampler
 from optstereo.training.losses import huber
 from optstereo.validation import open_valset, score, shard_samples
-from pipelines.bench_labeler import _opencv
-from pipelines.bench_models import THREADS, _frames, _seconds
+from pipelines.bench_models import THREADS
 
 BASE = "pretrained"
 LOG_EVERY = 50
@@ -293,22 +288,6 @@ def train_hybrid(cache_dir: Path, labels: Path, run: Path, minutes: float, lr: f
     return run / "hybrid.pt"
 
 
-def time_models(paths: dict[str, str | Path], shared: Path, repeats: int = 3) -> dict[str, dict[str, float]]:
-    """Per model: median seconds per KITTI 2015 frame of ``infer`` and the median per-frame ratio to OpenCV
-    SGBM-HH, all models and SGBM alternating frame by frame (2 threads, as ``make bench``)."""
-    torch.set_num_threads(THREADS)
-    sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
-    models = {name: load_model(path) for name, path in paths.items()}
-    times: dict[str, list[float]] = {name: [] for name in [*models, "sgbm"]}
-    for left, right in _frames(shared):
-        times["sgbm"].append(_seconds(functools.partial(sgbm.compute, left, right), repeats))
-        for name, model in models.items():
-            times[name].append(_seconds(functools.partial(infer, model, left, right), repeats))
-    return {name: {"s_per_frame": statistics.median(times[name]),
-                   "ratio": statistics.median(m / s for m, s in zip(times[name], times["sgbm"], strict=True))}
-            for name in models}
-
-
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -329,10 +308,6 @@ def main(argv: list[str] | None = None) -> None:
     v.add_argument("--state", type=Path, required=True)
     v.add_argument("--valset", type=Path, required=True)
     v.add_argument("--out", type=Path, required=True)
-    m = sub.add_parser("time")
-    m.add_argument("models", nargs="+", help="NAME=CHECKPOINT")
-    m.add_argument("--shared", type=Path, default=Path("../shared/data"))
-    m.add_argument("--out", type=Path, required=True)
     e = sub.add_parser("export")
     e.add_argument("--run", type=Path, required=True)
     e.add_argument("--out", type=Path, required=True)
@@ -350,11 +325,6 @@ def main(argv: list[str] | None = None) -> None:
         doc = {"checkpoint": f"version 15 + {args.state}", "valset": str(args.valset), **result.to_dict()}
         (args.out / "gtfree.json").write_text(json.dumps(doc, indent=2) + "\n")
         print(result.summary)
-    elif args.cmd == "time":
-        result = time_models(dict(m.split("=", 1) for m in args.models), args.shared)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1) + "\n")
-        print(result)
     else:
         print(json.dumps(str(export(args.run, args.out))))
 
