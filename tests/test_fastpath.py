@@ -114,6 +114,15 @@ class TestFallbacks:
         assert fast.inference_config == "kept" and not fast.training
         assert engineer(fast) is fast  # already engineered: returned as is
 
+    def test_feature_unknown_encoder_block_runs_as_it_is(self) -> None:
+        """A block the engineered encoder does not know (here a 1x1 conv + ReLU in layer1) is called as a module."""
+        torch.manual_seed(5)
+        fast = engineer(tiny_model())
+        width = fast.feature_encoder.layer1[0].conv1.out_channels
+        fast.feature_encoder.layer1[1] = torch.nn.Sequential(torch.nn.Conv2d(width, width, 1), torch.nn.ReLU())
+        left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
+        assert_close_px(*both_paths(fast, left, right))
+
     def test_engineer_leaves_other_models(self) -> None:
         hitnet = build_model("hitnet", **TINY_HITNET)
         assert engineer(hitnet) is hitnet

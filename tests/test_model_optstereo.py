@@ -78,6 +78,8 @@ class TestRegistry:
             build_model("optstereo", hidden=3)
         with pytest.raises(ValueError, match="upsampler must be one of"):
             build_model("optstereo", upsampler="nearest")
+        with pytest.raises(ValueError, match="stage1 must be one of"):
+            build_model("optstereo", stage1="mobile")
         with pytest.raises(ValueError, match="corr_levels must be >= 1, got 0"):
             ModelConfig(corr_levels=0).validate()
         with pytest.raises(ValueError, match="already registered"):

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 
 from optstereo.models.correlation import CorrBlock1D, build_pyramid, correlation_volume, lookup_pyramid
 from optstereo.models.extractor import FeatureEncoder
-from optstereo.models.layers import ResidualBlock, make_norm
+from optstereo.models.layers import ResidualBlock, SeparableBlock, make_norm
 from optstereo.models.update import ConvGRU, DispHead, HiddenInit
 from optstereo.models.upsample import ConvexUpsampler, ConvUpsampler, upsample_disp
 
@@ -155,6 +155,24 @@ class TestSmallBlocks:
         assert enc(torch.randn(2, 3, 32, 64)).shape == (2, 16, 4, 8)
         n_blocks = sum(isinstance(m, ResidualBlock) for m in enc.modules())
         assert n_blocks == 6  # two at 1/2, two at 1/4, two at 1/8
+
+    def test_feature_separable_stage1(self) -> None:
+        """stage1 = "separable": two SeparableBlock at 1/2 (identity at the start), the rest as RAFT's."""
+        torch.manual_seed(0)
+        enc = FeatureEncoder(16, widths=(8, 8, 8), stage1="separable")
+        assert [type(b) for b in enc.layer1] == [SeparableBlock, SeparableBlock]
+        assert sum(isinstance(m, ResidualBlock) for m in enc.modules()) == 4
+        x = torch.rand(1, 8, 6, 10)
+        torch.testing.assert_close(enc.layer1(x), x, rtol=0, atol=0)  # pw2 = 0 after the encoder's own init
+        block = SeparableBlock(8)
+        for conv in (block.pw2, block.dw1):
+            torch.nn.init.normal_(conv.weight)
+        y = torch.relu(block.pw1(block.dw1(x)))
+        ref = torch.relu(x + F.conv2d(F.conv2d(y, block.dw2.weight, block.dw2.bias, padding=2, groups=8),
+                                      block.pw2.weight, block.pw2.bias))
+        torch.testing.assert_close(block(x), ref)
+        with pytest.raises(ValueError, match="stage1 must be"):
+            FeatureEncoder(16, stage1="mobile")
 
     def test_cardinality_heads(self) -> None:
         h = torch.randn(2, 8, 4, 8)

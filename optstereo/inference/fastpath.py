@@ -36,7 +36,7 @@ from torch import nn
 from optstereo.inference.winograd import winograd_conv3x3, winograd_weight
 from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.extractor import FeatureEncoder
-from optstereo.models.layers import ResidualBlock
+from optstereo.models.layers import ResidualBlock, SeparableBlock
 from optstereo.models.optstereo import OptStereo, normalize_image, resolve_iters
 from optstereo.models.update import ConvGRU, DispHead
 
@@ -80,8 +80,8 @@ def supported(model: OptStereo) -> bool:
     return (type(encoder) is FeatureEncoder and type(model.corr_block) is CorrBlock1D
             and type(model.update_block) is ConvGRU and model.update_block.static is not None
             and type(model.disp_head) is DispHead
-            and all(type(block) is ResidualBlock for layer in (encoder.layer1, encoder.layer2, encoder.layer3)
-                    for block in layer))
+            and all(type(block) in (ResidualBlock, SeparableBlock) for block in encoder.layer1)
+            and all(type(block) is ResidualBlock for layer in (encoder.layer2, encoder.layer3) for block in layer))
 
 
 class EngineeredOptStereo(OptStereo):
@@ -168,6 +168,13 @@ def encode(encoder: FeatureEncoder, x: torch.Tensor) -> torch.Tensor:
     x = encoder.stem(x.contiguous(memory_format=CHANNELS_LAST))
     for layer in (encoder.layer1, encoder.layer2, encoder.layer3):
         for block in layer:
+            if type(block) is SeparableBlock:  # relu(x + pw2(dw2(relu(pw1(dw1(x)))))), adds in place
+                y = block.pw2(block.dw2(block.pw1(block.dw1(x)).relu_()))
+                x = y.add_(x).relu_()
+                continue
+            if type(block) is not ResidualBlock:  # a block this path does not know runs as it is
+                x = block(x)
+                continue
             y = block.relu(block.norm1(block.conv1(x)))
             y = block.relu(block.norm2(block.conv2(y)))
             x = y.add_(block.shortcut(x)).relu_()  # relu(shortcut(x) + y): the same sum, no new tensor

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from optstereo.models.layers import ResidualBlock, make_norm, use_channels_last
+from optstereo.models.layers import ResidualBlock, SeparableBlock, make_norm, use_channels_last
 
 
 class FeatureEncoder(nn.Module):
@@ -13,19 +13,27 @@ class FeatureEncoder(nn.Module):
 
     This is the layout of RAFT's "basic encoder" that the paper's figure draws: stem (stride 2) ->
     2 blocks at 1/2 (64 ch) -> 2 blocks at 1/4 (96 ch) -> 2 blocks at 1/8 (128 ch) -> 1x1 conv to C.
+    ``stage1 = "separable"`` makes the two blocks at 1/2 :class:`SeparableBlock` (version 16: about a third of the
+    CPU pass saved; the rest unchanged).
     Both views go through the same module in ONE call (concatenated along the batch), which is how the
     weights are shared; instance norm keeps the statistics of the two views separate.
 
     Shapes: (B, 3, H, W) float (normalised to [-1, 1]) -> (B, C, H / 8, W / 8) float.
     """
 
-    def __init__(self, output_dim: int = 256, *, norm: str = "instance", widths: tuple[int, int, int] = (64, 96, 128)):
+    def __init__(self, output_dim: int = 256, *, norm: str = "instance", widths: tuple[int, int, int] = (64, 96, 128),
+                 stage1: str = "residual"):
         super().__init__()
         w1, w2, w3 = widths
         self.stem = nn.Sequential(
             nn.Conv2d(3, w1, kernel_size=7, stride=2, padding=3), make_norm(norm, w1), nn.ReLU(inplace=True)
         )
-        self.layer1 = nn.Sequential(ResidualBlock(w1, w1, norm=norm), ResidualBlock(w1, w1, norm=norm))
+        if stage1 == "separable":
+            self.layer1 = nn.Sequential(SeparableBlock(w1), SeparableBlock(w1))
+        elif stage1 == "residual":
+            self.layer1 = nn.Sequential(ResidualBlock(w1, w1, norm=norm), ResidualBlock(w1, w1, norm=norm))
+        else:
+            raise ValueError(f"stage1 must be 'residual' or 'separable', got {stage1!r}")
         self.layer2 = nn.Sequential(ResidualBlock(w1, w2, stride=2, norm=norm), ResidualBlock(w2, w2, norm=norm))
         self.layer3 = nn.Sequential(ResidualBlock(w2, w3, stride=2, norm=norm), ResidualBlock(w3, w3, norm=norm))
         self.proj = nn.Conv2d(w3, output_dim, kernel_size=1)
@@ -39,6 +47,10 @@ class FeatureEncoder(nn.Module):
             elif isinstance(m, (nn.BatchNorm2d, nn.GroupNorm)):
                 nn.init.ones_(m.weight)
                 nn.init.zeros_(m.bias)
+        for m in self.modules():
+            if isinstance(m, SeparableBlock):  # its identity start (the loop above re-drew pw2)
+                nn.init.zeros_(m.pw2.weight)
+                nn.init.zeros_(m.pw2.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if use_channels_last(x, exact_float32_grad=True):

@@ -1,0 +1,83 @@
+"""pipelines/studies/cheap_layer1.py (E1): the student block, the distillation loss, a resumed run, the model."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from conftest import TINY
+
+from optstereo.api import load_model
+from optstereo.checkpoint import export_safetensors
+from optstereo.inference.fastpath import EngineeredOptStereo, engineering
+from optstereo.models import build_model
+from optstereo.models.layers import SeparableBlock
+from pipelines.studies import cheap_layer1
+
+
+def _tiny_file(tmp_path: Path) -> Path:
+    torch.manual_seed(0)
+    return export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", **TINY, iters=3))
+
+
+def _pack(root: Path, n: int = 3, shape: tuple[int, int] = (40, 72)) -> Path:
+    rng = np.random.default_rng(0)
+    for side in ("left", "right"):
+        (root / side).mkdir(parents=True)
+        for i in range(n):
+            cv2.imwrite(str(root / side / f"{i}.png"), rng.integers(0, 255, (*shape, 3), dtype=np.uint8))
+    return root
+
+
+def test_a_new_block_is_the_identity_on_nonnegative_input() -> None:
+    block = SeparableBlock(8)
+    x = torch.rand(2, 8, 9, 13)
+    torch.testing.assert_close(block(x), x, rtol=0, atol=0)
+    assert sum(p.numel() for p in block.parameters()) == 2 * (8 * 25 + 8) + 2 * (8 * 8 + 8)
+
+
+def test_the_loss_is_zero_for_the_teacher_itself_and_trains_only_the_student(tmp_path: Path) -> None:
+    encoder = cheap_layer1.frozen_encoder(_tiny_file(tmp_path))
+    images = torch.rand(2, 3, 32, 48) * 2 - 1
+    loss, parts = cheap_layer1.distill_loss(encoder, encoder.layer1, images)
+    assert loss.item() == pytest.approx(0.0, abs=1e-7) and parts == {"layer1": 0.0, "encoder": 0.0}
+    layer = cheap_layer1.student(encoder.layer1[0].conv1.out_channels)
+    loss, parts = cheap_layer1.distill_loss(encoder, layer, images)
+    assert loss.item() > 0 and parts["layer1"] > 0 and parts["encoder"] > 0
+    loss.backward()
+    assert all(p.grad is not None for p in layer.parameters())
+    assert all(p.grad is None for p in encoder.parameters())
+
+
+def test_crops_and_a_named_error(tmp_path: Path) -> None:
+    pack = _pack(tmp_path / "pack")
+    paths = cheap_layer1.image_paths((pack,))
+    assert len(paths) == 6
+    import random
+    batch = cheap_layer1.crops(paths, random.Random(0), batch=3, size=(32, 64))
+    assert batch.shape == (3, 3, 32, 64) and batch.min() >= -1 and batch.max() <= 1
+    with pytest.raises(ValueError, match=r"0\.png.*smaller than the crop"):
+        cheap_layer1.crops(paths, random.Random(0), size=(48, 64))
+
+
+def test_a_run_resumes_and_its_model_runs_both_paths_alike(tmp_path: Path) -> None:
+    base, pack, run = _tiny_file(tmp_path), _pack(tmp_path / "pack"), tmp_path / "run"
+    cheap_layer1.train(run, minutes=0.01, packs=(pack,), base=base, size=(32, 64), threads=1)
+    first = torch.load(run / "state.pt", weights_only=False)["step"]
+    cheap_layer1.train(run, minutes=0.02, packs=(pack,), base=base, size=(32, 64), threads=1)
+    steps = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert first >= 1 and steps == list(range(1, len(steps) + 1)) and len(steps) > first
+    model = cheap_layer1.student_model(run / "state.pt", base)
+    assert isinstance(model, EngineeredOptStereo)
+    assert isinstance(model.feature_encoder.layer1[0], SeparableBlock)
+    left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
+    with torch.inference_mode():
+        with engineering(False):
+            plain = model(left, right, test_mode=True)[1]
+        fast = model(left, right, test_mode=True)[1]
+    assert (plain - fast).abs().mean() < 0.01
+    assert load_model(base).feature_encoder.layer1[0].conv1 is not None  # the base file is untouched
