@@ -7,6 +7,7 @@ or ``--out`` and resumable:
 
 ``train``: the distillation, ``--minutes`` of CPU in total over any number of calls -> RUN/state.pt, RUN/log.jsonl.
 ``score``: the student in version 15 on a validation set -> OUT/gtfree.json (``optstereo.validation.score``).
+``keep``: the student alone as a small safetensors file (results/cheap_layer1/e1_stage1.safetensors).
 ``export``: version 15 with the student as one safetensors file (``ModelConfig.stage1 = "separable"``).
 ``time``: seconds per KITTI 2015 frame of version 15 and of the student (the engineered pass, 2 threads),
     alternating frame by frame with OpenCV SGBM-HH as ``make bench`` does -> OUT/timing.json.
@@ -31,6 +32,7 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
+from safetensors.torch import load_file, save_file
 from torch import nn
 
 from optstereo.api import load_model
@@ -157,13 +159,21 @@ def _save(path: Path, layer: nn.Module, opt: torch.optim.Optimizer, step: int, e
 
 
 def student_model(state: Path, base: str | Path = BASE) -> nn.Module:
-    """Version 15 with ``layer1`` replaced by the student of a ``train`` run, engineered for the CPU as
+    """Version 15 with ``layer1`` replaced by the student of a ``train`` run (its state.pt, or the student alone as
+    written by ``keep``: results/cheap_layer1/e1_stage1.safetensors), engineered for the CPU as
     ``load_model`` gives the default (the engineered encoder calls blocks it does not know as they are)."""
     model = load_model(base)
     layer = student(model.feature_encoder.layer1[0].conv1.out_channels)
-    layer.load_state_dict(torch.load(state, weights_only=False)["layer"])
+    layer.load_state_dict(load_file(state) if Path(state).suffix == ".safetensors"
+                          else torch.load(state, weights_only=False)["layer"])
     model.feature_encoder.layer1 = layer.to(memory_format=torch.channels_last)
     return model if isinstance(model, EngineeredOptStereo) else EngineeredOptStereo.from_model(model)
+
+
+def keep(state: Path, out: Path) -> Path:
+    """The student of a run's state.pt alone (no optimizer), as safetensors: the small file worth committing."""
+    save_file({k: v.contiguous() for k, v in torch.load(state, weights_only=False)["layer"].items()}, str(out))
+    return out
 
 
 def export(state: Path, out: Path, base: str | Path = BASE) -> Path:
@@ -213,8 +223,13 @@ def main(argv: list[str] | None = None) -> None:
     x = sub.add_parser("export")
     x.add_argument("--state", type=Path, required=True)
     x.add_argument("--out", type=Path, required=True)
+    k = sub.add_parser("keep", help="the student alone -> a small safetensors file")
+    k.add_argument("--state", type=Path, required=True)
+    k.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
-    if args.cmd == "export":
+    if args.cmd == "keep":
+        print(keep(args.state, args.out))
+    elif args.cmd == "export":
         print(export(args.state, args.out))
     elif args.cmd == "train":
         print(train(args.run, args.minutes))

@@ -81,3 +81,11 @@ def test_a_run_resumes_and_its_model_runs_both_paths_alike(tmp_path: Path) -> No
         fast = model(left, right, test_mode=True)[1]
     assert (plain - fast).abs().mean() < 0.01
     assert load_model(base).feature_encoder.layer1[0].conv1 is not None  # the base file is untouched
+    kept = cheap_layer1.keep(run / "state.pt", tmp_path / "stage1.safetensors")
+    again = cheap_layer1.student_model(kept, base)
+    with torch.inference_mode():
+        torch.testing.assert_close(again(left, right, test_mode=True)[1], fast, rtol=0, atol=0)
+    exported = load_model(cheap_layer1.export(run / "state.pt", tmp_path / "e1.safetensors", base))
+    assert exported.config.stage1 == "separable"
+    with torch.inference_mode():
+        torch.testing.assert_close(exported(left, right, test_mode=True)[1], fast, rtol=0, atol=1e-4)  # kernels
