@@ -40,8 +40,9 @@ class HITNetConfig(NetworkConfig):
         "feature_dim": "feature_channels", "hidden_dim": "propagation_channels", "corr_levels": "levels",
         "corr_radius": "offset_radius", "max_disp": "search_range",
     }
-    #: OptStereo-only fields that files of HITNet models written before issue 43 recorded and HITNet never read.
-    RETIRED_KEYS: ClassVar[tuple[str, ...]] = ("upsampler", "upsample_dim", "head_dim", "norm", "corr_scale")
+    #: OptStereo-only fields, dropped when an OptStereo model section becomes HITNet's (files of HITNet models written
+    #: before issue 43 recorded the first five and HITNet never read them; ``stage1`` came later).
+    RETIRED_KEYS: ClassVar[tuple[str, ...]] = ("upsampler", "upsample_dim", "head_dim", "norm", "corr_scale", "stage1")
 
     name: str = "hitnet"
     feature_channels: int = 16
