@@ -242,6 +242,16 @@ def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", 
     return ValScore(summary=summary, pairs=pairs)
 
 
+def write_report(result: ValScore, out: Path, checkpoint: str, valset_dir: Path | str,
+                 **extra: Any) -> Path:
+    """OUT/gtfree.json (written atomically): ``checkpoint`` (what was scored, in words or a path), the set's
+    directory, ``extra`` fields and the summary with its per-pair sums; returns the file."""
+    out.mkdir(parents=True, exist_ok=True)
+    doc = {"checkpoint": checkpoint, **extra, "valset": str(valset_dir), **result.to_dict()}
+    atomic_write_text(out / "gtfree.json", json.dumps(doc, indent=2) + "\n")
+    return out / "gtfree.json"
+
+
 def paired_difference(before: list[PairScore], after: list[PairScore], key: str = "pvm_bad3",
                       z: float = 2.0) -> tuple[float, float]:
     """(mean over pairs of after - before in ``key``, its noise margin ``z`` standard errors); pairs matched by id.

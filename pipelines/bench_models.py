@@ -65,6 +65,18 @@ def _seconds(fn: Callable[[], Any], repeats: int) -> float:
     return statistics.median(times)
 
 
+def beside_sgbm(model: torch.nn.Module, frames: list[tuple[np.ndarray, np.ndarray]], repeats: int,
+                sgbm: Any) -> dict[str, float]:
+    """``infer(model, ...)`` timed on each frame right after OpenCV's ``sgbm`` on it: median seconds per frame of
+    each and the median of the per-frame ratios (the machine's drift cancels frame by frame)."""
+    model_s, sgbm_s = [], []
+    for left, right in frames:
+        sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), repeats))
+        model_s.append(_seconds(functools.partial(infer, model, left, right), repeats))
+    return {"s_per_frame": statistics.median(model_s), "sgbm_s": statistics.median(sgbm_s),
+            "ratio": statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))}
+
+
 def _frames(shared: Path) -> list[tuple[np.ndarray, np.ndarray]]:
     base = Path(shared) / "kitti15/training"
     return [(read_image(base / f"image_2/{f}_10.png"), read_image(base / f"image_3/{f}_10.png")) for f in FRAMES]

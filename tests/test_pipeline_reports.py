@@ -118,6 +118,32 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
     assert calls[-4:] == ["sgbm:1", "model:1", "direct:1", "plain:1"]
 
 
+def test_beside_sgbm_times_each_frame_after_sgbm(monkeypatch: pytest.MonkeyPatch) -> None:
+    """beside_sgbm (T1's and E1's timing): SGBM then the model on each frame; medians and the per-frame ratio."""
+    from pipelines import bench_models
+
+    calls: list[str] = []
+    model_times, sgbm_times = iter([3.0, 9.0, 5.0]), iter([1.0, 3.0, 2.0])
+
+    class Sgbm:
+        def compute(self, left: np.ndarray, right: np.ndarray) -> None:
+            raise AssertionError("timed through fake_seconds only")
+
+    sgbm = Sgbm()
+
+    def fake_seconds(fn: object, repeats: int) -> float:
+        is_sgbm = getattr(fn, "func", None) == sgbm.compute
+        calls.append("sgbm" if is_sgbm else "model")
+        return next(sgbm_times) if is_sgbm else next(model_times)
+
+    monkeypatch.setattr(bench_models, "_seconds", fake_seconds)
+    frames = [(np.zeros((8, 16, 3), np.uint8), np.zeros((8, 16, 3), np.uint8))] * 3
+    row = bench_models.beside_sgbm(object(), frames, 2, sgbm)  # type: ignore[arg-type]
+    # ratios 3.0, 3.0, 2.5 -> median 3.0; model times median 5.0, SGBM's 2.0
+    assert row == {"s_per_frame": 5.0, "sgbm_s": 2.0, "ratio": 3.0}
+    assert calls == ["sgbm", "model"] * 3
+
+
 def test_bench_models_match_row(monkeypatch: pytest.MonkeyPatch) -> None:
     """match_row: per-frame (match / SGBM) ratio, median, against the 0.5 target; bad-3 pooled over the scored ones."""
     import itertools

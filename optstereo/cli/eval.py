@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -12,7 +11,6 @@ import click
 
 from optstereo import evaluate, validation
 from optstereo.cli import common
-from pvm_labeler.common.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
 
@@ -80,8 +78,6 @@ def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp
         raise click.UsageError(str(exc)) from exc
     model, dev = common.load_model(checkpoint, device)
     result = validation.score(model, valset, dev, amp, progress=not quiet, what=str(checkpoint))
-    out.mkdir(parents=True, exist_ok=True)
-    doc = {"checkpoint": str(checkpoint), "valset": str(valset_dir), **result.to_dict()}
-    atomic_write_text(out / "gtfree.json", json.dumps(doc, indent=2) + "\n")
+    report = validation.write_report(result, out, str(checkpoint), valset_dir)
     click.echo(validation.summary_line(result.summary))
-    click.echo(f"report: {out / 'gtfree.json'}")
+    click.echo(f"report: {report}")

@@ -10,7 +10,7 @@ or ``--out`` and resumable:
 ``keep``: the student alone as a small safetensors file (results/cheap_layer1/e1_stage1.safetensors).
 ``export``: version 15 with the student as one safetensors file (``ModelConfig.stage1 = "separable"``).
 ``time``: seconds per KITTI 2015 frame of version 15 and of the student (the engineered pass, 2 threads),
-    alternating frame by frame with OpenCV SGBM-HH as ``make bench`` does -> OUT/timing.json.
+    each beside OpenCV SGBM-HH frame by frame as T1 times them -> OUT/timing.json.
 
     python -m pipelines.studies.cheap_layer1 train --run /work/runs/e1 --minutes 40
     python -m pipelines.studies.cheap_layer1 score --state /work/runs/e1/state.pt --valset /work/valset --out DIR
@@ -20,10 +20,8 @@ or ``--out`` and resumable:
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import random
-import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -37,15 +35,13 @@ from torch import nn
 
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors, model_inference
-from optstereo.inference.engine import infer
-from optstereo.inference.fastpath import EngineeredOptStereo
 from optstereo.models import build_from_config
 from optstereo.models.extractor import FeatureEncoder
 from optstereo.models.layers import SeparableBlock
 from optstereo.models.optstereo import normalize_image
-from optstereo.validation import open_valset, score
+from optstereo.validation import open_valset, score, write_report
 from pipelines.bench_labeler import _opencv
-from pipelines.bench_models import THREADS, _frames, _seconds
+from pipelines.bench_models import THREADS, _frames, beside_sgbm
 
 BASE = "pretrained"
 PACKS = tuple(Path("/work/pack") / name for name in ("shared", "extra", "more", "tabletop_half"))
@@ -167,7 +163,7 @@ def student_model(state: Path, base: str | Path = BASE) -> nn.Module:
     layer.load_state_dict(load_file(state) if Path(state).suffix == ".safetensors"
                           else torch.load(state, weights_only=False)["layer"])
     model.feature_encoder.layer1 = layer.to(memory_format=torch.channels_last)
-    return model if isinstance(model, EngineeredOptStereo) else EngineeredOptStereo.from_model(model)
+    return model
 
 
 def keep(state: Path, out: Path) -> Path:
@@ -189,17 +185,10 @@ def export(state: Path, out: Path, base: str | Path = BASE) -> Path:
 
 def time_models(models: dict[str, nn.Module], shared: Path, repeats: int) -> dict[str, dict[str, Any]]:
     """Per model: median seconds per KITTI 2015 frame and the median per-frame ratio to SGBM-HH timed beside it
-    (frame by frame, models alternating)."""
+    (``pipelines.bench_models.beside_sgbm``, T1's timing)."""
     torch.set_num_threads(THREADS)
-    sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
-    times: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in models}
-    for left, right in _frames(shared):
-        for name, model in models.items():
-            times[name][1].append(_seconds(functools.partial(sgbm.compute, left, right), repeats))
-            times[name][0].append(_seconds(functools.partial(infer, model, left, right), repeats))
-    return {name: {"s_per_frame": statistics.median(m), "sgbm_s": statistics.median(s),
-                   "ratio": statistics.median(a / b for a, b in zip(m, s, strict=True))}
-            for name, (m, s) in times.items()}
+    sgbm, frames = _opencv(cv2.STEREO_SGBM_MODE_HH), _frames(shared)
+    return {name: beside_sgbm(model, frames, repeats, sgbm) for name, model in models.items()}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -239,10 +228,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.scale is not None:
             model.inference_config = model.inference_config.replace(scale=args.scale)
         result = score(model, open_valset(args.valset), progress=True, what="E1")
-        args.out.mkdir(parents=True, exist_ok=True)
-        doc = {"checkpoint": f"version 15 + layer1 of {args.state}", "scale": args.scale, "valset": str(args.valset),
-               **result.to_dict()}
-        (args.out / "gtfree.json").write_text(json.dumps(doc, indent=2) + "\n")
+        write_report(result, args.out, f"version 15 + layer1 of {args.state}", args.valset, scale=args.scale)
         print(result.summary)
     else:
         models = {"v15": load_model(BASE), "e1": student_model(args.state)}

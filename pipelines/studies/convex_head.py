@@ -38,7 +38,7 @@ from optstereo.models import build_from_config
 from optstereo.models.optstereo import normalize_image
 from optstereo.models.upsample import ConvexUpsampler
 from optstereo.training.losses import huber
-from optstereo.validation import open_valset, score, shard_samples
+from optstereo.validation import open_valset, score, shard_samples, write_report
 from pipelines.bench_models import THREADS
 
 BASE = "pretrained"
@@ -321,9 +321,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "score-hybrid":
         torch.set_num_threads(THREADS)
         result = score(hybrid_model(state=args.state), open_valset(args.valset), progress=True, what="U2")
-        args.out.mkdir(parents=True, exist_ok=True)
-        doc = {"checkpoint": f"version 15 + {args.state}", "valset": str(args.valset), **result.to_dict()}
-        (args.out / "gtfree.json").write_text(json.dumps(doc, indent=2) + "\n")
+        write_report(result, args.out, f"version 15 + {args.state}", args.valset)
         print(result.summary)
     else:
         print(json.dumps(str(export(args.run, args.out))))

@@ -20,9 +20,7 @@ Three steps, each resumable and writing under ``--out`` (default results/time_tr
 from __future__ import annotations
 
 import argparse
-import functools
 import json
-import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -34,10 +32,9 @@ import torch
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors, model_inference
 from optstereo.evaluate import evaluate_model
-from optstereo.inference.engine import infer
 from optstereo.validation import PairScore, paired_difference
 from pipelines.bench_labeler import _opencv
-from pipelines.bench_models import THREADS, _frames, _seconds
+from pipelines.bench_models import THREADS, _frames, beside_sgbm
 
 SCALES = (1.0, 1.125, 1.25, 1.375)
 ITERS = (3, 4, 6, 8)
@@ -97,14 +94,8 @@ def time_settings(files: Path, shared: Path, repeats: int, refine: str = "none")
     for setting in settings(refine):
         name = setting.name
         model = load_model(files / f"{name}.safetensors")
-        model_s, sgbm_s = [], []
-        for left, right in frames:
-            sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), repeats))
-            model_s.append(_seconds(functools.partial(infer, model, left, right), repeats))
-        ratio = statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))
-        out[name] = {**setting._asdict(), "s_per_frame": statistics.median(model_s),
-                     "sgbm_s": statistics.median(sgbm_s), "ratio": ratio}
-        print(f"{name}: {out[name]['s_per_frame']:.2f} s per frame, {ratio:.2f}x SGBM-HH", flush=True)
+        out[name] = {**setting._asdict(), **beside_sgbm(model, frames, repeats, sgbm)}
+        print(f"{name}: {out[name]['s_per_frame']:.2f} s per frame, {out[name]['ratio']:.2f}x SGBM-HH", flush=True)
     return out
 
 
