@@ -12,9 +12,9 @@ from typing import Literal, get_args
 __all__ = [
     "AMP_MODES", "COLOR_NORMS", "CONF_FORMATS", "DEVICES", "DISPARITY_FORMATS", "EXPORT_FORMATS", "GEOMETRY_FORMATS",
     "PREDICT_FORMATS", "NORMS", "PHOTOMETRIC_ITERS", "REFINERS", "SCHEDULES", "SMOOTHNESS_NORMS", "SMOOTHNESS_ORDERS",
-    "STAGE1S", "SUPERVISIONS", "UPSAMPLERS", "VIDEO_DATASETS", "AmpMode", "ColorNorm", "ConfFormat", "Device",
+    "STAGES", "SUPERVISIONS", "UPSAMPLERS", "VIDEO_DATASETS", "AmpMode", "ColorNorm", "ConfFormat", "Device",
     "DisparityFormat", "ExportFormat", "GeometryFormat", "Norm", "PhotometricIters", "Refiner", "Schedule",
-    "SmoothnessNorm", "SmoothnessOrder", "Stage1", "Supervision", "Upsampler", "VideoDataset",
+    "SmoothnessNorm", "SmoothnessOrder", "Stage", "Supervision", "Upsampler", "VideoDataset",
 ]
 
 #: Precision of a forward pass (training's --amp and inference's): fp32, bfloat16 or float16 autocast.
@@ -33,9 +33,10 @@ Upsampler = Literal["conv", "convex"]
 UPSAMPLERS: tuple[str, ...] = get_args(Upsampler)
 Norm = Literal["instance", "batch", "group", "none"]
 NORMS: tuple[str, ...] = get_args(Norm)
-#: The encoder's first stage at 1/2 resolution: RAFT's two residual blocks, or two depthwise-separable ones.
-Stage1 = Literal["residual", "separable"]
-STAGE1S: tuple[str, ...] = get_args(Stage1)
+#: An encoder stage (``stage1`` at 1/2 resolution, ``stage2`` at 1/4): RAFT's two residual blocks, or two
+#: depthwise-separable ones.
+Stage = Literal["residual", "separable"]
+STAGES: tuple[str, ...] = get_args(Stage)
 
 # -- training (LossConfig, DataConfig, OptimConfig) ---------------------------------------------------------------
 PhotometricIters = Literal["last", "all"]

@@ -15,7 +15,7 @@ from conftest import TINY, TINY_HITNET, kitti_crop
 from optstereo.api import load_model
 from optstereo.inference import fastpath
 from optstereo.inference.engine import infer, network_pass
-from optstereo.inference.fastpath import EngineeredOptStereo, engineer, engineering
+from optstereo.inference.fastpath import EngineeredOptStereo, engineer, engineering, supported
 from optstereo.inference.winograd import winograd_conv3x3, winograd_weight
 from optstereo.models import build_model
 from optstereo.models.correlation import build_pyramid, correlation_volume, lookup_pyramid
@@ -122,6 +122,16 @@ class TestFallbacks:
         fast.feature_encoder.layer1[1] = torch.nn.Sequential(torch.nn.Conv2d(width, width, 1), torch.nn.ReLU())
         left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
         assert_close_px(*both_paths(fast, left, right))
+
+    def test_feature_separable_stages(self) -> None:
+        """stage1 and stage2 separable (the strided block's 1x1 shortcut included), every weight random."""
+        torch.manual_seed(6)
+        model = build_model("optstereo", **TINY, iters=3, stage1="separable", stage2="separable").eval()
+        for block in (*model.feature_encoder.layer1, *model.feature_encoder.layer2):
+            torch.nn.init.normal_(block.pw2.weight, std=0.2)
+        left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
+        assert supported(model)
+        assert_close_px(*both_paths(model, left, right))
 
     def test_engineer_leaves_other_models(self) -> None:
         hitnet = build_model("hitnet", **TINY_HITNET)

@@ -80,6 +80,8 @@ class TestRegistry:
             build_model("optstereo", upsampler="nearest")
         with pytest.raises(ValueError, match="stage1 must be one of"):
             build_model("optstereo", stage1="mobile")
+        with pytest.raises(ValueError, match="stage2 must be one of"):
+            build_model("optstereo", stage2="mobile")
         with pytest.raises(ValueError, match="corr_levels must be >= 1, got 0"):
             ModelConfig(corr_levels=0).validate()
         with pytest.raises(ValueError, match="already registered"):

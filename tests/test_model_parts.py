@@ -174,6 +174,28 @@ class TestSmallBlocks:
         with pytest.raises(ValueError, match="stage1 must be"):
             FeatureEncoder(16, stage1="mobile")
 
+    def test_feature_separable_stage2(self) -> None:
+        """stage2 = "separable": a strided SeparableBlock 8 -> 12 with a 1x1 shortcut, then SeparableBlock(12); the
+        strided block against F.conv2d written out, and its start relu(shortcut(x))."""
+        torch.manual_seed(1)
+        enc = FeatureEncoder(16, widths=(8, 12, 8), stage2="separable")
+        down, same = enc.layer2
+        assert type(down) is SeparableBlock and type(same) is SeparableBlock
+        assert isinstance(same.shortcut, torch.nn.Identity) and down.shortcut.stride == (2, 2)
+        assert enc(torch.rand(1, 3, 32, 64)).shape == (1, 16, 4, 8)
+        x = torch.rand(1, 8, 7, 10)
+        short = F.conv2d(x, down.shortcut.weight, down.shortcut.bias, stride=2)
+        torch.testing.assert_close(down(x), torch.relu(short), rtol=0, atol=0)  # pw2 = 0 at the start
+        torch.nn.init.normal_(down.pw2.weight)
+        y = torch.relu(F.conv2d(F.conv2d(x, down.dw1.weight, down.dw1.bias, stride=2, padding=2, groups=8),
+                                down.pw1.weight, down.pw1.bias))
+        assert y.shape == (1, 12, 4, 5)
+        ref = torch.relu(short + F.conv2d(F.conv2d(y, down.dw2.weight, down.dw2.bias, padding=2, groups=12),
+                                          down.pw2.weight, down.pw2.bias))
+        torch.testing.assert_close(down(x), ref)
+        with pytest.raises(ValueError, match="stage2 must be"):
+            FeatureEncoder(16, stage2="mobile")
+
     def test_cardinality_heads(self) -> None:
         h = torch.randn(2, 8, 4, 8)
         assert DispHead(8, 16)(h).shape == (2, 1, 4, 8)

@@ -80,8 +80,9 @@ def supported(model: OptStereo) -> bool:
     return (type(encoder) is FeatureEncoder and type(model.corr_block) is CorrBlock1D
             and type(model.update_block) is ConvGRU and model.update_block.static is not None
             and type(model.disp_head) is DispHead
-            and all(type(block) in (ResidualBlock, SeparableBlock) for block in encoder.layer1)
-            and all(type(block) is ResidualBlock for layer in (encoder.layer2, encoder.layer3) for block in layer))
+            and all(type(block) in (ResidualBlock, SeparableBlock) for layer in (encoder.layer1, encoder.layer2)
+                    for block in layer)
+            and all(type(block) is ResidualBlock for block in encoder.layer3))
 
 
 class EngineeredOptStereo(OptStereo):
@@ -168,9 +169,9 @@ def encode(encoder: FeatureEncoder, x: torch.Tensor) -> torch.Tensor:
     x = encoder.stem(x.contiguous(memory_format=CHANNELS_LAST))
     for layer in (encoder.layer1, encoder.layer2, encoder.layer3):
         for block in layer:
-            if type(block) is SeparableBlock:  # relu(x + pw2(dw2(relu(pw1(dw1(x)))))), adds in place
+            if type(block) is SeparableBlock:  # relu(shortcut(x) + pw2(dw2(relu(pw1(dw1(x)))))), adds in place
                 y = block.pw2(block.dw2(block.pw1(block.dw1(x)).relu_()))
-                x = y.add_(x).relu_()
+                x = y.add_(block.shortcut(x)).relu_()
                 continue
             if type(block) is not ResidualBlock:  # a block this path does not know runs as it is
                 x = block(x)

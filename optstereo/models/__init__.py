@@ -48,7 +48,7 @@ def build_optstereo(cfg: ModelConfig) -> OptStereo:
     else:
         upsampler = ConvUpsampler(width=cfg.upsample_dim)
     return OptStereo(
-        feature_encoder=FeatureEncoder(cfg.feature_dim, norm=cfg.norm, stage1=cfg.stage1),
+        feature_encoder=FeatureEncoder(cfg.feature_dim, norm=cfg.norm, stage1=cfg.stage1, stage2=cfg.stage2),
         corr_block=corr,
         hidden_init=HiddenInit(cfg.feature_dim, cfg.hidden_dim),
         # Dynamic GRU input: D_s (1 channel) + M_l; F_l enters as the precomputed static part.

@@ -15,7 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
-from optstereo.choices import NORMS, STAGE1S, UPSAMPLERS, Norm, Stage1, Upsampler
+from optstereo.choices import NORMS, STAGES, UPSAMPLERS, Norm, Stage, Upsampler
 from pvm_labeler.common.configtools import reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
@@ -101,7 +101,9 @@ class ModelConfig(NetworkConfig):
         corr_scale: divide the correlation by sqrt(C) (keeps M0 O(1) whatever C is).
         stage1: the encoder's first stage at 1/2 resolution: "residual" = RAFT's two residual blocks (the paper's
             figure); "separable" = two depthwise-separable residual blocks without norm (``SeparableBlock``, about
-            a quarter of the time on a CPU; version 16).
+            a quarter of the time on a CPU).
+        stage2: the encoder's second stage at 1/4 resolution, the same choice ("separable": a strided
+            ``SeparableBlock`` 64 -> 96 with a 1x1 shortcut, then ``SeparableBlock(96)``).
 
     Until issue 43 this class also held HITNet's search range (``search_range``, earlier ``max_disp``), which
     OptStereo never read; files that record it (the shipped weights do) still load: the key is dropped
@@ -121,7 +123,8 @@ class ModelConfig(NetworkConfig):
     head_dim: int = 128
     norm: Norm = "instance"
     corr_scale: bool = True
-    stage1: Stage1 = "residual"
+    stage1: Stage = "residual"
+    stage2: Stage = "residual"
 
     @property
     def corr_channels(self) -> int:
@@ -136,8 +139,9 @@ class ModelConfig(NetworkConfig):
             raise ValueError(f"model option upsampler must be one of {UPSAMPLERS}, got {self.upsampler!r}")
         if self.norm not in NORMS:
             raise ValueError(f"model option norm must be one of {NORMS}, got {self.norm!r}")
-        if self.stage1 not in STAGE1S:
-            raise ValueError(f"model option stage1 must be one of {STAGE1S}, got {self.stage1!r}")
+        for name in ("stage1", "stage2"):
+            if getattr(self, name) not in STAGES:
+                raise ValueError(f"model option {name} must be one of {STAGES}, got {getattr(self, name)!r}")
         return self
 
 

@@ -41,8 +41,9 @@ class HITNetConfig(NetworkConfig):
         "corr_radius": "offset_radius", "max_disp": "search_range",
     }
     #: OptStereo-only fields, dropped when an OptStereo model section becomes HITNet's (files of HITNet models written
-    #: before issue 43 recorded the first five and HITNet never read them; ``stage1`` came later).
-    RETIRED_KEYS: ClassVar[tuple[str, ...]] = ("upsampler", "upsample_dim", "head_dim", "norm", "corr_scale", "stage1")
+    #: before issue 43 recorded the first five and HITNet never read them; ``stage1`` and ``stage2`` came later).
+    RETIRED_KEYS: ClassVar[tuple[str, ...]] = ("upsampler", "upsample_dim", "head_dim", "norm", "corr_scale", "stage1",
+                                                    "stage2")
 
     name: str = "hitnet"
     feature_channels: int = 16

@@ -68,29 +68,34 @@ def conv3x3(in_channels: int, out_channels: int, stride: int = 1, bias: bool = T
 
 
 class SeparableBlock(nn.Module):
-    """Depthwise-separable residual block, no norm: relu(x + pw2(dw2(relu(pw1(dw1(x)))))).
+    """Depthwise-separable residual block, no norm: relu(shortcut(x) + pw2(dw2(relu(pw1(dw1(x)))))).
 
-    ``dw``: depthwise ``kernel`` x ``kernel`` convolutions, ``pw``: 1x1. The encoder's cheap first stage
-    (``ModelConfig.stage1 = "separable"``): two of them cost about a quarter of two :class:`ResidualBlock` at 64
-    channels on a CPU (a depthwise 5x5 is memory-bound, a dense 3x3 compute-bound). ``pw2`` starts at zero, so a
-    new block is the identity on a non-negative input (the stem's ReLU output).
+    ``dw``: depthwise ``kernel`` x ``kernel`` convolutions (``dw1`` with ``stride``), ``pw``: 1x1 (``pw1`` from
+    ``in_channels`` to ``out_channels``). ``shortcut``: the identity, or a strided 1x1 convolution when the block
+    changes the channels or the resolution. The encoder's cheap stages (``ModelConfig.stage1 / stage2 =
+    "separable"``): two of them cost about a quarter of two :class:`ResidualBlock` at 64 channels on a CPU (a
+    depthwise 5x5 is memory-bound, a dense 3x3 compute-bound). ``pw2`` starts at zero, so a new block is
+    relu(shortcut(x)): the identity on a non-negative input (the stem's ReLU output) when it has no 1x1 shortcut.
 
-    Shapes: (B, C, H, W) -> (B, C, H, W), float.
+    Shapes: (B, in_channels, H, W) -> (B, out_channels, ceil(H / stride), ceil(W / stride)), float.
     """
 
-    def __init__(self, channels: int, kernel: int = 5) -> None:
+    def __init__(self, in_channels: int, out_channels: int | None = None, *, kernel: int = 5, stride: int = 1) -> None:
         super().__init__()
+        out_channels = in_channels if out_channels is None else out_channels
         pad = kernel // 2
-        self.dw1 = nn.Conv2d(channels, channels, kernel, padding=pad, groups=channels)
-        self.pw1 = nn.Conv2d(channels, channels, 1)
-        self.dw2 = nn.Conv2d(channels, channels, kernel, padding=pad, groups=channels)
-        self.pw2 = nn.Conv2d(channels, channels, 1)
+        self.dw1 = nn.Conv2d(in_channels, in_channels, kernel, stride=stride, padding=pad, groups=in_channels)
+        self.pw1 = nn.Conv2d(in_channels, out_channels, 1)
+        self.dw2 = nn.Conv2d(out_channels, out_channels, kernel, padding=pad, groups=out_channels)
+        self.pw2 = nn.Conv2d(out_channels, out_channels, 1)
+        self.shortcut: nn.Module = (nn.Identity() if stride == 1 and in_channels == out_channels
+                                    else nn.Conv2d(in_channels, out_channels, 1, stride=stride))
         nn.init.zeros_(self.pw2.weight)
         nn.init.zeros_(self.pw2.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = torch.relu(self.pw1(self.dw1(x)))
-        return torch.relu(x + self.pw2(self.dw2(y)))
+        return torch.relu(self.shortcut(x) + self.pw2(self.dw2(y)))
 
 
 class ResidualBlock(nn.Module):
