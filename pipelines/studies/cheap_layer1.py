@@ -1,9 +1,10 @@
-"""E1 / E2 (docs/registrations.md): version 15 with a cheaper first encoder stage, distilled blockwise on the CPU.
+"""E1 / E2 / E4 (docs/registrations.md): version 15 with cheaper encoder stages, distilled blockwise on the CPU.
 
-The encoder's ``layer1`` (two residual blocks of 64 channels at 1/2 resolution, about a third of the default's
-CPU pass) is replaced by two depthwise-separable residual blocks (:class:`SepBlock`), trained alone to reproduce
-``layer1``'s output and the encoder's output (everything else frozen as shipped). Steps, each writing under ``--run``
-or ``--out`` and resumable:
+E1: the encoder's ``layer1`` (two residual blocks of 64 channels at 1/2 resolution, about a third of the default's
+CPU pass) is replaced by two depthwise-separable residual blocks (``SeparableBlock``), trained alone to reproduce
+``layer1``'s output and the encoder's output (everything else frozen as shipped). E4 (``--stage 2``): E1's kept
+first stage, frozen, and ``layer2`` (1/4 resolution, 64 -> 96) replaced the same way, trained to reproduce version
+15's ``layer2`` output and encoder output. Steps, each writing under ``--run`` or ``--out`` and resumable:
 
 ``train``: the distillation, ``--minutes`` of CPU in total over any number of calls -> RUN/state.pt, RUN/log.jsonl.
 ``score``: the student in version 15 on a validation set -> OUT/gtfree.json (``optstereo.validation.score``).
@@ -15,6 +16,8 @@ or ``--out`` and resumable:
     python -m pipelines.studies.cheap_layer1 train --run /work/runs/e1 --minutes 40
     python -m pipelines.studies.cheap_layer1 score --state /work/runs/e1/state.pt --valset /work/valset --out DIR
     python -m pipelines.studies.cheap_layer1 time --state /work/runs/e1/state.pt --out results/cheap_layer1
+    python -m pipelines.studies.cheap_layer1 train --run /work/runs/e4 --minutes 40 --stage 2 \
+        --images ../shared/data/kitti_unlabelled ../shared/data/unlabelled_more
 """
 
 from __future__ import annotations
@@ -51,9 +54,32 @@ FINAL_LR_FRACTION = 0.8  # the last 20 % of the budget at lr / 10
 SAVE_EVERY_S = 120.0
 
 
-def student(channels: int = 64) -> nn.Sequential:
-    """E1's ``layer1``: two ``SeparableBlock`` of ``channels`` (the product's, ``ModelConfig.stage1 = "separable"``)."""
-    return nn.Sequential(SeparableBlock(channels), SeparableBlock(channels))
+E1_STAGE1 = Path(__file__).resolve().parents[2] / "results/cheap_layer1/e1_stage1.safetensors"
+
+
+def student(channels: int = 64, out_channels: int | None = None) -> nn.Sequential:
+    """E1's ``layer1`` (two ``SeparableBlock`` of ``channels``, ``ModelConfig.stage1 = "separable"``) or, with
+    ``out_channels``, E4's ``layer2`` (a strided block ``channels`` -> ``out_channels``, then one of
+    ``out_channels``: ``ModelConfig.stage2 = "separable"``)."""
+    if out_channels is None:
+        return nn.Sequential(SeparableBlock(channels), SeparableBlock(channels))
+    return nn.Sequential(SeparableBlock(channels, out_channels, stride=2), SeparableBlock(out_channels))
+
+
+def image_files(roots: tuple[Path, ...], size: tuple[int, int] = CROP) -> tuple[list[Path], int]:
+    """Every .png / .jpg under ``roots`` (recursively) at least ``size`` large, and how many smaller ones were
+    skipped. Raises FileNotFoundError naming the roots when none is left."""
+    found = sorted(p for root in roots for p in Path(root).rglob("*") if p.suffix.lower() in (".png", ".jpg"))
+    kept = []
+    for path in found:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise OSError(f"{path}: not a readable image")
+        if image.shape[0] >= size[0] and image.shape[1] >= size[1]:
+            kept.append(path)
+    if not kept:
+        raise FileNotFoundError(f"no image of at least {size} under {[str(r) for r in roots]}")
+    return kept, len(found) - len(kept)
 
 
 def image_paths(packs: tuple[Path, ...] = PACKS) -> list[Path]:
@@ -89,6 +115,35 @@ def after_layer1(encoder: FeatureEncoder, x: torch.Tensor) -> torch.Tensor:
     return encoder.proj(encoder.layer3(encoder.layer2(x)))
 
 
+def after_layer2(encoder: FeatureEncoder, x: torch.Tensor) -> torch.Tensor:
+    """The encoder's stages after ``layer2``: (B, 96, H/4, W/4) -> (B, C, H/8, W/8)."""
+    return encoder.proj(encoder.layer3(x))
+
+
+def distill_loss_stage2(encoder: FeatureEncoder, stage1: nn.Module, layer: nn.Module,
+                        images: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """E4's loss on (B, 3, H, W) normalised images: ``layer`` on ``stage1``'s features (E1's first stage, frozen)
+    against ``encoder.layer2`` on the encoder's own ``layer1``: MSE over the target's variance, plus the same for
+    the encoder's output; (loss, its two parts)."""
+    with torch.no_grad():
+        stem = encoder.stem(images)
+        target2 = encoder.layer2(encoder.layer1(stem))
+        target = after_layer2(encoder, target2)
+        features = stage1(stem)
+    out2 = layer(features)
+    part1 = F.mse_loss(out2, target2) / target2.var()
+    part2 = F.mse_loss(after_layer2(encoder, out2), target) / target.var()
+    return part1 + part2, {"layer2": float(part1.detach()), "encoder": float(part2.detach())}
+
+
+def frozen_stage1(path: str | Path, channels: int) -> nn.Sequential:
+    """E1's kept first stage (``keep``'s safetensors file), frozen."""
+    stage1 = student(channels)
+    stage1.load_state_dict(load_file(str(path)))
+    stage1.eval().requires_grad_(False)
+    return stage1
+
+
 def distill_loss(encoder: FeatureEncoder, layer: nn.Module,
                  images: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     """E1's loss on (B, 3, H, W) normalised images: MSE of ``layer``'s output against ``encoder.layer1``'s over the
@@ -111,76 +166,119 @@ def frozen_encoder(base: str | Path = BASE) -> FeatureEncoder:
 
 
 def train(run: Path, minutes: float, lr: float = 1e-3, seed: int = 0, threads: int = THREADS,
-          packs: tuple[Path, ...] = PACKS, base: str | Path = BASE, size: tuple[int, int] = CROP) -> Path:
-    """Distil E1's ``layer1`` for ``minutes`` of wall time in total (resumed from RUN/state.pt when present)."""
+          packs: tuple[Path, ...] = PACKS, base: str | Path = BASE, size: tuple[int, int] = CROP,
+          stage: int = 1, images: tuple[Path, ...] = (), stage1_state: str | Path = E1_STAGE1) -> Path:
+    """Distil E1's ``layer1`` (``stage`` 1) or E4's ``layer2`` on E1's frozen first stage ``stage1_state``
+    (``stage`` 2) for ``minutes`` of wall time in total (resumed from RUN/state.pt when present). Images: every
+    one under ``images`` at least ``size`` large when given, else the left and right images of ``packs``."""
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     run.mkdir(parents=True, exist_ok=True)
-    encoder, paths = frozen_encoder(base), image_paths(packs)
-    layer = student(encoder.layer1[0].conv1.out_channels)
+    encoder = frozen_encoder(base)
+    if images:
+        paths, skipped = image_files(images, size)
+        print(f"{len(paths)} images, {skipped} smaller than {size} skipped", flush=True)
+    else:
+        paths = image_paths(packs)
+    width1 = encoder.layer1[0].conv1.out_channels
+    stage1 = frozen_stage1(stage1_state, width1) if stage == 2 else None
+    layer = student(width1) if stage == 1 else student(width1, encoder.layer2[0].conv1.out_channels)
     opt = torch.optim.Adam(layer.parameters(), lr=lr)
     step, elapsed = 0, 0.0
     state_path = run / "state.pt"
     if state_path.exists():
         saved = torch.load(state_path, weights_only=False)
+        if saved.get("stage", 1) != stage:
+            raise ValueError(f"{state_path}: a stage-{saved.get('stage', 1)} run, not stage {stage}")
         layer.load_state_dict(saved["layer"])
         opt.load_state_dict(saved["optimizer"])
         step, elapsed = saved["step"], saved["elapsed_s"]
     rng = random.Random(seed * 1_000_003 + step)  # a resumed run draws new crops, reproducibly
     budget, start, last_save = minutes * 60.0, time.monotonic() - elapsed, time.monotonic()
+    extra = {"stage": 2, "stage1": stage1.state_dict()} if stage1 is not None else {}
     with (run / "log.jsonl").open("a") as log:
         while (elapsed := time.monotonic() - start) < budget:
             for group in opt.param_groups:
                 group["lr"] = lr if elapsed < FINAL_LR_FRACTION * budget else lr / 10
-            loss, parts = distill_loss(encoder, layer, crops(paths, rng, size=size))
+            batch = crops(paths, rng, size=size)
+            loss, parts = (distill_loss(encoder, layer, batch) if stage1 is None
+                           else distill_loss_stage2(encoder, stage1, layer, batch))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             step += 1
             log.write(json.dumps({"step": step, "elapsed_s": round(elapsed, 1), "loss": loss.item(), **parts}) + "\n")
             if time.monotonic() - last_save > SAVE_EVERY_S:
-                _save(state_path, layer, opt, step, elapsed)
+                _save(state_path, layer, opt, step, elapsed, extra)
                 last_save = time.monotonic()
                 log.flush()
                 print(f"step {step}, {elapsed / 60:.1f} min, loss {loss.item():.4f} {parts}", flush=True)
-    _save(state_path, layer, opt, step, time.monotonic() - start)
+    _save(state_path, layer, opt, step, time.monotonic() - start, extra)
     return state_path
 
 
-def _save(path: Path, layer: nn.Module, opt: torch.optim.Optimizer, step: int, elapsed: float) -> None:
-    """Atomically write the student, its optimizer and the run's counters."""
+def _save(path: Path, layer: nn.Module, opt: torch.optim.Optimizer, step: int, elapsed: float,
+          extra: dict[str, Any] | None = None) -> None:
+    """Atomically write the student, its optimizer and the run's counters (and a stage-2 run's frozen stage 1)."""
     tmp = path.with_suffix(".tmp")
-    torch.save({"layer": layer.state_dict(), "optimizer": opt.state_dict(), "step": step, "elapsed_s": elapsed}, tmp)
+    torch.save({"layer": layer.state_dict(), "optimizer": opt.state_dict(), "step": step, "elapsed_s": elapsed,
+                **(extra or {})}, tmp)
     tmp.rename(path)
 
 
-def student_model(state: Path, base: str | Path = BASE) -> nn.Module:
-    """Version 15 with ``layer1`` replaced by the student of a ``train`` run (its state.pt, or the student alone as
-    written by ``keep``: results/cheap_layer1/e1_stage1.safetensors), engineered for the CPU as
-    ``load_model`` gives the default (the engineered encoder calls blocks it does not know as they are)."""
+def _stages(state: str | Path) -> dict[str, dict[str, torch.Tensor]]:
+    """The students of a run's state.pt or of ``keep``'s file: {"layer1": ...} or {"layer1": ..., "layer2": ...}."""
+    if Path(state).suffix == ".safetensors":
+        flat = load_file(str(state))
+        if not any(k.startswith("layer2.") for k in flat):
+            return {"layer1": flat}  # E1's file: the first stage's keys alone
+        return {name: {k[len(name) + 1:]: v for k, v in flat.items() if k.startswith(name + ".")}
+                for name in ("layer1", "layer2")}
+    saved = torch.load(state, weights_only=False)
+    if saved.get("stage", 1) == 2:
+        return {"layer1": saved["stage1"], "layer2": saved["layer"]}
+    return {"layer1": saved["layer"]}
+
+
+def student_model(state: str | Path, base: str | Path = BASE) -> nn.Module:
+    """Version 15 with ``layer1`` (and, for E4, ``layer2``) replaced by the students of a ``train`` run (its
+    state.pt, or the students alone as written by ``keep``: results/cheap_layer1/e1_stage1.safetensors),
+    engineered for the CPU as ``load_model`` gives the default."""
     model = load_model(base)
-    layer = student(model.feature_encoder.layer1[0].conv1.out_channels)
-    layer.load_state_dict(load_file(state) if Path(state).suffix == ".safetensors"
-                          else torch.load(state, weights_only=False)["layer"])
-    model.feature_encoder.layer1 = layer.to(memory_format=torch.channels_last)
+    encoder = model.feature_encoder
+    width1, width2 = encoder.layer1[0].conv1.out_channels, encoder.layer2[0].conv1.out_channels
+    for name, weights in _stages(state).items():
+        layer = student(width1) if name == "layer1" else student(width1, width2)
+        layer.load_state_dict(weights)
+        setattr(encoder, name, layer.to(memory_format=torch.channels_last))
     return model
 
 
 def keep(state: Path, out: Path) -> Path:
-    """The student of a run's state.pt alone (no optimizer), as safetensors: the small file worth committing."""
-    save_file({k: v.contiguous() for k, v in torch.load(state, weights_only=False)["layer"].items()}, str(out))
+    """The students of a run's state.pt alone (no optimizer), as safetensors: the small file worth committing
+    (E1: the first stage's keys as they are; E4: both stages, prefixed ``layer1.`` / ``layer2.``)."""
+    stages = _stages(state)
+    flat = (stages["layer1"] if len(stages) == 1
+            else {f"{name}.{k}": v for name, weights in stages.items() for k, v in weights.items()})
+    save_file({k: v.contiguous() for k, v in flat.items()}, str(out))
     return out
 
 
-def export(state: Path, out: Path, base: str | Path = BASE) -> Path:
-    """``base``'s weights and inference settings (version 15) with the student as the encoder's first stage
-    (``stage1 = "separable"``), as one safetensors file: the product builds it as it builds any other."""
+def export(state: Path, out: Path, base: str | Path = BASE, scale: float | None = None) -> Path:
+    """``base``'s weights and inference settings (version 15) with the students as the encoder's separable stages
+    (``stage1`` and, for E4, ``stage2 = "separable"``) and the input ``scale`` when given, as one safetensors
+    file: the product builds it as it builds any other."""
     model = student_model(state, base)
-    config = dict(model.config.to_dict(), stage1="separable")
+    stages = _stages(state)
+    config = dict(model.config.to_dict(), stage1="separable",
+                  stage2="separable" if "layer2" in stages else "residual")
     built = build_from_config(config)
     built.load_state_dict(model.state_dict())
     built.inference_config = model_inference(model)
-    return export_safetensors(out, built, step=torch.load(state, weights_only=False)["step"])
+    if scale is not None:
+        built.inference_config = built.inference_config.replace(scale=scale)
+    step = torch.load(state, weights_only=False)["step"] if Path(state).suffix != ".safetensors" else 0
+    return export_safetensors(out, built, step=step)
 
 
 def time_models(models: dict[str, nn.Module], shared: Path, repeats: int) -> dict[str, dict[str, Any]]:
@@ -197,6 +295,9 @@ def main(argv: list[str] | None = None) -> None:
     t = sub.add_parser("train")
     t.add_argument("--run", type=Path, required=True)
     t.add_argument("--minutes", type=float, default=40.0)
+    t.add_argument("--stage", type=int, choices=(1, 2), default=1, help="1: E1's layer1; 2: E4's layer2 on E1's")
+    t.add_argument("--images", type=Path, nargs="*", default=[], help="image folders (default: E1's packs)")
+    t.add_argument("--stage1-state", type=Path, default=E1_STAGE1, help="stage 2: E1's kept first stage")
     s = sub.add_parser("score")
     s.add_argument("--state", type=Path, required=True)
     s.add_argument("--valset", type=Path, required=True)
@@ -209,9 +310,12 @@ def main(argv: list[str] | None = None) -> None:
     m.add_argument("--repeats", type=int, default=3)
     m.add_argument("--scales", type=float, nargs="*", default=[], help="E1 also at these input scales (E2: 1.125)")
     m.add_argument("--name", default="timing", help="OUT/NAME.json")
+    m.add_argument("--against", type=Path, default=None,
+                   help="another student (E1's file) timed in the same run at --scales too")
     x = sub.add_parser("export")
     x.add_argument("--state", type=Path, required=True)
     x.add_argument("--out", type=Path, required=True)
+    x.add_argument("--scale", type=float, default=None, help="the file's input scale (default: version 15's)")
     k = sub.add_parser("keep", help="the student alone -> a small safetensors file")
     k.add_argument("--state", type=Path, required=True)
     k.add_argument("--out", type=Path, required=True)
@@ -219,22 +323,25 @@ def main(argv: list[str] | None = None) -> None:
     if args.cmd == "keep":
         print(keep(args.state, args.out))
     elif args.cmd == "export":
-        print(export(args.state, args.out))
+        print(export(args.state, args.out, scale=args.scale))
     elif args.cmd == "train":
-        print(train(args.run, args.minutes))
+        print(train(args.run, args.minutes, stage=args.stage, images=tuple(args.images),
+                    stage1_state=args.stage1_state))
     elif args.cmd == "score":
         torch.set_num_threads(THREADS)
         model = student_model(args.state)
         if args.scale is not None:
             model.inference_config = model.inference_config.replace(scale=args.scale)
-        result = score(model, open_valset(args.valset), progress=True, what="E1")
-        write_report(result, args.out, f"version 15 + layer1 of {args.state}", args.valset, scale=args.scale)
+        result = score(model, open_valset(args.valset), progress=True, what="student")
+        write_report(result, args.out, f"version 15 + the separable stages of {args.state}", args.valset, scale=args.scale)
         print(result.summary)
     else:
-        models = {"v15": load_model(BASE), "e1": student_model(args.state)}
+        students = {"e1": args.state} if args.against is None else {"e1": args.against, "student": args.state}
+        models = {"v15": load_model(BASE), **{name: student_model(path) for name, path in students.items()}}
         for scale in args.scales:
-            models[f"e1_s{scale:g}"] = student_model(args.state)
-            models[f"e1_s{scale:g}"].inference_config = models["e1"].inference_config.replace(scale=scale)
+            for name, path in students.items():
+                models[f"{name}_s{scale:g}"] = student_model(path)
+                models[f"{name}_s{scale:g}"].inference_config = models[name].inference_config.replace(scale=scale)
         result = time_models(models, args.shared, args.repeats)
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"{args.name}.json").write_text(json.dumps(result, indent=2) + "\n")

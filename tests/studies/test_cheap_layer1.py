@@ -89,3 +89,46 @@ def test_a_run_resumes_and_its_model_runs_both_paths_alike(tmp_path: Path) -> No
     assert exported.config.stage1 == "separable"
     with torch.inference_mode():
         torch.testing.assert_close(exported(left, right, test_mode=True)[1], fast, rtol=0, atol=1e-4)  # kernels
+
+
+def test_stage2_loss_run_keep_and_export(tmp_path: Path) -> None:
+    """E4: the loss is zero for the teacher's own stages; a stage-2 run on E1's kept first stage builds a model with
+    both separable stages whose plain and engineered passes agree, kept and exported alike; a stage-1 run is not
+    resumed as stage 2."""
+    base, pack = _tiny_file(tmp_path), _pack(tmp_path / "pack", shape=(40, 72))
+    encoder = cheap_layer1.frozen_encoder(base)
+    images = torch.rand(2, 3, 32, 48) * 2 - 1
+    loss, parts = cheap_layer1.distill_loss_stage2(encoder, encoder.layer1, encoder.layer2, images)
+    assert loss.item() == pytest.approx(0.0, abs=1e-7) and parts == {"layer2": 0.0, "encoder": 0.0}
+    cheap_layer1.train(tmp_path / "r1", minutes=0.005, packs=(pack,), base=base, size=(32, 64), threads=1)
+    stage1 = cheap_layer1.keep(tmp_path / "r1/state.pt", tmp_path / "s1.safetensors")
+    with pytest.raises(ValueError, match="stage-1 run, not stage 2"):
+        cheap_layer1.train(tmp_path / "r1", minutes=0.01, packs=(pack,), base=base, size=(32, 64), threads=1,
+                           stage=2, stage1_state=stage1)
+    paths, skipped = cheap_layer1.image_files((pack,), size=(32, 64))
+    assert len(paths) == 6 and skipped == 0
+    with pytest.raises(FileNotFoundError, match="no image of at least"):
+        cheap_layer1.image_files((pack,), size=(48, 64))
+    run = tmp_path / "r2"
+    cheap_layer1.train(run, minutes=0.005, base=base, size=(32, 64), threads=1, stage=2, images=(pack,),
+                       stage1_state=stage1)
+    model = cheap_layer1.student_model(run / "state.pt", base)
+    assert [type(b) for b in model.feature_encoder.layer2] == [SeparableBlock, SeparableBlock]
+    first = cheap_layer1.student_model(stage1, base).feature_encoder.layer1.state_dict()
+    torch.testing.assert_close(model.feature_encoder.layer1.state_dict(), first, rtol=0, atol=0)  # frozen
+    left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
+    with torch.inference_mode():
+        with engineering(False):
+            plain = model(left, right, test_mode=True)[1]
+        fast = model(left, right, test_mode=True)[1]
+    assert (plain - fast).abs().mean() < 0.01
+    kept = cheap_layer1.keep(run / "state.pt", tmp_path / "e4.safetensors")
+    again_model = cheap_layer1.student_model(kept, base)
+    with torch.inference_mode():
+        again = again_model(left, right, test_mode=True)[1]
+    torch.testing.assert_close(again, fast, rtol=0, atol=0)
+    exported = load_model(cheap_layer1.export(kept, tmp_path / "e4_full.safetensors", base, scale=1.125))
+    assert (exported.config.stage1, exported.config.stage2) == ("separable", "separable")
+    assert exported.inference_config.scale == 1.125
+    with torch.inference_mode():
+        torch.testing.assert_close(exported(left, right, test_mode=True)[1], fast, rtol=0, atol=1e-4)
