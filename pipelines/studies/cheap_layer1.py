@@ -2,9 +2,10 @@
 
 E1: the encoder's ``layer1`` (two residual blocks of 64 channels at 1/2 resolution, about a third of the default's
 CPU pass) is replaced by two depthwise-separable residual blocks (``SeparableBlock``), trained alone to reproduce
-``layer1``'s output and the encoder's output (everything else frozen as shipped). E4 (``--stage 2``): E1's kept
-first stage, frozen, and ``layer2`` (1/4 resolution, 64 -> 96) replaced the same way, trained to reproduce version
-15's ``layer2`` output and encoder output. Steps, each writing under ``--run`` or ``--out`` and resumable:
+``layer1``'s output and the encoder's output (everything else frozen as shipped). E4 (``--stage both``): both
+stages, ``layer2`` (1/4 resolution, 64 -> 96) replaced the same way, distilled jointly against version 15's
+``layer1``, ``layer2`` and encoder outputs (``--stage 2``: ``layer2`` alone on E1's kept, frozen first stage).
+Steps, each writing under ``--run`` or ``--out`` and resumable:
 
 ``train``: the distillation, ``--minutes`` of CPU in total over any number of calls -> RUN/state.pt, RUN/log.jsonl.
 ``score``: the student in version 15 on a validation set -> OUT/gtfree.json (``optstereo.validation.score``).
@@ -16,7 +17,7 @@ first stage, frozen, and ``layer2`` (1/4 resolution, 64 -> 96) replaced the same
     python -m pipelines.studies.cheap_layer1 train --run /work/runs/e1 --minutes 40
     python -m pipelines.studies.cheap_layer1 score --state /work/runs/e1/state.pt --valset /work/valset --out DIR
     python -m pipelines.studies.cheap_layer1 time --state /work/runs/e1/state.pt --out results/cheap_layer1
-    python -m pipelines.studies.cheap_layer1 train --run /work/runs/e4 --minutes 40 --stage 2 \
+    python -m pipelines.studies.cheap_layer1 train --run /work/runs/e4 --minutes 60 --stage both \
         --images ../shared/data/kitti_unlabelled ../shared/data/unlabelled_more
 """
 
@@ -50,6 +51,7 @@ BASE = "pretrained"
 PACKS = tuple(Path("/work/pack") / name for name in ("shared", "extra", "more", "tabletop_half"))
 CROP = (320, 640)
 BATCH = 2
+STAGE_RUNS = ("1", "2", "both")  # what a run trains: E1's layer1, layer2 on E1's, both jointly (E4)
 FINAL_LR_FRACTION = 0.8  # the last 20 % of the budget at lr / 10
 SAVE_EVERY_S = 120.0
 
@@ -136,6 +138,24 @@ def distill_loss_stage2(encoder: FeatureEncoder, stage1: nn.Module, layer: nn.Mo
     return part1 + part2, {"layer2": float(part1.detach()), "encoder": float(part2.detach())}
 
 
+def distill_loss_both(encoder: FeatureEncoder, layers: nn.ModuleDict,
+                      images: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """E4's joint loss: ``layers["layer1"]`` against ``encoder.layer1``, ``layers["layer2"]`` on the student's
+    first stage against ``encoder.layer2`` on its own, and the encoder's output; each MSE over its target's
+    variance; (loss, its three parts)."""
+    with torch.no_grad():
+        stem = encoder.stem(images)
+        target1 = encoder.layer1(stem)
+        target2 = encoder.layer2(target1)
+        target = after_layer2(encoder, target2)
+    out1 = layers["layer1"](stem)
+    out2 = layers["layer2"](out1)
+    parts = [F.mse_loss(out, ref) / ref.var() for out, ref in
+             ((out1, target1), (out2, target2), (after_layer2(encoder, out2), target))]
+    names = ("layer1", "layer2", "encoder")
+    return sum(parts), {name: float(part.detach()) for name, part in zip(names, parts, strict=True)}
+
+
 def frozen_stage1(path: str | Path, channels: int) -> nn.Sequential:
     """E1's kept first stage (``keep``'s safetensors file), frozen."""
     stage1 = student(channels)
@@ -167,10 +187,13 @@ def frozen_encoder(base: str | Path = BASE) -> FeatureEncoder:
 
 def train(run: Path, minutes: float, lr: float = 1e-3, seed: int = 0, threads: int = THREADS,
           packs: tuple[Path, ...] = PACKS, base: str | Path = BASE, size: tuple[int, int] = CROP,
-          stage: int = 1, images: tuple[Path, ...] = (), stage1_state: str | Path = E1_STAGE1) -> Path:
-    """Distil E1's ``layer1`` (``stage`` 1) or E4's ``layer2`` on E1's frozen first stage ``stage1_state``
-    (``stage`` 2) for ``minutes`` of wall time in total (resumed from RUN/state.pt when present). Images: every
-    one under ``images`` at least ``size`` large when given, else the left and right images of ``packs``."""
+          stage: str = "1", images: tuple[Path, ...] = (), stage1_state: str | Path = E1_STAGE1) -> Path:
+    """Distil E1's ``layer1`` (``stage`` "1"), ``layer2`` on E1's frozen first stage ``stage1_state`` ("2") or
+    both stages jointly (E4: "both") for ``minutes`` of wall time in total (resumed from RUN/state.pt when
+    present). Images: every one under ``images`` at least ``size`` large when given, else the left and right
+    images of ``packs``."""
+    if stage not in STAGE_RUNS:
+        raise ValueError(f"stage must be one of {STAGE_RUNS}, got {stage!r}")
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     run.mkdir(parents=True, exist_ok=True)
@@ -181,28 +204,35 @@ def train(run: Path, minutes: float, lr: float = 1e-3, seed: int = 0, threads: i
     else:
         paths = image_paths(packs)
     width1 = encoder.layer1[0].conv1.out_channels
-    stage1 = frozen_stage1(stage1_state, width1) if stage == 2 else None
-    layer = student(width1) if stage == 1 else student(width1, encoder.layer2[0].conv1.out_channels)
+    width2 = encoder.layer2[0].conv1.out_channels
+    stage1 = frozen_stage1(stage1_state, width1) if stage == "2" else None
+    layer: nn.Module = {"1": lambda: student(width1), "2": lambda: student(width1, width2),
+                        "both": lambda: nn.ModuleDict({"layer1": student(width1),
+                                                       "layer2": student(width1, width2)})}[stage]()
     opt = torch.optim.Adam(layer.parameters(), lr=lr)
     step, elapsed = 0, 0.0
     state_path = run / "state.pt"
     if state_path.exists():
         saved = torch.load(state_path, weights_only=False)
-        if saved.get("stage", 1) != stage:
+        if str(saved.get("stage", 1)) != stage:
             raise ValueError(f"{state_path}: a stage-{saved.get('stage', 1)} run, not stage {stage}")
         layer.load_state_dict(saved["layer"])
         opt.load_state_dict(saved["optimizer"])
         step, elapsed = saved["step"], saved["elapsed_s"]
     rng = random.Random(seed * 1_000_003 + step)  # a resumed run draws new crops, reproducibly
     budget, start, last_save = minutes * 60.0, time.monotonic() - elapsed, time.monotonic()
-    extra = {"stage": 2, "stage1": stage1.state_dict()} if stage1 is not None else {}
+    extra = {"stage": stage, **({"stage1": stage1.state_dict()} if stage1 is not None else {})}
     with (run / "log.jsonl").open("a") as log:
         while (elapsed := time.monotonic() - start) < budget:
             for group in opt.param_groups:
                 group["lr"] = lr if elapsed < FINAL_LR_FRACTION * budget else lr / 10
             batch = crops(paths, rng, size=size)
-            loss, parts = (distill_loss(encoder, layer, batch) if stage1 is None
-                           else distill_loss_stage2(encoder, stage1, layer, batch))
+            if stage == "both":
+                loss, parts = distill_loss_both(encoder, layer, batch)
+            elif stage1 is not None:
+                loss, parts = distill_loss_stage2(encoder, stage1, layer, batch)
+            else:
+                loss, parts = distill_loss(encoder, layer, batch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -235,8 +265,12 @@ def _stages(state: str | Path) -> dict[str, dict[str, torch.Tensor]]:
         return {name: {k[len(name) + 1:]: v for k, v in flat.items() if k.startswith(name + ".")}
                 for name in ("layer1", "layer2")}
     saved = torch.load(state, weights_only=False)
-    if saved.get("stage", 1) == 2:
+    stage = str(saved.get("stage", 1))
+    if stage == "2":
         return {"layer1": saved["stage1"], "layer2": saved["layer"]}
+    if stage == "both":
+        return {name: {k[len(name) + 1:]: v for k, v in saved["layer"].items() if k.startswith(name + ".")}
+                for name in ("layer1", "layer2")}
     return {"layer1": saved["layer"]}
 
 
@@ -295,7 +329,8 @@ def main(argv: list[str] | None = None) -> None:
     t = sub.add_parser("train")
     t.add_argument("--run", type=Path, required=True)
     t.add_argument("--minutes", type=float, default=40.0)
-    t.add_argument("--stage", type=int, choices=(1, 2), default=1, help="1: E1's layer1; 2: E4's layer2 on E1's")
+    t.add_argument("--stage", choices=STAGE_RUNS, default="1",
+                   help="1: E1's layer1; 2: layer2 on E1's frozen layer1; both: both jointly (E4)")
     t.add_argument("--images", type=Path, nargs="*", default=[], help="image folders (default: E1's packs)")
     t.add_argument("--stage1-state", type=Path, default=E1_STAGE1, help="stage 2: E1's kept first stage")
     s = sub.add_parser("score")
@@ -333,7 +368,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.scale is not None:
             model.inference_config = model.inference_config.replace(scale=args.scale)
         result = score(model, open_valset(args.valset), progress=True, what="student")
-        write_report(result, args.out, f"version 15 + the separable stages of {args.state}", args.valset, scale=args.scale)
+        write_report(result, args.out, f"version 15 + the separable stages of {args.state}", args.valset,
+                     scale=args.scale)
         print(result.summary)
     else:
         students = {"e1": args.state} if args.against is None else {"e1": args.against, "student": args.state}

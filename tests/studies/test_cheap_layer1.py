@@ -104,13 +104,13 @@ def test_stage2_loss_run_keep_and_export(tmp_path: Path) -> None:
     stage1 = cheap_layer1.keep(tmp_path / "r1/state.pt", tmp_path / "s1.safetensors")
     with pytest.raises(ValueError, match="stage-1 run, not stage 2"):
         cheap_layer1.train(tmp_path / "r1", minutes=0.01, packs=(pack,), base=base, size=(32, 64), threads=1,
-                           stage=2, stage1_state=stage1)
+                           stage="2", stage1_state=stage1)
     paths, skipped = cheap_layer1.image_files((pack,), size=(32, 64))
     assert len(paths) == 6 and skipped == 0
     with pytest.raises(FileNotFoundError, match="no image of at least"):
         cheap_layer1.image_files((pack,), size=(48, 64))
     run = tmp_path / "r2"
-    cheap_layer1.train(run, minutes=0.005, base=base, size=(32, 64), threads=1, stage=2, images=(pack,),
+    cheap_layer1.train(run, minutes=0.005, base=base, size=(32, 64), threads=1, stage="2", images=(pack,),
                        stage1_state=stage1)
     model = cheap_layer1.student_model(run / "state.pt", base)
     assert [type(b) for b in model.feature_encoder.layer2] == [SeparableBlock, SeparableBlock]
@@ -132,3 +132,29 @@ def test_stage2_loss_run_keep_and_export(tmp_path: Path) -> None:
     assert exported.inference_config.scale == 1.125
     with torch.inference_mode():
         torch.testing.assert_close(exported(left, right, test_mode=True)[1], fast, rtol=0, atol=1e-4)
+
+
+def test_joint_stages(tmp_path: Path) -> None:
+    """E4 as run: both stages distilled jointly; the loss is zero for the teacher's own stages; the run resumes and
+    its kept file rebuilds the same model."""
+    base, pack = _tiny_file(tmp_path), _pack(tmp_path / "pack", shape=(40, 72))
+    encoder = cheap_layer1.frozen_encoder(base)
+    images = torch.rand(2, 3, 32, 48) * 2 - 1
+    teacher = torch.nn.ModuleDict({"layer1": encoder.layer1, "layer2": encoder.layer2})
+    loss, parts = cheap_layer1.distill_loss_both(encoder, teacher, images)
+    assert loss.item() == pytest.approx(0.0, abs=1e-7) and set(parts) == {"layer1", "layer2", "encoder"}
+    run = tmp_path / "run"
+    for minutes in (0.005, 0.01):
+        cheap_layer1.train(run, minutes=minutes, base=base, size=(32, 64), threads=1, stage="both", images=(pack,))
+    steps = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert steps == list(range(1, len(steps) + 1)) and len(steps) >= 2
+    with pytest.raises(ValueError, match="stage must be one of"):
+        cheap_layer1.train(run, minutes=0.01, base=base, stage="3", images=(pack,))
+    model = cheap_layer1.student_model(run / "state.pt", base)
+    saved = torch.load(run / "state.pt", weights_only=False)["layer"]
+    torch.testing.assert_close(model.feature_encoder.layer2[0].pw1.weight.contiguous(), saved["layer2.0.pw1.weight"])
+    kept = cheap_layer1.student_model(cheap_layer1.keep(run / "state.pt", tmp_path / "e4.safetensors"), base)
+    left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
+    with torch.inference_mode():
+        torch.testing.assert_close(kept(left, right, test_mode=True)[1], model(left, right, test_mode=True)[1],
+                                   rtol=0, atol=0)
