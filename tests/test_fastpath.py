@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from conftest import TINY, TINY_HITNET, kitti_crop
 
 from optstereo.api import load_model
+from optstereo.checkpoint import export_safetensors
 from optstereo.inference import fastpath
 from optstereo.inference.engine import infer, network_pass
 from optstereo.inference.fastpath import EngineeredOptStereo, engineer, engineering, supported
@@ -138,6 +139,18 @@ class TestFallbacks:
         assert engineer(hitnet) is hitnet
         convex = build_model("optstereo", **TINY, upsampler="convex")
         assert type(engineer(convex)) is EngineeredOptStereo  # the upsampler is called as it is
+
+    def test_feature_model_loaded_under_inference_mode(self, tmp_path: Path) -> None:
+        """A model loaded inside ``torch.inference_mode`` (its weights inference tensors, without a version) runs
+        the engineered pass, equal to the plain one, and follows a weight changed there."""
+        path = export_safetensors(tmp_path / "tiny.safetensors", tiny_model(7))
+        left, right = torch.rand(1, 3, 32, 64) * 255, torch.rand(1, 3, 32, 64) * 255
+        with torch.inference_mode():
+            fast = load_model(path)
+            assert fast.update_block.convq.weight.is_inference()
+            assert_close_px(*both_paths(fast, left, right))
+            fast.update_block.convq.weight.mul_(0.5)
+            assert_close_px(*both_paths(fast, left, right))
 
     def test_winograd_weights_follow_the_parameters(self) -> None:
         """A weight changed in place (as an optimiser step does) or replaced re-makes its cached transform."""

@@ -115,7 +115,11 @@ class EngineeredOptStereo(OptStereo):
 
     def _winograd(self, role: str, conv: nn.Conv2d) -> Conv:
         """``conv`` as a Winograd convolution; its transformed weight cached until the weight changes (another
-        parameter, or the same one changed in place: an optimiser step or ``load_state_dict`` bumps its version)."""
+        parameter, or the same one changed in place: an optimiser step or ``load_state_dict`` bumps its version).
+        A weight made under ``torch.inference_mode`` (a model loaded there) has no version: transformed anew."""
+        if conv.weight.is_inference():
+            u = winograd_weight(conv.weight)
+            return lambda x: winograd_conv3x3(x, u, conv.bias)
         cache: dict[str, tuple[torch.Tensor, int, torch.Tensor]] = self.__dict__.setdefault("_winograd_cache", {})
         hit = cache.get(role)
         if hit is None or hit[0] is not conv.weight or hit[1] != conv.weight._version:
