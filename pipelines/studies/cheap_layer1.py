@@ -372,7 +372,7 @@ def main(argv: list[str] | None = None) -> None:
                      scale=args.scale)
         print(result.summary)
     else:
-        students = {"e1": args.state} if args.against is None else {"e1": args.against, "student": args.state}
+        students = {"student": args.state} if args.against is None else {"e1": args.against, "student": args.state}
         models = {"v15": load_model(BASE), **{name: student_model(path) for name, path in students.items()}}
         for scale in args.scales:
             for name, path in students.items():
