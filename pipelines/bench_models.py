@@ -66,13 +66,13 @@ def _seconds(fn: Callable[[], Any], repeats: int) -> float:
 
 
 def beside_sgbm(model: torch.nn.Module, frames: list[tuple[np.ndarray, np.ndarray]], repeats: int,
-                sgbm: Any) -> dict[str, float]:
-    """``infer(model, ...)`` timed on each frame right after OpenCV's ``sgbm`` on it: median seconds per frame of
-    each and the median of the per-frame ratios (the machine's drift cancels frame by frame)."""
+                sgbm: Any, run: Callable[..., Any] = infer) -> dict[str, float]:
+    """``run(model, left, right)`` (``infer``) timed on each frame right after OpenCV's ``sgbm`` on it: median
+    seconds per frame of each and the median of the per-frame ratios (the machine's drift cancels frame by frame)."""
     model_s, sgbm_s = [], []
     for left, right in frames:
         sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), repeats))
-        model_s.append(_seconds(functools.partial(infer, model, left, right), repeats))
+        model_s.append(_seconds(functools.partial(run, model, left, right), repeats))
     return {"s_per_frame": statistics.median(model_s), "sgbm_s": statistics.median(sgbm_s),
             "ratio": statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))}
 

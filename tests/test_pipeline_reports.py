@@ -143,6 +143,14 @@ def test_beside_sgbm_times_each_frame_after_sgbm(monkeypatch: pytest.MonkeyPatch
     assert row == {"s_per_frame": 5.0, "sgbm_s": 2.0, "ratio": 3.0}
     assert calls == ["sgbm", "model"] * 3
 
+    def custom(model: object, left: np.ndarray, right: np.ndarray) -> None:  # e.g. infer with amp="bf16"
+        """A stand-in for the pass to time."""
+
+    timed: list[object] = []
+    monkeypatch.setattr(bench_models, "_seconds", lambda fn, repeats: timed.append(fn.func) or 1.0)
+    assert bench_models.beside_sgbm(object(), frames[:1], 1, sgbm, run=custom)["ratio"] == 1.0  # type: ignore[arg-type]
+    assert timed == [sgbm.compute, custom]
+
 
 def test_bench_models_match_row(monkeypatch: pytest.MonkeyPatch) -> None:
     """match_row: per-frame (match / SGBM) ratio, median, against the 0.5 target; bad-3 pooled over the scored ones."""
