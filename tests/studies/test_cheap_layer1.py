@@ -33,6 +33,17 @@ def _pack(root: Path, n: int = 3, shape: tuple[int, int] = (40, 72)) -> Path:
     return root
 
 
+def _engineered_as_plain(model: torch.nn.Module) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(left, right, the engineered output) of random images, after checking it against the plain path's."""
+    left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
+    with torch.inference_mode():
+        with engineering(False):
+            plain = model(left, right, test_mode=True)[1]
+        fast = model(left, right, test_mode=True)[1]
+    assert (plain - fast).abs().mean() < 0.01
+    return left, right, fast
+
+
 def test_a_new_block_is_the_identity_on_nonnegative_input() -> None:
     block = SeparableBlock(8)
     x = torch.rand(2, 8, 9, 13)
@@ -74,12 +85,7 @@ def test_a_run_resumes_and_its_model_runs_both_paths_alike(tmp_path: Path) -> No
     model = cheap_layer1.student_model(run / "state.pt", base)
     assert isinstance(model, EngineeredOptStereo)
     assert isinstance(model.feature_encoder.layer1[0], SeparableBlock)
-    left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
-    with torch.inference_mode():
-        with engineering(False):
-            plain = model(left, right, test_mode=True)[1]
-        fast = model(left, right, test_mode=True)[1]
-    assert (plain - fast).abs().mean() < 0.01
+    left, right, fast = _engineered_as_plain(model)
     assert load_model(base).feature_encoder.layer1[0].conv1 is not None  # the base file is untouched
     kept = cheap_layer1.keep(run / "state.pt", tmp_path / "stage1.safetensors")
     again = cheap_layer1.student_model(kept, base)
@@ -116,12 +122,7 @@ def test_stage2_loss_run_keep_and_export(tmp_path: Path) -> None:
     assert [type(b) for b in model.feature_encoder.layer2] == [SeparableBlock, SeparableBlock]
     first = cheap_layer1.student_model(stage1, base).feature_encoder.layer1.state_dict()
     torch.testing.assert_close(model.feature_encoder.layer1.state_dict(), first, rtol=0, atol=0)  # frozen
-    left, right = torch.rand(1, 3, 48, 96) * 255, torch.rand(1, 3, 48, 96) * 255
-    with torch.inference_mode():
-        with engineering(False):
-            plain = model(left, right, test_mode=True)[1]
-        fast = model(left, right, test_mode=True)[1]
-    assert (plain - fast).abs().mean() < 0.01
+    left, right, fast = _engineered_as_plain(model)
     kept = cheap_layer1.keep(run / "state.pt", tmp_path / "e4.safetensors")
     again_model = cheap_layer1.student_model(kept, base)
     with torch.inference_mode():
