@@ -9,7 +9,8 @@ Steps, each writing under ``--run`` or ``--out`` and resumable:
 
 ``train``: the distillation, ``--minutes`` of CPU in total over any number of calls -> RUN/state.pt, RUN/log.jsonl.
 ``score``: the student in version 15 on a validation set -> OUT/gtfree.json (``optstereo.validation.score``).
-``keep``: the student alone as a small safetensors file (results/cheap_layer1/e1_stage1.safetensors).
+``keep``: the students alone as a small safetensors file (commit it with ``git add -f``, then remove it from the
+    tree and name the commit in results/cheap_layer1/weights.json: candidate weights live in git history).
 ``export``: version 15 with the student as one safetensors file (``ModelConfig.stage1 = "separable"``).
 ``time``: seconds per KITTI 2015 frame of version 15 and of the student (the engineered pass, 2 threads),
     each beside OpenCV SGBM-HH frame by frame as T1 times them -> OUT/timing.json.
@@ -54,9 +55,6 @@ BATCH = 2
 STAGE_RUNS = ("1", "2", "both")  # what a run trains: E1's layer1, layer2 on E1's, both jointly (E4)
 FINAL_LR_FRACTION = 0.8  # the last 20 % of the budget at lr / 10
 SAVE_EVERY_S = 120.0
-
-
-E1_STAGE1 = Path(__file__).resolve().parents[2] / "results/cheap_layer1/e1_stage1.safetensors"
 
 
 def student(channels: int = 64, out_channels: int | None = None) -> nn.Sequential:
@@ -187,7 +185,7 @@ def frozen_encoder(base: str | Path = BASE) -> FeatureEncoder:
 
 def train(run: Path, minutes: float, lr: float = 1e-3, seed: int = 0, threads: int = THREADS,
           packs: tuple[Path, ...] = PACKS, base: str | Path = BASE, size: tuple[int, int] = CROP,
-          stage: str = "1", images: tuple[Path, ...] = (), stage1_state: str | Path = E1_STAGE1) -> Path:
+          stage: str = "1", images: tuple[Path, ...] = (), stage1_state: str | Path | None = None) -> Path:
     """Distil E1's ``layer1`` (``stage`` "1"), ``layer2`` on E1's frozen first stage ``stage1_state`` ("2") or
     both stages jointly (E4: "both") for ``minutes`` of wall time in total (resumed from RUN/state.pt when
     present). Images: every one under ``images`` at least ``size`` large when given, else the left and right
@@ -205,6 +203,8 @@ def train(run: Path, minutes: float, lr: float = 1e-3, seed: int = 0, threads: i
         paths = image_paths(packs)
     width1 = encoder.layer1[0].conv1.out_channels
     width2 = encoder.layer2[0].conv1.out_channels
+    if stage == "2" and stage1_state is None:
+        raise ValueError("stage 2 trains on a kept first stage: give stage1_state (cheap_layer1 keep's file)")
     stage1 = frozen_stage1(stage1_state, width1) if stage == "2" else None
     layer: nn.Module = {"1": lambda: student(width1), "2": lambda: student(width1, width2),
                         "both": lambda: nn.ModuleDict({"layer1": student(width1),
@@ -276,7 +276,7 @@ def _stages(state: str | Path) -> dict[str, dict[str, torch.Tensor]]:
 
 def student_model(state: str | Path, base: str | Path = BASE) -> nn.Module:
     """Version 15 with ``layer1`` (and, for E4, ``layer2``) replaced by the students of a ``train`` run (its
-    state.pt, or the students alone as written by ``keep``: results/cheap_layer1/e1_stage1.safetensors),
+    state.pt, or the students alone as written by ``keep``: results/cheap_layer1/weights.json names them),
     engineered for the CPU as ``load_model`` gives the default."""
     model = load_model(base)
     encoder = model.feature_encoder
@@ -332,7 +332,7 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--stage", choices=STAGE_RUNS, default="1",
                    help="1: E1's layer1; 2: layer2 on E1's frozen layer1; both: both jointly (E4)")
     t.add_argument("--images", type=Path, nargs="*", default=[], help="image folders (default: E1's packs)")
-    t.add_argument("--stage1-state", type=Path, default=E1_STAGE1, help="stage 2: E1's kept first stage")
+    t.add_argument("--stage1-state", type=Path, default=None, help="stage 2: E1's kept first stage (keep's file)")
     s = sub.add_parser("score")
     s.add_argument("--state", type=Path, required=True)
     s.add_argument("--valset", type=Path, required=True)
