@@ -8,6 +8,19 @@ from torch import nn
 from optstereo.models.layers import ResidualBlock, SeparableBlock, make_norm, use_channels_last
 
 
+def make_stage(name: str, kind: str, in_channels: int, out_channels: int, *, stride: int,
+               norm: str = "instance") -> nn.Sequential:
+    """One encoder stage of two blocks, the first with ``stride`` (and ``in_channels`` -> ``out_channels``):
+    ``kind`` "residual" = RAFT's :class:`ResidualBlock` pair, "separable" = a :class:`SeparableBlock` pair (no norm).
+    ``name`` (``stage1`` / ``stage2``) names the option in the error for an unknown ``kind``."""
+    if kind == "separable":
+        return nn.Sequential(SeparableBlock(in_channels, out_channels, stride=stride), SeparableBlock(out_channels))
+    if kind == "residual":
+        return nn.Sequential(ResidualBlock(in_channels, out_channels, stride=stride, norm=norm),
+                             ResidualBlock(out_channels, out_channels, norm=norm))
+    raise ValueError(f"{name} must be 'residual' or 'separable', got {kind!r}")
+
+
 class FeatureEncoder(nn.Module):
     """Residual feature network: 7x7 stem, six residual blocks (two each at 1/2, 1/4, 1/8), 1x1 projection.
 
@@ -28,19 +41,9 @@ class FeatureEncoder(nn.Module):
         self.stem = nn.Sequential(
             nn.Conv2d(3, w1, kernel_size=7, stride=2, padding=3), make_norm(norm, w1), nn.ReLU(inplace=True)
         )
-        if stage1 == "separable":
-            self.layer1 = nn.Sequential(SeparableBlock(w1), SeparableBlock(w1))
-        elif stage1 == "residual":
-            self.layer1 = nn.Sequential(ResidualBlock(w1, w1, norm=norm), ResidualBlock(w1, w1, norm=norm))
-        else:
-            raise ValueError(f"stage1 must be 'residual' or 'separable', got {stage1!r}")
-        if stage2 == "separable":
-            self.layer2 = nn.Sequential(SeparableBlock(w1, w2, stride=2), SeparableBlock(w2))
-        elif stage2 == "residual":
-            self.layer2 = nn.Sequential(ResidualBlock(w1, w2, stride=2, norm=norm), ResidualBlock(w2, w2, norm=norm))
-        else:
-            raise ValueError(f"stage2 must be 'residual' or 'separable', got {stage2!r}")
-        self.layer3 = nn.Sequential(ResidualBlock(w2, w3, stride=2, norm=norm), ResidualBlock(w3, w3, norm=norm))
+        self.layer1 = make_stage("stage1", stage1, w1, w1, stride=1, norm=norm)
+        self.layer2 = make_stage("stage2", stage2, w1, w2, stride=2, norm=norm)
+        self.layer3 = make_stage("stage3", "residual", w2, w3, stride=2, norm=norm)
         self.proj = nn.Conv2d(w3, output_dim, kernel_size=1)
         self.output_dim = output_dim
         for m in self.modules():

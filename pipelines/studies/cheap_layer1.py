@@ -41,8 +41,7 @@ from torch import nn
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors, model_inference
 from optstereo.models import build_from_config
-from optstereo.models.extractor import FeatureEncoder
-from optstereo.models.layers import SeparableBlock
+from optstereo.models.extractor import FeatureEncoder, make_stage
 from optstereo.models.optstereo import normalize_image
 from optstereo.validation import open_valset, score, write_report
 from pipelines.bench_labeler import _opencv
@@ -62,8 +61,8 @@ def student(channels: int = 64, out_channels: int | None = None) -> nn.Sequentia
     ``out_channels``, E4's ``layer2`` (a strided block ``channels`` -> ``out_channels``, then one of
     ``out_channels``: ``ModelConfig.stage2 = "separable"``)."""
     if out_channels is None:
-        return nn.Sequential(SeparableBlock(channels), SeparableBlock(channels))
-    return nn.Sequential(SeparableBlock(channels, out_channels, stride=2), SeparableBlock(out_channels))
+        return make_stage("stage1", "separable", channels, channels, stride=1)
+    return make_stage("stage2", "separable", channels, out_channels, stride=2)
 
 
 def image_files(roots: tuple[Path, ...], size: tuple[int, int] = CROP) -> tuple[list[Path], int]:
@@ -110,6 +109,13 @@ def crops(paths: list[Path], rng: random.Random, batch: int = BATCH, size: tuple
     return normalize_image(torch.stack(out))
 
 
+def relative_mse(parts: dict[str, tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, dict[str, float]]:
+    """The distillation losses' sum of MSEs, each over its target's variance: {name: (output, target)} -> (loss,
+    each part as a float)."""
+    losses = {name: F.mse_loss(out, ref) / ref.var() for name, (out, ref) in parts.items()}
+    return sum(losses.values()), {name: float(loss.detach()) for name, loss in losses.items()}
+
+
 def after_layer1(encoder: FeatureEncoder, x: torch.Tensor) -> torch.Tensor:
     """The encoder's stages after ``layer1``: (B, 64, H/2, W/2) -> (B, C, H/8, W/8)."""
     return encoder.proj(encoder.layer3(encoder.layer2(x)))
@@ -131,9 +137,7 @@ def distill_loss_stage2(encoder: FeatureEncoder, stage1: nn.Module, layer: nn.Mo
         target = after_layer2(encoder, target2)
         features = stage1(stem)
     out2 = layer(features)
-    part1 = F.mse_loss(out2, target2) / target2.var()
-    part2 = F.mse_loss(after_layer2(encoder, out2), target) / target.var()
-    return part1 + part2, {"layer2": float(part1.detach()), "encoder": float(part2.detach())}
+    return relative_mse({"layer2": (out2, target2), "encoder": (after_layer2(encoder, out2), target)})
 
 
 def distill_loss_both(encoder: FeatureEncoder, layers: nn.ModuleDict,
@@ -148,10 +152,8 @@ def distill_loss_both(encoder: FeatureEncoder, layers: nn.ModuleDict,
         target = after_layer2(encoder, target2)
     out1 = layers["layer1"](stem)
     out2 = layers["layer2"](out1)
-    parts = [F.mse_loss(out, ref) / ref.var() for out, ref in
-             ((out1, target1), (out2, target2), (after_layer2(encoder, out2), target))]
-    names = ("layer1", "layer2", "encoder")
-    return sum(parts), {name: float(part.detach()) for name, part in zip(names, parts, strict=True)}
+    return relative_mse({"layer1": (out1, target1), "layer2": (out2, target2),
+                         "encoder": (after_layer2(encoder, out2), target)})
 
 
 def frozen_stage1(path: str | Path, channels: int) -> nn.Sequential:
@@ -171,9 +173,7 @@ def distill_loss(encoder: FeatureEncoder, layer: nn.Module,
         target1 = encoder.layer1(stem)
         target = after_layer1(encoder, target1)
     out1 = layer(stem)
-    part1 = F.mse_loss(out1, target1) / target1.var()
-    part2 = F.mse_loss(after_layer1(encoder, out1), target) / target.var()
-    return part1 + part2, {"layer1": float(part1.detach()), "encoder": float(part2.detach())}
+    return relative_mse({"layer1": (out1, target1), "encoder": (after_layer1(encoder, out1), target)})
 
 
 def frozen_encoder(base: str | Path = BASE) -> FeatureEncoder:
