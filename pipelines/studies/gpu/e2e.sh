@@ -18,7 +18,7 @@
 # CPU smoke run: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 END_S=20 THREADS=1 OUT=/tmp/e2e bash pipelines/studies/gpu/e2e.sh
 set -uo pipefail
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
-END_S=${END_S:-420}
+END_S=${END_S:-450}
 DEVICE=${DEVICE:-cuda} AMP=${AMP:-bf16} BATCH=${BATCH:-8} CROP=${CROP:-320x960} THREADS=${THREADS:-4}
 OUTD=${OUT:-/tmp/out}
 PY=${PY:-python3}
