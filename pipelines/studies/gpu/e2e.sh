@@ -10,7 +10,7 @@
 # Here, once:
 #   python -m pipelines.studies.gpu.distill_pack .carry/A --part shared --format webp --budget-mb 37
 #   git show 73a900faf3f861b1c9fba98e4f4adb2bae2513ad:results/cheap_layer1/e4/e4_stages.safetensors > /tmp/e4.st
-#   mkdir -p .carry/E && python -m pipelines.studies.cheap_layer1 export --state /tmp/e4.st --out .carry/E/e5.safetensors
+#   mkdir -p .carry/E && cp /tmp/e4.st .carry/E/e4_stages.safetensors   (E4's students alone: the call exports E5)
 # Device:
 #   run(command="bash pipelines/studies/gpu/e2e.sh", carry=[".carry/A", ".carry/E"], timeout_s=560)
 # $OUT (8 files, 64 MiB at most): e2e.log, logs.tar (each run's .jsonl and output, the gpu tests), snapshots
@@ -35,12 +35,13 @@ run() {  # name, then the run's own arguments
   $PY -m pipelines.studies.e2e_distill train --name "$name" "${common[@]}" "$@" > "$OUTD/logs/$name.out" 2>&1
   echo "$name: exit $? at $(date -u +%T)"
 }
+$PY -m pipelines.studies.cheap_layer1 export --state .carry/E/e4_stages.safetensors --out /tmp/e5.safetensors || exit 1
 pids=()
 if [ "$DEVICE" = cuda ]; then
   timeout 200 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_graphed.py \
     > "$OUTD/logs/gpu_tests.txt" 2>&1 & pids+=($!)
 fi
-e5=.carry/E/e5.safetensors v14=(--teacher pretrained-accurate --teacher-scale 1.625 --teacher-coarse)
+e5=/tmp/e5.safetensors v14=(--teacher pretrained-accurate --teacher-scale 1.625 --teacher-coarse)
 run E7a --student $e5 --teacher pretrained --lr 5e-5 --seed 70 --snaps 2 & pids+=($!)
 run E7b --student $e5 --teacher pretrained --lr 1.5e-5 --seed 71 --snaps 1 & pids+=($!)
 run G5a --student pretrained "${v14[@]}" --lr 2e-5 --seed 72 --snaps 2 & pids+=($!)
