@@ -30,8 +30,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 from optstereo.inference.cascade import coarse_start
+from optstereo.training.distill import consistent_views, map_path, read_teacher_maps, save_teacher_map, teacher_views
 from optstereo.pretrained import resolve_checkpoint_spec
 
 GAMMA = 0.8
@@ -60,38 +62,87 @@ def load_pack(root: Path) -> list[Pair]:
     return pairs
 
 
-def crop_pair(pair: Pair, rng: np.random.Generator, crop: tuple[int, int], flip_swap_p: float) -> Pair:
-    """One random (h, w) crop of a pair, both views at the same place; a pair smaller than the crop is first enlarged
-    (both views, cv2.INTER_LINEAR) until it covers it; with probability ``flip_swap_p`` the pair is mirrored and its
-    views swapped (a valid stereo pair whose disparity is the mirrored right view's). The teacher sees the result,
-    so no target needs changing."""
+def crop_pair(pair: Pair, rng: np.random.Generator, crop: tuple[int, int], flip_swap_p: float,
+              maps: Pair | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """One random (h, w) crop of a pair, both views at the same place -> (left, right, left-view target or None).
+
+    A pair smaller than the crop is first enlarged (both views, cv2.INTER_LINEAR; ``maps`` nearest-neighbour and times
+    the factor) until it covers it; with probability ``flip_swap_p`` the pair is mirrored and its views swapped (a
+    valid stereo pair whose disparity is the mirrored right view's: the target is the right-view map mirrored). With
+    no ``maps`` the teacher sees the result, so no target needs changing."""
     left, right = pair
     h, w = crop
     if left.shape[0] < h or left.shape[1] < w:
         f = max(h / left.shape[0], w / left.shape[1])
         size = (max(w, math.ceil(left.shape[1] * f)), max(h, math.ceil(left.shape[0] * f)))
         left, right = (cv2.resize(v, size, interpolation=cv2.INTER_LINEAR) for v in (left, right))
+        if maps is not None:
+            fx = size[0] / pair[0].shape[1]
+            maps = tuple(cv2.resize(m, size, interpolation=cv2.INTER_NEAREST) * np.float32(fx) for m in maps)
     y = int(rng.integers(0, left.shape[0] - h + 1))
     x = int(rng.integers(0, left.shape[1] - w + 1))
     left, right = left[y:y + h, x:x + w], right[y:y + h, x:x + w]
+    target = None if maps is None else maps[0][y:y + h, x:x + w]
     if rng.random() < flip_swap_p:
         left, right = right[:, ::-1], left[:, ::-1]
-    return np.ascontiguousarray(left), np.ascontiguousarray(right)
+        target = None if maps is None else maps[1][y:y + h, x:x + w][:, ::-1]
+    return (np.ascontiguousarray(left), np.ascontiguousarray(right),
+            None if target is None else np.ascontiguousarray(target, dtype=np.float32))
 
 
 def batch_of(pairs: list[Pair], rng: np.random.Generator, batch: int, crop: tuple[int, int],
-             flip_swap_p: float = 0.5, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
-    """``batch`` random crops of random pairs -> (left, right), each (B, 3, h, w) float32 in [0, 255] on device."""
-    chosen = [crop_pair(pairs[int(i)], rng, crop, flip_swap_p) for i in rng.integers(0, len(pairs), batch)]
-    views = [torch.from_numpy(np.stack([c[v] for c in chosen])).permute(0, 3, 1, 2).float() for v in (0, 1)]
-    return views[0].to(device), views[1].to(device)
+             flip_swap_p: float = 0.5, device: torch.device | str = "cpu", maps: list[Pair] | None = None,
+             ) -> tuple[torch.Tensor, ...]:
+    """``batch`` random crops of random pairs -> (left, right), each (B, 3, h, w) float32 in [0, 255] on device, and
+    with ``maps`` (one (left, right) pair of (H, W) float32 target views per pair, NaN = no target) the left-view
+    targets (B, 1, h, w) float32 as a third tensor."""
+    picks = rng.integers(0, len(pairs), batch)
+    chosen = [crop_pair(pairs[int(i)], rng, crop, flip_swap_p, None if maps is None else maps[int(i)]) for i in picks]
+    views = [torch.from_numpy(np.stack([c[v] for c in chosen])).permute(0, 3, 1, 2).float().to(device)
+             for v in (0, 1)]
+    if maps is None:
+        return views[0], views[1]
+    return views[0], views[1], torch.from_numpy(np.stack([c[2] for c in chosen]))[:, None].to(device)
+
+
+def write_maps(teacher: str | Path, pack: Path, out: Path) -> int:
+    """The teacher's two views of every pair of ``pack`` by ``infer`` with its own settings (the product's full
+    pipeline: ``pretrained-accurate``'s passes, choice and filter) -> OUT/<name>.npz (resumable, atomic); pairs
+    written."""
+    names = pack_names(pack)
+    model, written = None, 0
+    for name, (left, right) in zip(names, load_pack(pack)):
+        target = map_path(out, name)
+        if target.is_file():
+            continue
+        if model is None:
+            model = load_model(teacher)
+        out.mkdir(parents=True, exist_ok=True)
+        save_teacher_map(target, *teacher_views(model, left, right))
+        written += 1
+    return written
+
+
+def load_maps(maps_dir: Path, pack: Path, pairs: list[Pair]) -> list[Pair]:
+    """Each pair's teacher views kept where they agree (``optstereo.training.distill.consistent_views``, the
+    labeler's 1 px rule), NaN elsewhere: one (left, right) of (H, W) float32 per pair of ``pack``."""
+    return [consistent_views(*read_teacher_maps(maps_dir, name, pair[0].shape[:2]))
+            for name, pair in zip(pack_names(pack), pairs)]
+
+
+def pack_names(pack: Path) -> list[str]:
+    """The pair names of a pack (its left images' stems), in :func:`load_pack`'s order."""
+    return [p.stem for p in sorted(p for p in (Path(pack) / "left").glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)]
 
 
 def sequence_loss(preds: list[torch.Tensor], target: torch.Tensor, gamma: float = GAMMA) -> torch.Tensor:
-    """sum_k gamma^(N-1-k) * mean Huber(pred_k - target) (delta 1 px), every pixel: preds N x (B, 1, H, W), target
-    (B, 1, H, W) float32 (detached) -> a scalar."""
-    n = len(preds)
-    return sum(gamma ** (n - 1 - k) * F.smooth_l1_loss(p.float(), target, beta=1.0) for k, p in enumerate(preds))
+    """sum_k gamma^(N-1-k) * mean Huber(pred_k - target) (delta 1 px) over the target's finite pixels: preds N x
+    (B, 1, H, W), target (B, 1, H, W) float32 (detached, NaN = none) -> a scalar."""
+    n, valid = len(preds), torch.isfinite(target)
+    if bool(valid.all()):
+        return sum(gamma ** (n - 1 - k) * F.smooth_l1_loss(p.float(), target, beta=1.0) for k, p in enumerate(preds))
+    goal = target[valid]
+    return sum(gamma ** (n - 1 - k) * F.smooth_l1_loss(p.float()[valid], goal, beta=1.0) for k, p in enumerate(preds))
 
 
 def scaled_to_eight(size: tuple[int, int], scale: float) -> tuple[int, int]:
@@ -140,15 +191,20 @@ def snapshot_times(end_s: float, snaps: int) -> list[float]:
 def train(student: str | Path, teacher: str | Path, pack: Path, out: Path, *, name: str = "E7",
           device: str = "cuda", amp: str = "bf16", batch: int = 8, crop: tuple[int, int] = (320, 960),
           lr: float = 1e-4, end_s: float = 480.0, snaps: int = 3, seed: int = 0, steps_max: int | None = None,
-          flip_swap_p: float = 0.5, teacher_scale: float = 1.0, teacher_coarse: bool = False) -> list[Path]:
+          flip_swap_p: float = 0.5, teacher_scale: float = 1.0, teacher_coarse: bool = False,
+          maps: Path | None = None) -> list[Path]:
     """Train ``student`` to reproduce ``teacher`` on crops of ``pack`` for ``end_s`` seconds (or ``steps_max``
-    steps, whichever comes first) -> the snapshot files written (the last always at the end)."""
+    steps, whichever comes first) -> the snapshot files written (the last always at the end). With ``maps``
+    (:func:`write_maps`' folder) the targets are the teacher's consistent full-frame views, cropped with the pair,
+    and ``teacher`` is not run."""
     dev = torch.device(device)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     out.mkdir(parents=True, exist_ok=True)
     pairs = load_pack(pack)
-    model, ref = load_student(student, dev), load_teacher(teacher, dev)
+    targets = None if maps is None else load_maps(maps, pack, pairs)
+    model = load_student(student, dev)
+    ref = load_teacher(teacher, dev) if targets is None else None
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     autocast = torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp == "bf16")
     due, written, step, t0 = snapshot_times(end_s, snaps), [], 0, time.monotonic()
@@ -163,8 +219,11 @@ def train(student: str | Path, teacher: str | Path, pack: Path, out: Path, *, na
                     return written
             for group in opt.param_groups:
                 group["lr"] = lr if elapsed < FINAL_LR_FRACTION * end_s else lr / 10
-            left, right = batch_of(pairs, rng, batch, crop, flip_swap_p, dev)
-            target = teacher_target(ref, left, right, teacher_scale, teacher_coarse)
+            if targets is None:
+                left, right = batch_of(pairs, rng, batch, crop, flip_swap_p, dev)
+                target = teacher_target(ref, left, right, teacher_scale, teacher_coarse)
+            else:
+                left, right, target = batch_of(pairs, rng, batch, crop, flip_swap_p, dev, targets)
             with autocast:
                 preds = model(left, right)
             loss = sequence_loss(preds, target)
@@ -176,7 +235,7 @@ def train(student: str | Path, teacher: str | Path, pack: Path, out: Path, *, na
             opt.step()
             step += 1
             if step % 25 == 0 or step == 1:
-                epe = (preds[-1].detach().float() - target).abs().mean().item()
+                epe = (preds[-1].detach().float() - target).abs().nanmean().item()
                 log.write(json.dumps({"step": step, "s": round(time.monotonic() - t0, 1), "loss": loss.item(),
                                       "epe_to_teacher": epe, "lr": opt.param_groups[0]["lr"]}) + "\n")
                 log.flush()
@@ -209,13 +268,21 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--steps-max", type=int, default=None)
     t.add_argument("--teacher-scale", type=float, default=1.0, help="the teacher's input scale (version 14: 1.625)")
     t.add_argument("--teacher-coarse", action="store_true", help="the teacher's GRU starts from a half-size pass")
+    t.add_argument("--maps", type=Path, default=None, help="targets: the teacher's views written by `maps`")
     t.add_argument("--threads", type=int, default=None)
+    m = sub.add_parser("maps", help="the teacher's two full-frame views of every pair of a pack (resumable)")
+    m.add_argument("--teacher", default="pretrained-accurate")
+    m.add_argument("--pack", type=Path, required=True)
+    m.add_argument("--out", type=Path, required=True)
     a = parser.parse_args(argv)
+    if a.cmd == "maps":
+        print(f"{write_maps(a.teacher, a.pack, a.out)} pairs written to {a.out}")
+        return
     if a.threads:
         torch.set_num_threads(a.threads)
     files = train(a.student, a.teacher, a.pack, a.out, name=a.name, device=a.device, amp=a.amp, batch=a.batch,
                   crop=a.crop, lr=a.lr, end_s=a.end_s, snaps=a.snaps, seed=a.seed, steps_max=a.steps_max,
-                  teacher_scale=a.teacher_scale, teacher_coarse=a.teacher_coarse)
+                  teacher_scale=a.teacher_scale, teacher_coarse=a.teacher_coarse, maps=a.maps)
     print("\n".join(str(f) for f in files))
 
 

@@ -37,7 +37,8 @@ def test_a_crop_is_the_slice_of_both_views_at_one_place() -> None:
     left = np.stack([yy, xx, np.zeros_like(yy)], axis=-1).astype(np.uint8)  # each pixel holds (y, x, 0)
     right = left[::-1].copy()
     rng = np.random.default_rng(3)
-    cl, cr = e2e_distill.crop_pair((left, right), rng, (8, 16), flip_swap_p=0.0)
+    cl, cr, none = e2e_distill.crop_pair((left, right), rng, (8, 16), flip_swap_p=0.0)
+    assert none is None
     ys, xs = int(cl[0, 0, 0]), int(cl[0, 0, 1])  # the crop's corner
     np.testing.assert_array_equal(cl, left[ys:ys + 8, xs:xs + 16])
     np.testing.assert_array_equal(cr, right[ys:ys + 8, xs:xs + 16])
@@ -46,7 +47,7 @@ def test_a_crop_is_the_slice_of_both_views_at_one_place() -> None:
 def test_flip_swap_mirrors_and_swaps_the_views() -> None:
     left, right = np.zeros((8, 16, 3), np.uint8), np.zeros((8, 16, 3), np.uint8)
     left[:, 0], right[:, 3] = 255, 128
-    cl, cr = e2e_distill.crop_pair((left, right), np.random.default_rng(0), (8, 16), flip_swap_p=1.0)
+    cl, cr, _ = e2e_distill.crop_pair((left, right), np.random.default_rng(0), (8, 16), flip_swap_p=1.0)
     np.testing.assert_array_equal(cl, right[:, ::-1])
     np.testing.assert_array_equal(cr, left[:, ::-1])
     assert cl[0, 12, 0] == 128 and cr[0, 15, 0] == 255
@@ -54,9 +55,27 @@ def test_flip_swap_mirrors_and_swaps_the_views() -> None:
 
 def test_a_small_pair_is_enlarged_to_cover_the_crop() -> None:
     pair = (np.full((10, 20, 3), 7, np.uint8), np.full((10, 20, 3), 9, np.uint8))
-    cl, cr = e2e_distill.crop_pair(pair, np.random.default_rng(0), (16, 24), flip_swap_p=0.0)
+    cl, cr, _ = e2e_distill.crop_pair(pair, np.random.default_rng(0), (16, 24), flip_swap_p=0.0)
     assert cl.shape == cr.shape == (16, 24, 3)
     assert (cl == 7).all() and (cr == 9).all()
+
+
+def test_map_targets_follow_the_crop_the_flip_swap_and_the_enlargement() -> None:
+    view = np.zeros((10, 20, 3), np.uint8)
+    maps = (np.full((10, 20), 2.0, np.float32), np.arange(20, dtype=np.float32)[None].repeat(10, 0))
+    maps[0][0, 0] = np.nan
+    _, _, target = e2e_distill.crop_pair((view, view), np.random.default_rng(0), (10, 20), 0.0, maps)
+    assert np.isnan(target[0, 0]) and (target[1:] == 2.0).all()
+    _, _, target = e2e_distill.crop_pair((view, view), np.random.default_rng(0), (10, 20), 1.0, maps)
+    np.testing.assert_array_equal(target[0], np.arange(20, dtype=np.float32)[::-1])  # the right view, mirrored
+    _, _, target = e2e_distill.crop_pair((view, view), np.random.default_rng(0), (20, 40), 0.0, maps)
+    assert target.shape == (20, 40) and (target[2:] == 4.0).all()  # enlarged twice: disparities doubled
+
+
+def test_the_sequence_loss_skips_pixels_without_a_target() -> None:
+    target = torch.tensor([[[[0.0, float("nan")]]]])
+    preds = [torch.tensor([[[[0.5, 100.0]]]])]
+    assert e2e_distill.sequence_loss(preds, target).item() == pytest.approx(0.125)
 
 
 def test_the_sequence_loss_is_the_gamma_weighted_huber_sum() -> None:
@@ -112,6 +131,17 @@ def test_a_short_run_writes_loadable_snapshots_and_learns(tmp_path: Path) -> Non
     log = [json.loads(line) for line in (tmp_path / "out" / "T.jsonl").read_text().splitlines()]
     assert log[0]["step"] == 1 and log[-1]["step"] == 25
     assert all(np.isfinite(r["loss"]) for r in log)
+    assert _loss_to_teacher(files[0], teacher, pack) < 0.7 * _loss_to_teacher(student, teacher, pack)
+
+
+def test_a_run_on_written_maps_learns_the_maps(tmp_path: Path) -> None:
+    student, teacher = _tiny_file(tmp_path, "student", 0), _tiny_file(tmp_path, "teacher", 1)
+    pack, maps = _pack(tmp_path / "pack", shape=(32, 64)), tmp_path / "maps"
+    assert e2e_distill.write_maps(teacher, pack, maps) == 2
+    assert e2e_distill.write_maps(teacher, pack, maps) == 0  # resumed: nothing left to write
+    files = e2e_distill.train(student, "no such teacher: not loaded with maps", pack, tmp_path / "out", device="cpu",
+                              amp="none", batch=2, crop=(32, 64), lr=1e-3, end_s=1e9, snaps=1, steps_max=40,
+                              maps=maps, flip_swap_p=0.0)
     assert _loss_to_teacher(files[0], teacher, pack) < 0.7 * _loss_to_teacher(student, teacher, pack)
 
 
