@@ -1,9 +1,11 @@
 """`make bench` section "models": each shipped model's seconds per KITTI frame against OpenCV's SGBM, same run.
 
 For every shipped name (``optstereo.pretrained.SHIPPED``) the end-to-end ``optstereo.inference.engine.infer`` of the
-model as ``optstereo.api.load_model`` gives it (the engineered CPU pass of ``optstereo.inference.fastpath``) with its
-own settings (resize, passes, post-filter; float32, 2 threads, model loaded once), the same with direct GRU
-convolutions (``fastpath.engineering(True, winograd=False)``: issue 52's first step alone) and with the plain
+model as ``optstereo.api.load_model`` gives it (the engineered CPU pass of ``optstereo.inference.fastpath``, its GRU
+convolutions Winograd or direct, whichever the machine runs faster) with its own settings (resize, passes,
+post-filter; float32, 2 threads, model loaded once), the same with Winograd forced
+(``fastpath.engineering(True, winograd=True)``), with direct GRU convolutions forced (``winograd=False``: issue
+52's first step alone) and with the plain
 ``OptStereo.forward`` (``fastpath.engineering(False)``: the time before issue 52), timed on the same KITTI 2015 frames
 as OpenCV StereoSGBM (MODE_HH, 192 disparities, blockSize 5: the labeler bench's baseline; single-threaded in
 OpenCV), all alternating frame by frame so that load on a shared machine hits them alike. The ratio is the
@@ -35,6 +37,7 @@ import numpy as np
 import torch
 
 from optstereo.api import load_model
+from optstereo.inference import fastpath
 from optstereo.inference.engine import infer
 from optstereo.inference.fastpath import engineering
 from optstereo.inference.graphed import GraphedPass
@@ -94,6 +97,12 @@ def plain_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> 
         return infer(model, left, right)
 
 
+def winograd_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """``infer`` through the engineered pass with Winograd GRU convolutions forced (no per-machine choice)."""
+    with engineering(True, winograd=True):
+        return infer(model, left, right)
+
+
 def direct_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> np.ndarray:
     """``infer`` through the engineered pass with direct GRU convolutions (no Winograd): issue 52's first step."""
     with engineering(True, winograd=False):
@@ -102,24 +111,27 @@ def direct_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) ->
 
 def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, np.ndarray]],
              repeats: int = REPEATS) -> list[dict[str, Any]]:
-    """Per model: median seconds per frame (the path users get, the same without Winograd, the plain one), SGBM's on
-    the same frames, and the median per-frame ratios."""
+    """Per model: median seconds per frame (the path users get, the same with Winograd forced, without it, the plain
+    one), SGBM's on the same frames, and the median per-frame ratios."""
     sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
     rows = []
     for name, model in models.items():
-        model_s, direct_s, plain_s, sgbm_s = [], [], [], []
+        model_s, winograd_s, direct_s, plain_s, sgbm_s = [], [], [], [], []
         config = getattr(model, "inference_config", None)
         # a multi-pass model: one timed run each (KITTI frames are not small pairs: no adaptive pass)
         runs = 1 if config is not None and config.passes_for(enlarged=False) > 1 else repeats
         for left, right in frames:
             sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), runs))
             model_s.append(_seconds(functools.partial(infer, model, left, right), runs))
+            winograd_s.append(_seconds(functools.partial(winograd_infer, model, left, right), runs))
             direct_s.append(_seconds(functools.partial(direct_infer, model, left, right), runs))
             plain_s.append(_seconds(functools.partial(plain_infer, model, left, right), runs))
         ratio = statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))
         target = TARGETS.get(name)
         rows.append({"model": name, "s_per_frame": statistics.median(model_s), "sgbm_s": statistics.median(sgbm_s),
-                     "ratio": ratio, "direct_s_per_frame": statistics.median(direct_s),
+                     "ratio": ratio, "winograd_s_per_frame": statistics.median(winograd_s),
+                     "winograd_ratio": statistics.median(w / s for w, s in zip(winograd_s, sgbm_s, strict=True)),
+                     "direct_s_per_frame": statistics.median(direct_s),
                      "direct_ratio": statistics.median(d / s for d, s in zip(direct_s, sgbm_s, strict=True)),
                      "plain_s_per_frame": statistics.median(plain_s),
                      "plain_ratio": statistics.median(p / s for p, s in zip(plain_s, sgbm_s, strict=True)),
@@ -209,22 +221,29 @@ def run(shared: Path) -> dict[str, Any]:
     match = match_row(frames, _scored(shared))
     gpu = gpu_rows(models, *frames[0])
     results = {"threads": THREADS, "repeats": REPEATS, "frames": [f"kitti15 {f}_10" for f in FRAMES], "cpu": rows,
-               "match": match, "gpu": gpu, "load_avg": os.getloadavg()[0]}
+               "match": match, "gpu": gpu, "load_avg": os.getloadavg()[0],
+               "winograd_choices": fastpath.winograd_choices()}
     lines = [f"Each shipped model with its own settings, end to end (`infer`: resize, passes, filter), float32, "
-             f"{THREADS} threads, as `load_model` gives it (the engineered CPU pass), the same with direct GRU "
-             f"convolutions (no Winograd) and through the plain `OptStereo.forward`, beside OpenCV SGBM-HH "
+             f"{THREADS} threads, as `load_model` gives it (the engineered CPU pass, its GRU convolutions Winograd or "
+             f"direct, whichever this machine ran faster), the same with Winograd forced, with direct GRU "
+             f"convolutions forced and through the plain `OptStereo.forward`, beside OpenCV SGBM-HH "
              f"(192 disparities) on the same {len(FRAMES)} KITTI 2015 "
              f"frames, alternating; median of {REPEATS} runs per frame (1 for a multi-pass model), ratio = median "
              "of the per-frame ratios.", "",
-             "| model | s / KITTI frame | no-Winograd s | plain s | OpenCV SGBM-HH s | x SGBM | no-Winograd x SGBM "
-             "| plain x SGBM | target | |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "| model | s / KITTI frame | Winograd s | no-Winograd s | plain s | OpenCV SGBM-HH s | x SGBM "
+             "| Winograd x SGBM | no-Winograd x SGBM | plain x SGBM | target | |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        lines.append(f"| `{r['model']}` | {r['s_per_frame']:.2f} | {r['direct_s_per_frame']:.2f} | "
-                     f"{r['plain_s_per_frame']:.2f} | {r['sgbm_s']:.2f} | {r['ratio']:.2f} | {r['direct_ratio']:.2f} | "
+        lines.append(f"| `{r['model']}` | {r['s_per_frame']:.2f} | {r['winograd_s_per_frame']:.2f} | "
+                     f"{r['direct_s_per_frame']:.2f} | {r['plain_s_per_frame']:.2f} | {r['sgbm_s']:.2f} | "
+                     f"{r['ratio']:.2f} | {r['winograd_ratio']:.2f} | {r['direct_ratio']:.2f} | "
                      f"{r['plain_ratio']:.2f} | "
                      f"{'' if r['target'] is None else '<= ' + str(r['target'])} | {r['verdict'] or ''} |")
-    lines.append(f"| `{match['model']}` | {match['s_per_frame']:.2f} | | | {match['sgbm_s']:.2f} | "
-                 f"{match['ratio']:.2f} | | | <= {match['target']} | {match['verdict'] or ''} |")
+    lines.append(f"| `{match['model']}` | {match['s_per_frame']:.2f} | | | | {match['sgbm_s']:.2f} | "
+                 f"{match['ratio']:.2f} | | | | <= {match['target']} | {match['verdict'] or ''} |")
+    choices = results["winograd_choices"]
+    lines += ["", "The GRU convolutions this machine chose (True = Winograd): "
+              + (", ".join(f"{k}: {v}" for k, v in choices.items()) or "none timed") + "."]
     lines += ["", f"`pvm-label match` = dense census SGM + row fill (`pvm_labeler.match.match_arrays`, numba on "
               f"{THREADS} threads, no network, file I/O not timed). bad-3 on the 15 KITTI 2015 GT frames, pooled: "
               f"{match['bad3']:.2f} % against SGBM-HH's {match['sgbm_bad3']:.2f} % with its holes filled alike "

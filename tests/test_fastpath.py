@@ -201,3 +201,70 @@ class TestParts:
             winograd_weight(torch.zeros(4, 4, 5, 5))
         with pytest.raises(ValueError, match="one image of 4 channels"):
             winograd_conv3x3(torch.zeros(2, 4, 8, 8), winograd_weight(torch.zeros(4, 4, 3, 3)), None)
+
+
+class TestWinogradChoice:
+    """``fastpath.faster_of``: the faster of Winograd and direct GRU convolutions, timed once per process."""
+
+    @staticmethod
+    def _clock_where(monkeypatch: pytest.MonkeyPatch, slow: str) -> None:
+        """A fake clock under which the ``slow`` way ("winograd" or "direct") takes 1 s a call, the other 0."""
+        ticks = {"now": 0.0}
+
+        def clock() -> float:
+            return ticks["now"]
+
+        real_conv, real_winograd = torch.nn.Conv2d.forward, fastpath.winograd_conv3x3
+
+        def charge(fn):  # noqa: ANN001, ANN202 - a test wrapper
+            def run(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+                ticks["now"] += 1.0
+                return fn(*args, **kwargs)
+            return run
+
+        monkeypatch.setattr(fastpath, "_clock", clock)
+        if slow == "winograd":
+            monkeypatch.setattr(fastpath, "winograd_conv3x3", charge(real_winograd))
+        else:
+            monkeypatch.setattr(torch.nn.Conv2d, "forward", charge(real_conv))
+
+    @pytest.mark.parametrize("slow", ["winograd", "direct"])
+    def test_the_faster_way_is_kept_and_the_output_is_the_plain_paths(
+            self, monkeypatch: pytest.MonkeyPatch, slow: str) -> None:
+        monkeypatch.setattr(fastpath, "_choices", {})
+        self._clock_where(monkeypatch, slow)
+        torch.manual_seed(7)
+        left, right = torch.rand(1, 3, 32, 64) * 255, torch.rand(1, 3, 32, 64) * 255
+        assert_close_px(*both_paths(tiny_model(), left, right))
+        choices = fastpath.winograd_choices()
+        assert sorted(name.split()[0] for name in choices) == ["head", "q", "zr"]
+        assert set(choices.values()) == {slow == "direct"}
+
+    def test_one_calibration_per_convolution_and_process(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch.setattr(fastpath, "_choices", {})
+        calls = {"n": 0}
+        real = fastpath.winograd_conv3x3
+
+        def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            calls["n"] += 1
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(fastpath, "winograd_conv3x3", counted)
+        fast = engineer(tiny_model())
+        left, right = torch.rand(1, 3, 32, 64) * 255, torch.rand(1, 3, 32, 64) * 255
+        with torch.no_grad(), engineering(True, winograd="auto"):
+            fast(left, right, iters=4, test_mode=True)
+            first = calls["n"]
+            fast(left, right, iters=4, test_mode=True)
+        # three convolutions, CALIBRATION_RUNS timed Winograd runs each, once; then Winograd only where it won
+        assert first >= 3 * fastpath.CALIBRATION_RUNS
+        assert calls["n"] - first == 4 * sum(fastpath.winograd_choices().values())
+
+    def test_forced_ways_skip_the_calibration(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch.setattr(fastpath, "_choices", {})
+        fast = engineer(tiny_model())
+        left, right = torch.rand(1, 3, 32, 64) * 255, torch.rand(1, 3, 32, 64) * 255
+        for way in (True, False):
+            with torch.no_grad(), engineering(True, winograd=way):
+                fast(left, right, test_mode=True)
+        assert fastpath.winograd_choices() == {}

@@ -97,10 +97,12 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
 
     def fake_seconds(fn: object, repeats: int) -> float:
         func = getattr(fn, "func", None)
-        names = {bench_models_infer: "model", bench_models.direct_infer: "direct", bench_models.plain_infer: "plain"}
+        names = {bench_models_infer: "model", bench_models.winograd_infer: "winograd",
+                 bench_models.direct_infer: "direct", bench_models.plain_infer: "plain"}
         name = names.get(func, "sgbm")
         calls.append(f"{name}:{repeats}")
-        return 3.0 + next(clock) if name == "model" else {"sgbm": 2.0, "direct": 8.0, "plain": 10.0}[name]
+        return 3.0 + next(clock) if name == "model" else {"sgbm": 2.0, "winograd": 6.0, "direct": 8.0,
+                                                           "plain": 10.0}[name]
 
     def bench_models_infer(*args: object) -> None:  # stands for optstereo.inference.engine.infer
         raise AssertionError("timed through fake_seconds only")
@@ -112,10 +114,10 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
     rows = bench_models.cpu_rows(models, frames, repeats=3)
     # model times 3, 4, 5 s against SGBM's 2 s: ratios 1.5, 2.0, 2.5 -> median 2.0; then 6, 7, 8 -> 3.5
     assert [r["ratio"] for r in rows] == [2.0, 3.5]
-    assert [(r["direct_ratio"], r["plain_ratio"]) for r in rows] == [(4.0, 5.0)] * 2  # timed beside it
+    assert [(r["winograd_ratio"], r["direct_ratio"], r["plain_ratio"]) for r in rows] == [(3.0, 4.0, 5.0)] * 2
     assert rows[0]["verdict"] == "met" and rows[1]["target"] is None
-    assert calls[:4] == ["sgbm:3", "model:3", "direct:3", "plain:3"]
-    assert calls[-4:] == ["sgbm:1", "model:1", "direct:1", "plain:1"]
+    assert calls[:5] == ["sgbm:3", "model:3", "winograd:3", "direct:3", "plain:3"]
+    assert calls[-5:] == ["sgbm:1", "model:1", "winograd:1", "direct:1", "plain:1"]
 
 
 def test_beside_sgbm_times_each_frame_after_sgbm(monkeypatch: pytest.MonkeyPatch) -> None:

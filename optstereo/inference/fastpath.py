@@ -15,7 +15,11 @@ tracing). The path computes the same function with fewer passes over memory:
 - the GRU's static part stays one tensor, its adds and activations run in place, and the lookup's (B, H, W, C)
   output enters the GRU as a channels-last view instead of a copy;
 - the GRU's three per-iteration 3x3 convolutions (z and r, q, the head's first) run as Winograd F(4x4, 3x3)
-  (``optstereo.inference.winograd``) on weights transformed once and cached (re-made when a weight changes).
+  (``optstereo.inference.winograd``) on weights transformed once and cached (re-made when a weight changes), where
+  that is faster on the machine: the first call of each convolution in a process times both ways on its real input
+  (:data:`CALIBRATION_RUNS` each, alternating, the fastest run of each) and keeps the faster for the process
+  (:func:`winograd_choices`). Winograd won on an Intel Xeon (AVX-512) and an AVX2 EPYC, direct convolutions on a
+  Zen 5 EPYC (``make bench``, section ``models``).
 
 Outputs equal the plain path's to float32 rounding (oneDNN picks other kernels for channels-last convolutions):
 tests/test_fastpath.py holds them together on a tiny random model and on a real KITTI pair with the shipped weights.
@@ -26,8 +30,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from collections.abc import Callable, Iterator
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -41,14 +46,22 @@ from optstereo.models.optstereo import OptStereo, normalize_image, resolve_iters
 from optstereo.models.update import ConvGRU, DispHead
 
 CHANNELS_LAST = torch.channels_last
-_switches = {"enabled": True, "winograd": True}  # set by :func:`engineering` (A/B benches, tests)
+WinogradMode = bool | Literal["auto"]
+_switches: dict[str, bool | str] = {"enabled": True, "winograd": "auto"}  # set by :func:`engineering`
 Conv = Callable[[torch.Tensor], torch.Tensor]
+#: Timed runs of each way on the first call of a loop convolution (the fastest of each counts; the first run of each
+#: also pays oneDNN's primitive set-up, so at least two).
+CALIBRATION_RUNS = 3
+#: Per (role, weight shape, threads): True when Winograd was the faster in this process (:func:`winograd_choices`).
+_choices: dict[tuple[str, tuple[int, ...], int], bool] = {}
+_clock: Callable[[], float] = time.perf_counter  # replaced in tests
 
 
 @contextlib.contextmanager
-def engineering(enabled: bool, *, winograd: bool = True) -> Iterator[None]:
-    """Turn the engineered path on or off inside the block (plain ``OptStereo.forward`` when off), and its Winograd
-    convolutions (direct ones when off), e.g. to time them in one process."""
+def engineering(enabled: bool, *, winograd: WinogradMode = "auto") -> Iterator[None]:
+    """Turn the engineered path on or off inside the block (plain ``OptStereo.forward`` when off), and choose its GRU
+    convolutions: Winograd (True), direct (False) or the faster on this machine ("auto", the default), e.g. to time
+    them in one process."""
     old = dict(_switches)
     _switches.update(enabled=enabled, winograd=winograd)
     try:
@@ -106,12 +119,16 @@ class EngineeredOptStereo(OptStereo):
         return super().forward(left, right, iters=iters, test_mode=test_mode, disp_init=disp_init)
 
     def loop_convs(self, batch: int) -> LoopConvs:
-        """Winograd versions of the loop's convolutions for one image (the modules themselves for a batch, or with
-        the switch off)."""
+        """The loop's convolutions for one image: Winograd versions, the modules themselves (direct), or with the
+        switch at "auto" whichever of the two this machine runs faster (:func:`faster_of`); direct for a batch."""
         convs = LoopConvs(self.update_block.convzr, self.update_block.convq, self.disp_head.conv1)
-        if batch != 1 or not _switches["winograd"]:
+        mode = _switches["winograd"]
+        if batch != 1 or mode is False:
             return convs
-        return LoopConvs(*(self._winograd(role, conv) for role, conv in zip(LoopConvs._fields, convs, strict=True)))
+        pairs = zip(LoopConvs._fields, convs, strict=True)
+        if mode is True:
+            return LoopConvs(*(self._winograd(role, conv) for role, conv in pairs))
+        return LoopConvs(*(faster_of(role, conv, self._winograd(role, conv)) for role, conv in pairs))
 
     def _winograd(self, role: str, conv: nn.Conv2d) -> Conv:
         """``conv`` as a Winograd convolution; its transformed weight cached until the weight changes (another
@@ -126,6 +143,36 @@ class EngineeredOptStereo(OptStereo):
             hit = cache[role] = (conv.weight, conv.weight._version, winograd_weight(conv.weight))
         u, bias = hit[2], conv.bias
         return lambda x: winograd_conv3x3(x, u, bias)
+
+
+def faster_of(role: str, direct: nn.Conv2d, winograd: Conv) -> Conv:
+    """``winograd`` or ``direct``, whichever was the faster in this process for this role, weight shape and thread
+    count; not yet known: the first call times both on its input (:data:`CALIBRATION_RUNS` alternating runs each,
+    the fastest of each) and records the choice. Both compute the same convolution (to float32 rounding)."""
+    key = (role, tuple(direct.weight.shape), torch.get_num_threads())
+    known = _choices.get(key)
+    if known is not None:
+        return winograd if known else direct
+
+    def calibrate(x: torch.Tensor) -> torch.Tensor:
+        if key in _choices:  # the later iterations of the pass that calibrated
+            return (winograd if _choices[key] else direct)(x)
+        best = {True: math.inf, False: math.inf}
+        for _ in range(CALIBRATION_RUNS):
+            for way, conv in ((True, winograd), (False, direct)):
+                start = _clock()
+                out = conv(x)
+                best[way] = min(best[way], _clock() - start)
+        _choices[key] = best[True] < best[False]
+        return out
+
+    return calibrate
+
+
+def winograd_choices() -> dict[str, bool]:
+    """The choices made in this process: "<role> <weight shape> <threads> threads" -> True (Winograd) / False."""
+    return {f"{role} {'x'.join(map(str, shape))} {threads} threads": way
+            for (role, shape, threads), way in _choices.items()}
 
 
 def _fast_path_applies(left: torch.Tensor) -> bool:

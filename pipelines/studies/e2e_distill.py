@@ -33,8 +33,8 @@ from torch import nn
 from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 from optstereo.inference.cascade import coarse_start
-from optstereo.training.distill import consistent_views, map_path, read_teacher_maps, save_teacher_map, teacher_views
 from optstereo.pretrained import resolve_checkpoint_spec
+from optstereo.training.distill import consistent_views, map_path, read_teacher_maps, save_teacher_map, teacher_views
 
 GAMMA = 0.8
 FINAL_LR_FRACTION = 0.8  # the last 20 % of the time budget at lr / 10
@@ -53,7 +53,7 @@ def load_pack(root: Path) -> list[Pair]:
     for left in lefts:
         right = Path(root) / "right" / left.name
         images = [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in (left, right)]
-        for path, image in zip((left, right), images):
+        for path, image in zip((left, right), images, strict=True):
             if image is None:
                 raise ValueError(f"{path}: missing or not a readable image")
         if images[0].shape != images[1].shape:
@@ -111,7 +111,7 @@ def write_maps(teacher: str | Path, pack: Path, out: Path) -> int:
     written."""
     names = pack_names(pack)
     model, written = None, 0
-    for name, (left, right) in zip(names, load_pack(pack)):
+    for name, (left, right) in zip(names, load_pack(pack), strict=True):
         target = map_path(out, name)
         if target.is_file():
             continue
@@ -127,7 +127,7 @@ def load_maps(maps_dir: Path, pack: Path, pairs: list[Pair]) -> list[Pair]:
     """Each pair's teacher views kept where they agree (``optstereo.training.distill.consistent_views``, the
     labeler's 1 px rule), NaN elsewhere: one (left, right) of (H, W) float32 per pair of ``pack``."""
     return [consistent_views(*read_teacher_maps(maps_dir, name, pair[0].shape[:2]))
-            for name, pair in zip(pack_names(pack), pairs)]
+            for name, pair in zip(pack_names(pack), pairs, strict=True)]
 
 
 def pack_names(pack: Path) -> list[str]:
