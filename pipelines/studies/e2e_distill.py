@@ -23,6 +23,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -33,6 +34,7 @@ from torch import nn
 from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 from optstereo.inference.cascade import coarse_start
+from optstereo.inference.engine import infer
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training.distill import consistent_views, map_path, read_teacher_maps, save_teacher_map, teacher_views
 
@@ -123,11 +125,13 @@ def write_maps(teacher: str | Path, pack: Path, out: Path) -> int:
     return written
 
 
-def load_maps(maps_dir: Path, pack: Path, pairs: list[Pair]) -> list[Pair]:
+def load_maps(maps_dir: Path, pack: Path, pairs: list[Pair], every_pixel: bool = False) -> list[Pair]:
     """Each pair's teacher views kept where they agree (``optstereo.training.distill.consistent_views``, the
-    labeler's 1 px rule), NaN elsewhere: one (left, right) of (H, W) float32 per pair of ``pack``."""
-    return [consistent_views(*read_teacher_maps(maps_dir, name, pair[0].shape[:2]))
-            for name, pair in zip(pack_names(pack), pairs, strict=True)]
+    labeler's 1 px rule), NaN elsewhere, or with ``every_pixel`` as they are: one (left, right) of (H, W) float32 per
+    pair of ``pack``."""
+    views = [read_teacher_maps(maps_dir, name, pair[0].shape[:2])
+             for name, pair in zip(pack_names(pack), pairs, strict=True)]
+    return views if every_pixel else [consistent_views(*v) for v in views]
 
 
 def pack_names(pack: Path) -> list[str]:
@@ -192,17 +196,17 @@ def train(student: str | Path, teacher: str | Path, pack: Path, out: Path, *, na
           device: str = "cuda", amp: str = "bf16", batch: int = 8, crop: tuple[int, int] = (320, 960),
           lr: float = 1e-4, end_s: float = 480.0, snaps: int = 3, seed: int = 0, steps_max: int | None = None,
           flip_swap_p: float = 0.5, teacher_scale: float = 1.0, teacher_coarse: bool = False,
-          maps: Path | None = None) -> list[Path]:
+          maps: Path | None = None, every_pixel: bool = False) -> list[Path]:
     """Train ``student`` to reproduce ``teacher`` on crops of ``pack`` for ``end_s`` seconds (or ``steps_max``
     steps, whichever comes first) -> the snapshot files written (the last always at the end). With ``maps``
     (:func:`write_maps`' folder) the targets are the teacher's consistent full-frame views, cropped with the pair,
-    and ``teacher`` is not run."""
+    and ``teacher`` is not run; with ``every_pixel`` also where the views disagree."""
     dev = torch.device(device)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     out.mkdir(parents=True, exist_ok=True)
     pairs = load_pack(pack)
-    targets = None if maps is None else load_maps(maps, pack, pairs)
+    targets = None if maps is None else load_maps(maps, pack, pairs, every_pixel)
     model = load_student(student, dev)
     ref = load_teacher(teacher, dev) if targets is None else None
     opt = torch.optim.Adam(model.parameters(), lr=lr)
@@ -241,6 +245,20 @@ def train(student: str | Path, teacher: str | Path, pack: Path, out: Path, *, na
                 log.flush()
 
 
+def gt_bad3(checkpoint: str | Path, dataset: str, root: Path) -> dict[str, Any]:
+    """GT bad-3 (%) of a checkpoint with its own settings on every GT frame of a dataset, pooled over pixels and per
+    frame (``infer``, CPU): the score read after a run, never during it."""
+    from pvm_labeler.common.datasets import discover, load_pair
+    from pvm_labeler.common.metrics import MetricAccumulator
+
+    model, acc, frames = load_model(checkpoint), MetricAccumulator(), {}
+    for ref in discover(dataset, Path(root)):
+        s = load_pair(ref)
+        if s.gt is not None and np.isfinite(s.gt).any():
+            frames[s.frame_id] = acc.update(infer(model, s.left, s.right), s.gt)["bad3"]
+    return {"checkpoint": str(checkpoint), "dataset": dataset, "bad3": acc.compute()["bad3"], "frames": frames}
+
+
 def _crop(text: str) -> tuple[int, int]:
     h, w = (int(v) for v in text.lower().split("x"))
     if h % 8 or w % 8:
@@ -269,12 +287,20 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--teacher-scale", type=float, default=1.0, help="the teacher's input scale (version 14: 1.625)")
     t.add_argument("--teacher-coarse", action="store_true", help="the teacher's GRU starts from a half-size pass")
     t.add_argument("--maps", type=Path, default=None, help="targets: the teacher's views written by `maps`")
+    t.add_argument("--every-pixel", action="store_true", help="--maps: also where the teacher's views disagree")
     t.add_argument("--threads", type=int, default=None)
     m = sub.add_parser("maps", help="the teacher's two full-frame views of every pair of a pack (resumable)")
     m.add_argument("--teacher", default="pretrained-accurate")
     m.add_argument("--pack", type=Path, required=True)
     m.add_argument("--out", type=Path, required=True)
+    g = sub.add_parser("gt", help="GT bad-3 of a checkpoint on a dataset, pooled and per frame (read after a run)")
+    g.add_argument("--checkpoint", required=True)
+    g.add_argument("--dataset", default="middlebury")
+    g.add_argument("--root", type=Path, default=Path("../shared/data"))
     a = parser.parse_args(argv)
+    if a.cmd == "gt":
+        print(json.dumps(gt_bad3(a.checkpoint, a.dataset, a.root)))
+        return
     if a.cmd == "maps":
         print(f"{write_maps(a.teacher, a.pack, a.out)} pairs written to {a.out}")
         return
@@ -282,7 +308,8 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(a.threads)
     files = train(a.student, a.teacher, a.pack, a.out, name=a.name, device=a.device, amp=a.amp, batch=a.batch,
                   crop=a.crop, lr=a.lr, end_s=a.end_s, snaps=a.snaps, seed=a.seed, steps_max=a.steps_max,
-                  teacher_scale=a.teacher_scale, teacher_coarse=a.teacher_coarse, maps=a.maps)
+                  teacher_scale=a.teacher_scale, teacher_coarse=a.teacher_coarse, maps=a.maps,
+                  every_pixel=a.every_pixel)
     print("\n".join(str(f) for f in files))
 
 

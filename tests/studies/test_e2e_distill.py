@@ -156,3 +156,26 @@ def test_an_unreadable_image_is_named(tmp_path: Path) -> None:
     (pack / "right" / "0.png").write_bytes(b"not a png")
     with pytest.raises(ValueError, match="0.png: missing or not a readable image"):
         e2e_distill.load_pack(pack)
+
+
+def test_gt_bad3_pools_the_frames_of_a_dataset(tmp_path: Path, shared_data: Path) -> None:
+    """One frame (Tsukuba): the pooled figure is that frame's."""
+    tiny = _tiny_file(tmp_path)
+    one = e2e_distill.gt_bad3(tiny, "middlebury", shared_data / "middlebury2001")
+    assert list(one["frames"]) == ["tsukuba"] and 0 < one["bad3"] <= 100
+    assert one["bad3"] == pytest.approx(one["frames"]["tsukuba"])
+
+
+def test_every_pixel_keeps_the_views_where_they_disagree(tmp_path: Path) -> None:
+    pack, maps = _pack(tmp_path / "pack", n=1, shape=(8, 16)), tmp_path / "maps"
+    left = np.full((8, 16), 2.0, np.float32)
+    right = left.copy()
+    right[:, :8] = 9.0  # the right view disagrees where left pixels x >= 10 look (x - 2 < 8)
+    maps.mkdir()
+    np.savez(maps / "0.npz", left=left, right=right)
+    pairs = e2e_distill.load_pack(pack)
+    (kept_left, _), = e2e_distill.load_maps(maps, pack, pairs)
+    (all_left, all_right), = e2e_distill.load_maps(maps, pack, pairs, every_pixel=True)
+    assert np.isnan(kept_left[:, :10]).all() and (kept_left[:, 10:] == 2.0).all()
+    np.testing.assert_array_equal(all_left, left)
+    np.testing.assert_array_equal(all_right, right)
