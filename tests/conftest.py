@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -250,4 +251,15 @@ def make_folder(root: Path, n: int = 3, size: tuple[int, int] = (64, 128), seed:
         gt = np.full(size, 4.0, np.float32)
         gt[:, :4] = np.nan
         write_kitti_disp(root / "gt" / f"{i:03d}.png", gt)
+    return root
+
+
+def random_pack(root: Path, n: int = 3, shape: tuple[int, int] = (40, 72)) -> Path:
+    """A distill_pack-style folder root/left/<i>.png, root/right/<i>.png of ``n`` random (H, W) = ``shape`` pairs
+    (seed 0): images only, no GT."""
+    rng = np.random.default_rng(0)
+    for side in ("left", "right"):
+        (root / side).mkdir(parents=True)
+        for i in range(n):
+            cv2.imwrite(str(root / side / f"{i}.png"), rng.integers(0, 255, (*shape, 3), dtype=np.uint8))
     return root

@@ -5,11 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 import torch
-from conftest import TINY
+from conftest import TINY, random_pack
 
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors
@@ -22,15 +20,6 @@ from pipelines.studies import cheap_layer1
 def _tiny_file(tmp_path: Path) -> Path:
     torch.manual_seed(0)
     return export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", **TINY, iters=3))
-
-
-def _pack(root: Path, n: int = 3, shape: tuple[int, int] = (40, 72)) -> Path:
-    rng = np.random.default_rng(0)
-    for side in ("left", "right"):
-        (root / side).mkdir(parents=True)
-        for i in range(n):
-            cv2.imwrite(str(root / side / f"{i}.png"), rng.integers(0, 255, (*shape, 3), dtype=np.uint8))
-    return root
 
 
 def _engineered_as_plain(model: torch.nn.Module) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -65,7 +54,7 @@ def test_the_loss_is_zero_for_the_teacher_itself_and_trains_only_the_student(tmp
 
 
 def test_crops_and_a_named_error(tmp_path: Path) -> None:
-    pack = _pack(tmp_path / "pack")
+    pack = random_pack(tmp_path / "pack")
     paths = cheap_layer1.image_paths((pack,))
     assert len(paths) == 6
     import random
@@ -76,7 +65,7 @@ def test_crops_and_a_named_error(tmp_path: Path) -> None:
 
 
 def test_a_run_resumes_and_its_model_runs_both_paths_alike(tmp_path: Path) -> None:
-    base, pack, run = _tiny_file(tmp_path), _pack(tmp_path / "pack"), tmp_path / "run"
+    base, pack, run = _tiny_file(tmp_path), random_pack(tmp_path / "pack"), tmp_path / "run"
     cheap_layer1.train(run, minutes=0.01, packs=(pack,), base=base, size=(32, 64), threads=1)
     first = torch.load(run / "state.pt", weights_only=False)["step"]
     cheap_layer1.train(run, minutes=0.02, packs=(pack,), base=base, size=(32, 64), threads=1)
@@ -101,7 +90,7 @@ def test_stage2_loss_run_keep_and_export(tmp_path: Path) -> None:
     """E4: the loss is zero for the teacher's own stages; a stage-2 run on E1's kept first stage builds a model with
     both separable stages whose plain and engineered passes agree, kept and exported alike; a stage-1 run is not
     resumed as stage 2."""
-    base, pack = _tiny_file(tmp_path), _pack(tmp_path / "pack", shape=(40, 72))
+    base, pack = _tiny_file(tmp_path), random_pack(tmp_path / "pack", shape=(40, 72))
     encoder = cheap_layer1.frozen_encoder(base)
     images = torch.rand(2, 3, 32, 48) * 2 - 1
     loss, parts = cheap_layer1.distill_loss_stage2(encoder, encoder.layer1, encoder.layer2, images)
@@ -138,7 +127,7 @@ def test_stage2_loss_run_keep_and_export(tmp_path: Path) -> None:
 def test_joint_stages(tmp_path: Path) -> None:
     """E4 as run: both stages distilled jointly; the loss is zero for the teacher's own stages; the run resumes and
     its kept file rebuilds the same model."""
-    base, pack = _tiny_file(tmp_path), _pack(tmp_path / "pack", shape=(40, 72))
+    base, pack = _tiny_file(tmp_path), random_pack(tmp_path / "pack", shape=(40, 72))
     encoder = cheap_layer1.frozen_encoder(base)
     images = torch.rand(2, 3, 32, 48) * 2 - 1
     teacher = torch.nn.ModuleDict({"layer1": encoder.layer1, "layer2": encoder.layer2})

@@ -5,11 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import TINY
+from conftest import TINY, random_pack
 from torch import nn
 
 from optstereo.checkpoint import export_safetensors, load_checkpoint
@@ -21,15 +20,6 @@ from pipelines.studies import e2e_distill
 def _tiny_file(tmp_path: Path, name: str = "tiny", seed: int = 0) -> Path:
     torch.manual_seed(seed)
     return export_safetensors(tmp_path / f"{name}.safetensors", build_model("optstereo", **TINY, iters=3))
-
-
-def _pack(root: Path, n: int = 2, shape: tuple[int, int] = (40, 72)) -> Path:
-    rng = np.random.default_rng(0)
-    for side in ("left", "right"):
-        (root / side).mkdir(parents=True)
-        for i in range(n):
-            cv2.imwrite(str(root / side / f"{i}.png"), rng.integers(0, 255, (*shape, 3), dtype=np.uint8))
-    return root
 
 
 def test_a_crop_is_the_slice_of_both_views_at_one_place() -> None:
@@ -122,7 +112,7 @@ def _loss_to_teacher(student: Path, teacher: Path, pack: Path) -> float:
 
 def test_a_short_run_writes_loadable_snapshots_and_learns(tmp_path: Path) -> None:
     student, teacher = _tiny_file(tmp_path, "student", 0), _tiny_file(tmp_path, "teacher", 1)
-    pack = _pack(tmp_path / "pack")
+    pack = random_pack(tmp_path / "pack", n=2)
     files = e2e_distill.train(student, teacher, pack, tmp_path / "out", name="T", device="cpu", amp="none",
                               batch=2, crop=(32, 64), lr=1e-3, end_s=1e9, snaps=1, steps_max=40, seed=0)
     assert [f.name for f in files] == ["T-40.safetensors"]
@@ -136,7 +126,7 @@ def test_a_short_run_writes_loadable_snapshots_and_learns(tmp_path: Path) -> Non
 
 def test_a_run_on_written_maps_learns_the_maps(tmp_path: Path) -> None:
     student, teacher = _tiny_file(tmp_path, "student", 0), _tiny_file(tmp_path, "teacher", 1)
-    pack, maps = _pack(tmp_path / "pack", shape=(32, 64)), tmp_path / "maps"
+    pack, maps = random_pack(tmp_path / "pack", n=2, shape=(32, 64)), tmp_path / "maps"
     assert e2e_distill.write_maps(teacher, pack, maps) == 2
     assert e2e_distill.write_maps(teacher, pack, maps) == 0  # resumed: nothing left to write
     files = e2e_distill.train(student, "no such teacher: not loaded with maps", pack, tmp_path / "out", device="cpu",
@@ -152,7 +142,7 @@ def test_a_pack_without_pairs_is_named(tmp_path: Path) -> None:
 
 
 def test_an_unreadable_image_is_named(tmp_path: Path) -> None:
-    pack = _pack(tmp_path / "pack", n=1)
+    pack = random_pack(tmp_path / "pack", n=1)
     (pack / "right" / "0.png").write_bytes(b"not a png")
     with pytest.raises(ValueError, match="0.png: missing or not a readable image"):
         e2e_distill.load_pack(pack)
@@ -167,7 +157,7 @@ def test_gt_bad3_pools_the_frames_of_a_dataset(tmp_path: Path, shared_data: Path
 
 
 def test_every_pixel_keeps_the_views_where_they_disagree(tmp_path: Path) -> None:
-    pack, maps = _pack(tmp_path / "pack", n=1, shape=(8, 16)), tmp_path / "maps"
+    pack, maps = random_pack(tmp_path / "pack", n=1, shape=(8, 16)), tmp_path / "maps"
     left = np.full((8, 16), 2.0, np.float32)
     right = left.copy()
     right[:, :8] = 9.0  # the right view disagrees where left pixels x >= 10 look (x - 2 < 8)
