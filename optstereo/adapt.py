@@ -91,6 +91,7 @@ class AdaptConfig:
     max_disp: int | None = None  # the labeler's search range (None = pvm-label's default, 192)
     device: str = "auto"
     teacher: str | Path | None = None  # fill the training frames' PVM holes with this model's consistent views
+    teacher_only: bool = False  # train on the teacher's consistent views alone: no PVM labels, no L_R / L_S (D1)
     train_overrides: dict[str, Any] = field(default_factory=dict)  # more TrainConfig flat keys (tests: tiny model)
     quiet: bool = False
 
@@ -108,6 +109,8 @@ class AdaptConfig:
             raise ValueError(f"--holdout must be in (0, 1), got {self.holdout}")
         if self.steps < 0:
             raise ValueError(f"--steps must be >= 0, got {self.steps}")
+        if self.teacher_only and self.teacher is None:
+            raise ValueError("--teacher-only needs --teacher (the model whose views replace PVM's labels)")
 
 
 @dataclass(frozen=True)
@@ -160,8 +163,8 @@ def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
             teacher = load_model(cfg.teacher, cfg.device)
             device = str(next(teacher.parameters()).device)
         distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right, device))
-    return distill.fill(train_labels, maps, cfg.out / "train_filled", compression=SHARD_COMPRESSION,
-                        progress=not cfg.quiet)
+    return distill.fill(train_labels, maps, cfg.out / ("train_teacher" if cfg.teacher_only else "train_filled"),
+                        compression=SHARD_COMPRESSION, progress=not cfg.quiet, teacher_only=cfg.teacher_only)
 
 
 def finetune(cfg: AdaptConfig, train_labels: Path) -> Path:
@@ -170,7 +173,8 @@ def finetune(cfg: AdaptConfig, train_labels: Path) -> Path:
     overrides = {"labels": train_labels, "out": run_dir, "steps": cfg.steps, "lr": cfg.learning_rate(),
                  "batch_size": cfg.batch_size, "crop": list(cfg.crop), "device": cfg.device, "workers": 0,
                  "seed": cfg.seed, "tensorboard": False,
-                 **({"conf_weight": True} if cfg.teacher is not None else {}), **cfg.train_overrides}
+                 **({"conf_weight": True} if cfg.teacher is not None else {}),
+                 **({"lambda_r": 0.0, "lambda_s": 0.0} if cfg.teacher_only else {}), **cfg.train_overrides}
     if (run_dir / "last.pt").exists():
         train_cfg = config_for_resume(run_dir, {"steps": cfg.steps})
         main(train_cfg, resume=True, progress=not cfg.quiet)
@@ -273,6 +277,15 @@ def _summary(scores: list[PairScore]) -> dict[str, Any]:
             "per_frame": {s.frame_id: {k: s.value(k) for k in SCORES} for s in scores}}
 
 
+def _teacher_words(config: dict[str, Any]) -> str:
+    """The report's words for the run's targets."""
+    if not config.get("teacher"):
+        return "."
+    if config.get("teacher_only"):
+        return f"; the teacher `{config['teacher']}`'s consistent views alone (no PVM labels, no L_R / L_S)."
+    return f"; the teacher `{config['teacher']}` in PVM's holes."
+
+
 def report_markdown(report: dict[str, Any]) -> str:
     """The report as a short Markdown table."""
     rows = [("held-back frames: PVM bad-3 (%)", "held_bad3"), ("held-back frames: PVM EPE (px)", "held_epe"),
@@ -281,8 +294,7 @@ def report_markdown(report: dict[str, Any]) -> str:
     lines = ["# optstereo-adapt report", "", f"{report['pairs']} pairs ({len(report['held_back_frames'])} held back); "
              f"start `{report['init']}`; {report['config']['steps']} steps"
              + (f" at lr {report['lr']:g}" if "lr" in report else "")
-             + (f"; the teacher `{report['config']['teacher']}` in PVM's holes." if report["config"].get("teacher")
-                else "."), "", "| | before | after |",
+             + _teacher_words(report["config"]), "", "| | before | after |",
              "| --- | --- | --- |"]
     for name, key in rows:
         if key in report["before"] and not math.isnan(float(report["before"][key])):

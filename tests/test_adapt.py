@@ -208,3 +208,36 @@ def test_the_report_names_the_teacher() -> None:
     assert "150 steps; the teacher `pretrained-accurate` in PVM's holes." in taught
     rated = report_markdown({**base, "lr": 1e-4, "config": {"steps": 150, "teacher": "pretrained-accurate"}})
     assert "150 steps at lr 0.0001; the teacher" in rated
+
+
+def test_teacher_only_replaces_the_labels_and_drops_the_photometric_losses(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from optstereo import adapt
+    from optstereo.validation import shard_samples
+
+    # the same 3 px teacher as above: consistent at x >= 3 in the left view; PVM's labels (x >= 32) are dropped
+    def teacher_views(model, left, right, device="cpu", amp="none"):
+        return np.full(left.shape[:2], 3.0, np.float32), np.full(left.shape[:2], 3.0, np.float32)
+
+    monkeypatch.setattr(adapt.distill, "teacher_views", teacher_views)
+    train = _holey_shards(tmp_path / "train")
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+    cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", init=str(ckpt), teacher=str(ckpt),
+                      teacher_only=True, device="cpu", quiet=True)
+    taught = adapt.distill_train_labels(cfg, train)
+    assert taught.name == "train_teacher"
+    for s in shard_samples(taught):
+        np.testing.assert_array_equal(s.label[:, 3:], 3.0)  # PVM's 4.0x labels gone, the teacher everywhere
+        assert np.isnan(s.label[:, :3]).all()
+        np.testing.assert_array_equal(s.confidence.astype(np.float32), np.isfinite(s.label).astype(np.float32))
+    seen = {}
+    monkeypatch.setattr(adapt, "main", lambda c, **kw: seen.setdefault("cfg", c))
+    adapt.finetune(cfg, taught)
+    assert seen["cfg"].loss.lambda_r == 0.0 and seen["cfg"].loss.lambda_s == 0.0 and seen["cfg"].loss.conf_weight
+    with pytest.raises(ValueError, match="--teacher-only needs --teacher"):
+        AdaptConfig(dataset="folder", root=None, out=tmp_path, teacher_only=True).check()
+    words = adapt.report_markdown({"pairs": 5, "held_back_frames": [], "init": "v15", "before": {}, "after": {},
+                                   "decision": "start kept", "checkpoint": "a",
+                                   "config": {"steps": 9, "teacher": "t", "teacher_only": True}})
+    assert "the teacher `t`'s consistent views alone" in words

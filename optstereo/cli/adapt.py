@@ -43,17 +43,19 @@ from optstereo.cli.common import (
 @click.option("--teacher", default=None,
               help="Fill the training frames' PVM holes with this model's left-right consistent views (e.g. "
                    "pretrained-accurate; ~30 s a KITTI pair on 2 cores): for rigs where PVM labels few pixels.")
+@click.option("--teacher-only", is_flag=True,
+              help="With --teacher: train on its consistent views alone (no PVM labels, no L_R / L_S).")
 @device_option
 @click.option("--threads", type=click.IntRange(min=0), default=0, expose_value=False, callback=_set_threads,
               help="torch CPU threads (0 = torch's default, one per core).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, steps: int, lr: float | None,
-               holdout: float, limit: int | None, max_disp: int | None, seed: int, teacher: str | None, device: str,
-               quiet: bool, **reader: Any) -> None:
+               holdout: float, limit: int | None, max_disp: int | None, seed: int, teacher: str | None,
+               teacher_only: bool, device: str, quiet: bool, **reader: Any) -> None:
     """Adapt to your rig without GT: optstereo-adapt --root MY_RIG --left cam0 --right cam1 --out out/adapt."""
     setup_logging(quiet)
     cfg = AdaptConfig(dataset=dataset or "folder", root=root, out=out, reader_options=collect_reader_options(**reader),
                       init=init, steps=steps, lr=lr, holdout=holdout, limit=limit, max_disp=max_disp, seed=seed,
-                      device=device, teacher=teacher, quiet=quiet)
+                      device=device, teacher=teacher, teacher_only=teacher_only, quiet=quiet)
     report = run(cfg)
     click.echo(f"{report['decision']}; checkpoint {report['checkpoint']}")

@@ -145,11 +145,24 @@ def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float, max_lr_diff
     return arrays, {"distill_filled_left": n_left, "distill_filled_right": n_right}
 
 
+def teacher_sample(sample: Any, maps_dir: Path, max_lr_diff: float) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """One shard sample's labels replaced by the teacher's left-right consistent views alone (both views, weight 1
+    where consistent, none elsewhere; PVM's labels dropped): the targets of ``optstereo-adapt --teacher-only``
+    (study D1, docs/registrations.md)."""
+    if sample.gt is not None or sample.gt_noc is not None:
+        raise ValueError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
+    left, right = consistent_views(*read_teacher_maps(maps_dir, sample.frame_id, sample.label.shape), max_lr_diff)
+    arrays = {"label": left, "confidence": np.isfinite(left).astype(np.float16), "label_right": right,
+              "confidence_right": np.isfinite(right).astype(np.float16)}
+    return arrays, {"teacher_only": 1, "teacher_pixels_left": int(np.isfinite(left).sum())}
+
+
 def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CONFIDENCE,
          max_lr_diff: float = MAX_LR_DIFF, compression: str | None = None, progress: bool = False,
-         allow_missing: bool = False) -> Path:
+         allow_missing: bool = False, teacher_only: bool = False) -> Path:
     """Rewrite the PVM shard directory ``src`` into ``out`` with the teacher's left-right consistent disparities in
-    both views' holes (:func:`fill_sample`); resumable and atomic like ``pvm_labeler.shards.rewrite``.
+    both views' holes (:func:`fill_sample`), or with ``teacher_only`` in place of PVM's labels
+    (:func:`teacher_sample`); resumable and atomic like ``pvm_labeler.shards.rewrite``.
 
     Raises:
         ValueError: ``fill_confidence`` outside (0, 1], ``max_lr_diff`` < 0, a missing or mis-sized map, GT in a
@@ -158,9 +171,12 @@ def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CON
     if not 0 < fill_confidence <= 1 or not max_lr_diff >= 0:
         raise ValueError(f"distill fill: need 0 < fill_confidence <= 1 and max_lr_diff >= 0, got {fill_confidence} "
                          f"and {max_lr_diff}")
-    settings = {"maps": str(Path(maps_dir).resolve()), "fill_confidence": fill_confidence, "max_lr_diff": max_lr_diff}
+    settings = {"maps": str(Path(maps_dir).resolve()), "fill_confidence": fill_confidence, "max_lr_diff": max_lr_diff,
+                "teacher_only": teacher_only}
     kwargs = {} if compression is None else {"compression": compression}
     def transform(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        if teacher_only:
+            return teacher_sample(sample, Path(maps_dir), max_lr_diff)
         return fill_sample(sample, Path(maps_dir), fill_confidence, max_lr_diff, allow_missing)
 
     return rewrite(src, out, transform=transform, extra={"distilled_from": str(src), "distill": settings},
