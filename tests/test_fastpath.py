@@ -268,3 +268,19 @@ class TestWinogradChoice:
             with torch.no_grad(), engineering(True, winograd=way):
                 fast(left, right, test_mode=True)
         assert fastpath.winograd_choices() == {}
+
+    def test_no_winograd_weights_are_made_where_direct_won(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch.setattr(fastpath, "_choices", {})
+        self._clock_where(monkeypatch, "winograd")
+        fast = engineer(tiny_model())
+        left, right = torch.rand(1, 3, 32, 64) * 255, torch.rand(1, 3, 32, 64) * 255
+        with torch.no_grad():
+            fast(left, right, test_mode=True)  # calibrates: direct wins
+        assert set(fastpath.winograd_choices().values()) == {False}
+
+        def no_transform(*args: object) -> None:
+            raise AssertionError("a Winograd weight was made for a convolution that runs direct")
+
+        monkeypatch.setattr(EngineeredOptStereo, "_winograd", no_transform)
+        with torch.no_grad():
+            fast(left, right, test_mode=True)

@@ -128,7 +128,7 @@ class EngineeredOptStereo(OptStereo):
         pairs = zip(LoopConvs._fields, convs, strict=True)
         if mode is True:
             return LoopConvs(*(self._winograd(role, conv) for role, conv in pairs))
-        return LoopConvs(*(faster_of(role, conv, self._winograd(role, conv)) for role, conv in pairs))
+        return LoopConvs(*(faster_of(role, conv, lambda r=role, c=conv: self._winograd(r, c)) for role, conv in pairs))
 
     def _winograd(self, role: str, conv: nn.Conv2d) -> Conv:
         """``conv`` as a Winograd convolution; its transformed weight cached until the weight changes (another
@@ -145,14 +145,17 @@ class EngineeredOptStereo(OptStereo):
         return lambda x: winograd_conv3x3(x, u, bias)
 
 
-def faster_of(role: str, direct: nn.Conv2d, winograd: Conv) -> Conv:
-    """``winograd`` or ``direct``, whichever was the faster in this process for this role, weight shape and thread
-    count; not yet known: the first call times both on its input (:data:`CALIBRATION_RUNS` alternating runs each,
-    the fastest of each) and records the choice. Both compute the same convolution (to float32 rounding)."""
+def faster_of(role: str, direct: nn.Conv2d, make_winograd: Callable[[], Conv]) -> Conv:
+    """The Winograd convolution (made by ``make_winograd`` only when it is used: a weight loaded under inference mode
+    is transformed anew each time) or ``direct``, whichever was the faster in this process for this role, weight
+    shape and thread count; not yet known: the first call times both on its input (:data:`CALIBRATION_RUNS`
+    alternating runs each, the fastest of each) and records the choice. Both compute the same convolution (to
+    float32 rounding)."""
     key = (role, tuple(direct.weight.shape), torch.get_num_threads())
     known = _choices.get(key)
     if known is not None:
-        return winograd if known else direct
+        return make_winograd() if known else direct
+    winograd = make_winograd()
 
     def calibrate(x: torch.Tensor) -> torch.Tensor:
         if key in _choices:  # the later iterations of the pass that calibrated

@@ -126,12 +126,17 @@ def read_teacher_maps(maps_dir: Path, frame_id: str,
     return left, right
 
 
+def _refuse_gt(sample: Any) -> None:
+    """ValueError naming a shard sample that carries GT: a GT frame must never enter a self-supervised set."""
+    if sample.gt is not None or sample.gt_noc is not None:
+        raise ValueError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
+
+
 def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float, max_lr_diff: float,
                 allow_missing: bool = False) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """One shard sample's new arrays (both views' labels and confidences) and attributes (pixels filled). With
     ``allow_missing`` a pair without a teacher map keeps its PVM labels as they are (attribute ``distill_missing``)."""
-    if sample.gt is not None or sample.gt_noc is not None:
-        raise ValueError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
+    _refuse_gt(sample)
     if allow_missing and not map_path(maps_dir, sample.frame_id).is_file():
         logger.warning("no teacher map for %s: its PVM labels stay as they are", sample.frame_id)
         return {}, {"distill_missing": 1}
@@ -149,8 +154,7 @@ def teacher_sample(sample: Any, maps_dir: Path, max_lr_diff: float) -> tuple[dic
     """One shard sample's labels replaced by the teacher's left-right consistent views alone (both views, weight 1
     where consistent, none elsewhere; PVM's labels dropped): the targets of ``optstereo-adapt --teacher-only``
     (study D1, docs/registrations.md)."""
-    if sample.gt is not None or sample.gt_noc is not None:
-        raise ValueError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
+    _refuse_gt(sample)
     left, right = consistent_views(*read_teacher_maps(maps_dir, sample.frame_id, sample.label.shape), max_lr_diff)
     arrays = {"label": left, "confidence": np.isfinite(left).astype(np.float16), "label_right": right,
               "confidence_right": np.isfinite(right).astype(np.float16)}

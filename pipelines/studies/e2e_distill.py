@@ -6,6 +6,9 @@ input by construction: no labels, no maps on disk, no GT. The student (e.g. E4's
 encoder stages separable) is trained with a sequence Huber loss (gamma 0.8, the paper's L_P weighting) against the
 teacher's final full-resolution disparity on every pixel.
 
+``maps``: the teacher's two full-frame views of every pair (``infer`` with its own settings) -> MAPS/<name>.npz.
+GT is read after a run by the product: ``optstereo-eval --checkpoint F --dataset middlebury --root ../shared/data``.
+
 ``train``: -> OUT/<name>-<step>.safetensors snapshots evenly over the time budget (each a product file with the
 student's own inference settings: ``optstereo-eval --checkpoint F --valset V`` scores it) and OUT/<name>.jsonl.
 
@@ -23,7 +26,6 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -34,7 +36,6 @@ from torch import nn
 from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors, load_checkpoint
 from optstereo.inference.cascade import coarse_start
-from optstereo.inference.engine import infer
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training.distill import consistent_views, map_path, read_teacher_maps, save_teacher_map, teacher_views
 
@@ -48,7 +49,7 @@ Pair = tuple[np.ndarray, np.ndarray]
 def load_pack(root: Path) -> list[Pair]:
     """Every pair of a pack: ``root/left/<id>.*`` with ``root/right/<id>.*`` -> [(left, right)], each (H, W, 3) uint8
     RGB. Raises FileNotFoundError naming the folder when it holds no pair, ValueError naming a file that fails."""
-    lefts = sorted(p for p in (Path(root) / "left").glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    lefts = left_images(root)
     if not lefts:
         raise FileNotFoundError(f"{root}/left holds no image (a distill_pack folder is expected)")
     pairs = []
@@ -134,9 +135,14 @@ def load_maps(maps_dir: Path, pack: Path, pairs: list[Pair], every_pixel: bool =
     return views if every_pixel else [consistent_views(*v) for v in views]
 
 
+def left_images(pack: Path) -> list[Path]:
+    """A pack's left images (``pack/left/*`` with an image suffix), sorted: the order of every pair list here."""
+    return sorted(p for p in (Path(pack) / "left").glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
 def pack_names(pack: Path) -> list[str]:
     """The pair names of a pack (its left images' stems), in :func:`load_pack`'s order."""
-    return [p.stem for p in sorted(p for p in (Path(pack) / "left").glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)]
+    return [p.stem for p in left_images(pack)]
 
 
 def sequence_loss(preds: list[torch.Tensor], target: torch.Tensor, gamma: float = GAMMA) -> torch.Tensor:
@@ -245,20 +251,6 @@ def train(student: str | Path, teacher: str | Path, pack: Path, out: Path, *, na
                 log.flush()
 
 
-def gt_bad3(checkpoint: str | Path, dataset: str, root: Path) -> dict[str, Any]:
-    """GT bad-3 (%) of a checkpoint with its own settings on every GT frame of a dataset, pooled over pixels and per
-    frame (``infer``, CPU): the score read after a run, never during it."""
-    from pvm_labeler.common.datasets import discover, load_pair
-    from pvm_labeler.common.metrics import MetricAccumulator
-
-    model, acc, frames = load_model(checkpoint), MetricAccumulator(), {}
-    for ref in discover(dataset, Path(root)):
-        s = load_pair(ref)
-        if s.gt is not None and np.isfinite(s.gt).any():
-            frames[s.frame_id] = acc.update(infer(model, s.left, s.right), s.gt)["bad3"]
-    return {"checkpoint": str(checkpoint), "dataset": dataset, "bad3": acc.compute()["bad3"], "frames": frames}
-
-
 def _crop(text: str) -> tuple[int, int]:
     h, w = (int(v) for v in text.lower().split("x"))
     if h % 8 or w % 8:
@@ -293,14 +285,7 @@ def main(argv: list[str] | None = None) -> None:
     m.add_argument("--teacher", default="pretrained-accurate")
     m.add_argument("--pack", type=Path, required=True)
     m.add_argument("--out", type=Path, required=True)
-    g = sub.add_parser("gt", help="GT bad-3 of a checkpoint on a dataset, pooled and per frame (read after a run)")
-    g.add_argument("--checkpoint", required=True)
-    g.add_argument("--dataset", default="middlebury")
-    g.add_argument("--root", type=Path, default=Path("../shared/data"))
     a = parser.parse_args(argv)
-    if a.cmd == "gt":
-        print(json.dumps(gt_bad3(a.checkpoint, a.dataset, a.root)))
-        return
     if a.cmd == "maps":
         print(f"{write_maps(a.teacher, a.pack, a.out)} pairs written to {a.out}")
         return

@@ -148,14 +148,6 @@ def test_an_unreadable_image_is_named(tmp_path: Path) -> None:
         e2e_distill.load_pack(pack)
 
 
-def test_gt_bad3_pools_the_frames_of_a_dataset(tmp_path: Path, shared_data: Path) -> None:
-    """One frame (Tsukuba): the pooled figure is that frame's."""
-    tiny = _tiny_file(tmp_path)
-    one = e2e_distill.gt_bad3(tiny, "middlebury", shared_data / "middlebury2001")
-    assert list(one["frames"]) == ["tsukuba"] and 0 < one["bad3"] <= 100
-    assert one["bad3"] == pytest.approx(one["frames"]["tsukuba"])
-
-
 def test_every_pixel_keeps_the_views_where_they_disagree(tmp_path: Path) -> None:
     pack, maps = random_pack(tmp_path / "pack", n=1, shape=(8, 16)), tmp_path / "maps"
     left = np.full((8, 16), 2.0, np.float32)
