@@ -174,3 +174,18 @@ def test_bench_models_match_row(monkeypatch: pytest.MonkeyPatch) -> None:
     # match 0.8, 1.0, 1.2 s against SGBM's 2 s: ratios 0.4, 0.5, 0.6 -> median 0.5, met; bad-3 2/6 vs 6/6
     assert row["ratio"] == pytest.approx(0.5) and row["verdict"] == "met"
     assert row["bad3"] == pytest.approx(100 / 3) and row["sgbm_bad3"] == 100.0
+
+
+def test_bench_avx2_proxy_child_runs_capped(shared_data: Path) -> None:
+    """proxy_row: the child process runs with the AVX2 caps (torch reports AVX2 on any AVX2 CPU, AVX-512 or not),
+    times the model beside SGBM-HH on the frames asked for, and a failing child is an error naming the model."""
+    from pipelines import bench_models
+
+    row = bench_models.proxy_row(shared_data, "pretrained", repeats=1, n_frames=1)
+    assert row["torch_capability"] == "AVX2"
+    assert row["env"] == bench_models.AVX2_PROXY
+    assert row["model"] == "pretrained" and row["s_per_frame"] > 0 and row["sgbm_s"] > 0
+    assert row["ratio"] == pytest.approx(row["s_per_frame"] / row["sgbm_s"])  # one frame: the ratio of the two
+    assert "AVX2 proxy" in "\n".join(bench_models._proxy_markdown(row))
+    with pytest.raises(RuntimeError, match="no-such-model"):
+        bench_models.proxy_row(shared_data, "no-such-model", repeats=1, n_frames=1)
