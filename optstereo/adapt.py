@@ -12,7 +12,9 @@ Steps, each resumable from ``OUT``:
    ``optstereo.training.distill``) and L_P is confidence-weighted; the held-back frames are never seen by it. On the
    table-top rig PVM labels ~4 % of the pixels: trained on them alone the network learns those and forgets the rest
    (RESULTS.md).
-3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.training.loop.main``), ``steps`` steps.
+3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.training.loop.main``), ``steps`` steps,
+   or by default as many as fit ``minutes`` of training: the run's first :data:`PROBE_STEPS` steps are timed and the
+   count is set from them (``OUT/budget.json``, kept for a resumed run), so a faster machine trains more.
 4. The decision (:func:`decide`), GT-free: the start and the adapted weights on the held-back frames, each frame
    scored as the validation set scores its pairs (``optstereo.validation``): EPE against its PVM labels on PVM's
    pixels, and the photometric error in PVM's holes. The adapted weights are kept only when one score is better by
@@ -53,9 +55,12 @@ from pvm_labeler.shards import ShardRecord, read_index, write_shard_dir
 
 logger = logging.getLogger(__name__)
 
-#: The default budget: 150 steps of batch 1 on 320x736 crops, about 4 s each on 2 CPU cores (docs/training.md:
-#: 3.9 s/step), so about 10 minutes of training, plus labeling and the scoring passes.
-DEFAULT_STEPS = 150
+#: The default budget: 10 minutes of fine-tuning (batch 1, 320x736 crops), plus labeling and the scoring passes: ~150
+#: steps on an AVX2 EPYC's 2 cores (~4 s each, docs/training.md), ~700 on a Zen 5 EPYC's (0.86 s).
+DEFAULT_MINUTES = 10.0
+#: Steps timed to set a budgeted run's step count, and the most steps a budget may set.
+PROBE_STEPS = 10
+MAX_STEPS = 5000
 #: lzf, built into h5py: an adaptation's shards are few and read anywhere without the Blosc plugin.
 SHARD_COMPRESSION = "lzf"
 #: Fine-tuning on PVM labels alone moves the weights a little: a tenth of the paper's 1e-4.
@@ -81,7 +86,8 @@ class AdaptConfig:
     out: Path
     reader_options: dict[str, Any] = field(default_factory=dict)
     init: str | Path = "pretrained"
-    steps: int = DEFAULT_STEPS
+    steps: int | None = None  # None = as many as fit ``minutes`` (:func:`budget_steps`)
+    minutes: float = DEFAULT_MINUTES
     lr: float | None = None  # None = DEFAULT_LR, or DEFAULT_TEACHER_LR with a teacher (:meth:`learning_rate`)
     batch_size: int = 1
     crop: tuple[int, int] = (320, 736)
@@ -107,8 +113,10 @@ class AdaptConfig:
             raise ValueError(f"--lr must be > 0, got {self.lr}")
         if not 0 < self.holdout < 1:
             raise ValueError(f"--holdout must be in (0, 1), got {self.holdout}")
-        if self.steps < 0:
+        if self.steps is not None and self.steps < 0:
             raise ValueError(f"--steps must be >= 0, got {self.steps}")
+        if not self.minutes > 0:
+            raise ValueError(f"--minutes must be > 0, got {self.minutes}")
         if self.teacher_only and self.teacher is None:
             raise ValueError("--teacher-only needs --teacher (the model whose views replace PVM's labels)")
 
@@ -167,16 +175,41 @@ def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
                         compression=SHARD_COMPRESSION, progress=not cfg.quiet, teacher_only=cfg.teacher_only)
 
 
-def finetune(cfg: AdaptConfig, train_labels: Path) -> Path:
-    """Step 3: fine-tune from cfg.init on the training labels; returns the run's checkpoint (resumes a run)."""
+def finetune(cfg: AdaptConfig, train_labels: Path) -> tuple[Path, int]:
+    """Step 3: fine-tune from cfg.init on the training labels, ``cfg.steps`` steps or as many as fit ``cfg.minutes``;
+    returns (the run's checkpoint, its steps). Resumes a run."""
     run_dir = cfg.out / "run"
-    overrides = {"labels": train_labels, "out": run_dir, "steps": cfg.steps, "lr": cfg.learning_rate(),
+    steps = cfg.steps if cfg.steps is not None else budget_steps(cfg, train_labels, run_dir)
+    return train_to(cfg, train_labels, run_dir, steps), steps
+
+
+def budget_steps(cfg: AdaptConfig, train_labels: Path, run_dir: Path) -> int:
+    """The steps that fit ``cfg.minutes`` of training: the run's first :data:`PROBE_STEPS` steps are trained and timed
+    (the trainer's ``summary.json``: wall seconds, data loading included, so the estimate errs short), the count is
+    ``minutes * 60 / seconds per step`` within [PROBE_STEPS, MAX_STEPS], recorded in ``OUT/budget.json`` and reused
+    when the run is resumed."""
+    record = cfg.out / "budget.json"
+    if record.is_file():
+        return int(json.loads(record.read_text())["steps"])
+    train_to(cfg, train_labels, run_dir, PROBE_STEPS)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    s_per_step = float(summary["seconds"]) / max(1, int(summary["step"]) - int(summary["start_step"]))
+    steps = int(min(MAX_STEPS, max(PROBE_STEPS, cfg.minutes * 60.0 / s_per_step)))
+    atomic_write_text(record, json.dumps({"minutes": cfg.minutes, "probe_steps": PROBE_STEPS,
+                                          "s_per_step": s_per_step, "steps": steps}, indent=2))
+    logger.info("budget: %d steps fit %.1f minutes at %.2f s per step", steps, cfg.minutes, s_per_step)
+    return steps
+
+
+def train_to(cfg: AdaptConfig, train_labels: Path, run_dir: Path, steps: int) -> Path:
+    """Train (or resume) ``run_dir`` from cfg.init to ``steps`` steps; returns its last checkpoint."""
+    overrides = {"labels": train_labels, "out": run_dir, "steps": steps, "lr": cfg.learning_rate(),
                  "batch_size": cfg.batch_size, "crop": list(cfg.crop), "device": cfg.device, "workers": 0,
                  "seed": cfg.seed, "tensorboard": False,
                  **({"conf_weight": True} if cfg.teacher is not None else {}),
                  **({"lambda_r": 0.0, "lambda_s": 0.0} if cfg.teacher_only else {}), **cfg.train_overrides}
     if (run_dir / "last.pt").exists():
-        train_cfg = config_for_resume(run_dir, {"steps": cfg.steps})
+        train_cfg = config_for_resume(run_dir, {"steps": steps})
         main(train_cfg, resume=True, progress=not cfg.quiet)
         return run_dir / "last.pt"
     init = resolve_checkpoint_spec(cfg.init)
@@ -247,7 +280,7 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
     atomic_write_text(cfg.out / "split.json", json.dumps({"train": train_ids, "held_back": held_ids}, indent=2))
     init = resolve_checkpoint_spec(cfg.init)
     train = write_train_labels(cfg, labels, train_ids)
-    trained = finetune(cfg, distill_train_labels(cfg, train) if cfg.teacher is not None else train)
+    trained, steps = finetune(cfg, distill_train_labels(cfg, train) if cfg.teacher is not None else train)
     before = score_frames(init, labels, held_ids, cfg.device, cfg.quiet, "before")
     after = score_frames(trained, labels, held_ids, cfg.device, cfg.quiet, "after")
     decision = decide(before, after)
@@ -258,7 +291,8 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
     shutil.copyfile(source, adapted)
     # GT, where the rig has it, is read only now: it scores the decision, it never makes it
     report = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
-              "init": str(init), "pairs": len(ids), "train_frames": train_ids, "held_back_frames": held_ids,
+              "init": str(init), "pairs": len(ids), "steps": steps, "train_frames": train_ids,
+              "held_back_frames": held_ids,
               "before": {**_summary(before), **gt_scores(init, labels, cfg.device, cfg.quiet, "before")},
               "after": {**_summary(after), **gt_scores(trained, labels, cfg.device, cfg.quiet, "after")},
               "lr": cfg.learning_rate(), "adapted": decision.adapted, "changes": decision.changes,
@@ -292,7 +326,9 @@ def report_markdown(report: dict[str, Any]) -> str:
             ("held-back frames: photometric error in PVM's holes", "photometric_holes"),
             ("GT bad-3 (%), every frame, score only", "gt_bad3"), ("GT EPE (px), score only", "gt_epe")]
     lines = ["# optstereo-adapt report", "", f"{report['pairs']} pairs ({len(report['held_back_frames'])} held back); "
-             f"start `{report['init']}`; {report['config']['steps']} steps"
+             f"start `{report['init']}`; {report.get('steps', report['config']['steps'])} steps"
+             + ("" if report["config"].get("steps") is not None
+                else f" (as many as fit {report['config']['minutes']:g} minutes)")
              + (f" at lr {report['lr']:g}" if "lr" in report else "")
              + _teacher_words(report["config"]), "", "| | before | after |",
              "| --- | --- | --- |"]

@@ -189,7 +189,7 @@ def test_a_teacher_run_trains_with_confidence_weights(tmp_path: Path, monkeypatc
                                         (str(ckpt), 3e-5, True, 3e-5), (None, 2e-4, False, 2e-4)):
         seen.clear()
         cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / f"out{weighted}{lr}", init=str(ckpt),
-                          teacher=teacher, lr=lr, device="cpu", quiet=True)
+                          teacher=teacher, lr=lr, steps=5, device="cpu", quiet=True)
         adapt.finetune(cfg, tmp_path / "labels")
         assert seen["cfg"].loss.conf_weight is weighted
         assert seen["cfg"].optim.lr == pytest.approx(rate)
@@ -224,7 +224,7 @@ def test_teacher_only_replaces_the_labels_and_drops_the_photometric_losses(
     torch.manual_seed(0)
     ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
     cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", init=str(ckpt), teacher=str(ckpt),
-                      teacher_only=True, device="cpu", quiet=True)
+                      teacher_only=True, steps=5, device="cpu", quiet=True)
     taught = adapt.distill_train_labels(cfg, train)
     assert taught.name == "train_teacher"
     for s in shard_samples(taught):
@@ -241,3 +241,40 @@ def test_teacher_only_replaces_the_labels_and_drops_the_photometric_losses(
                                    "decision": "start kept", "checkpoint": "a",
                                    "config": {"steps": 9, "teacher": "t", "teacher_only": True}})
     assert "the teacher `t`'s consistent views alone" in words
+
+
+def test_a_time_budget_sets_the_steps_from_a_timed_probe(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No --steps: the first PROBE_STEPS steps are trained and timed, the count fits --minutes (within
+    [PROBE_STEPS, MAX_STEPS]), is recorded in OUT/budget.json and reused on resume; --steps skips the probe."""
+    from optstereo import adapt
+
+    trained: list[int] = []
+
+    def fake_train_to(cfg: AdaptConfig, labels: Path, run_dir: Path, steps: int) -> Path:
+        trained.append(steps)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        # the probe: 10 steps in 25 s -> 2.5 s per step
+        (run_dir / "summary.json").write_text(json.dumps({"seconds": 25.0, "step": steps, "start_step": 0}))
+        return run_dir / "last.pt"
+
+    monkeypatch.setattr(adapt, "train_to", fake_train_to)
+    cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", minutes=3.0)
+    assert adapt.finetune(cfg, tmp_path / "labels") == (tmp_path / "out/run/last.pt", 72)  # 180 s / 2.5 s
+    assert trained == [adapt.PROBE_STEPS, 72]
+    assert json.loads((tmp_path / "out/budget.json").read_text())["s_per_step"] == pytest.approx(2.5)
+    trained.clear()
+    assert adapt.finetune(cfg, tmp_path / "labels")[1] == 72 and trained == [72]  # resumed: no second probe
+    for minutes, expected in ((0.01, adapt.PROBE_STEPS), (1e4, adapt.MAX_STEPS)):
+        out = tmp_path / f"out{minutes}"
+        assert adapt.finetune(AdaptConfig(dataset="folder", root=None, out=out, minutes=minutes),
+                              tmp_path / "labels")[1] == expected
+    trained.clear()
+    fixed = AdaptConfig(dataset="folder", root=None, out=tmp_path / "fixed", steps=7)
+    assert adapt.finetune(fixed, tmp_path / "labels")[1] == 7 and trained == [7]
+    assert not (tmp_path / "fixed/budget.json").exists()
+    with pytest.raises(ValueError, match="--minutes must be > 0"):
+        AdaptConfig(dataset="folder", root=None, out=tmp_path, minutes=0.0).check()
+    words = adapt.report_markdown({"pairs": 5, "held_back_frames": [], "init": "v15", "before": {}, "after": {},
+                                   "decision": "start kept", "checkpoint": "a", "steps": 72,
+                                   "config": {"steps": None, "minutes": 3.0, "teacher": None}})
+    assert "72 steps (as many as fit 3 minutes)." in words
