@@ -19,6 +19,7 @@ One chapter:
         --maps /work/teacher_maps --valset /work/valset --minutes 120
     python -m pipelines.studies.long_run curve --run /work/runs/g2 --out results/long_run    # curve.{md,json,png}
     python -m pipelines.studies.long_run compare BASE.json CAND.json   # the registered rule on two gtfree.json
+    python -m pipelines.studies.long_run compare --non-inferior BASE.json CAND.json   # E5's speed rule
     python -m pipelines.studies.long_run coverage --packs PACK... --maps MAPS --out results/long_run   # maps per pack
 
 On a lent GPU the run goes on as one chapter there: copy the last chapter's ``run/model.safetensors`` into the carry
@@ -237,6 +238,22 @@ def candidate(base: dict[str, Any], cand: dict[str, Any], z: float = 2.0) -> tup
     return ok, ("candidate: " if ok else "not a candidate: ") + why
 
 
+def non_inferior(base: dict[str, Any], cand: dict[str, Any], epe_margin: float = 0.005,
+                 teacher_margin: float = 0.02, z: float = 2.0) -> tuple[bool, str]:
+    """E1's / E5's speed rule (docs/registrations.md) on two ``gtfree.json`` of the same pairs: CAND is not worse than
+    BASE when its pooled PVM EPE rises by at most ``epe_margin`` px, its pooled teacher EPE by at most
+    ``teacher_margin`` px and its photometric error by no more than ``z`` standard errors of the per-pair differences;
+    (verdict, one line saying why)."""
+    epe = cand["summary"]["pvm_epe"] - base["summary"]["pvm_epe"]
+    teacher = cand["summary"]["teacher_epe"] - base["summary"]["teacher_epe"]
+    photo, photo_margin = paired_difference([PairScore(**p) for p in base["pairs"]],
+                                            [PairScore(**p) for p in cand["pairs"]], "photometric", z)
+    ok = epe <= epe_margin and teacher <= teacher_margin and photo <= photo_margin
+    why = (f"pooled PVM EPE {epe:+.4f} px (margin {epe_margin}), teacher EPE {teacher:+.4f} px (margin "
+           f"{teacher_margin}), photometric {photo:+.4f} (noise {photo_margin:.4f})")
+    return ok, ("not worse: " if ok else "worse: ") + why
+
+
 def consistent_fraction(path: Path) -> float:
     """The share of a teacher map's left-view pixels that its right view confirms (``consistent_views``)."""
     with np.load(path) as data:
@@ -343,6 +360,8 @@ def main(argv: list[str] | None = None) -> None:
     k = sub.add_parser("compare", help="the registered rule: is CAND a candidate against BASE?")
     k.add_argument("base", type=Path, help="gtfree.json of the start (version 15)")
     k.add_argument("cand", type=Path, help="gtfree.json of the checkpoint")
+    k.add_argument("--non-inferior", action="store_true",
+                   help="E5's speed rule (PVM EPE <= +0.005 px, teacher EPE <= +0.02, photometric within noise)")
     r = sub.add_parser("record", help="append a chapter trained on a lent GPU (its returned snapshots)")
     r.add_argument("snapshots", type=Path, nargs="+", help="<name>-<step>.safetensors files")
     r.add_argument("--run", type=Path, required=True)
@@ -362,7 +381,8 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "chapter":
         print(chapter(args))
     elif args.cmd == "compare":
-        print(candidate(json.loads(args.base.read_text()), json.loads(args.cand.read_text()))[1])
+        rule = non_inferior if args.non_inferior else candidate
+        print(rule(json.loads(args.base.read_text()), json.loads(args.cand.read_text()))[1])
     else:
         start = None
         if args.start:

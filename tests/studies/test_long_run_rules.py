@@ -1,0 +1,26 @@
+"""The registered rules of ``pipelines.studies.long_run`` on hand-made validation results."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+from optstereo.validation import PairScore
+from pipelines.studies.long_run import non_inferior
+
+
+def _doc(pvm_epe: float, teacher_epe: float, photos: list[float]) -> dict:
+    pairs = [asdict(PairScore(frame_id=f"p{i}", photo_sum=v, photo_n=1)) for i, v in enumerate(photos)]
+    return {"summary": {"pvm_epe": pvm_epe, "teacher_epe": teacher_epe}, "pairs": pairs}
+
+
+def test_non_inferior_by_hand() -> None:
+    base = _doc(0.519, 0.888, [0.10, 0.20, 0.30, 0.40])
+    # photometric per-pair changes +0.001, -0.001, +0.001, -0.001: mean 0, noise 2 * 0.001155 / 2 = 0.001155
+    level = _doc(0.523, 0.900, [0.101, 0.199, 0.301, 0.399])
+    ok, why = non_inferior(base, level)
+    assert ok and why.startswith("not worse: pooled PVM EPE +0.0040 px")
+    assert not non_inferior(base, _doc(0.5244, 0.900, [0.101, 0.199, 0.301, 0.399]))[0]  # E5: +0.0054 > 0.005
+    assert not non_inferior(base, _doc(0.519, 0.909, [0.101, 0.199, 0.301, 0.399]))[0]  # teacher +0.021
+    worse_photo = _doc(0.519, 0.888, [0.103, 0.202, 0.303, 0.402])  # +0.0025 mean, noise 0.001
+    ok, why = non_inferior(base, worse_photo)
+    assert not ok and "photometric +0.0025" in why
