@@ -12,6 +12,10 @@ Steps, each resumable from ``OUT``:
    ``optstereo.training.distill``) and L_P is confidence-weighted; the held-back frames are never seen by it. On the
    table-top rig PVM labels ~4 % of the pixels: trained on them alone the network learns those and forgets the rest
    (RESULTS.md).
+   Every training frame is then resized to the scale the start runs it at (``optstereo.inference.engine.run``: the
+   file's input scale and, on a small pair, its adaptive enlargement; ``OUT/train_scales.json``, ``OUT/train_scaled``)
+   so that the fine-tuning sees the disparities the adapted model will meet: a KITTI frame stays as it is, Tsukuba is
+   trained 2.05x enlarged, as it is run (``--native-scale`` trains every frame as given).
 3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.training.loop.main``), ``steps`` steps,
    or by default as many as fit ``minutes`` of training: the run's first :data:`PROBE_STEPS` steps are timed and the
    count is set from them (``OUT/budget.json``, kept for a resumed run), so a faster machine trains more.
@@ -43,6 +47,8 @@ from optstereo.api import load_model
 from optstereo.checkpoint import load_checkpoint
 from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import infer
+from optstereo.inference.engine import run as run_passes
+from optstereo.inference.rescale import rescaled_pair, scaled_size, sparse_to_size
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill
 from optstereo.training.checkpoints import config_for_resume, init_settings
@@ -98,6 +104,7 @@ class AdaptConfig:
     device: str = "auto"
     teacher: str | Path | None = None  # fill the training frames' PVM holes with this model's consistent views
     teacher_only: bool = False  # train on the teacher's consistent views alone: no PVM labels, no L_R / L_S (D1)
+    native_scale: bool = False  # train every frame as given, not at the scale the start runs it at
     train_overrides: dict[str, Any] = field(default_factory=dict)  # more TrainConfig flat keys (tests: tiny model)
     quiet: bool = False
 
@@ -173,6 +180,57 @@ def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
         distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right, device))
     return distill.fill(train_labels, maps, cfg.out / ("train_teacher" if cfg.teacher_only else "train_filled"),
                         compression=SHARD_COMPRESSION, progress=not cfg.quiet, teacher_only=cfg.teacher_only)
+
+
+def inference_scales(cfg: AdaptConfig, train_labels: Path) -> dict[str, float]:
+    """Per training frame, the scale of the start's final pass on it (``optstereo.inference.engine.run``: the file's
+    input scale times, on a small pair, its adaptive enlargement); cached in ``OUT/train_scales.json`` for a resumed
+    run."""
+    record = cfg.out / "train_scales.json"
+    if record.is_file():
+        return {k: float(v) for k, v in json.loads(record.read_text()).items()}
+    start = load_model(cfg.init, cfg.device)
+    device = str(next(start.parameters()).device)
+    scales = {s.frame_id: float(run_passes(start, s.left, s.right, device=device).input_scale)
+              for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples,
+                            desc="inference scales", unit="pair", disable=cfg.quiet)}
+    atomic_write_text(record, json.dumps(scales, indent=2))
+    return scales
+
+
+def rescaled_record(sample: Any, scale: float) -> ShardRecord:
+    """A training shard sample resized by ``scale``: the images smoothly (``rescaled_pair``), both views' labels and
+    confidences by nearest neighbour, the disparities times the width ratio (``sparse_to_size``); GT dropped."""
+    shape = scaled_size(sample.left.shape, scale)
+    left, right = rescaled_pair(sample.left, sample.right, scale)
+
+    def weights(conf: np.ndarray | None) -> np.ndarray | None:
+        return None if conf is None else sparse_to_size(conf.astype(np.float32), shape, scale_values=False)
+
+    return ShardRecord(frame_id=sample.frame_id, left=left, right=right, label=sparse_to_size(sample.label, shape),
+                       label_right=sparse_to_size(sample.label_right, shape), confidence=weights(sample.confidence),
+                       confidence_right=weights(sample.confidence_right),
+                       attrs={**sample.attrs, "train_scale": scale})
+
+
+def at_inference_scale(cfg: AdaptConfig, train_labels: Path) -> Path:
+    """Step 2c: the training frames at the scales the start runs them at (:func:`inference_scales`) in
+    ``OUT/train_scaled``; ``train_labels`` itself when every scale is 1 (a KITTI rig) or with ``cfg.native_scale``."""
+    if cfg.native_scale:
+        return train_labels
+    scales = inference_scales(cfg, train_labels)
+    if all(abs(v - 1.0) < 1e-6 for v in scales.values()):
+        return train_labels
+    index = read_index(train_labels)
+    records = [rescaled_record(s, scales[s.frame_id]) for s in shard_samples(train_labels)]
+    out = cfg.out / "train_scaled"
+    if out.exists():
+        shutil.rmtree(out)
+    write_shard_dir(out, records, config=index.config, dataset={**index.dataset, "train_scales": scales},
+                    compression=SHARD_COMPRESSION)
+    logger.info("training frames at the start's inference scales: %s",
+                ", ".join(f"{k} {v:.2f}" for k, v in scales.items() if abs(v - 1.0) >= 1e-6))
+    return out
 
 
 def finetune(cfg: AdaptConfig, train_labels: Path) -> tuple[Path, int]:
@@ -280,7 +338,8 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
     atomic_write_text(cfg.out / "split.json", json.dumps({"train": train_ids, "held_back": held_ids}, indent=2))
     init = resolve_checkpoint_spec(cfg.init)
     train = write_train_labels(cfg, labels, train_ids)
-    trained, steps = finetune(cfg, distill_train_labels(cfg, train) if cfg.teacher is not None else train)
+    targets = distill_train_labels(cfg, train) if cfg.teacher is not None else train
+    trained, steps = finetune(cfg, at_inference_scale(cfg, targets))
     before = score_frames(init, labels, held_ids, cfg.device, cfg.quiet, "before")
     after = score_frames(trained, labels, held_ids, cfg.device, cfg.quiet, "after")
     decision = decide(before, after)

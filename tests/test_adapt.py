@@ -3,6 +3,7 @@ is kept), and the whole command end to end on a tiny folder with a tiny model.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -15,7 +16,7 @@ from click.testing import CliRunner
 from conftest import TINY
 
 from optstereo.adapt import MIN_HELD, AdaptConfig, decide, split_frames
-from optstereo.checkpoint import save_checkpoint
+from optstereo.checkpoint import model_inference, save_checkpoint
 from optstereo.models import build_model
 from optstereo.validation import PairScore
 from pvm_labeler.common.datasets import discover, load_pair, make_layered_scene
@@ -278,3 +279,48 @@ def test_a_time_budget_sets_the_steps_from_a_timed_probe(tmp_path: Path, monkeyp
                                    "decision": "start kept", "checkpoint": "a", "steps": 72,
                                    "config": {"steps": None, "minutes": 3.0, "teacher": None}})
     assert "72 steps (as many as fit 3 minutes)." in words
+
+
+def test_training_frames_are_resized_to_the_starts_inference_scale(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """at_inference_scale: a frame the start runs at 2x is trained 2x (images, both views' labels times 2 in size and
+    value, confidences in size only); one run at scale 1 stays as it is; all at 1, or --native-scale: no copy."""
+    from optstereo import adapt
+    from optstereo.validation import shard_samples
+
+    train = _holey_shards(tmp_path / "train")
+    cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", quiet=True)
+    monkeypatch.setattr(adapt, "inference_scales", lambda c, labels: {"frame-0": 1.0, "frame-1": 2.0})
+    scaled = adapt.at_inference_scale(cfg, train)
+    assert scaled == tmp_path / "out/train_scaled"
+    before = {s.frame_id: s for s in shard_samples(train)}
+    after = {s.frame_id: s for s in shard_samples(scaled)}
+    np.testing.assert_array_equal(after["frame-0"].left, before["frame-0"].left)
+    np.testing.assert_array_equal(after["frame-0"].label, before["frame-0"].label)
+    big = after["frame-1"]
+    assert big.left.shape == (64, 128, 3) and big.label.shape == big.label_right.shape == (64, 128)
+    np.testing.assert_allclose(big.label[:, 64:], 2 * (4.0 + 1 / 100), rtol=1e-6)  # 4.01 px -> 8.02 px
+    assert np.isnan(big.label[:, :64]).all() and np.isnan(big.label_right[:, :64]).all()
+    np.testing.assert_array_equal(big.confidence.astype(np.float32), np.isfinite(big.label).astype(np.float32))
+    assert big.attrs["train_scale"] == 2.0
+    monkeypatch.setattr(adapt, "inference_scales", lambda c, labels: {"frame-0": 1.0, "frame-1": 1.0})
+    assert adapt.at_inference_scale(cfg, train) == train
+    monkeypatch.setattr(adapt, "inference_scales", lambda c, labels: {"frame-0": 1.0, "frame-1": 2.0})
+    assert adapt.at_inference_scale(dataclasses.replace(cfg, native_scale=True), train) == train
+
+
+def test_inference_scales_are_the_starts_final_pass_and_cached(tmp_path: Path) -> None:
+    """inference_scales: each training frame's final-pass scale as engine.run gives it (a file at input scale 1.5,
+    no adaptive pass: 1.5), written to OUT/train_scales.json and read back on resume."""
+    from optstereo import adapt
+
+    train = _holey_shards(tmp_path / "train")
+    torch.manual_seed(0)
+    model = build_model("optstereo", **TINY)
+    model.inference_config = model_inference(model).replace(scale=1.5, adaptive_ref_disp=0.0, adaptive_ref_pixels=0)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", model=model, step=0)
+    cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", init=str(ckpt), device="cpu", quiet=True)
+    cfg.out.mkdir()
+    assert adapt.inference_scales(cfg, train) == {"frame-0": 1.5, "frame-1": 1.5}
+    (cfg.out / "train_scales.json").write_text(json.dumps({"frame-0": 1.0, "frame-1": 3.0}))
+    assert adapt.inference_scales(cfg, train) == {"frame-0": 1.0, "frame-1": 3.0}
