@@ -12,10 +12,10 @@ Steps, each resumable from ``OUT``:
    ``optstereo.training.distill``) and L_P is confidence-weighted; the held-back frames are never seen by it. On the
    table-top rig PVM labels ~4 % of the pixels: trained on them alone the network learns those and forgets the rest
    (RESULTS.md).
-   Every training frame is then resized to the scale the start runs it at (``optstereo.inference.engine.run``: the
-   file's input scale and, on a small pair, its adaptive enlargement; ``OUT/train_scales.json``, ``OUT/train_scaled``)
-   so that the fine-tuning sees the disparities the adapted model will meet: a KITTI frame stays as it is, Tsukuba is
-   trained 2.05x enlarged, as it is run (``--native-scale`` trains every frame as given).
+   With ``inference_scale`` (``--inference-scale``) every training frame is then resized to the scale the start runs
+   it at (``optstereo.inference.engine.run``: the file's input scale and, on a small pair, its adaptive enlargement;
+   ``OUT/train_scales.json``, ``OUT/train_scaled``): a KITTI frame stays as it is, Tsukuba is trained 2.05x enlarged,
+   as it is run. Off by default (registration A4: the Middlebury rig's enlarged scenes gained, the rig did not).
 3. ``OUT/run``: fine-tuning from ``init`` with the paper's losses (``optstereo.training.loop.main``), ``steps`` steps,
    or by default as many as fit ``minutes`` of training: the run's first :data:`PROBE_STEPS` steps are timed and the
    count is set from them (``OUT/budget.json``, kept for a resumed run), so a faster machine trains more.
@@ -104,7 +104,7 @@ class AdaptConfig:
     device: str = "auto"
     teacher: str | Path | None = None  # fill the training frames' PVM holes with this model's consistent views
     teacher_only: bool = False  # train on the teacher's consistent views alone: no PVM labels, no L_R / L_S (D1)
-    native_scale: bool = False  # train every frame as given, not at the scale the start runs it at
+    inference_scale: bool = False  # train each frame at the scale the start runs it at (A4), not as given
     train_overrides: dict[str, Any] = field(default_factory=dict)  # more TrainConfig flat keys (tests: tiny model)
     quiet: bool = False
 
@@ -214,9 +214,10 @@ def rescaled_record(sample: Any, scale: float) -> ShardRecord:
 
 
 def at_inference_scale(cfg: AdaptConfig, train_labels: Path) -> Path:
-    """Step 2c: the training frames at the scales the start runs them at (:func:`inference_scales`) in
-    ``OUT/train_scaled``; ``train_labels`` itself when every scale is 1 (a KITTI rig) or with ``cfg.native_scale``."""
-    if cfg.native_scale:
+    """Step 2c (``cfg.inference_scale``): the training frames at the scales the start runs them at
+    (:func:`inference_scales`) in ``OUT/train_scaled``; ``train_labels`` itself when every scale is 1 (a KITTI rig) or
+    without ``cfg.inference_scale``."""
+    if not cfg.inference_scale:
         return train_labels
     scales = inference_scales(cfg, train_labels)
     if all(abs(v - 1.0) < 1e-6 for v in scales.values()):

@@ -283,13 +283,14 @@ def test_a_time_budget_sets_the_steps_from_a_timed_probe(tmp_path: Path, monkeyp
 
 def test_training_frames_are_resized_to_the_starts_inference_scale(tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
-    """at_inference_scale: a frame the start runs at 2x is trained 2x (images, both views' labels times 2 in size and
-    value, confidences in size only); one run at scale 1 stays as it is; all at 1, or --native-scale: no copy."""
+    """at_inference_scale (--inference-scale): a frame the start runs at 2x is trained 2x (images, both views' labels
+    times 2 in size and value, confidences in size only); one run at scale 1 stays as it is; all at 1, or the
+    default (off): no copy."""
     from optstereo import adapt
     from optstereo.validation import shard_samples
 
     train = _holey_shards(tmp_path / "train")
-    cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", quiet=True)
+    cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", inference_scale=True, quiet=True)
     monkeypatch.setattr(adapt, "inference_scales", lambda c, labels: {"frame-0": 1.0, "frame-1": 2.0})
     scaled = adapt.at_inference_scale(cfg, train)
     assert scaled == tmp_path / "out/train_scaled"
@@ -306,7 +307,7 @@ def test_training_frames_are_resized_to_the_starts_inference_scale(tmp_path: Pat
     monkeypatch.setattr(adapt, "inference_scales", lambda c, labels: {"frame-0": 1.0, "frame-1": 1.0})
     assert adapt.at_inference_scale(cfg, train) == train
     monkeypatch.setattr(adapt, "inference_scales", lambda c, labels: {"frame-0": 1.0, "frame-1": 2.0})
-    assert adapt.at_inference_scale(dataclasses.replace(cfg, native_scale=True), train) == train
+    assert adapt.at_inference_scale(dataclasses.replace(cfg, inference_scale=False), train) == train
 
 
 def test_inference_scales_are_the_starts_final_pass_and_cached(tmp_path: Path) -> None:

@@ -47,9 +47,9 @@ from optstereo.cli.common import (
                    "pretrained-accurate; ~30 s a KITTI pair on 2 cores): for rigs where PVM labels few pixels.")
 @click.option("--teacher-only", is_flag=True,
               help="With --teacher: train on its consistent views alone (no PVM labels, no L_R / L_S).")
-@click.option("--native-scale", is_flag=True,
-              help="Train every frame as given (default: at the scale the start runs it at, e.g. a small pair "
-                   "enlarged by the adaptive pass).")
+@click.option("--inference-scale", is_flag=True,
+              help="Train each frame at the scale the start runs it at (a small pair enlarged as the adaptive pass "
+                   "enlarges it), not as given.")
 @device_option
 @click.option("--threads", type=click.IntRange(min=0), default=0, expose_value=False, callback=_set_threads,
               help="torch CPU threads (0 = torch's default, one per core).")
@@ -57,12 +57,12 @@ from optstereo.cli.common import (
 def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, minutes: float, steps: int | None,
                lr: float | None,
                holdout: float, limit: int | None, max_disp: int | None, seed: int, teacher: str | None,
-               teacher_only: bool, native_scale: bool, device: str, quiet: bool, **reader: Any) -> None:
+               teacher_only: bool, inference_scale: bool, device: str, quiet: bool, **reader: Any) -> None:
     """Adapt to your rig without GT: optstereo-adapt --root MY_RIG --left cam0 --right cam1 --out out/adapt."""
     setup_logging(quiet)
     cfg = AdaptConfig(dataset=dataset or "folder", root=root, out=out, reader_options=collect_reader_options(**reader),
                       init=init, steps=steps, minutes=minutes, lr=lr, holdout=holdout, limit=limit,
                       max_disp=max_disp, seed=seed, device=device, teacher=teacher, teacher_only=teacher_only,
-                      native_scale=native_scale, quiet=quiet)
+                      inference_scale=inference_scale, quiet=quiet)
     report = run(cfg)
     click.echo(f"{report['decision']}; checkpoint {report['checkpoint']}")
