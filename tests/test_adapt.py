@@ -95,6 +95,7 @@ def _rig(root: Path, n: int = 2) -> None:
 
 @pytest.mark.slow
 def test_adapt_end_to_end(tmp_path: Path) -> None:
+    from optstereo import adapt
     from optstereo.cli import adapt_main
 
     _rig(tmp_path / "rig", n=4)
@@ -126,6 +127,16 @@ def test_adapt_end_to_end(tmp_path: Path) -> None:
     # a second call resumes: labels and training are done, the report is written again
     res = CliRunner().invoke(adapt_main, args, catch_exceptions=False)
     assert res.exit_code == 0, res.output
+    # the default budget instead of --steps: a real timed probe, then as many steps as fit (a tiny model: many more)
+    budget_args = [a for a in args if a not in ("--steps", "3")] + ["--minutes", "0.05"]
+    budget_args[budget_args.index("--out") + 1] = str(tmp_path / "budget")
+    res = CliRunner().invoke(adapt_main, budget_args, catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    budget = json.loads((tmp_path / "budget/budget.json").read_text())
+    report = json.loads((tmp_path / "budget/report.json").read_text())
+    assert report["config"]["steps"] is None and report["steps"] == budget["steps"]
+    assert budget["steps"] == min(adapt.MAX_STEPS, max(adapt.PROBE_STEPS, int(3.0 / budget["s_per_step"])))
+    assert json.loads((tmp_path / "budget/run/summary.json").read_text())["step"] == budget["steps"]
 
 
 def _holey_shards(out: Path) -> Path:
