@@ -62,7 +62,7 @@ from pvm_labeler.shards import ShardRecord, read_index, write_shard_dir
 logger = logging.getLogger(__name__)
 
 #: The default budget: 10 minutes of fine-tuning (batch 1, 320x736 crops), plus labeling and the scoring passes: ~150
-#: steps on an AVX2 EPYC's 2 cores (~4 s each, docs/training.md), ~700 on a Zen 5 EPYC's (0.86 s).
+#: steps on an AVX2 EPYC's 2 cores (~4 s each, docs/training.md), 461-635 on a Zen 5 EPYC's (A3).
 DEFAULT_MINUTES = 10.0
 #: Steps timed to set a budgeted run's step count, and the most steps a budget may set.
 PROBE_STEPS = 10

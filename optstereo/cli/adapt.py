@@ -29,7 +29,7 @@ from optstereo.cli.common import (
 @click.option("--init", default="pretrained", help="Start from this checkpoint (file, RUN_DIR or 'pretrained').")
 @click.option("--minutes", type=click.FloatRange(min=0, min_open=True), default=DEFAULT_MINUTES,
               help="Fine-tuning budget in wall minutes (batch 1, 320x736 crops): the step count is set from the "
-                   "first 10 steps' time (~150 steps on 2 AVX2 cores, ~700 on a Zen 5), plus labeling and scoring.")
+                   "first 10 steps' time (~150 steps on 2 AVX2 cores, 460-640 on a Zen 5), plus labeling and scoring.")
 @click.option("--steps", type=click.IntRange(min=0), default=None,
               help="Fine-tuning steps, instead of --minutes.  [default: as many as fit --minutes]")
 @click.option("--lr", type=float, default=None,
