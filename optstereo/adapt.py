@@ -44,11 +44,11 @@ import numpy as np
 from tqdm import tqdm
 
 from optstereo.api import load_model
-from optstereo.checkpoint import load_checkpoint
+from optstereo.checkpoint import load_checkpoint, model_inference
+from optstereo.data.transforms import rescale_sample
 from optstereo.inference.cascade import photometric_costs
-from optstereo.inference.engine import infer
-from optstereo.inference.engine import run as run_passes
-from optstereo.inference.rescale import rescaled_pair, scaled_size, sparse_to_size
+from optstereo.inference.engine import final_scale, infer, pass_at_scale
+from optstereo.inference.rescale import sparse_to_size
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill
 from optstereo.training.checkpoints import config_for_resume, init_settings
@@ -191,25 +191,29 @@ def inference_scales(cfg: AdaptConfig, train_labels: Path) -> dict[str, float]:
         return {k: float(v) for k, v in json.loads(record.read_text()).items()}
     start = load_model(cfg.init, cfg.device)
     device = str(next(start.parameters()).device)
-    scales = {s.frame_id: float(run_passes(start, s.left, s.right, device=device).input_scale)
-              for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples,
-                            desc="inference scales", unit="pair", disable=cfg.quiet)}
+    config = model_inference(start).validate()
+    scales = {}
+    for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples, desc="inference scales",
+                  unit="pair", disable=cfg.quiet):
+        # only the adaptive enlargement needs a pass: the zero-start one at the file's scale, as run() makes it
+        zero = (pass_at_scale(start, s.left, s.right, config.scale, None, config.iters, device) if config.adaptive
+                else None)
+        scales[s.frame_id] = float(final_scale(config, zero))
     atomic_write_text(record, json.dumps(scales, indent=2))
     return scales
 
 
 def rescaled_record(sample: Any, scale: float) -> ShardRecord:
-    """A training shard sample resized by ``scale``: the images smoothly (``rescaled_pair``), both views' labels and
-    confidences by nearest neighbour, the disparities times the width ratio (``sparse_to_size``); GT dropped."""
-    shape = scaled_size(sample.left.shape, scale)
-    left, right = rescaled_pair(sample.left, sample.right, scale)
-
-    def weights(conf: np.ndarray | None) -> np.ndarray | None:
-        return None if conf is None else sparse_to_size(conf.astype(np.float32), shape, scale_values=False)
-
-    return ShardRecord(frame_id=sample.frame_id, left=left, right=right, label=sparse_to_size(sample.label, shape),
-                       label_right=sparse_to_size(sample.label_right, shape), confidence=weights(sample.confidence),
-                       confidence_right=weights(sample.confidence_right),
+    """A training shard sample resized by ``scale`` as the trainer's scale augmentation resizes one
+    (``optstereo.data.transforms.rescale_sample``: the images smoothly, labels and confidences by nearest neighbour,
+    disparities times the width ratio), the right view's label and confidence alike; GT dropped."""
+    left, right, label, confidence = rescale_sample(sample.left, sample.right, sample.label,
+                                                    sample.confidence.astype(np.float32), scale)
+    conf_right = sample.confidence_right
+    return ShardRecord(frame_id=sample.frame_id, left=left, right=right, label=label,
+                       label_right=sparse_to_size(sample.label_right, label.shape), confidence=confidence,
+                       confidence_right=None if conf_right is None else
+                       sparse_to_size(conf_right.astype(np.float32), label.shape, scale_values=False),
                        attrs={**sample.attrs, "train_scale": scale})
 
 

@@ -128,3 +128,16 @@ def test_onnx_file_records_the_references(tmp_path: Path, shared_data: Path) -> 
     assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the second pass changed it
     diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+
+
+def test_final_scale_by_hand() -> None:
+    """final_scale: the file's scale without the adaptive pass (no disparity needed); with it, that scale times the
+    enlargement of the zero-start pass (a 20x30 map of 5 px against references 20 px / 2400 pixels: min(20 / 5,
+    sqrt(2400 / 600)) = 2)."""
+    from optstereo.inference.engine import final_scale
+
+    assert final_scale(InferenceConfig(scale=1.25), None) == 1.25
+    adaptive = InferenceConfig(scale=1.5, adaptive_ref_disp=20.0, adaptive_ref_pixels=2400)
+    assert final_scale(adaptive, np.full((20, 30), 5.0, np.float32)) == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="zero-start pass"):
+        final_scale(adaptive, None)

@@ -195,12 +195,11 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     with _eval_mode(model):
         if not config.coarse_start or config.select or config.adaptive:
             zero = pass_at_scale(model, left, right, scale, None, config.iters, device, amp)
-            gain = adaptive_factor(zero, config.adaptive_ref_disp, config.adaptive_ref_pixels) if config.adaptive \
-                else 1.0
-            if gain > 1.0:
+            final = final_scale(config, zero)
+            if final != scale:
                 logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0],
-                            scale, scale * gain)
-                scale *= gain
+                            scale, final)
+                scale = final
                 zero = None if config.coarse_start and not config.select else \
                     pass_at_scale(model, left, right, scale, None, config.iters, device, amp)
         if config.coarse_start:
@@ -212,6 +211,17 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     else:
         disp = coarse
     return Inference(apply_refine(disp, left, config.refine, device), scale)
+
+
+def final_scale(config: InferenceConfig, zero: Disparity | None) -> float:
+    """The input scale of :func:`run`'s final pass: ``config.scale``, times the adaptive enlargement
+    (``adaptive_factor``) of ``zero`` (the zero-start pass at ``config.scale``, needed only with ``config.adaptive``)
+    when it is one."""
+    if not config.adaptive:
+        return config.scale
+    if zero is None:
+        raise ValueError("the adaptive scale needs the zero-start pass's disparity")
+    return config.scale * adaptive_factor(zero, config.adaptive_ref_disp, config.adaptive_ref_pixels)
 
 
 @torch.inference_mode()
