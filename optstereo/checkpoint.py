@@ -303,7 +303,17 @@ def build_model_from_checkpoint(
     except RuntimeError as exc:
         raise CheckpointError(f"weights in {ckpt.path} do not fit model {ckpt.model_name!r}: {exc}") from exc
     model.inference_config = ckpt.inference_config
+    model.int8_calibration = _int8_sidecar(ckpt.path)
     return model.to(device).eval()
+
+
+def _int8_sidecar(path: Path | None) -> Any:
+    """The int8 clips beside a weights file (``optstereo.inference.int8.read_sidecar``), None without one."""
+    if path is None or not Path(path).is_file():
+        return None
+    from optstereo.inference.int8 import read_sidecar
+
+    return read_sidecar(Path(path))
 
 
 def average_checkpoints(paths: list[Path]) -> LoadedCheckpoint:

@@ -29,7 +29,11 @@ Measured in ``make bench`` (section ``models``); the steps tried and their ratio
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import functools
 import math
+import os
+import sys
 import time
 from collections.abc import Callable, Iterator
 from typing import Literal, NamedTuple
@@ -38,6 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from optstereo.inference import int8
 from optstereo.inference.winograd import winograd_conv3x3, winograd_weight
 from optstereo.models.correlation import CorrBlock1D
 from optstereo.models.extractor import FeatureEncoder
@@ -47,7 +52,9 @@ from optstereo.models.update import ConvGRU, DispHead
 
 CHANNELS_LAST = torch.channels_last
 WinogradMode = bool | Literal["auto"]
-_switches: dict[str, bool | str] = {"enabled": True, "winograd": "auto"}  # set by :func:`engineering`
+#: Set by :func:`engineering`; int8's default from ``OPTSTEREO_INT8`` ("0": the float32 encoder everywhere).
+_switches: dict[str, bool | str] = {"enabled": True, "winograd": "auto",
+                                    "int8": os.environ.get("OPTSTEREO_INT8", "1") != "0"}
 Conv = Callable[[torch.Tensor], torch.Tensor]
 #: Timed runs of each way on the first call of a loop convolution (the fastest of each counts; the first run of each
 #: also pays oneDNN's primitive set-up, so at least two).
@@ -58,12 +65,13 @@ _clock: Callable[[], float] = time.perf_counter  # replaced in tests
 
 
 @contextlib.contextmanager
-def engineering(enabled: bool, *, winograd: WinogradMode = "auto") -> Iterator[None]:
+def engineering(enabled: bool, *, winograd: WinogradMode = "auto", int8: bool | None = None) -> Iterator[None]:
     """Turn the engineered path on or off inside the block (plain ``OptStereo.forward`` when off), and choose its GRU
     convolutions: Winograd (True), direct (False) or the faster on this machine ("auto", the default), e.g. to time
-    them in one process."""
+    them in one process; ``int8=False`` keeps the encoder float32 where it would run in int8
+    (:func:`int8_encoder`), True allows it, None leaves the setting as it is (``OPTSTEREO_INT8``)."""
     old = dict(_switches)
-    _switches.update(enabled=enabled, winograd=winograd)
+    _switches.update(enabled=enabled, winograd=winograd, int8=_switches["int8"] if int8 is None else int8)
     try:
         yield
     finally:
@@ -81,10 +89,39 @@ class LoopConvs(NamedTuple):
 def engineer(model: nn.Module) -> nn.Module:
     """``model`` prepared for CPU inference: an :class:`EngineeredOptStereo` sharing its modules and parameters when
     it is an OptStereo with the standard parts (encoder, 1-D correlation, GRU with a static part, disparity head),
-    else ``model`` itself."""
+    else ``model`` itself. Also keeps the process's large freed buffers for reuse (:func:`keep_freed_buffers`)."""
     if type(model) is not OptStereo or not supported(model):
         return model
+    keep_freed_buffers()
     return EngineeredOptStereo.from_model(model)
+
+
+#: glibc's ``mallopt`` parameters and the values :func:`keep_freed_buffers` sets.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+MMAP_THRESHOLD = 32 << 20  # glibc's largest (64-bit): a buffer below it comes from the heap
+TRIM_THRESHOLD = 1 << 30  # free heap kept before memory goes back to the system
+_heap_state: dict[str, bool] = {}
+
+
+def keep_freed_buffers() -> bool:
+    """Once per process, on glibc: allocate buffers below 32 MiB from the heap and keep up to 1 GiB of freed heap
+    (``mallopt``), so that a pass's large activations (30 MB per 64-channel map of a KITTI frame at 1/2 resolution)
+    reuse memory already mapped instead of faulting fresh pages in each time (~10 ms per such map on a Zen 5 EPYC,
+    a third of an int8 convolution's time). glibc's default moves both limits as blocks are freed, so whether a map
+    faults depended on what the pass freed before it. The cost: the process keeps up to 1 GiB it freed.
+    ``OPTSTEREO_KEEP_HEAP=0`` leaves malloc alone. Returns whether the settings were made (False elsewhere)."""
+    if "done" in _heap_state:
+        return _heap_state["done"]
+    done = False
+    if os.environ.get("OPTSTEREO_KEEP_HEAP", "1") != "0" and sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL("libc.so.6")
+            done = bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(
+                libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+        except (OSError, AttributeError):  # not glibc (musl has no mallopt)
+            done = False
+    _heap_state["done"] = done
+    return done
 
 
 def supported(model: OptStereo) -> bool:
@@ -110,6 +147,7 @@ class EngineeredOptStereo(OptStereo):
                   iters=model.iters, config=model.config, image_chunk=model.image_chunk)
         if hasattr(model, "inference_config"):
             new.inference_config = model.inference_config
+        new.int8_calibration = getattr(model, "int8_calibration", None)
         return new.train(model.training)
 
     def forward(self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False,
@@ -197,7 +235,8 @@ def engineered_pass(model: OptStereo, left: torch.Tensor, right: torch.Tensor, i
     image_left = normalize_image(left)
     images = torch.cat([image_left, normalize_image(right)], dim=0)
     chunk = model._chunk_size(images) if model._per_image_encoder else 0
-    feats = model._in_chunks(lambda x: encode(model.feature_encoder, x), chunk, images)
+    encoder = int8_encoder(model) or functools.partial(encode, model.feature_encoder)
+    feats = model._in_chunks(encoder, chunk, images)
     feat_left, feat_right = feats.chunk(2, dim=0)
     corr = model.corr_block
     volume, level_widths = padded_pyramid(feat_left, feat_right, corr.num_levels, corr.scale)
@@ -216,6 +255,21 @@ def engineered_pass(model: OptStereo, left: torch.Tensor, right: torch.Tensor, i
         hidden = gru_step(gru, convs, hidden, x, static)
         disp = disp + head.conv2(head.relu(convs.head(hidden)))  # DispHead
     return disp, model._upsample(disp, hidden, image_left)
+
+
+def int8_encoder(model: OptStereo) -> int8.Int8Encoder | None:
+    """The model's encoder with int8 convolutions (:mod:`optstereo.inference.int8`) when its weights file has clips
+    (``model.int8_calibration``), this CPU runs them fast (:func:`int8.available`), the switch allows it
+    (:func:`engineering`) and the encoder is one it knows; else None (the float32 :func:`encode`). Built once per
+    model and rebuilt when an encoder weight changes."""
+    calibration = getattr(model, "int8_calibration", None)
+    if calibration is None or not _switches["int8"] or not int8.available() or not int8.supported(
+            model.feature_encoder):
+        return None
+    built = model.__dict__.get("_int8_encoder")
+    if built is None or built.encoder is not model.feature_encoder or not built.current():
+        built = model.__dict__["_int8_encoder"] = int8.Int8Encoder(model.feature_encoder, calibration)
+    return built
 
 
 def encode(encoder: FeatureEncoder, x: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,317 @@
+"""The encoder's convolutions in int8 on x86 CPUs (issue 52, registration Q1 in docs/registrations.md).
+
+Most of a CPU pass of the default model is its encoder's 3x3 convolutions at 1/2, 1/4 and 1/8 resolution (64, 96 and
+128 channels). oneDNN runs them on uint8 activations and int8 weights with int32 sums: about half the time of
+float32 on an AVX2 CPU, a quarter with AVX-512 VNNI. This module runs the 15 convolutions after the stem (layers 1-3
+and the 1x1 projection) that way, with float32 outputs; the stem, the instance norms, the correlation, the GRU loop
+and the upsampler stay float32.
+
+- Weights: symmetric, one scale per output channel (``max |w| / 127``), quantised once when the model is loaded.
+- Activations: uint8, one scale per tensor, from a fixed **clip** per convolution (its input value mapped to 255):
+  every input of these convolutions follows a ReLU (>= 0, zero point 0), and instance norm keeps their range nearly
+  the same from image to image, so clips measured once on unlabelled pairs (:func:`calibrate`, the mean 99.999th
+  percentile) hold; a value above its clip saturates.
+- Fewer passes over memory: the instance norm before a block's second convolution writes its input already scaled
+  (its affine weight ``1 / scale``, bias 0.5: one clamp and a cast make the uint8 tensor), a block's first
+  convolution and its strided shortcut share one quantised input, and the ReLU after an identity shortcut's sum (of
+  two non-negative tensors) is skipped.
+
+The clips of a weights file live beside it, in ``<file>.int8.json`` (:func:`sidecar_path`), with the file's SHA-256:
+``optstereo.checkpoint.build_model_from_checkpoint`` attaches them to the model (``model.int8_calibration``) and
+:mod:`optstereo.inference.fastpath` encodes with them when :func:`available` (an x86 CPU torch runs at AVX2 or
+AVX-512, with oneDNN's int8 convolution) and the switch allows (``fastpath.engineering(int8=False)`` turns it off).
+The outputs are not float32's: on validation pairs they moved by ~0.04 px mean; Q1's accuracy rule and its scores are
+in docs/registrations.md and RESULTS.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: The quantile of each convolution's input that maps to 255 (chosen by output equality on validation pairs).
+CLIP_QUANTILE = 0.99999
+#: Values sampled per convolution input and image when calibrating (the quantile of a random sample).
+CALIBRATION_SAMPLES = 400_000
+SIDECAR_SUFFIX = ".int8.json"
+FORMAT = "optstereo-int8-clips/1"
+_HALF = 0.5
+
+
+@dataclass(frozen=True)
+class Int8Calibration:
+    """Per-convolution input clips of one weights file.
+
+    Attributes:
+        clips: encoder module name (``layer1.0.conv1``, ..., ``proj``) -> the input value mapped to uint8 255 (> 0).
+        weights_sha256: SHA-256 of the weights file the clips were measured with.
+        quantile: the quantile of each input the clip is (the mean over the calibration pairs).
+        pairs: how many pairs were measured.
+    """
+
+    clips: dict[str, float]
+    weights_sha256: str
+    quantile: float = CLIP_QUANTILE
+    pairs: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT, "weights_sha256": self.weights_sha256, "quantile": self.quantile,
+                "pairs": self.pairs, "clips": dict(sorted(self.clips.items()))}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any], source: Path | str = "<dict>") -> Int8Calibration:
+        """Raises ValueError naming ``source`` and the problem for a file of another format or a bad clip."""
+        if values.get("format") != FORMAT:
+            raise ValueError(f"{source}: not an int8 clip file (format {values.get('format')!r}, expected {FORMAT!r})")
+        clips = values.get("clips")
+        if not isinstance(clips, dict) or not clips:
+            raise ValueError(f"{source}: 'clips' must be a non-empty mapping of encoder convolutions to clips")
+        for name, clip in clips.items():
+            if isinstance(clip, bool) or not isinstance(clip, (int, float)) or not math.isfinite(clip) or clip <= 0:
+                raise ValueError(f"{source}: clip of {name!r} must be a positive finite number, got {clip!r}")
+        return cls(clips={k: float(v) for k, v in clips.items()}, weights_sha256=str(values.get("weights_sha256", "")),
+                   quantile=float(values.get("quantile", CLIP_QUANTILE)), pairs=int(values.get("pairs", 0)))
+
+
+def sidecar_path(weights: Path) -> Path:
+    """``<weights file>.int8.json``: where a weights file's clips live."""
+    return Path(str(weights) + SIDECAR_SUFFIX)
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_sidecar(weights: Path) -> Int8Calibration | None:
+    """The clips beside ``weights`` (None when there is no sidecar). A sidecar measured with other weights (its
+    SHA-256 differs) is ignored with a warning naming both files: the float32 pass runs. An unreadable one raises
+    ValueError naming it."""
+    path = sidecar_path(Path(weights))
+    if not path.is_file():
+        return None
+    try:
+        values = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: unreadable int8 clip file ({exc})") from exc
+    calibration = Int8Calibration.from_dict(values, path)
+    if calibration.weights_sha256 != file_sha256(Path(weights)):
+        warnings.warn(f"{path} was measured with other weights than {weights}: int8 is off for them (run "
+                      f"`python -m optstereo.inference.int8 calibrate` again)", stacklevel=2)
+        return None
+    return calibration
+
+
+def write_sidecar(weights: Path, calibration: Int8Calibration) -> Path:
+    """Write ``calibration`` beside ``weights`` (atomically: a temporary file renamed) and return its path."""
+    path = sidecar_path(Path(weights))
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(calibration.to_dict(), indent=1) + "\n")
+    tmp.replace(path)
+    return path
+
+
+def available() -> bool:
+    """Whether this process can run the int8 convolutions fast: oneDNN's int8 convolution is in torch and torch runs
+    at AVX2 or AVX-512 (older x86 CPUs and other architectures would take slow reference kernels or none)."""
+    return (hasattr(torch.ops.onednn, "qconv2d_pointwise") and hasattr(torch.ops.onednn, "qconv_prepack")
+            and torch.backends.mkldnn.is_available()
+            and torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512"))
+
+
+def conv_names(encoder: nn.Module) -> list[str]:
+    """The encoder's convolutions this module runs in int8: every ``nn.Conv2d`` after the stem."""
+    return [name for name, module in encoder.named_modules()
+            if isinstance(module, nn.Conv2d) and not name.startswith("stem")]
+
+
+class Int8Conv:
+    """One ``nn.Conv2d`` with int8 weights on a uint8 input of a fixed scale: (B, C_in, H, W) uint8 channels-last ->
+    (B, C_out, H', W') float32 channels-last, ``conv(scale * q)`` to int8 rounding."""
+
+    def __init__(self, conv: nn.Conv2d, clip: float) -> None:
+        weight = conv.weight.detach().float().cpu()
+        self.scale = float(clip) / 255.0
+        self.w_scale = (weight.abs().amax(dim=(1, 2, 3)).clamp_min(1e-12) / 127.0).contiguous()
+        q_weight = torch.round(weight / self.w_scale[:, None, None, None]).clamp_(-127, 127).to(torch.int8)
+        self.stride, self.padding = list(conv.stride), list(conv.padding)
+        self.dilation, self.groups = list(conv.dilation), conv.groups
+        self.packed = torch.ops.onednn.qconv_prepack(q_weight, self.w_scale, self.scale, 0, self.stride, self.padding,
+                                                     self.dilation, self.groups, None)
+        self.w_zero = torch.zeros(weight.shape[0], dtype=torch.int32)
+        self.bias = None if conv.bias is None else conv.bias.detach().float().cpu()
+
+    def __call__(self, q: torch.Tensor) -> torch.Tensor:
+        return torch.ops.onednn.qconv2d_pointwise(q, self.scale, 0, self.packed, self.w_scale, self.w_zero, self.bias,
+                                                  self.stride, self.padding, self.dilation, self.groups, 1.0, 0,
+                                                  torch.float32, "none", [], "")
+
+
+def quantize(x: torch.Tensor, scale: float) -> torch.Tensor:
+    """Non-negative float32 ``x`` -> uint8 ``round(x / scale)`` saturated at 255 (same shape and memory format)."""
+    return torch.add(torch.tensor(_HALF), x, alpha=1.0 / scale).clamp_(max=255.0).to(torch.uint8)
+
+
+def norm_relu_quantize(y: torch.Tensor, eps: float, scale: float) -> torch.Tensor:
+    """``quantize(relu(instance_norm(y)), scale)`` for one image (B = 1) in three passes: the norm writes ``IN(y) /
+    scale + 0.5`` (its affine weight and bias), a clamp to [0, 255] is the ReLU and the saturation, the cast rounds."""
+    channels = y.shape[1]
+    weight = torch.full((channels,), 1.0 / scale)
+    bias = torch.full((channels,), _HALF)
+    scaled = F.batch_norm(y, None, None, weight, bias, True, 0.0, eps)
+    return scaled.clamp_(0.0, 255.0).to(torch.uint8)
+
+
+def _norm_relu(y: torch.Tensor, eps: float) -> torch.Tensor:
+    return F.batch_norm(y, None, None, None, None, True, 0.0, eps).relu_()
+
+
+class Int8Encoder:
+    """A ``FeatureEncoder`` (residual stages) with :class:`Int8Conv` after its stem: (B, 3, H, W) normalised image ->
+    (B, C, H/8, W/8) float32 channels-last features. Built once per model; rebuilt when a weight changes
+    (:meth:`current`)."""
+
+    def __init__(self, encoder: nn.Module, calibration: Int8Calibration) -> None:
+        names = conv_names(encoder)
+        missing = [n for n in names if n not in calibration.clips]
+        if missing:
+            raise ValueError(f"int8 clips are missing for {missing[:3]} ({len(missing)} of {len(names)} convolutions)")
+        modules = dict(encoder.named_modules())
+        self.encoder = encoder
+        self.convs: dict[str, Int8Conv] = {}
+        for name in names:
+            clip = calibration.clips[name]
+            if name.endswith("shortcut.0"):  # the same input as the block's conv1: one quantised tensor for both
+                clip = calibration.clips[name[:-len("shortcut.0")] + "conv1"]
+            self.convs[name] = Int8Conv(modules[name], clip)
+        self._versions = self._weight_versions()
+
+    def _weight_versions(self) -> list[tuple[int, int]]:
+        return [(id(p), p._version) for p in self.encoder.parameters() if not p.is_inference()]
+
+    def current(self) -> bool:
+        """False when a parameter of the encoder changed since the weights were quantised (an optimiser step, a
+        ``load_state_dict``)."""
+        return self._weights_unchanged()
+
+    def _weights_unchanged(self) -> bool:
+        return self._weight_versions() == self._versions
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[0] != 1:  # instance norm as batch norm needs one image per call
+            return torch.cat([self(image) for image in x.split(1)], dim=0)
+        encoder = self.encoder
+        x = encoder.stem(x.contiguous(memory_format=torch.channels_last))
+        for index, layer in enumerate((encoder.layer1, encoder.layer2, encoder.layer3), start=1):
+            for block_index, block in enumerate(layer):
+                x = self._block(block, f"layer{index}.{block_index}.", x)
+        return self.convs["proj"](quantize(x, self.convs["proj"].scale))
+
+    def _block(self, block: nn.Module, prefix: str, x: torch.Tensor) -> torch.Tensor:
+        conv1, conv2 = self.convs[prefix + "conv1"], self.convs[prefix + "conv2"]
+        qx = quantize(x, conv1.scale)
+        y = norm_relu_quantize(conv1(qx), block.norm1.eps, conv2.scale)
+        y = _norm_relu(conv2(y), block.norm2.eps)
+        if isinstance(block.shortcut, nn.Identity):
+            return y.add_(x)  # both >= 0: the block's final ReLU changes nothing
+        shortcut = block.shortcut[1](self.convs[prefix + "shortcut.0"](qx))
+        return y.add_(shortcut).relu_()
+
+
+def supported(encoder: nn.Module) -> bool:
+    """Whether :class:`Int8Encoder` knows ``encoder``: a ``FeatureEncoder`` of residual blocks with instance norms."""
+    from optstereo.models.extractor import FeatureEncoder
+    from optstereo.models.layers import InstanceNorm2d, ResidualBlock
+
+    if type(encoder) is not FeatureEncoder:
+        return False
+    blocks = [block for layer in (encoder.layer1, encoder.layer2, encoder.layer3) for block in layer]
+    return all(type(block) is ResidualBlock and type(block.norm1) is InstanceNorm2d
+               and type(block.norm2) is InstanceNorm2d for block in blocks)
+
+
+def calibrate(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: float = CLIP_QUANTILE,
+              seed: int = 0) -> dict[str, float]:
+    """Clip per int8 convolution: the mean over ``pairs`` ((H, W, 3) uint8 left and right) of the ``quantile`` of
+    its input (a random sample of :data:`CALIBRATION_SAMPLES` values per call), from the float32 pass."""
+    from optstereo.inference.engine import infer
+    from optstereo.inference.fastpath import engineering
+
+    encoder = model.feature_encoder
+    modules = dict(encoder.named_modules())
+    generator = torch.Generator().manual_seed(seed)
+    values: dict[str, list[float]] = {name: [] for name in conv_names(encoder)}
+
+    def hook(name: str) -> Any:
+        def record(_module: nn.Module, inputs: tuple[torch.Tensor, ...], _output: torch.Tensor) -> None:
+            flat = inputs[0].detach().reshape(-1)
+            sample = flat[torch.randint(0, flat.numel(), (CALIBRATION_SAMPLES,), generator=generator)]
+            values[name].append(float(torch.quantile(sample.float(), quantile)))
+        return record
+
+    handles = [modules[name].register_forward_hook(hook(name)) for name in values]
+    try:
+        with engineering(False):
+            for left, right in pairs:
+                infer(model, left, right)
+    finally:
+        for handle in handles:
+            handle.remove()
+    empty = [name for name, v in values.items() if not v]
+    if empty:
+        raise ValueError(f"calibration saw no input of {empty[:3]}: were any pairs given?")
+    return {name: max(sum(v) / len(v), 1e-6) for name, v in values.items()}
+
+
+def spread(items: list[Any], count: int) -> list[Any]:
+    """``count`` items evenly spaced over ``items`` (all of them when there are fewer)."""
+    if count >= len(items):
+        return list(items)
+    step = len(items) / count
+    return [items[int(i * step)] for i in range(count)]
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m optstereo.inference.int8 --checkpoint FILE --root DIR [--root DIR ...]``: measure a weights
+    file's clips on unlabelled pairs (every KITTI-style pair under each root, the ``kitti_unlabelled`` reader; never
+    their GT) and write them beside it (``FILE.int8.json``)."""
+    import argparse
+
+    from optstereo.api import load_model
+    from optstereo.pretrained import resolve_checkpoint_spec
+    from pvm_labeler.common.datasets import discover, load_pair
+
+    parser = argparse.ArgumentParser(prog="python -m optstereo.inference.int8", description=main.__doc__)
+    parser.add_argument("--checkpoint", required=True, help="a .safetensors file or a shipped name")
+    parser.add_argument("--root", type=Path, action="append", required=True,
+                        help="a folder of KITTI-style pairs (image_2 / image_3 at any depth); repeatable")
+    parser.add_argument("--pairs", type=int, default=12, help="pairs measured, evenly spread over the sorted list")
+    args = parser.parse_args(argv)
+    weights = resolve_checkpoint_spec(args.checkpoint)
+    refs = sorted((ref for root in args.root for ref in discover("kitti_unlabelled", root)),
+                  key=lambda ref: str(ref.left))
+    chosen = spread(refs, args.pairs)
+    if not chosen:
+        raise SystemExit(f"no pairs found under {', '.join(map(str, args.root))}")
+    model = load_model(weights)
+    samples = (load_pair(ref) for ref in chosen)
+    clips = calibrate(model, ((s.left, s.right) for s in samples))
+    path = write_sidecar(weights, Int8Calibration(clips, file_sha256(weights), CLIP_QUANTILE, len(chosen)))
+    print(f"wrote {path}: {len(clips)} clips from {len(chosen)} pairs")
+
+
+if __name__ == "__main__":
+    main()
