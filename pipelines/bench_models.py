@@ -105,6 +105,12 @@ def plain_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> 
         return infer(model, left, right)
 
 
+def float32_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """``infer`` through the engineered pass with its encoder in float32 (no int8, ``optstereo.inference.int8``)."""
+    with engineering(True, int8=False):
+        return infer(model, left, right)
+
+
 def winograd_infer(model: torch.nn.Module, left: np.ndarray, right: np.ndarray) -> np.ndarray:
     """``infer`` through the engineered pass with Winograd GRU convolutions forced (no per-machine choice)."""
     with engineering(True, winograd=True):
@@ -124,20 +130,24 @@ def cpu_rows(models: dict[str, torch.nn.Module], frames: list[tuple[np.ndarray, 
     sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
     rows = []
     for name, model in models.items():
-        model_s, winograd_s, direct_s, plain_s, sgbm_s = [], [], [], [], []
+        model_s, float_s, winograd_s, direct_s, plain_s, sgbm_s = [], [], [], [], [], []
         config = getattr(model, "inference_config", None)
         # a multi-pass model: one timed run each (KITTI frames are not small pairs: no adaptive pass)
         runs = 1 if config is not None and config.passes_for(enlarged=False) > 1 else repeats
         for left, right in frames:
             sgbm_s.append(_seconds(functools.partial(sgbm.compute, left, right), runs))
             model_s.append(_seconds(functools.partial(infer, model, left, right), runs))
+            float_s.append(_seconds(functools.partial(float32_infer, model, left, right), runs))
             winograd_s.append(_seconds(functools.partial(winograd_infer, model, left, right), runs))
             direct_s.append(_seconds(functools.partial(direct_infer, model, left, right), runs))
             plain_s.append(_seconds(functools.partial(plain_infer, model, left, right), runs))
         ratio = statistics.median(m / s for m, s in zip(model_s, sgbm_s, strict=True))
         target = TARGETS.get(name)
         rows.append({"model": name, "s_per_frame": statistics.median(model_s), "sgbm_s": statistics.median(sgbm_s),
-                     "ratio": ratio, "winograd_s_per_frame": statistics.median(winograd_s),
+                     "ratio": ratio, "int8": fastpath.int8_encoder(model) is not None,
+                     "float32_s_per_frame": statistics.median(float_s),
+                     "float32_ratio": statistics.median(f / s for f, s in zip(float_s, sgbm_s, strict=True)),
+                     "winograd_s_per_frame": statistics.median(winograd_s),
                      "winograd_ratio": statistics.median(w / s for w, s in zip(winograd_s, sgbm_s, strict=True)),
                      "direct_s_per_frame": statistics.median(direct_s),
                      "direct_ratio": statistics.median(d / s for d, s in zip(direct_s, sgbm_s, strict=True)),
@@ -241,8 +251,12 @@ def proxy_row(shared: Path, name: str = "pretrained", repeats: int = REPEATS, n_
 
 def _proxy_child(name: str, shared: Path, repeats: int, n_frames: int) -> dict[str, Any]:
     torch.set_num_threads(THREADS)
-    row = beside_sgbm(load_model(name), _frames(shared)[:n_frames], repeats, _opencv(cv2.STEREO_SGBM_MODE_HH))
-    return {"model": name, **row, "torch_capability": torch.backends.cpu.get_cpu_capability(),
+    model, frames, sgbm = load_model(name), _frames(shared)[:n_frames], _opencv(cv2.STEREO_SGBM_MODE_HH)
+    row = beside_sgbm(model, frames, repeats, sgbm)
+    full = beside_sgbm(model, frames, repeats, sgbm, run=float32_infer)
+    return {"model": name, **row, "int8": fastpath.int8_encoder(model) is not None,
+            "float32_s_per_frame": full["s_per_frame"], "float32_ratio": full["ratio"],
+            "torch_capability": torch.backends.cpu.get_cpu_capability(),
             "env": {k: os.environ.get(k) for k in AVX2_PROXY}}
 
 
@@ -254,7 +268,9 @@ def _proxy_markdown(proxy: dict[str, Any] | None) -> list[str]:
     caps = " ".join(f"{k}={v}" for k, v in AVX2_PROXY.items())
     return ["", f"AVX2 proxy (the same frames in a child process with {caps}; torch at "
             f"{proxy['torch_capability']}): `{proxy['model']}` {proxy['s_per_frame']:.2f} s per frame, SGBM-HH "
-            f"{proxy['sgbm_s']:.2f} s, **{proxy['ratio']:.2f}x**{verdict}."]
+            f"{proxy['sgbm_s']:.2f} s, **{proxy['ratio']:.2f}x**{verdict}"
+            f"{' with its int8 encoder' if proxy.get('int8') else ''}; its float32 encoder "
+            f"{proxy.get('float32_s_per_frame', float('nan')):.2f} s, {proxy.get('float32_ratio', float('nan')):.2f}x."]
 
 
 def run(shared: Path) -> dict[str, Any]:
@@ -269,24 +285,27 @@ def run(shared: Path) -> dict[str, Any]:
                "threads": THREADS, "repeats": REPEATS, "frames": [f"kitti15 {f}_10" for f in FRAMES], "cpu": rows,
                "match": match, "gpu": gpu, "load_avg": os.getloadavg()[0],
                "winograd_choices": fastpath.winograd_choices()}
-    lines = [f"Each shipped model with its own settings, end to end (`infer`: resize, passes, filter), float32, "
-             f"{THREADS} threads, as `load_model` gives it (the engineered CPU pass, its GRU convolutions Winograd or "
-             f"direct, whichever this machine ran faster), the same with Winograd forced, with direct GRU "
-             f"convolutions forced and through the plain `OptStereo.forward`, beside OpenCV SGBM-HH "
+    lines = [f"Each shipped model with its own settings, end to end (`infer`: resize, passes, filter), "
+             f"{THREADS} threads, as `load_model` gives it (the engineered CPU pass: its encoder in int8 where the "
+             f"weights have int8 clips and the CPU runs oneDNN's int8 convolution, its GRU convolutions Winograd or "
+             f"direct, whichever this machine ran faster), the same with the encoder in float32, with Winograd "
+             f"forced, with direct GRU convolutions forced and through the plain `OptStereo.forward`, beside OpenCV "
+             f"SGBM-HH "
              f"(192 disparities) on the same {len(FRAMES)} KITTI 2015 "
              f"frames, alternating; median of {REPEATS} runs per frame (1 for a multi-pass model), ratio = median "
              "of the per-frame ratios.", "",
-             "| model | s / KITTI frame | Winograd s | no-Winograd s | plain s | OpenCV SGBM-HH s | x SGBM "
-             "| Winograd x SGBM | no-Winograd x SGBM | plain x SGBM | target | |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "| model | int8 | s / KITTI frame | float32 s | Winograd s | no-Winograd s | plain s | OpenCV SGBM-HH s "
+             "| x SGBM | float32 x SGBM | Winograd x SGBM | no-Winograd x SGBM | plain x SGBM | target | |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        lines.append(f"| `{r['model']}` | {r['s_per_frame']:.2f} | {r['winograd_s_per_frame']:.2f} | "
+        lines.append(f"| `{r['model']}` | {'yes' if r['int8'] else 'no'} | {r['s_per_frame']:.2f} | "
+                     f"{r['float32_s_per_frame']:.2f} | {r['winograd_s_per_frame']:.2f} | "
                      f"{r['direct_s_per_frame']:.2f} | {r['plain_s_per_frame']:.2f} | {r['sgbm_s']:.2f} | "
-                     f"{r['ratio']:.2f} | {r['winograd_ratio']:.2f} | {r['direct_ratio']:.2f} | "
-                     f"{r['plain_ratio']:.2f} | "
+                     f"{r['ratio']:.2f} | {r['float32_ratio']:.2f} | {r['winograd_ratio']:.2f} | "
+                     f"{r['direct_ratio']:.2f} | {r['plain_ratio']:.2f} | "
                      f"{'' if r['target'] is None else '<= ' + str(r['target'])} | {r['verdict'] or ''} |")
-    lines.append(f"| `{match['model']}` | {match['s_per_frame']:.2f} | | | | {match['sgbm_s']:.2f} | "
-                 f"{match['ratio']:.2f} | | | | <= {match['target']} | {match['verdict'] or ''} |")
+    lines.append(f"| `{match['model']}` | | {match['s_per_frame']:.2f} | | | | | {match['sgbm_s']:.2f} | "
+                 f"{match['ratio']:.2f} | | | | | <= {match['target']} | {match['verdict'] or ''} |")
     choices = results["winograd_choices"]
     lines += ["", "The GRU convolutions this machine chose (True = Winograd): "
               + (", ".join(f"{k}: {v}" for k, v in choices.items()) or "none timed") + "."]

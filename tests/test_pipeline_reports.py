@@ -81,8 +81,8 @@ def test_demo_trains_in_bf16_only_where_the_cpu_has_it(tmp_path: Path, monkeypat
 
 
 def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypatch: pytest.MonkeyPatch) -> None:
-    """cpu_rows: the ratio is the median of per-frame (model / SGBM) times, the engineered path without Winograd and
-    the plain one timed beside it; a model of several passes is timed once."""
+    """cpu_rows: the ratio is the median of per-frame (model / SGBM) times, the engineered path in float32, without
+    Winograd and the plain one timed beside it; a model of several passes is timed once."""
     import itertools
 
     from optstereo.inference.config import InferenceConfig
@@ -97,12 +97,13 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
 
     def fake_seconds(fn: object, repeats: int) -> float:
         func = getattr(fn, "func", None)
-        names = {bench_models_infer: "model", bench_models.winograd_infer: "winograd",
-                 bench_models.direct_infer: "direct", bench_models.plain_infer: "plain"}
+        names = {bench_models_infer: "model", bench_models.float32_infer: "float32",
+                 bench_models.winograd_infer: "winograd", bench_models.direct_infer: "direct",
+                 bench_models.plain_infer: "plain"}
         name = names.get(func, "sgbm")
         calls.append(f"{name}:{repeats}")
-        return 3.0 + next(clock) if name == "model" else {"sgbm": 2.0, "winograd": 6.0, "direct": 8.0,
-                                                           "plain": 10.0}[name]
+        return 3.0 + next(clock) if name == "model" else {"sgbm": 2.0, "float32": 5.0, "winograd": 6.0,
+                                                           "direct": 8.0, "plain": 10.0}[name]
 
     def bench_models_infer(*args: object) -> None:  # stands for optstereo.inference.engine.infer
         raise AssertionError("timed through fake_seconds only")
@@ -114,10 +115,12 @@ def test_bench_models_ratio_is_per_frame_and_multi_pass_models_run_once(monkeypa
     rows = bench_models.cpu_rows(models, frames, repeats=3)
     # model times 3, 4, 5 s against SGBM's 2 s: ratios 1.5, 2.0, 2.5 -> median 2.0; then 6, 7, 8 -> 3.5
     assert [r["ratio"] for r in rows] == [2.0, 3.5]
-    assert [(r["winograd_ratio"], r["direct_ratio"], r["plain_ratio"]) for r in rows] == [(3.0, 4.0, 5.0)] * 2
+    assert [(r["float32_ratio"], r["winograd_ratio"], r["direct_ratio"], r["plain_ratio"])
+            for r in rows] == [(2.5, 3.0, 4.0, 5.0)] * 2
     assert rows[0]["verdict"] == "met" and rows[1]["target"] is None
-    assert calls[:5] == ["sgbm:3", "model:3", "winograd:3", "direct:3", "plain:3"]
-    assert calls[-5:] == ["sgbm:1", "model:1", "winograd:1", "direct:1", "plain:1"]
+    assert [r["int8"] for r in rows] == [False, False]  # the fakes have no int8 clips
+    assert calls[:6] == ["sgbm:3", "model:3", "float32:3", "winograd:3", "direct:3", "plain:3"]
+    assert calls[-6:] == ["sgbm:1", "model:1", "float32:1", "winograd:1", "direct:1", "plain:1"]
 
 
 def test_beside_sgbm_times_each_frame_after_sgbm(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -186,6 +189,7 @@ def test_bench_avx2_proxy_child_runs_capped(shared_data: Path) -> None:
     assert row["env"] == bench_models.AVX2_PROXY
     assert row["model"] == "pretrained" and row["s_per_frame"] > 0 and row["sgbm_s"] > 0
     assert row["ratio"] == pytest.approx(row["s_per_frame"] / row["sgbm_s"])  # one frame: the ratio of the two
+    assert row["int8"] is True and row["float32_s_per_frame"] > 0  # the shipped default has int8 clips
     assert "AVX2 proxy" in "\n".join(bench_models._proxy_markdown(row))
     with pytest.raises(RuntimeError, match="no-such-model"):
         bench_models.proxy_row(shared_data, "no-such-model", repeats=1, n_frames=1)
