@@ -19,9 +19,14 @@ tracing). The path computes the same function with fewer passes over memory:
   that is faster on the machine: the first call of each convolution in a process times both ways on its real input
   (:data:`CALIBRATION_RUNS` each, alternating, the fastest run of each) and keeps the faster for the process
   (:func:`winograd_choices`). Winograd won on an Intel Xeon (AVX-512) and an AVX2 EPYC, direct convolutions on a
-  Zen 5 EPYC (``make bench``, section ``models``).
+  Zen 5 EPYC (``make bench``, section ``models``);
+- the encoder's convolutions after the stem run in int8 (:mod:`optstereo.inference.int8`) where the weights file
+  has int8 clips and the CPU runs oneDNN's int8 convolution at AVX2 or AVX-512 (:func:`int8_encoder`): not the same
+  function (~0.04 px mean from float32; registration Q1), off with ``OPTSTEREO_INT8=0``;
+- glibc keeps freed large buffers (:func:`keep_freed_buffers`) so that activations reuse mapped memory.
 
-Outputs equal the plain path's to float32 rounding (oneDNN picks other kernels for channels-last convolutions):
+In float32 the outputs equal the plain path's to float32 rounding (oneDNN picks other kernels for channels-last
+convolutions):
 tests/test_fastpath.py holds them together on a tiny random model and on a real KITTI pair with the shipped weights.
 Measured in ``make bench`` (section ``models``); the steps tried and their ratios are in docs/optstereo.md.
 """
