@@ -48,6 +48,9 @@ from optstereo.checkpoint import load_checkpoint, model_inference
 from optstereo.data.transforms import rescale_sample
 from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import final_scale, infer, pass_at_scale
+from optstereo.inference.fastpath import engineering
+from optstereo.inference.int8 import spread
+from optstereo.inference.int8_calibration import PAIRS, inherit_clips
 from optstereo.inference.rescale import sparse_to_size
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill
@@ -345,22 +348,28 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
     train = write_train_labels(cfg, labels, train_ids)
     targets = distill_train_labels(cfg, train) if cfg.teacher is not None else train
     trained, steps = finetune(cfg, at_inference_scale(cfg, targets))
-    before = score_frames(init, labels, held_ids, cfg.device, cfg.quiet, "before")
-    after = score_frames(trained, labels, held_ids, cfg.device, cfg.quiet, "after")
+    with engineering(True, int8=False):  # the weights are compared, both in float32 (the start may have int8 clips)
+        before = score_frames(init, labels, held_ids, cfg.device, cfg.quiet, "before")
+        after = score_frames(trained, labels, held_ids, cfg.device, cfg.quiet, "after")
     decision = decide(before, after)
     source = trained if decision.adapted else init
     adapted = cfg.out / f"adapted{source.suffix or '.pt'}"
-    for stale in cfg.out.glob("adapted.*"):  # a resumed run's earlier decision
+    for stale in cfg.out.glob("adapted.*"):  # a resumed run's earlier decision, its int8 clips too
         stale.unlink()
     shutil.copyfile(source, adapted)
+    clips = inherit_clips(adapted, init, not decision.adapted, lambda: [  # int8 as fast as the start, if it has it
+        (s.left, s.right) for s in shard_samples(labels, set(spread(sorted(train_ids), PAIRS)))])
     # GT, where the rig has it, is read only now: it scores the decision, it never makes it
+    with engineering(True, int8=False):
+        gt_before = gt_scores(init, labels, cfg.device, cfg.quiet, "before")
+        gt_after = gt_scores(trained, labels, cfg.device, cfg.quiet, "after")
     report = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
               "init": str(init), "pairs": len(ids), "steps": steps, "train_frames": train_ids,
               "held_back_frames": held_ids,
-              "before": {**_summary(before), **gt_scores(init, labels, cfg.device, cfg.quiet, "before")},
-              "after": {**_summary(after), **gt_scores(trained, labels, cfg.device, cfg.quiet, "after")},
+              "before": {**_summary(before), **gt_before}, "after": {**_summary(after), **gt_after},
               "lr": cfg.learning_rate(), "adapted": decision.adapted, "changes": decision.changes,
-              "checkpoint": str(adapted), "decision": decision.reason}
+              "checkpoint": str(adapted), "int8_clips": None if clips is None else str(clips),
+              "decision": decision.reason}
     (cfg.out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     (cfg.out / "report.md").write_text(report_markdown(report))
     return report

@@ -34,6 +34,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from optstereo.inference.config import InferenceConfig
+from optstereo.inference.int8 import Int8Calibration, read_sidecar
 from optstereo.models import build_model, upgrade_model_keys
 from optstereo.models.config import split_legacy_model_dict
 from optstereo.version import __version__
@@ -307,12 +308,10 @@ def build_model_from_checkpoint(
     return model.to(device).eval()
 
 
-def _int8_sidecar(path: Path | None) -> Any:
+def _int8_sidecar(path: Path | None) -> Int8Calibration | None:
     """The int8 clips beside a weights file (``optstereo.inference.int8.read_sidecar``), None without one."""
     if path is None or not Path(path).is_file():
         return None
-    from optstereo.inference.int8 import read_sidecar
-
     return read_sidecar(Path(path))
 
 

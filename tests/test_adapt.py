@@ -17,6 +17,7 @@ from conftest import TINY
 
 from optstereo.adapt import MIN_HELD, AdaptConfig, decide, split_frames
 from optstereo.checkpoint import model_inference, save_checkpoint
+from optstereo.inference import int8
 from optstereo.models import build_model
 from optstereo.validation import PairScore
 from pvm_labeler.common.datasets import discover, load_pair, make_layered_scene
@@ -81,6 +82,10 @@ def test_a_wrecking_learning_rate_keeps_the_start(tmp_path: Path, shared_data: P
     assert report["after"]["held_bad3"] > report["before"]["held_bad3"] + 5
     assert res.output.strip().splitlines()[-1].startswith("start kept:")
     assert (out / "adapted.safetensors").read_bytes() == Path(report["init"]).read_bytes()
+    clips = int8.read_sidecar(out / "adapted.safetensors")
+    assert (clips is not None) is int8.available() and (report["int8_clips"] is not None) is int8.available()
+    if clips is not None:
+        assert clips == int8.read_sidecar(Path(report["init"]))
 
 
 def _rig(root: Path, n: int = 2) -> None:

@@ -15,7 +15,7 @@ from conftest import TINY, kitti_crop
 
 from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors
-from optstereo.inference import fastpath, int8
+from optstereo.inference import fastpath, int8, int8_calibration
 from optstereo.inference.engine import infer, network_pass
 from optstereo.inference.fastpath import engineer, engineering, int8_encoder
 from optstereo.models import build_model
@@ -35,7 +35,7 @@ def calibrated(model: torch.nn.Module, seed: int = 0) -> int8.Int8Calibration:
     rng = np.random.default_rng(seed)
     pairs = [(rng.integers(0, 256, (64, 128, 3), dtype=np.uint8), rng.integers(0, 256, (64, 128, 3), dtype=np.uint8))
              for _ in range(3)]
-    return int8.Int8Calibration(int8.calibrate(model, pairs), weights_sha256="")
+    return int8.Int8Calibration(int8_calibration.calibrate(model, pairs), weights_sha256="")
 
 
 class TestQuantisers:
@@ -183,6 +183,29 @@ class TestSidecar:
         model = load_model("pretrained")
         assert set(calibration.clips) == set(int8.conv_names(model.feature_encoder))
         assert calibration.quantile == int8.CLIP_QUANTILE and calibration.pairs == 12
+
+    def test_inherited_by_an_adapted_model(self, tmp_path: Path) -> None:
+        """optstereo-adapt's kept checkpoint: a copy of a start with clips gets them; adapted weights get clips
+        measured on the frames given; a start without clips gives none."""
+        model = tiny_model()
+        start = export_safetensors(tmp_path / "start.safetensors", model)
+        kept = tmp_path / "adapted.safetensors"
+        kept.write_bytes(start.read_bytes())
+        pairs = lambda: [(np.zeros((48, 64, 3), np.uint8) + 60, np.zeros((48, 64, 3), np.uint8) + 70)]  # noqa: E731
+        assert int8_calibration.inherit_clips(kept, start, True, pairs) is None  # the start has no clips
+        int8.write_sidecar(start, int8.Int8Calibration(calibrated(model).clips, int8.file_sha256(start)))
+        if not int8.available():
+            assert int8_calibration.inherit_clips(kept, start, True, pairs) is None
+            return
+        assert int8_calibration.inherit_clips(kept, start, True, pairs) == int8.sidecar_path(kept)
+        assert int8.read_sidecar(kept).clips == int8.read_sidecar(start).clips
+        with torch.no_grad():
+            model.feature_encoder.layer1[0].conv1.weight.mul_(1.5)
+        trained = export_safetensors(tmp_path / "trained.safetensors", model)
+        path = int8_calibration.inherit_clips(trained, start, False, pairs)
+        assert path == int8.sidecar_path(trained)
+        measured = int8.read_sidecar(trained)
+        assert measured.pairs == 1 and measured.clips != int8.read_sidecar(start).clips
 
     def test_spread(self) -> None:
         assert int8.spread(list(range(10)), 3) == [0, 3, 6]

@@ -9,8 +9,9 @@ and the upsampler stay float32.
 - Weights: symmetric, one scale per output channel (``max |w| / 127``), quantised once when the model is loaded.
 - Activations: uint8, one scale per tensor, from a fixed **clip** per convolution (its input value mapped to 255):
   every input of these convolutions follows a ReLU (>= 0, zero point 0), and instance norm keeps their range nearly
-  the same from image to image, so clips measured once on unlabelled pairs (:func:`calibrate`, the mean 99.999th
-  percentile) hold; a value above its clip saturates.
+  the same from image to image, so clips measured once on unlabelled pairs
+  (:func:`optstereo.inference.int8_calibration.calibrate`, the mean 99.999th percentile) hold; a value above its
+  clip saturates.
 - Fewer passes over memory: the instance norm before a block's second convolution writes its input already scaled
   (its affine weight ``1 / scale``, bias 0.5: one clamp and a cast make the uint8 tensor), a block's first
   convolution and its strided shortcut share one quantised input, and the ReLU after an identity shortcut's sum (of
@@ -30,7 +31,6 @@ import hashlib
 import json
 import math
 import warnings
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,10 +39,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from optstereo.models.extractor import FeatureEncoder
+from optstereo.models.layers import InstanceNorm2d, ResidualBlock
+
 #: The quantile of each convolution's input that maps to 255 (chosen by output equality on validation pairs).
 CLIP_QUANTILE = 0.99999
-#: Values sampled per convolution input and image when calibrating (the quantile of a random sample).
-CALIBRATION_SAMPLES = 400_000
 SIDECAR_SUFFIX = ".int8.json"
 FORMAT = "optstereo-int8-clips/1"
 _HALF = 0.5
@@ -109,8 +110,8 @@ def read_sidecar(weights: Path) -> Int8Calibration | None:
         raise ValueError(f"{path}: unreadable int8 clip file ({exc})") from exc
     calibration = Int8Calibration.from_dict(values, path)
     if calibration.weights_sha256 != file_sha256(Path(weights)):
-        warnings.warn(f"{path} was measured with other weights than {weights}: int8 is off for them (run "
-                      f"`python -m optstereo.inference.int8 calibrate` again)", stacklevel=2)
+        warnings.warn(f"{path} was measured with other weights than {weights}: int8 is off for them (measure them "
+                      f"again: `python -m optstereo.inference.int8_calibration`)", stacklevel=2)
         return None
     return calibration
 
@@ -233,47 +234,11 @@ class Int8Encoder:
 
 def supported(encoder: nn.Module) -> bool:
     """Whether :class:`Int8Encoder` knows ``encoder``: a ``FeatureEncoder`` of residual blocks with instance norms."""
-    from optstereo.models.extractor import FeatureEncoder
-    from optstereo.models.layers import InstanceNorm2d, ResidualBlock
-
     if type(encoder) is not FeatureEncoder:
         return False
     blocks = [block for layer in (encoder.layer1, encoder.layer2, encoder.layer3) for block in layer]
     return all(type(block) is ResidualBlock and type(block.norm1) is InstanceNorm2d
                and type(block.norm2) is InstanceNorm2d for block in blocks)
-
-
-def calibrate(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: float = CLIP_QUANTILE,
-              seed: int = 0) -> dict[str, float]:
-    """Clip per int8 convolution: the mean over ``pairs`` ((H, W, 3) uint8 left and right) of the ``quantile`` of
-    its input (a random sample of :data:`CALIBRATION_SAMPLES` values per call), from the float32 pass."""
-    from optstereo.inference.engine import infer
-    from optstereo.inference.fastpath import engineering
-
-    encoder = model.feature_encoder
-    modules = dict(encoder.named_modules())
-    generator = torch.Generator().manual_seed(seed)
-    values: dict[str, list[float]] = {name: [] for name in conv_names(encoder)}
-
-    def hook(name: str) -> Any:
-        def record(_module: nn.Module, inputs: tuple[torch.Tensor, ...], _output: torch.Tensor) -> None:
-            flat = inputs[0].detach().reshape(-1)
-            sample = flat[torch.randint(0, flat.numel(), (CALIBRATION_SAMPLES,), generator=generator)]
-            values[name].append(float(torch.quantile(sample.float(), quantile)))
-        return record
-
-    handles = [modules[name].register_forward_hook(hook(name)) for name in values]
-    try:
-        with engineering(False):
-            for left, right in pairs:
-                infer(model, left, right)
-    finally:
-        for handle in handles:
-            handle.remove()
-    empty = [name for name, v in values.items() if not v]
-    if empty:
-        raise ValueError(f"calibration saw no input of {empty[:3]}: were any pairs given?")
-    return {name: max(sum(v) / len(v), 1e-6) for name, v in values.items()}
 
 
 def spread(items: list[Any], count: int) -> list[Any]:
@@ -282,36 +247,3 @@ def spread(items: list[Any], count: int) -> list[Any]:
         return list(items)
     step = len(items) / count
     return [items[int(i * step)] for i in range(count)]
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``python -m optstereo.inference.int8 --checkpoint FILE --root DIR [--root DIR ...]``: measure a weights
-    file's clips on unlabelled pairs (every KITTI-style pair under each root, the ``kitti_unlabelled`` reader; never
-    their GT) and write them beside it (``FILE.int8.json``)."""
-    import argparse
-
-    from optstereo.api import load_model
-    from optstereo.pretrained import resolve_checkpoint_spec
-    from pvm_labeler.common.datasets import discover, load_pair
-
-    parser = argparse.ArgumentParser(prog="python -m optstereo.inference.int8", description=main.__doc__)
-    parser.add_argument("--checkpoint", required=True, help="a .safetensors file or a shipped name")
-    parser.add_argument("--root", type=Path, action="append", required=True,
-                        help="a folder of KITTI-style pairs (image_2 / image_3 at any depth); repeatable")
-    parser.add_argument("--pairs", type=int, default=12, help="pairs measured, evenly spread over the sorted list")
-    args = parser.parse_args(argv)
-    weights = resolve_checkpoint_spec(args.checkpoint)
-    refs = sorted((ref for root in args.root for ref in discover("kitti_unlabelled", root)),
-                  key=lambda ref: str(ref.left))
-    chosen = spread(refs, args.pairs)
-    if not chosen:
-        raise SystemExit(f"no pairs found under {', '.join(map(str, args.root))}")
-    model = load_model(weights)
-    samples = (load_pair(ref) for ref in chosen)
-    clips = calibrate(model, ((s.left, s.right) for s in samples))
-    path = write_sidecar(weights, Int8Calibration(clips, file_sha256(weights), CLIP_QUANTILE, len(chosen)))
-    print(f"wrote {path}: {len(clips)} clips from {len(chosen)} pairs")
-
-
-if __name__ == "__main__":
-    main()
