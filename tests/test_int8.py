@@ -174,13 +174,14 @@ class TestSidecar:
         loaded = load_model(weights)
         assert loaded.int8_calibration.clips == calibration.clips
 
-    def test_shipped_default_has_clips_of_its_weights(self) -> None:
-        """The shipped default's clip file names every int8 convolution and was measured on its weights (a new
+    @pytest.mark.parametrize("name", ["pretrained", "pretrained-accurate"])
+    def test_shipped_models_have_clips_of_their_weights(self, name: str) -> None:
+        """Each shipped model's clip file names every int8 convolution and was measured on its weights (a new
         weights file without new clips fails here, not silently in users' hands)."""
-        weights = resolve_checkpoint_spec("pretrained")
+        weights = resolve_checkpoint_spec(name)
         calibration = int8.read_sidecar(weights)
         assert calibration is not None
-        model = load_model("pretrained")
+        model = load_model(name)
         assert set(calibration.clips) == set(int8.conv_names(model.feature_encoder))
         assert calibration.quantile == int8.CLIP_QUANTILE and calibration.pairs == 12
 
