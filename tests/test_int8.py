@@ -11,15 +11,18 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from click.testing import CliRunner
 from conftest import TINY, kitti_crop
 
 from optstereo.api import load_model
 from optstereo.checkpoint import build_model_from_checkpoint, export_safetensors
+from optstereo.cli import predict_main
 from optstereo.inference import fastpath, int8, int8_calibration
 from optstereo.inference.engine import infer, network_pass
 from optstereo.inference.fastpath import engineer, engineering, int8_encoder
 from optstereo.models import build_model
 from optstereo.pretrained import resolve_checkpoint_spec
+from pvm_labeler.common.io import write_image
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 needs_int8 = pytest.mark.skipif(not int8.available(), reason="no oneDNN int8 convolution at AVX2 / AVX-512 here")
@@ -207,6 +210,18 @@ class TestSidecar:
         assert path == int8.sidecar_path(trained)
         measured = int8.read_sidecar(trained)
         assert measured.pairs == 1 and measured.clips != int8.read_sidecar(start).clips
+
+    def test_a_corrupt_clip_file_is_named_by_the_command(self, tmp_path: Path) -> None:
+        """optstereo-predict with a broken clip file beside the weights: exit 1 naming the file, nothing written."""
+        weights = export_safetensors(tmp_path / "m.safetensors", tiny_model())
+        int8.sidecar_path(weights).write_text('{"format": "optstereo-int8-clips/1", "clips": {')
+        image = np.random.default_rng(0).integers(0, 256, (32, 64, 3), dtype=np.uint8)
+        write_image(tmp_path / "l.png", image)
+        write_image(tmp_path / "r.png", image)
+        res = CliRunner().invoke(predict_main, ["--checkpoint", str(weights), str(tmp_path / "l.png"),
+                                                str(tmp_path / "r.png"), "--out", str(tmp_path / "out"), "--quiet"])
+        assert res.exit_code == 1 and "m.safetensors.int8.json" in res.output and "unreadable" in res.output
+        assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
     def test_spread(self) -> None:
         assert int8.spread(list(range(10)), 3) == [0, 3, 6]
