@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import shutil
@@ -243,14 +244,18 @@ def non_inferior(base: dict[str, Any], cand: dict[str, Any], epe_margin: float =
     """E1's / E5's speed rule (docs/registrations.md) on two ``gtfree.json`` of the same pairs: CAND is not worse than
     BASE when its pooled PVM EPE rises by at most ``epe_margin`` px, its pooled teacher EPE by at most
     ``teacher_margin`` px and its photometric error by no more than ``z`` standard errors of the per-pair differences;
-    (verdict, one line saying why)."""
+    (verdict, one line saying why). The teacher itself (its own maps: a NaN teacher EPE on both sides) is judged
+    without the teacher column, and the line says so (Q2)."""
     epe = cand["summary"]["pvm_epe"] - base["summary"]["pvm_epe"]
     teacher = cand["summary"]["teacher_epe"] - base["summary"]["teacher_epe"]
+    own_maps = math.isnan(cand["summary"]["teacher_epe"]) and math.isnan(base["summary"]["teacher_epe"])
     photo, photo_margin = paired_difference([PairScore(**p) for p in base["pairs"]],
                                             [PairScore(**p) for p in cand["pairs"]], "photometric", z)
-    ok = epe <= epe_margin and teacher <= teacher_margin and photo <= photo_margin
-    why = (f"pooled PVM EPE {epe:+.4f} px (margin {epe_margin}), teacher EPE {teacher:+.4f} px (margin "
-           f"{teacher_margin}), photometric {photo:+.4f} (noise {photo_margin:.4f})")
+    ok = epe <= epe_margin and (own_maps or teacher <= teacher_margin) and photo <= photo_margin
+    teacher_words = ("teacher EPE not scored (the teacher's own maps)" if own_maps
+                     else f"teacher EPE {teacher:+.4f} px (margin {teacher_margin})")
+    why = (f"pooled PVM EPE {epe:+.4f} px (margin {epe_margin}), {teacher_words}, photometric {photo:+.4f} "
+           f"(noise {photo_margin:.4f})")
     return ok, ("not worse: " if ok else "worse: ") + why
 
 

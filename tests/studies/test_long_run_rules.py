@@ -24,3 +24,14 @@ def test_non_inferior_by_hand() -> None:
     worse_photo = _doc(0.519, 0.888, [0.103, 0.202, 0.303, 0.402])  # +0.0025 mean, noise 0.001
     ok, why = non_inferior(base, worse_photo)
     assert not ok and "photometric +0.0025" in why
+
+
+def test_non_inferior_for_the_teacher_itself() -> None:
+    """The teacher scored against its own maps has no teacher column (NaN on both sides): judged without it (Q2); a
+    NaN on one side only is still a failure."""
+    nan = float("nan")
+    base = _doc(0.417, nan, [0.10, 0.20, 0.30, 0.40])
+    ok, why = non_inferior(base, _doc(0.4172, nan, [0.101, 0.199, 0.301, 0.399]))
+    assert ok and "teacher EPE not scored" in why
+    assert not non_inferior(base, _doc(0.423, nan, [0.101, 0.199, 0.301, 0.399]))[0]  # PVM EPE +0.006
+    assert not non_inferior(_doc(0.417, 0.9, [0.1, 0.2, 0.3, 0.4]), _doc(0.417, nan, [0.1, 0.2, 0.3, 0.4]))[0]
