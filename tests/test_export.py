@@ -147,19 +147,22 @@ def test_shipped_model_onnx_at_kitti_size(tmp_path: Path, shared_data: Path, nam
     from optstereo.api import load_model
     from optstereo.export import OnnxNetwork, export, infer_onnx, onnx_session
     from optstereo.inference.engine import run
+    from optstereo.inference.fastpath import engineering
 
     model = load_model(name)
     session = onnx_session(export(model, tmp_path / "model.onnx"))
     base = shared_data / "kitti15/training"
     left, right = read_image(base / "image_2/000005_10.png"), read_image(base / "image_3/000005_10.png")
-    end_to_end = np.abs(infer_onnx(session, left, right) - infer(model, left, right))
+    with engineering(True, int8=False):  # the graph is float32: held to the float32 torch pass (int8: test_int8.py)
+        end_to_end = np.abs(infer_onnx(session, left, right) - infer(model, left, right))
     if not model.inference_config.coarse_start:
         assert end_to_end.mean() <= 0.01 and end_to_end.max() <= 0.1, (end_to_end.mean(), end_to_end.max())
         return
     nets = {"torch": model, "onnx": OnnxNetwork(session)}
     for coarse in (False, True):  # the zero-start pass, then the coarse-started one: continuous in the weights
         config = InferenceConfig(scale=model.inference_config.scale, coarse_start=coarse)
-        got, ref = (run(nets[k], left, right, config).disparity for k in ("onnx", "torch"))
+        with engineering(True, int8=False):
+            got, ref = (run(nets[k], left, right, config).disparity for k in ("onnx", "torch"))
         diff = np.abs(got - ref)
         assert diff.mean() <= 0.01 and diff.max() <= 0.1, (coarse, diff.mean(), diff.max())
     assert end_to_end.mean() <= 0.01 and (end_to_end > 0.1).mean() <= 5e-4, (end_to_end.mean(),
