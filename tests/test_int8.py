@@ -33,12 +33,17 @@ def tiny_model(seed: int = 0) -> torch.nn.Module:
     return build_model("optstereo", **TINY, iters=4).eval()
 
 
-def calibrated(model: torch.nn.Module, seed: int = 0) -> int8.Int8Calibration:
-    """Clips measured on three random 64 x 128 pairs."""
+def calibration_pairs(seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Three random 64 x 128 pairs."""
     rng = np.random.default_rng(seed)
-    pairs = [(rng.integers(0, 256, (64, 128, 3), dtype=np.uint8), rng.integers(0, 256, (64, 128, 3), dtype=np.uint8))
-             for _ in range(3)]
-    return int8.Int8Calibration(int8_calibration.calibrate(model, pairs), weights_sha256="")
+    return [(rng.integers(0, 256, (64, 128, 3), dtype=np.uint8), rng.integers(0, 256, (64, 128, 3), dtype=np.uint8))
+            for _ in range(3)]
+
+
+def calibrated(model: torch.nn.Module, seed: int = 0) -> int8.Int8Calibration:
+    """Clips (and F_l's range) measured on :func:`calibration_pairs`."""
+    clips, ranges = int8_calibration.measure(model, calibration_pairs(seed))
+    return int8.Int8Calibration(clips, weights_sha256="", ranges=ranges)
 
 
 class TestQuantisers:
@@ -85,6 +90,26 @@ class TestInt8Conv:
         assert out.shape == reference.shape and out.dtype == torch.float32
         torch.testing.assert_close(out, reference, rtol=1e-4, atol=1e-4)
 
+    @pytest.mark.parametrize("low", [-3.0, -0.5])
+    def test_exact_with_a_zero_point(self, low: float) -> None:
+        """A signed input (F_l, registration Q3): uint8 with a zero point; on grid values, border pixels included
+        (the padding must stand for 0, not for uint8 0), the convolution equals ``F.conv2d``."""
+        gen = torch.Generator().manual_seed(7)
+        conv = torch.nn.Conv2d(6, 10, 3, padding=1)
+        w_scale = torch.rand(10, generator=gen) * 0.02 + 0.001
+        steps = torch.randint(-127, 128, conv.weight.shape, generator=gen)
+        steps[:, 0, 0, 0] = 127
+        with torch.no_grad():
+            conv.weight.copy_(steps * w_scale[:, None, None, None])
+        quantised = int8.Int8Conv(conv, 4.0, low)
+        q = torch.randint(0, 256, (1, 6, 9, 13), generator=gen, dtype=torch.uint8)
+        q = q.contiguous(memory_format=torch.channels_last)
+        with torch.no_grad():
+            reference = conv((q.float() - quantised.zero) * quantised.scale)
+        torch.testing.assert_close(quantised(q), reference, rtol=1e-4, atol=1e-4)
+        x = (q.float() - quantised.zero) * quantised.scale  # values on the grid come back as the same uint8
+        assert torch.equal(quantised.quantize(x), q)
+
     def test_random_weights_within_int8_rounding(self) -> None:
         torch.manual_seed(5)
         conv = torch.nn.Conv2d(32, 32, 3, padding=1)
@@ -108,6 +133,35 @@ class TestInt8Encoder:
             reference = fastpath.encode(model.feature_encoder, x)
         assert got.shape == reference.shape == (2, TINY["feature_dim"], 8, 16)
         assert ((got - reference).abs().mean() / reference.abs().mean()).item() < 0.05
+
+    def test_gru_start_near_float32(self) -> None:
+        """The GRU's static part and h^0 from one int8 convolution on F_l: within a few per cent of float32."""
+        model = tiny_model()
+        torch.manual_seed(3)
+        feat = torch.randn(1, TINY["feature_dim"], 8, 16).contiguous(memory_format=torch.channels_last)
+        start = int8.Int8GruInit(model.update_block.static, model.hidden_init.conv, -4.0, 4.0)
+        static, hidden = start(feat)
+        with torch.no_grad():
+            ref_static, ref_hidden = model.update_block.static(feat), model.hidden_init(feat)
+        assert static.shape == ref_static.shape and hidden.shape == ref_hidden.shape
+        for got, ref in ((static, ref_static), (hidden, ref_hidden)):
+            assert ((got - ref).abs().mean() / ref.abs().mean()).item() < 0.05
+        assert start.current()
+        with torch.no_grad():
+            model.hidden_init.conv.weight.mul_(2)
+        assert not start.current()
+
+    def test_gru_start_only_with_its_range(self) -> None:
+        model = engineer(tiny_model())
+        clips, ranges = int8_calibration.measure(model, calibration_pairs())
+        assert set(ranges) == {"gru_init"} and ranges["gru_init"][0] < 0 < ranges["gru_init"][1]
+        assert clips == int8_calibration.calibrate(model, calibration_pairs())  # F_l's sampling leaves them alone
+        model.int8_calibration = int8.Int8Calibration(clips, "")
+        assert fastpath.int8_gru_init(model) is None
+        model.int8_calibration = int8.Int8Calibration(clips, "", ranges=ranges)
+        assert fastpath.int8_gru_init(model) is not None
+        with engineering(True, int8=False):
+            assert fastpath.int8_gru_init(model) is None
 
     def test_missing_clip_is_named(self) -> None:
         model = tiny_model()
@@ -164,6 +218,13 @@ class TestSidecar:
         path.write_text(json.dumps(values))
         with pytest.raises(ValueError, match="clip of 'proj' must be a positive"):
             int8.read_sidecar(weights)
+        values = calibration.to_dict() | {"ranges": {"gru_init": [0.5, 3.0]}}
+        path.write_text(json.dumps(values))
+        with pytest.raises(ValueError, match=r"range of 'gru_init' must be \[low < 0, high > 0\]"):
+            int8.read_sidecar(weights)
+        ranged = int8.Int8Calibration(calibration.clips, calibration.weights_sha256, ranges={"gru_init": (-2.0, 3.0)})
+        int8.write_sidecar(weights, ranged)
+        assert int8.read_sidecar(weights) == ranged
         path.write_text("{not json")
         with pytest.raises(ValueError, match="unreadable int8 clip file"):
             int8.read_sidecar(weights)
@@ -187,6 +248,7 @@ class TestSidecar:
         model = load_model(name)
         assert set(calibration.clips) == set(int8.conv_names(model.feature_encoder))
         assert calibration.quantile == int8.CLIP_QUANTILE and calibration.pairs == 12
+        assert set(calibration.ranges) == {"gru_init"}  # registration Q3
 
     def test_inherited_by_an_adapted_model(self, tmp_path: Path) -> None:
         """optstereo-adapt's kept checkpoint: a copy of a start with clips gets them; adapted weights get clips

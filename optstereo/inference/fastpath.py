@@ -246,8 +246,12 @@ def engineered_pass(model: OptStereo, left: torch.Tensor, right: torch.Tensor, i
     corr = model.corr_block
     volume, level_widths = padded_pyramid(feat_left, feat_right, corr.num_levels, corr.scale)
     taps = lookup_taps(level_widths, corr.radius, left.device)
-    hidden = model.hidden_init(feat_left)
-    static = gru.static(feat_left)  # (B, 3 * hidden) = [z | r | q], channels-last
+    start = int8_gru_init(model)
+    if start is None:
+        hidden = model.hidden_init(feat_left)
+        static = gru.static(feat_left)  # (B, 3 * hidden) = [z | r | q], channels-last
+    else:
+        static, hidden = start(feat_left)
     b, _, h8, w8 = feat_left.shape
     disp = torch.zeros(b, 1, h8, w8, device=left.device, dtype=torch.float32)
     if disp_init is not None:
@@ -274,6 +278,22 @@ def int8_encoder(model: OptStereo) -> int8.Int8Encoder | None:
     built = model.__dict__.get("_int8_encoder")
     if built is None or built.encoder is not model.feature_encoder or not built.current():
         built = model.__dict__["_int8_encoder"] = int8.Int8Encoder(model.feature_encoder, calibration)
+    return built
+
+
+def int8_gru_init(model: OptStereo) -> int8.Int8GruInit | None:
+    """The GRU's static and ``hidden_init`` convolutions as one int8 convolution (registration Q3) when the encoder
+    runs in int8 (:func:`int8_encoder`) and the clips have F_l's range (``gru_init``); else None (float32). Built
+    once per model, rebuilt when one of their weights changes."""
+    calibration = getattr(model, "int8_calibration", None)
+    if (calibration is None or "gru_init" not in calibration.ranges or int8_encoder(model) is None
+            or not int8.supported_gru_init(model)):
+        return None
+    built = model.__dict__.get("_int8_gru_init")
+    if built is None or not built.current():
+        low, high = calibration.ranges["gru_init"]
+        built = model.__dict__["_int8_gru_init"] = int8.Int8GruInit(model.update_block.static, model.hidden_init.conv,
+                                                                    low, high)
     return built
 
 

@@ -3,8 +3,9 @@
 Most of a CPU pass of the default model is its encoder's 3x3 convolutions at 1/2, 1/4 and 1/8 resolution (64, 96 and
 128 channels). oneDNN runs them on uint8 activations and int8 weights with int32 sums: about half the time of
 float32 on an AVX2 CPU, a quarter with AVX-512 VNNI. This module runs the 15 convolutions after the stem (layers 1-3
-and the 1x1 projection) that way, with float32 outputs; the stem, the instance norms, the correlation, the GRU loop
-and the upsampler stay float32.
+and the 1x1 projection) that way, with float32 outputs (:class:`Int8Encoder`, registration Q1), and the GRU's two
+start convolutions on F_l as one (:class:`Int8GruInit`, Q3); the stem, the instance norms, the correlation, the GRU
+loop and the upsampler stay float32.
 
 - Weights: symmetric, one scale per output channel (``max |w| / 127``), quantised once when the model is loaded.
 - Activations: uint8, one scale per tensor, from a fixed **clip** per convolution (its input value mapped to 255):
@@ -31,7 +32,7 @@ import hashlib
 import json
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -58,16 +59,20 @@ class Int8Calibration:
         weights_sha256: SHA-256 of the weights file the clips were measured with.
         quantile: the quantile of each input the clip is (the mean over the calibration pairs).
         pairs: how many pairs were measured.
+        ranges: signed inputs: name -> (low, high), the values mapped to uint8 0 and 255 (``gru_init``: F_l, the
+            input of the GRU's static convolution and of ``hidden_init``; registration Q3). Optional.
     """
 
     clips: dict[str, float]
     weights_sha256: str
     quantile: float = CLIP_QUANTILE
     pairs: int = 0
+    ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {"format": FORMAT, "weights_sha256": self.weights_sha256, "quantile": self.quantile,
-                "pairs": self.pairs, "clips": dict(sorted(self.clips.items()))}
+                "pairs": self.pairs, "clips": dict(sorted(self.clips.items())),
+                "ranges": {k: list(v) for k, v in sorted(self.ranges.items())}}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any], source: Path | str = "<dict>") -> Int8Calibration:
@@ -80,8 +85,15 @@ class Int8Calibration:
         for name, clip in clips.items():
             if isinstance(clip, bool) or not isinstance(clip, (int, float)) or not math.isfinite(clip) or clip <= 0:
                 raise ValueError(f"{source}: clip of {name!r} must be a positive finite number, got {clip!r}")
+        ranges = values.get("ranges", {})
+        for name, pair in ranges.items():
+            if (not isinstance(pair, list) or len(pair) != 2 or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in pair)
+                    or not pair[0] < 0 < pair[1]):
+                raise ValueError(f"{source}: range of {name!r} must be [low < 0, high > 0], got {pair!r}")
         return cls(clips={k: float(v) for k, v in clips.items()}, weights_sha256=str(values.get("weights_sha256", "")),
-                   quantile=float(values.get("quantile", CLIP_QUANTILE)), pairs=int(values.get("pairs", 0)))
+                   quantile=float(values.get("quantile", CLIP_QUANTILE)), pairs=int(values.get("pairs", 0)),
+                   ranges={k: (float(v[0]), float(v[1])) for k, v in ranges.items()})
 
 
 def sidecar_path(weights: Path) -> Path:
@@ -140,25 +152,32 @@ def conv_names(encoder: nn.Module) -> list[str]:
 
 
 class Int8Conv:
-    """One ``nn.Conv2d`` with int8 weights on a uint8 input of a fixed scale: (B, C_in, H, W) uint8 channels-last ->
-    (B, C_out, H', W') float32 channels-last, ``conv(scale * q)`` to int8 rounding."""
+    """One ``nn.Conv2d`` with int8 weights on a uint8 input of a fixed scale and zero point: (B, C_in, H, W) uint8
+    channels-last -> (B, C_out, H', W') float32 channels-last, ``conv(scale * (q - zero))`` to int8 rounding. The
+    input range is [``low``, ``clip``] (``low`` 0: a ReLU's output, zero point 0)."""
 
-    def __init__(self, conv: nn.Conv2d, clip: float) -> None:
+    def __init__(self, conv: nn.Conv2d, clip: float, low: float = 0.0) -> None:
         weight = conv.weight.detach().float().cpu()
-        self.scale = float(clip) / 255.0
+        self.scale = (float(clip) - float(low)) / 255.0
+        self.zero = int(round(-float(low) / self.scale))
         self.w_scale = (weight.abs().amax(dim=(1, 2, 3)).clamp_min(1e-12) / 127.0).contiguous()
         q_weight = torch.round(weight / self.w_scale[:, None, None, None]).clamp_(-127, 127).to(torch.int8)
         self.stride, self.padding = list(conv.stride), list(conv.padding)
         self.dilation, self.groups = list(conv.dilation), conv.groups
-        self.packed = torch.ops.onednn.qconv_prepack(q_weight, self.w_scale, self.scale, 0, self.stride, self.padding,
-                                                     self.dilation, self.groups, None)
+        self.packed = torch.ops.onednn.qconv_prepack(q_weight, self.w_scale, self.scale, self.zero, self.stride,
+                                                     self.padding, self.dilation, self.groups, None)
         self.w_zero = torch.zeros(weight.shape[0], dtype=torch.int32)
         self.bias = None if conv.bias is None else conv.bias.detach().float().cpu()
 
     def __call__(self, q: torch.Tensor) -> torch.Tensor:
-        return torch.ops.onednn.qconv2d_pointwise(q, self.scale, 0, self.packed, self.w_scale, self.w_zero, self.bias,
-                                                  self.stride, self.padding, self.dilation, self.groups, 1.0, 0,
-                                                  torch.float32, "none", [], "")
+        return torch.ops.onednn.qconv2d_pointwise(q, self.scale, self.zero, self.packed, self.w_scale, self.w_zero,
+                                                  self.bias, self.stride, self.padding, self.dilation, self.groups,
+                                                  1.0, 0, torch.float32, "none", [], "")
+
+    def quantize(self, x: torch.Tensor) -> torch.Tensor:
+        """Float32 ``x`` -> this convolution's uint8 input: ``round(x / scale) + zero``, saturated to [0, 255]."""
+        return torch.add(torch.tensor(self.zero + _HALF), x, alpha=1.0 / self.scale).clamp_(0.0, 255.0).to(
+            torch.uint8)
 
 
 def quantize(x: torch.Tensor, scale: float) -> torch.Tensor:
@@ -198,18 +217,12 @@ class Int8Encoder:
             if name.endswith("shortcut.0"):  # the same input as the block's conv1: one quantised tensor for both
                 clip = calibration.clips[name[:-len("shortcut.0")] + "conv1"]
             self.convs[name] = Int8Conv(modules[name], clip)
-        self._versions = self._weight_versions()
-
-    def _weight_versions(self) -> list[tuple[int, int]]:
-        return [(id(p), p._version) for p in self.encoder.parameters() if not p.is_inference()]
+        self._versions = _versions(list(encoder.parameters()))
 
     def current(self) -> bool:
         """False when a parameter of the encoder changed since the weights were quantised (an optimiser step, a
         ``load_state_dict``)."""
-        return self._weights_unchanged()
-
-    def _weights_unchanged(self) -> bool:
-        return self._weight_versions() == self._versions
+        return _versions(list(self.encoder.parameters())) == self._versions
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         if x.shape[0] != 1:  # instance norm as batch norm needs one image per call
@@ -230,6 +243,47 @@ class Int8Encoder:
             return y.add_(x)  # both >= 0: the block's final ReLU changes nothing
         shortcut = block.shortcut[1](self.convs[prefix + "shortcut.0"](qx))
         return y.add_(shortcut).relu_()
+
+
+class Int8GruInit:
+    """The GRU's static convolution and ``hidden_init``'s, both on F_l, as one int8 convolution (registration Q3):
+    (B, C, H/8, W/8) float32 F_l -> (static (B, 3 * hidden), h^0 = tanh(...) (B, hidden)), channels-last. F_l is
+    signed: uint8 with a zero point over the calibrated ``gru_init`` range."""
+
+    def __init__(self, static: nn.Conv2d, hidden: nn.Conv2d, low: float, high: float) -> None:
+        joint = nn.Conv2d(static.in_channels, static.out_channels + hidden.out_channels, static.kernel_size,
+                          padding=static.padding, bias=True)
+        with torch.no_grad():
+            joint.weight.copy_(torch.cat([static.weight.detach().cpu(), hidden.weight.detach().cpu()]))
+            static_bias = (torch.zeros(static.out_channels) if static.bias is None else static.bias.detach().cpu())
+            hidden_bias = torch.zeros(hidden.out_channels) if hidden.bias is None else hidden.bias.detach().cpu()
+            joint.bias.copy_(torch.cat([static_bias, hidden_bias]))
+        self.conv = Int8Conv(joint, high, low)
+        self.split = static.out_channels
+        self.params = [static.weight, hidden.weight, *(() if hidden.bias is None else (hidden.bias,))]
+        self._versions = _versions(self.params)
+
+    def current(self) -> bool:
+        """False when one of the two convolutions' parameters changed since they were quantised."""
+        return _versions(self.params) == self._versions
+
+    def __call__(self, feat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.conv(self.conv.quantize(feat.contiguous(memory_format=torch.channels_last)))
+        return out[:, :self.split], torch.tanh(out[:, self.split:])
+
+
+def _versions(params: list[torch.Tensor]) -> list[tuple[int, int]]:
+    """(id, version counter) of each parameter not made under inference mode (those have no version)."""
+    return [(id(p), p._version) for p in params if not p.is_inference()]
+
+
+def supported_gru_init(model: nn.Module) -> bool:
+    """Whether :class:`Int8GruInit` knows the model's GRU start: a 3x3 static convolution and ``HiddenInit``."""
+    static = getattr(getattr(model, "update_block", None), "static", None)
+    hidden = getattr(getattr(model, "hidden_init", None), "conv", None)
+    return (type(static) is nn.Conv2d and type(hidden) is nn.Conv2d and static.kernel_size == hidden.kernel_size
+            and static.padding == hidden.padding and static.stride == hidden.stride == (1, 1)
+            and static.in_channels == hidden.in_channels)
 
 
 def supported(encoder: nn.Module) -> bool:

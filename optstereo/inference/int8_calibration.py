@@ -33,21 +33,39 @@ Pair = tuple[Any, Any]
 
 def calibrate(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: float = int8.CLIP_QUANTILE,
               seed: int = 0) -> dict[str, float]:
-    """Clip per int8 convolution: the mean over ``pairs`` ((H, W, 3) uint8 left and right) of the ``quantile`` of
-    its input (a random sample of :data:`CALIBRATION_SAMPLES` values per call), from the float32 pass."""
+    """Clip per int8 convolution of the encoder (:func:`measure`'s first part)."""
+    return measure(model, pairs, quantile, seed)[0]
+
+
+def measure(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: float = int8.CLIP_QUANTILE,
+            seed: int = 0) -> tuple[dict[str, float], dict[str, tuple[float, float]]]:
+    """From the float32 pass over ``pairs`` ((H, W, 3) uint8 left and right), a random sample of
+    :data:`CALIBRATION_SAMPLES` values of each input per call: (clips: encoder convolution -> the mean ``quantile`` of
+    its input; ranges: ``gru_init`` -> the mean (1 - ``quantile``, ``quantile``) quantiles of F_l, when the model's
+    GRU start is one :class:`~optstereo.inference.int8.Int8GruInit` knows). F_l has its own random stream, so the
+    clips are the same with or without it."""
     encoder = model.feature_encoder
     modules = dict(encoder.named_modules())
-    generator = torch.Generator().manual_seed(seed)
+    generator, f_generator = torch.Generator().manual_seed(seed), torch.Generator().manual_seed(seed + 1)
     values: dict[str, list[float]] = {name: [] for name in int8.conv_names(encoder)}
+    f_values: list[tuple[float, float]] = []
+
+    def sample(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+        flat = x.detach().reshape(-1)
+        return flat[torch.randint(0, flat.numel(), (CALIBRATION_SAMPLES,), generator=gen)].float()
 
     def hook(name: str) -> Any:
         def record(_module: nn.Module, inputs: tuple[torch.Tensor, ...], _output: torch.Tensor) -> None:
-            flat = inputs[0].detach().reshape(-1)
-            sample = flat[torch.randint(0, flat.numel(), (CALIBRATION_SAMPLES,), generator=generator)]
-            values[name].append(float(torch.quantile(sample.float(), quantile)))
+            values[name].append(float(torch.quantile(sample(inputs[0], generator), quantile)))
         return record
 
+    def record_f(_module: nn.Module, inputs: tuple[torch.Tensor, ...], _output: torch.Tensor) -> None:
+        xs = sample(inputs[0], f_generator)
+        f_values.append((float(torch.quantile(xs, 1.0 - quantile)), float(torch.quantile(xs, quantile))))
+
     handles = [modules[name].register_forward_hook(hook(name)) for name in values]
+    if int8.supported_gru_init(model):
+        handles.append(model.hidden_init.conv.register_forward_hook(record_f))
     try:
         with engineering(False):
             for left, right in pairs:
@@ -58,7 +76,12 @@ def calibrate(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: floa
     empty = [name for name, v in values.items() if not v]
     if empty:
         raise ValueError(f"calibration saw no input of {empty[:3]}: were any pairs given?")
-    return {name: max(sum(v) / len(v), 1e-6) for name, v in values.items()}
+    clips = {name: max(sum(v) / len(v), 1e-6) for name, v in values.items()}
+    ranges = {}
+    if f_values:
+        low = min(sum(v[0] for v in f_values) / len(f_values), -1e-6)
+        ranges["gru_init"] = (low, max(sum(v[1] for v in f_values) / len(f_values), 1e-6))
+    return clips, ranges
 
 
 def calibrate_file(weights: Path, pairs: list[Pair], quantile: float = int8.CLIP_QUANTILE) -> Path | None:
@@ -68,8 +91,9 @@ def calibrate_file(weights: Path, pairs: list[Pair], quantile: float = int8.CLIP
     encoder = getattr(model, "feature_encoder", None)
     if encoder is None or not int8.supported(encoder) or not pairs:
         return None
-    clips = calibrate(model, pairs, quantile)
-    return int8.write_sidecar(weights, int8.Int8Calibration(clips, int8.file_sha256(weights), quantile, len(pairs)))
+    clips, ranges = measure(model, pairs, quantile)
+    return int8.write_sidecar(weights, int8.Int8Calibration(clips, int8.file_sha256(weights), quantile, len(pairs),
+                                                            ranges))
 
 
 def inherit_clips(kept: Path, start: Path, kept_is_start: bool, pairs: Callable[[], list[Pair]]) -> Path | None:
