@@ -49,8 +49,7 @@ from optstereo.data.transforms import rescale_sample
 from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import final_scale, infer, pass_at_scale
 from optstereo.inference.fastpath import engineering
-from optstereo.inference.int8 import spread
-from optstereo.inference.int8_calibration import PAIRS, inherit_clips
+from optstereo.inference.int8_calibration import PAIRS, inherit_clips, spread
 from optstereo.inference.rescale import sparse_to_size
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill

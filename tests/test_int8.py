@@ -139,7 +139,8 @@ class TestInt8Encoder:
         model = tiny_model()
         torch.manual_seed(3)
         feat = torch.randn(1, TINY["feature_dim"], 8, 16).contiguous(memory_format=torch.channels_last)
-        start = int8.Int8GruInit(model.update_block.static, model.hidden_init.conv, -4.0, 4.0)
+        start = int8.Int8GruInit(model.update_block.static, model.hidden_init.conv,
+                                 int8.Int8Calibration({}, "", ranges={"gru_init": (-4.0, 4.0)}))
         static, hidden = start(feat)
         with torch.no_grad():
             ref_static, ref_hidden = model.update_block.static(feat), model.hidden_init(feat)
@@ -194,7 +195,13 @@ class TestInt8Encoder:
         assert int8_encoder(model) is first
         with torch.no_grad():
             model.feature_encoder.layer1[0].conv1.weight.mul_(2)
-        assert int8_encoder(model) is not first
+        second = int8_encoder(model)
+        assert second is not first and int8_encoder(model) is second
+        start = fastpath.int8_gru_init(model)
+        assert start is not None and fastpath.int8_gru_init(model) is start
+        model.int8_calibration = calibrated(model, seed=1)  # new clips (measured again): both rebuilt from them
+        assert int8_encoder(model) is not second and fastpath.int8_gru_init(model) is not start
+        assert int8_encoder(model).calibration is model.int8_calibration
 
 
 class TestSidecar:
@@ -286,8 +293,8 @@ class TestSidecar:
         assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
     def test_spread(self) -> None:
-        assert int8.spread(list(range(10)), 3) == [0, 3, 6]
-        assert int8.spread([1, 2], 5) == [1, 2]
+        assert int8_calibration.spread(list(range(10)), 3) == [0, 3, 6]
+        assert int8_calibration.spread([1, 2], 5) == [1, 2]
 
 
 class TestShippedModel:

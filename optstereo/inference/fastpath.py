@@ -266,34 +266,40 @@ def engineered_pass(model: OptStereo, left: torch.Tensor, right: torch.Tensor, i
     return disp, model._upsample(disp, hidden, image_left)
 
 
-def int8_encoder(model: OptStereo) -> int8.Int8Encoder | None:
-    """The model's encoder with int8 convolutions (:mod:`optstereo.inference.int8`) when its weights file has clips
-    (``model.int8_calibration``), this CPU runs them fast (:func:`int8.available`), the switch allows it
-    (:func:`engineering`) and the encoder is one it knows; else None (the float32 :func:`encode`). Built once per
-    model and rebuilt when an encoder weight changes."""
+def _int8_calibration(model: OptStereo) -> int8.Int8Calibration | None:
+    """The model's int8 clips when int8 may run: the weights file has them (``model.int8_calibration``), this CPU runs
+    them fast (:func:`int8.available`) and the switch allows it (:func:`engineering`); else None."""
     calibration = getattr(model, "int8_calibration", None)
-    if calibration is None or not _switches["int8"] or not int8.available() or not int8.supported(
-            model.feature_encoder):
+    return calibration if calibration is not None and _switches["int8"] and int8.available() else None
+
+
+def int8_encoder(model: OptStereo) -> int8.Int8Encoder | None:
+    """The model's encoder with int8 convolutions (:mod:`optstereo.inference.int8`, registration Q1) when int8 may
+    run (:func:`_int8_calibration`) and the encoder is one it knows; else None (the float32 :func:`encode`). Built
+    once per model, rebuilt when an encoder weight or the clips change."""
+    calibration = _int8_calibration(model)
+    if calibration is None or not int8.supported(model.feature_encoder):
         return None
     built = model.__dict__.get("_int8_encoder")
-    if built is None or built.encoder is not model.feature_encoder or not built.current():
+    if (built is None or built.encoder is not model.feature_encoder or built.calibration is not calibration
+            or not built.current()):
         built = model.__dict__["_int8_encoder"] = int8.Int8Encoder(model.feature_encoder, calibration)
     return built
 
 
 def int8_gru_init(model: OptStereo) -> int8.Int8GruInit | None:
-    """The GRU's static and ``hidden_init`` convolutions as one int8 convolution (registration Q3) when the encoder
-    runs in int8 (:func:`int8_encoder`) and the clips have F_l's range (``gru_init``); else None (float32). Built
-    once per model, rebuilt when one of their weights changes."""
-    calibration = getattr(model, "int8_calibration", None)
-    if (calibration is None or "gru_init" not in calibration.ranges or int8_encoder(model) is None
+    """The GRU's static and ``hidden_init`` convolutions as one int8 convolution (registration Q3, on top of Q1's
+    encoder) when int8 may run, the encoder is one :class:`int8.Int8Encoder` knows and the clips have F_l's range
+    (``gru_init``); else None (float32). Built once per model, rebuilt when one of their weights or the clips
+    change."""
+    calibration = _int8_calibration(model)
+    if (calibration is None or "gru_init" not in calibration.ranges or not int8.supported(model.feature_encoder)
             or not int8.supported_gru_init(model)):
         return None
     built = model.__dict__.get("_int8_gru_init")
-    if built is None or not built.current():
-        low, high = calibration.ranges["gru_init"]
+    if built is None or built.calibration is not calibration or not built.current():
         built = model.__dict__["_int8_gru_init"] = int8.Int8GruInit(model.update_block.static, model.hidden_init.conv,
-                                                                    low, high)
+                                                                    calibration)
     return built
 
 

@@ -175,14 +175,13 @@ class Int8Conv:
                                                   1.0, 0, torch.float32, "none", [], "")
 
     def quantize(self, x: torch.Tensor) -> torch.Tensor:
-        """Float32 ``x`` -> this convolution's uint8 input: ``round(x / scale) + zero``, saturated to [0, 255]."""
-        return torch.add(torch.tensor(self.zero + _HALF), x, alpha=1.0 / self.scale).clamp_(0.0, 255.0).to(
-            torch.uint8)
+        """Float32 ``x`` -> this convolution's uint8 input (:func:`quantize` at its scale and zero point)."""
+        return quantize(x, self.scale, self.zero)
 
 
-def quantize(x: torch.Tensor, scale: float) -> torch.Tensor:
-    """Non-negative float32 ``x`` -> uint8 ``round(x / scale)`` saturated at 255 (same shape and memory format)."""
-    return torch.add(torch.tensor(_HALF), x, alpha=1.0 / scale).clamp_(max=255.0).to(torch.uint8)
+def quantize(x: torch.Tensor, scale: float, zero: int = 0) -> torch.Tensor:
+    """Float32 ``x`` -> uint8 ``round(x / scale) + zero`` saturated to [0, 255] (same shape and memory format)."""
+    return torch.add(torch.tensor(zero + _HALF), x, alpha=1.0 / scale).clamp_(0.0, 255.0).to(torch.uint8)
 
 
 def norm_relu_quantize(y: torch.Tensor, eps: float, scale: float) -> torch.Tensor:
@@ -211,6 +210,7 @@ class Int8Encoder:
             raise ValueError(f"int8 clips are missing for {missing[:3]} ({len(missing)} of {len(names)} convolutions)")
         modules = dict(encoder.named_modules())
         self.encoder = encoder
+        self.calibration = calibration
         self.convs: dict[str, Int8Conv] = {}
         for name in names:
             clip = calibration.clips[name]
@@ -232,11 +232,11 @@ class Int8Encoder:
         for index, layer in enumerate((encoder.layer1, encoder.layer2, encoder.layer3), start=1):
             for block_index, block in enumerate(layer):
                 x = self._block(block, f"layer{index}.{block_index}.", x)
-        return self.convs["proj"](quantize(x, self.convs["proj"].scale))
+        return self.convs["proj"](self.convs["proj"].quantize(x))
 
     def _block(self, block: nn.Module, prefix: str, x: torch.Tensor) -> torch.Tensor:
         conv1, conv2 = self.convs[prefix + "conv1"], self.convs[prefix + "conv2"]
-        qx = quantize(x, conv1.scale)
+        qx = conv1.quantize(x)
         y = norm_relu_quantize(conv1(qx), block.norm1.eps, conv2.scale)
         y = _norm_relu(conv2(y), block.norm2.eps)
         if isinstance(block.shortcut, nn.Identity):
@@ -250,7 +250,9 @@ class Int8GruInit:
     (B, C, H/8, W/8) float32 F_l -> (static (B, 3 * hidden), h^0 = tanh(...) (B, hidden)), channels-last. F_l is
     signed: uint8 with a zero point over the calibrated ``gru_init`` range."""
 
-    def __init__(self, static: nn.Conv2d, hidden: nn.Conv2d, low: float, high: float) -> None:
+    def __init__(self, static: nn.Conv2d, hidden: nn.Conv2d, calibration: Int8Calibration) -> None:
+        low, high = calibration.ranges["gru_init"]
+        self.calibration = calibration
         joint = nn.Conv2d(static.in_channels, static.out_channels + hidden.out_channels, static.kernel_size,
                           padding=static.padding, bias=True)
         with torch.no_grad():
@@ -293,11 +295,3 @@ def supported(encoder: nn.Module) -> bool:
     blocks = [block for layer in (encoder.layer1, encoder.layer2, encoder.layer3) for block in layer]
     return all(type(block) is ResidualBlock and type(block.norm1) is InstanceNorm2d
                and type(block.norm2) is InstanceNorm2d for block in blocks)
-
-
-def spread(items: list[Any], count: int) -> list[Any]:
-    """``count`` items evenly spaced over ``items`` (all of them when there are fewer)."""
-    if count >= len(items):
-        return list(items)
-    step = len(items) / count
-    return [items[int(i * step)] for i in range(count)]

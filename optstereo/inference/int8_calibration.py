@@ -31,6 +31,14 @@ PAIRS = 12
 Pair = tuple[Any, Any]
 
 
+def spread(items: list[Any], count: int) -> list[Any]:
+    """``count`` items evenly spaced over ``items`` (all of them when there are fewer)."""
+    if count >= len(items):
+        return list(items)
+    step = len(items) / count
+    return [items[int(i * step)] for i in range(count)]
+
+
 def calibrate(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: float = int8.CLIP_QUANTILE,
               seed: int = 0) -> dict[str, float]:
     """Clip per int8 convolution of the encoder (:func:`measure`'s first part)."""
@@ -120,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
     weights = resolve_checkpoint_spec(args.checkpoint)
     refs = sorted((ref for root in args.root for ref in discover("kitti_unlabelled", root)),
                   key=lambda ref: str(ref.left))
-    chosen = int8.spread(refs, args.pairs)
+    chosen = spread(refs, args.pairs)
     if not chosen:
         raise SystemExit(f"no pairs found under {', '.join(map(str, args.root))}")
     samples = [load_pair(ref) for ref in chosen]
