@@ -47,7 +47,7 @@ from optstereo.api import load_model
 from optstereo.checkpoint import load_checkpoint, model_inference
 from optstereo.data.transforms import rescale_sample
 from optstereo.inference.cascade import photometric_costs
-from optstereo.inference.engine import final_scale, infer, pass_at_scale
+from optstereo.inference.engine import final_scale, first_scale, infer, pass_at_scale
 from optstereo.inference.fastpath import engineering
 from optstereo.inference.int8_calibration import PAIRS, inherit_clips, spread
 from optstereo.inference.rescale import sparse_to_size
@@ -198,9 +198,9 @@ def inference_scales(cfg: AdaptConfig, train_labels: Path) -> dict[str, float]:
     for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples, desc="inference scales",
                   unit="pair", disable=cfg.quiet):
         # only the adaptive enlargement needs a pass: the zero-start one at the file's scale, as run() makes it
-        zero = (pass_at_scale(start, s.left, s.right, config.scale, None, config.iters, device) if config.adaptive
-                else None)
-        scales[s.frame_id] = float(final_scale(config, zero))
+        zero = (pass_at_scale(start, s.left, s.right, first_scale(config, s.left.shape), None, config.iters, device)
+                if config.adaptive else None)
+        scales[s.frame_id] = float(final_scale(config, zero, s.left.shape))
     atomic_write_text(record, json.dumps(scales, indent=2))
     return scales
 

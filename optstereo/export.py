@@ -199,7 +199,7 @@ def infer_onnx(session, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     config = onnx_inference_config(session)
     if scale is not None:
-        config = config.replace(scale=float(scale), adaptive_ref_disp=0.0, adaptive_ref_pixels=0)
+        config = config.fixed(scale)
     if refine is not None:
         check_refine(refine)
         config = config.replace(refine=refine)

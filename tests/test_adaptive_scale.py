@@ -14,8 +14,8 @@ import torch
 from conftest import TINY, Echo, kitti_crop
 
 from optstereo.inference.config import InferenceConfig
-from optstereo.inference.engine import infer, model_inference_config, run
-from optstereo.inference.rescale import ADAPTIVE_MIN_GAIN, ADAPTIVE_PERCENTILE, adaptive_factor
+from optstereo.inference.engine import first_scale, infer, model_inference_config, run
+from optstereo.inference.rescale import ADAPTIVE_MIN_GAIN, ADAPTIVE_PERCENTILE, adaptive_factor, budget_factor
 from optstereo.models import build_model
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -51,6 +51,31 @@ class TestRule:
         assert adaptive_factor(disp, ref_disp=30.0, ref_pixels=900) == pytest.approx(3.0)
         assert adaptive_factor(np.full((10, 10), np.nan, np.float32), 30.0, 900) == pytest.approx(3.0)
 
+    def test_counted_from_an_enlarged_first_pass(self) -> None:
+        # the first pass ran 1.5x: its 10 px (input pixels) were 15 px there, its 20,000 px were 45,000: min(40 / 15,
+        # sqrt(80,000 / 45,000)) = 4 / 3
+        disp = np.full((100, 200), 10.0, np.float32)
+        assert adaptive_factor(disp, ref_disp=40.0, ref_pixels=80_000, prior=1.5) == pytest.approx(4 / 3)
+
+    def test_pixel_budget_by_hand(self) -> None:
+        shape = (100, 200, 3)  # 20,000 px against a budget of 80,000: sqrt(4) = 2x
+        assert budget_factor(shape, 80_000, cap=4.0) == pytest.approx(2.0)
+        assert budget_factor(shape, 80_000, cap=1.5) == pytest.approx(1.5)  # the cap
+        assert budget_factor(shape, 80_000, cap=1.0) == 1.0  # off
+        assert budget_factor(shape, 80_000, cap=4.0, scale=2.0) == 1.0  # already at the budget
+        assert budget_factor(shape, 22_000, cap=4.0) == 1.0  # sqrt(1.1) = 1.049 < ADAPTIVE_MIN_GAIN
+        assert budget_factor(shape, 10_000, cap=4.0) == 1.0  # never a shrink
+        with pytest.raises(ValueError, match="positive reference"):
+            budget_factor(shape, 0, cap=2.0)
+
+    def test_kitti_frames_are_never_enlarged(self) -> None:
+        # version 15's reference (465,750 px) against the KITTI sizes of ../shared: all within 1.1x, so scale 1
+        config = InferenceConfig(adaptive_ref_disp=60.1, adaptive_ref_pixels=465_750, enlarge_max=4.0)
+        for shape in [(375, 1242), (376, 1241), (370, 1224), (370, 1226), (374, 1238)]:
+            assert first_scale(config, shape) == 1.0, shape
+        assert first_scale(config, (400, 881)) == pytest.approx(math.sqrt(465_750 / (400 * 881)))
+        assert first_scale(config.replace(enlarge_max=1.25), (288, 384)) == 1.25
+
     def test_references_must_be_positive(self) -> None:
         with pytest.raises(ValueError, match="positive references"):
             adaptive_factor(np.ones((4, 4), np.float32), ref_disp=0.0, ref_pixels=10)
@@ -80,6 +105,22 @@ class TestInfer:
         assert result.input_scale == 1.0
         np.testing.assert_allclose(result.disparity, 50.0, rtol=1e-6)
 
+    def test_first_pass_enlarged_by_the_pixel_budget(self) -> None:
+        # a 40x80 pair against a budget of 4x its pixels (2x per side), capped at 1.5: the first pass at 1.5 sees
+        # red 10 as 10 px of the enlarged pair = 10 / 1.5 px of the input; with no adaptive pass it is final
+        left = np.full((40, 80, 3), 10, np.uint8)
+        result = run(self.echo(adaptive_ref_pixels=4 * 40 * 80, enlarge_max=1.5), left, left)
+        assert result.input_scale == pytest.approx(1.5)
+        np.testing.assert_allclose(result.disparity, 10 / 1.5, rtol=1e-5)
+        # with the adaptive pass, its factor is counted from 1.5: min(40 / (6.667 * 1.5), 2 / 1.5) -> 2x in all,
+        # the scale the adaptive pass alone reaches (test_second_pass_runs_at_the_factor): never past the budget
+        result = run(self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80, enlarge_max=1.5), left, left)
+        assert result.input_scale == pytest.approx(2.0)
+        np.testing.assert_allclose(result.disparity, 5.0, rtol=1e-5)
+        # no cap: one pass at the budget, where the adaptive pass has nothing left to add
+        result = run(self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80, enlarge_max=4.0), left, left)
+        assert result.input_scale == pytest.approx(2.0)
+
     def test_a_given_scale_and_a_model_without_references_are_fixed(self) -> None:
         left = np.full((40, 80, 3), 10, np.uint8)
         model = self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80)
@@ -87,6 +128,8 @@ class TestInfer:
         assert fixed.input_scale == 1.0  # the caller's scale is final
         assert run(model, left, left, model_inference_config(model, scale=1.5)).input_scale == 1.5
         assert run(self.echo(), left, left).input_scale == 1.0  # no references: one pass
+        budget = self.echo(adaptive_ref_pixels=4 * 40 * 80, enlarge_max=2.0)
+        assert run(budget, left, left, model_inference_config(budget, scale=1.0)).input_scale == 1.0
 
 
 class TestConfig:
@@ -97,13 +140,19 @@ class TestConfig:
             InferenceConfig(adaptive_ref_disp=-1.0, adaptive_ref_pixels=10).validate()
         with pytest.raises(ValueError, match="adaptive_ref_disp must be a finite number"):
             InferenceConfig(adaptive_ref_disp=math.inf, adaptive_ref_pixels=10).validate()
+        with pytest.raises(ValueError, match="enlarge_max needs adaptive_ref_pixels"):
+            InferenceConfig(enlarge_max=1.5).validate()
+        with pytest.raises(ValueError, match="enlarge_max must be >= 1"):
+            InferenceConfig(enlarge_max=0.5, adaptive_ref_pixels=10).validate()
+        fixed = InferenceConfig(adaptive_ref_disp=60.0, adaptive_ref_pixels=10, enlarge_max=2.0).fixed(1.25)
+        assert (fixed.scale, fixed.adaptive, fixed.enlarge_max) == (1.25, False, 1.0)
 
     def test_survives_the_checkpoint(self, tmp_path: Path) -> None:
         from optstereo.api import load_model
         from optstereo.checkpoint import export_safetensors
 
         model = build_model("optstereo", **TINY, iters=2)
-        refs = InferenceConfig(adaptive_ref_disp=61.5, adaptive_ref_pixels=465_750)
+        refs = InferenceConfig(adaptive_ref_disp=61.5, adaptive_ref_pixels=465_750, enlarge_max=1.25)
         loaded = load_model(export_safetensors(tmp_path / "m.safetensors", model, inference=refs))
         assert loaded.inference_config == refs
         plain = load_model(export_safetensors(tmp_path / "p.safetensors", build_model("optstereo", **TINY, iters=2)))
@@ -136,8 +185,10 @@ def test_final_scale_by_hand() -> None:
     sqrt(2400 / 600)) = 2)."""
     from optstereo.inference.engine import final_scale
 
-    assert final_scale(InferenceConfig(scale=1.25), None) == 1.25
+    assert final_scale(InferenceConfig(scale=1.25), None, (20, 30)) == 1.25
     adaptive = InferenceConfig(scale=1.5, adaptive_ref_disp=20.0, adaptive_ref_pixels=2400)
-    assert final_scale(adaptive, np.full((20, 30), 5.0, np.float32)) == pytest.approx(3.0)
+    assert final_scale(adaptive, np.full((20, 30), 5.0, np.float32), (20, 30)) == pytest.approx(3.0)
     with pytest.raises(ValueError, match="zero-start pass"):
-        final_scale(adaptive, None)
+        final_scale(adaptive, None, (20, 30))
+    # the pixel budget alone (2x for 600 of 2400 px, capped at 1.5), on top of the file's scale 1
+    assert final_scale(InferenceConfig(adaptive_ref_pixels=2400, enlarge_max=1.5), None, (20, 30)) == 1.5

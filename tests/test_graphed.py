@@ -83,6 +83,7 @@ class TestGraphedPassCPU:
     ({"scale": 1.5}, r"input scale 1 only \(scale=1.5\)"),
     ({"scale": 0.5}, r"input scale 1 only \(scale=0.5\)"),
     ({"adaptive_ref_disp": 60.0, "adaptive_ref_pixels": 465750}, "adaptive_ref_disp=60.0"),
+    ({"adaptive_ref_pixels": 465750, "enlarge_max": 1.25}, r"enlarged 1.250x .*enlarge_max=1.25"),
 ])
 def test_refuses_what_it_cannot_capture(config: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
@@ -96,6 +97,9 @@ def test_adaptive_pass_that_cannot_run_is_captured() -> None:
     check_capturable(config, (370, 1224))
     with pytest.raises(ValueError, match="adaptive"):
         check_capturable(config, (300, 1000))
+    budget = config.replace(enlarge_max=4.0)  # the pixel budget never enlarges a KITTI frame either
+    check_capturable(budget, KITTI_HW)
+    check_capturable(budget, (370, 1224))
 
 
 @pytest.mark.gpu

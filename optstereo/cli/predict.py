@@ -94,8 +94,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         click.echo(f"wrote {len(written)} frames into {out}")
         return
     if dataset is None:
-        _check_memory(left, right, scale if scale is not None else inference.model_inference_config(model).scale,
-                      dev.type)
+        _check_memory(left, right, scale if scale is not None else
+                      inference.first_scale(inference.model_inference_config(model), image_size(left)), dev.type)
         paths = outputs.predict_pair(model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
                              scale=scale, refine=refine)

@@ -33,7 +33,10 @@ class InferenceConfig:
             model learned on is run again, enlarged so that the 95th percentile of its disparity reaches this many
             pixels (``optstereo.inference.rescale.adaptive_factor``): the second pass for small pairs.
         adaptive_ref_pixels: the training pairs' pixel count (H x W): the adaptive pass never feeds the network more
-            pixels than that (required when ``adaptive_ref_disp`` is set).
+            pixels than that (required when ``adaptive_ref_disp`` or ``enlarge_max`` is set).
+        enlarge_max: 1 = off; > 1: a pair with fewer pixels (at ``scale``) than ``adaptive_ref_pixels`` runs its first
+            pass enlarged toward that many, by at most this factor (``optstereo.inference.rescale.budget_factor``):
+            small pairs get the grid a training-size pair gets, at no more than its time per pass.
         coarse_start: the final pass's GRU starts from a pass at half its scale instead of from zero
             (``optstereo.inference.cascade.coarse_start``, the training's own; for weights trained with
             ``data.cascade_p``).
@@ -48,6 +51,7 @@ class InferenceConfig:
     refine: Refiner = "none"
     adaptive_ref_disp: float = 0.0
     adaptive_ref_pixels: int = 0
+    enlarge_max: float = 1.0
     coarse_start: bool = False
     select: bool = False
     select_jump: float = 0.0
@@ -75,7 +79,7 @@ class InferenceConfig:
 
     def validate(self) -> InferenceConfig:
         """Raise ValueError naming the field if a value is out of range or of the wrong type; return self."""
-        for key in ("scale", "adaptive_ref_disp", "select_jump"):
+        for key in ("scale", "adaptive_ref_disp", "enlarge_max", "select_jump"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"inference option {key} must be a finite number, got {value!r}")
@@ -99,6 +103,11 @@ class InferenceConfig:
         if self.adaptive_ref_disp > 0 and self.adaptive_ref_pixels == 0:
             raise ValueError("inference option adaptive_ref_disp needs adaptive_ref_pixels (the training pairs' "
                              "pixel count)")
+        if self.enlarge_max < 1:
+            raise ValueError(f"inference option enlarge_max must be >= 1 (1 = off), got {self.enlarge_max}")
+        if self.enlarge_max > 1 and self.adaptive_ref_pixels == 0:
+            raise ValueError("inference option enlarge_max needs adaptive_ref_pixels (the pixel count it enlarges "
+                             "toward)")
         if self.select and not self.coarse_start:
             raise ValueError("inference option select needs coarse_start (it chooses between the two starts' passes)")
         if self.select_jump < 0:
@@ -116,9 +125,14 @@ class InferenceConfig:
         """Build from a dict (YAML/JSON, a weights file's metadata), rejecting unknown keys by name; an integer for a
         float field is taken as that float."""
         reject_unknown_keys(cls, values, "inference config")  # ConfigError, a ValueError
-        floats = {"scale", "adaptive_ref_disp", "select_jump"}
+        floats = {"scale", "adaptive_ref_disp", "enlarge_max", "select_jump"}
         values = {k: float(v) if k in floats and type(v) is int else v for k, v in values.items()}
         return cls(**values).validate()
+
+    def fixed(self, scale: float) -> InferenceConfig:
+        """A validated copy that runs every pair at ``scale`` and nothing else: no adaptive pass, no pixel-budget
+        enlargement (a caller's ``--scale`` is final)."""
+        return self.replace(scale=float(scale), adaptive_ref_disp=0.0, adaptive_ref_pixels=0, enlarge_max=1.0)
 
     def replace(self, **changes: Any) -> InferenceConfig:
         """A validated copy with ``changes`` (InferenceConfig fields)."""

@@ -30,7 +30,7 @@ from optstereo.choices import AMP_MODES, REFINERS, AmpMode
 from optstereo.inference.cascade import coarse_start, grid_start, jump_limit, photometric_select
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.padding import InputPadder, divisor_of
-from optstereo.inference.rescale import adaptive_factor, disparity_to_size, rescaled_pair
+from optstereo.inference.rescale import adaptive_factor, budget_factor, disparity_to_size, rescaled_pair
 from pvm_labeler.common.version import cpuinfo_flags
 
 logger = logging.getLogger(__name__)
@@ -130,11 +130,12 @@ class Inference:
 def model_inference_config(model: nn.Module, iters: int | None = None, scale: float | None = None,
                            refine: str | None = None) -> InferenceConfig:
     """The model's InferenceConfig (``model.inference_config``, else the defaults) with the caller's overrides: a
-    given ``scale`` is final (no adaptive pass), ``iters``/``refine`` None keep the model's."""
+    given ``scale`` is final (no adaptive pass, no pixel-budget enlargement); ``iters``/``refine`` None keep the
+    model's."""
     config = model_inference(model)
-    changes: dict = {}
     if scale is not None:
-        changes.update(scale=float(scale), adaptive_ref_disp=0.0, adaptive_ref_pixels=0)
+        config = config.fixed(scale)
+    changes: dict = {}
     if iters is not None:
         changes["iters"] = iters
     if refine is not None:
@@ -178,24 +179,26 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
         device: torch.device | str = "cpu", amp: AmpMode = "none") -> Inference:
     """The disparity of one (H, W, 3) uint8 pair as ``config`` says (None = the model's ``model.inference_config``).
 
-    In order: the zero-start pass at ``config.scale`` (unless only a coarse-started one is wanted); with
-    ``adaptive_ref_disp``, a second one at the enlarged scale when :func:`optstereo.inference.rescale.adaptive_factor`
-    asks for
-    it; with ``coarse_start`` the pass started from ``optstereo.inference.cascade.coarse_start`` on the same resized,
-    padded
-    pair, and with ``select`` the per-pixel choice between it and the zero-start pass; then the post-filter.
+    In order: the zero-start pass at :func:`first_scale` (``config.scale``, a small pair enlarged toward the pixel
+    budget with ``enlarge_max``; unless only a coarse-started one is wanted); with ``adaptive_ref_disp``, a second one
+    at the enlarged scale when :func:`optstereo.inference.rescale.adaptive_factor` asks for it; with ``coarse_start``
+    the pass started from ``optstereo.inference.cascade.coarse_start`` on the same resized, padded pair, and with
+    ``select`` the per-pixel choice between it and the zero-start pass; then the post-filter.
     Returns the (H, W) float32 disparity in the input's pixels and the scale of the final pass.
     """
     config = (config or model_inference(model)).validate()
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     device = torch.device(device)
-    scale = config.scale
+    scale = first_scale(config, left.shape)
+    if scale != config.scale:
+        logger.info("input scale by pixel budget: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0],
+                    config.scale, scale)
     zero = coarse = None
     with _eval_mode(model):
         if not config.coarse_start or config.select or config.adaptive:
             zero = pass_at_scale(model, left, right, scale, None, config.iters, device, amp)
-            final = final_scale(config, zero)
+            final = final_scale(config, zero, left.shape)
             if final != scale:
                 logger.info("adaptive input scale: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0],
                             scale, final)
@@ -213,15 +216,25 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     return Inference(apply_refine(disp, left, config.refine, device), scale)
 
 
-def final_scale(config: InferenceConfig, zero: Disparity | None) -> float:
-    """The input scale of :func:`run`'s final pass: ``config.scale``, times the adaptive enlargement
-    (``adaptive_factor``) of ``zero`` (the zero-start pass at ``config.scale``, needed only with ``config.adaptive``)
-    when it is one."""
-    if not config.adaptive:
+def first_scale(config: InferenceConfig, shape: tuple[int, ...]) -> float:
+    """The input scale of :func:`run`'s first pass on an (H, W, ...) pair: ``config.scale``, times the pixel-budget
+    enlargement (``budget_factor``) when ``config.enlarge_max`` > 1."""
+    if config.enlarge_max <= 1:
         return config.scale
+    return config.scale * budget_factor(shape, config.adaptive_ref_pixels, config.enlarge_max, config.scale)
+
+
+def final_scale(config: InferenceConfig, zero: Disparity | None, shape: tuple[int, ...]) -> float:
+    """The input scale of :func:`run`'s final pass on an (H, W, ...) pair: :func:`first_scale`, times the adaptive
+    enlargement (``adaptive_factor``, counted from the first pass) of ``zero`` (the zero-start pass at the first
+    scale, at the input's size; needed only with ``config.adaptive``) when it is one."""
+    first = first_scale(config, shape)
+    if not config.adaptive:
+        return first
     if zero is None:
         raise ValueError("the adaptive scale needs the zero-start pass's disparity")
-    return config.scale * adaptive_factor(zero, config.adaptive_ref_disp, config.adaptive_ref_pixels)
+    return first * adaptive_factor(zero, config.adaptive_ref_disp, config.adaptive_ref_pixels,
+                                   prior=first / config.scale)
 
 
 @torch.inference_mode()

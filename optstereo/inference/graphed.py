@@ -26,7 +26,7 @@ from torch import nn
 
 from optstereo.choices import AmpMode
 from optstereo.inference.config import InferenceConfig
-from optstereo.inference.engine import inference_autocast, model_inference_config
+from optstereo.inference.engine import first_scale, inference_autocast, model_inference_config
 from optstereo.inference.padding import InputPadder, divisor_of
 from optstereo.inference.rescale import ADAPTIVE_MIN_GAIN
 
@@ -139,8 +139,9 @@ class GraphedPass:
 
 def check_capturable(config: InferenceConfig, shape: tuple[int, int]) -> None:
     """Raise ValueError naming the setting unless ``config`` makes one zero-start pass at input scale 1 on an (H, W)
-    pair whatever its content: no resize, no coarse start (so no selection), no post-filter, and an adaptive pass
-    only where its pixel bound keeps it from ever running (``optstereo.inference.rescale.adaptive_factor``)."""
+    pair whatever its content: no resize (nor a pixel-budget enlargement), no coarse start (so no selection), no
+    post-filter, and an adaptive pass only where its pixel bound keeps it from ever running
+    (``optstereo.inference.rescale.adaptive_factor``)."""
     config.validate()
     if config.scale != 1.0:
         raise ValueError(f"GraphedPass captures input scale 1 only (scale={config.scale}): a device-side resize "
@@ -151,6 +152,10 @@ def check_capturable(config: InferenceConfig, shape: tuple[int, int]) -> None:
     if config.refine != "none":
         raise ValueError(f"GraphedPass runs no post-filter: refine={config.refine!r} is not captured, use infer "
                          "or refine='none'")
+    if first_scale(config, shape) != 1.0:
+        raise ValueError(f"GraphedPass captures input scale 1 only: a {shape[0]}x{shape[1]} pair is enlarged "
+                         f"{first_scale(config, shape):.3f}x toward the pixel budget (enlarge_max="
+                         f"{config.enlarge_max}); give scale= (turns it off, as infer does) or use infer")
     if config.adaptive:
         h, w = shape
         bound = math.sqrt(config.adaptive_ref_pixels / (h * w))

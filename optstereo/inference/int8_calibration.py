@@ -19,7 +19,7 @@ from torch import nn
 
 from optstereo.api import load_model
 from optstereo.inference import int8
-from optstereo.inference.engine import infer
+from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.fastpath import engineering
 from optstereo.pretrained import resolve_checkpoint_spec
 from pvm_labeler.common.datasets import discover, load_pair
@@ -75,9 +75,12 @@ def measure(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: float 
     if int8.supported_gru_init(model):
         handles.append(model.hidden_init.conv.register_forward_hook(record_f))
     try:
+        # the file's scale and adaptive pass, not the pixel budget: which passes a calibrating pair takes (and so the
+        # clips) must not move when only ``enlarge_max`` does, so the default's clips stay those it was judged with
+        config = model_inference_config(model).replace(enlarge_max=1.0)
         with engineering(False):
             for left, right in pairs:
-                infer(model, left, right)
+                run(model, left, right, config)
     finally:
         for handle in handles:
             handle.remove()

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["ADAPTIVE_MIN_GAIN", "ADAPTIVE_PERCENTILE", "adaptive_factor", "disparity_to_size", "rescaled_pair",
-           "scaled_size", "sparse_to_size"]
+__all__ = ["ADAPTIVE_MIN_GAIN", "ADAPTIVE_PERCENTILE", "adaptive_factor", "budget_factor", "disparity_to_size",
+           "rescaled_pair", "scaled_size", "sparse_to_size"]
 
 #: The percentile of a first pass's disparity that :func:`adaptive_factor` compares with the model's reference: the
 #: top of the pair's disparity range, robust to a few wild pixels.
@@ -64,7 +64,7 @@ def sparse_to_size(label: npt.NDArray[np.float32], shape: tuple[int, int],
     return (resized * (w_out / label.shape[1]) if scale_values else resized).astype(np.float32)
 
 
-def adaptive_factor(disp: npt.NDArray[np.float32], ref_disp: float, ref_pixels: int) -> float:
+def adaptive_factor(disp: npt.NDArray[np.float32], ref_disp: float, ref_pixels: int, prior: float = 1.0) -> float:
     """How much more than its first pass to enlarge a pair so that its disparities reach the model's reference.
 
     ``disp`` is the (H, W) disparity of the first pass, at the input's size and in its pixels; ``ref_disp`` is the
@@ -73,12 +73,26 @@ def adaptive_factor(disp: npt.NDArray[np.float32], ref_disp: float, ref_pixels: 
     percentile: large enough that the pair's disparities span as many grid cells as the training pairs' did, and
     never more pixels than a training pair. It is 1 (no second pass) when that is below ADAPTIVE_MIN_GAIN, so a pair
     with disparities as large as the references' is never shrunk and one of their size never enlarged.
+
+    ``prior``: the first pass already ran the pair enlarged by this much (:func:`budget_factor`), so its disparities
+    and pixels count ``prior`` and ``prior ** 2`` times over: the factor is counted from there.
     """
     if ref_disp <= 0 or ref_pixels <= 0:
         raise ValueError(f"adaptive scale needs positive references, got ref_disp {ref_disp}, ref_pixels {ref_pixels}")
     finite = disp[np.isfinite(disp)]
     top = float(np.percentile(finite, ADAPTIVE_PERCENTILE)) if finite.size else 0.0
-    by_disp = ref_disp / top if top > 0 else math.inf
-    by_pixels = math.sqrt(ref_pixels / (disp.shape[0] * disp.shape[1]))
+    by_disp = ref_disp / (top * prior) if top > 0 else math.inf
+    by_pixels = math.sqrt(ref_pixels / (disp.shape[0] * disp.shape[1])) / prior
     factor = min(by_disp, by_pixels)
+    return factor if factor >= ADAPTIVE_MIN_GAIN else 1.0
+
+
+def budget_factor(shape: tuple[int, ...], ref_pixels: int, cap: float, scale: float = 1.0) -> float:
+    """How much to enlarge an (H, W, ...) pair, already resized by ``scale``, before its first pass so that it has
+    ``ref_pixels`` pixels (a training-size pair's, so no more time per pass than one): min(cap, sqrt(ref_pixels /
+    (H W)) / scale); 1 when that is below ADAPTIVE_MIN_GAIN (a pair near the reference size is never resampled for
+    a fraction of a grid cell) or ``cap`` <= 1 (off). Never below 1: a larger pair is not shrunk."""
+    if ref_pixels <= 0:
+        raise ValueError(f"the pixel budget needs a positive reference, got ref_pixels {ref_pixels}")
+    factor = min(cap, math.sqrt(ref_pixels / (shape[0] * shape[1])) / scale)
     return factor if factor >= ADAPTIVE_MIN_GAIN else 1.0
