@@ -94,11 +94,13 @@ class TestLegacy:
         assert load_model("pretrained-accurate").inference_config == SHIPPED
 
     def test_the_default_file(self) -> None:
-        """Version 15 (``pretrained``): one pass at scale 1, no filter, the adaptive pass for small pairs only."""
+        """Version 15 (``pretrained``): one pass at scale 1, no filter; small pairs enlarged toward a KITTI frame's
+        pixels by at most 1.25x (S1), the adaptive pass for small pairs with small disparities."""
         from optstereo.api import load_model
 
         config = load_model("pretrained").inference_config
-        assert config == InferenceConfig(scale=1.0, adaptive_ref_disp=60.1, adaptive_ref_pixels=465750)
+        assert config == InferenceConfig(scale=1.0, adaptive_ref_disp=60.1, adaptive_ref_pixels=465750,
+                                         enlarge_max=1.25)
         assert config.passes_for(enlarged=False) == 1 and config.passes == 2
 
     def test_old_files_load_and_new_files_keep_their_own_key(self, tmp_path: Path) -> None:
