@@ -34,7 +34,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from optstereo.inference.config import InferenceConfig
-from optstereo.inference.int8 import Int8Calibration, read_sidecar
+from optstereo.inference.int8 import read_sidecar
 from optstereo.models import build_model, upgrade_model_keys
 from optstereo.models.config import split_legacy_model_dict
 from optstereo.version import __version__
@@ -304,15 +304,9 @@ def build_model_from_checkpoint(
     except RuntimeError as exc:
         raise CheckpointError(f"weights in {ckpt.path} do not fit model {ckpt.model_name!r}: {exc}") from exc
     model.inference_config = ckpt.inference_config
-    model.int8_calibration = _int8_sidecar(ckpt.path)
+    # the int8 clips beside a weights file (None without one: read_sidecar checks it exists)
+    model.int8_calibration = None if ckpt.path is None else read_sidecar(Path(ckpt.path))
     return model.to(device).eval()
-
-
-def _int8_sidecar(path: Path | None) -> Int8Calibration | None:
-    """The int8 clips beside a weights file (``optstereo.inference.int8.read_sidecar``), None without one."""
-    if path is None or not Path(path).is_file():
-        return None
-    return read_sidecar(Path(path))
 
 
 def average_checkpoints(paths: list[Path]) -> LoadedCheckpoint:

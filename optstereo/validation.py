@@ -27,7 +27,7 @@ import logging
 import math
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -225,8 +225,12 @@ def valset_pairs(valset: ValSet, only: set[str] | None = None) -> Iterator[tuple
 
 
 def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", amp: str = "none",
-          only: set[str] | None = None, progress: bool = False, what: str = "") -> ValScore:
-    """The model (run with its own inference settings) on every pair of ``valset`` (or of ``only``)."""
+          only: set[str] | None = None, progress: bool = False, what: str = "",
+          predict: Callable[[npt.NDArray[np.uint8], npt.NDArray[np.uint8]], npt.NDArray[np.float32]] | None = None,
+          ) -> ValScore:
+    """The model (run with its own inference settings) on every pair of ``valset`` (or of ``only``). ``predict``:
+    how a (H, W, 3) uint8 pair becomes its (H, W) float32 disparity (None = ``infer`` on ``device`` with ``amp``), for
+    studies that run the model another way (``pipelines.studies.small_pairs``: on the pair shrunk)."""
     own = weights_digest(model) == valset.teacher_digest
     if own:
         logger.info("the model has the teacher's weights: teacher_* scores are left out (its own maps)")
@@ -234,7 +238,8 @@ def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", 
     pairs = []
     for sample, teacher in tqdm(valset_pairs(valset, only), total=total, desc=f"gt-free {what}".strip(), unit="pair",
                                 disable=not progress):
-        disp = infer(model, sample.left, sample.right, device=device, amp=amp)
+        disp = (predict(sample.left, sample.right) if predict is not None
+                else infer(model, sample.left, sample.right, device=device, amp=amp))
         cost = photometric_costs(sample.left, sample.right, [disp], window=1)[0]
         pairs.append(score_pair(sample.frame_id, disp, sample.label, None if own else teacher, cost))
     summary = pooled(pairs)

@@ -28,6 +28,7 @@ in docs/registrations.md and RESULTS.md.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -137,9 +138,11 @@ def write_sidecar(weights: Path, calibration: Int8Calibration) -> Path:
     return path
 
 
+@functools.cache
 def available() -> bool:
     """Whether this process can run the int8 convolutions fast: oneDNN's int8 convolution is in torch and torch runs
-    at AVX2 or AVX-512 (older x86 CPUs and other architectures would take slow reference kernels or none)."""
+    at AVX2 or AVX-512 (older x86 CPUs and other architectures would take slow reference kernels or none). Asked
+    once per process (torch fixes its CPU capability at start-up); every pass asks it."""
     return (hasattr(torch.ops.onednn, "qconv2d_pointwise") and hasattr(torch.ops.onednn, "qconv_prepack")
             and torch.backends.mkldnn.is_available()
             and torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512"))

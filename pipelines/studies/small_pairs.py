@@ -16,27 +16,25 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from optstereo.api import load_model
 from optstereo.checkpoint import model_inference
-from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import infer
 from optstereo.inference.rescale import disparity_to_size, rescaled_pair
-from optstereo.validation import PairScore, open_valset, paired_difference, pooled, score_pair, valset_pairs
+from optstereo.validation import PairScore, open_valset, paired_difference, pooled, score
 
 
 def score_small(cap: float, valset_dir: Path, factor: float) -> list[PairScore]:
     """Version 15 with ``enlarge_max`` = ``cap`` on every validation pair shrunk by ``factor``, scored at full size."""
     model = load_model("pretrained")
     model.inference_config = model_inference(model).replace(enlarge_max=cap)
-    pairs = []
-    for sample, teacher in valset_pairs(open_valset(valset_dir)):
-        left, right = rescaled_pair(sample.left, sample.right, factor)
-        disp = disparity_to_size(infer(model, left, right), sample.label.shape)
-        cost = photometric_costs(sample.left, sample.right, [disp], window=1)[0]
-        pairs.append(score_pair(sample.frame_id, disp, sample.label, teacher, cost))
-    return pairs
+
+    def shrunk(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        return disparity_to_size(infer(model, *rescaled_pair(left, right, factor)), left.shape[:2])
+
+    return score(model, open_valset(valset_dir), predict=shrunk).pairs
 
 
 def main(argv: list[str] | None = None) -> None:
