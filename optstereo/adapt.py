@@ -368,7 +368,7 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
               "before": {**_summary(before), **gt_before}, "after": {**_summary(after), **gt_after},
               "lr": cfg.learning_rate(), "adapted": decision.adapted, "changes": decision.changes,
               "checkpoint": str(adapted), "int8_clips": None if clips is None else str(clips),
-              "decision": decision.reason}
+              "trained": str(trained), "decision": decision.reason}
     (cfg.out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     (cfg.out / "report.md").write_text(report_markdown(report))
     return report
@@ -408,4 +408,6 @@ def report_markdown(report: dict[str, Any]) -> str:
         if key in report["before"] and not math.isnan(float(report["before"][key])):
             lines.append(f"| {name} | {report['before'][key]:.3f} | {report['after'][key]:.3f} |")
     lines += ["", f"**{report['decision']}**", "", f"checkpoint `{report['checkpoint']}`", ""]
+    if not report.get("adapted", True) and report.get("trained"):
+        lines += [f"the trained weights, not chosen (use them at your own risk): `{report['trained']}`", ""]
     return "\n".join(lines)

@@ -82,6 +82,7 @@ def test_a_wrecking_learning_rate_keeps_the_start(tmp_path: Path, shared_data: P
     assert report["after"]["held_bad3"] > report["before"]["held_bad3"] + 5
     assert res.output.strip().splitlines()[-1].startswith("start kept:")
     assert (out / "adapted.safetensors").read_bytes() == Path(report["init"]).read_bytes()
+    assert Path(report["trained"]).is_file() and report["trained"] in (out / "report.md").read_text()
     clips = int8.read_sidecar(out / "adapted.safetensors")
     assert (clips is not None) is int8.available() and (report["int8_clips"] is not None) is int8.available()
     if clips is not None:
@@ -225,6 +226,11 @@ def test_the_report_names_the_teacher() -> None:
     assert "150 steps; the teacher `pretrained-accurate` in PVM's holes." in taught
     rated = report_markdown({**base, "lr": 1e-4, "config": {"steps": 150, "teacher": "pretrained-accurate"}})
     assert "150 steps at lr 0.0001; the teacher" in rated
+    assert "not chosen" not in plain  # a report without the run's trained weights (older runs) names none
+    kept = report_markdown({**base, "adapted": False, "trained": "run/model.safetensors", "config": {"steps": 1}})
+    assert "the trained weights, not chosen (use them at your own risk): `run/model.safetensors`" in kept
+    assert "not chosen" not in report_markdown({**base, "adapted": True, "trained": "run/model.safetensors",
+                                                "config": {"steps": 1}})
 
 
 def test_teacher_only_replaces_the_labels_and_drops_the_photometric_losses(
