@@ -47,7 +47,7 @@ def arm_file(out: Path, alpha: float) -> Path:
         end = load_model("pretrained")
         start = load_model("pretrained-accurate").state_dict()
         end.load_state_dict(on_line(start, end.state_dict(), alpha))
-        export_safetensors(path, end, inference=model_inference(load_model("pretrained")))
+        export_safetensors(path, end, inference=model_inference(end))
     return path
 
 
