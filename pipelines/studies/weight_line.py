@@ -6,6 +6,10 @@ Writes OUT/w<a>.safetensors = theta_14 + a (theta_15 - theta_14) with version 15
 int8 clips beside them), then scores each (and version 15 itself, a = 1) on the GT-free validation set with
 ``optstereo-eval --valset`` (OPTSTEREO_INT8=0) into OUT/w<a>.val/gtfree.json, resumable: a scored arm is skipped.
 Judge with ``python -m pipelines.studies.long_run compare OUT/w1.val/gtfree.json OUT/w<a>.val/gtfree.json``.
+
+W2 (docs/registrations.md): the uniform average of a training run's checkpoints, version 15's inference settings:
+
+    python -m pipelines.studies.weight_line average --out W2.safetensors RUN/ckpt-*.pt
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from pathlib import Path
 import torch
 
 from optstereo.api import load_model
-from optstereo.checkpoint import export_safetensors, model_inference
+from optstereo.checkpoint import export_safetensors, load_checkpoint, model_inference
 
 
 def on_line(start: dict[str, torch.Tensor], end: dict[str, torch.Tensor], alpha: float) -> dict[str, torch.Tensor]:
@@ -38,6 +42,35 @@ def on_line(start: dict[str, torch.Tensor], end: dict[str, torch.Tensor], alpha:
             raise ValueError(f"{key}: shapes {tuple(a.shape)} and {tuple(b.shape)} differ")
         out[key] = a + alpha * (b - a) if b.is_floating_point() else b.clone()
     return out
+
+
+def mean_state(states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """The uniform average of state dicts (float tensors, in float32; others taken from the last).
+
+    Args:
+        states: one or more state dicts with the same keys and shapes (a run's checkpoints).
+    """
+    if not states:
+        raise ValueError("no state dict to average")
+    out = {}
+    for key, last in states[-1].items():
+        if not last.is_floating_point():
+            out[key] = last.clone()
+            continue
+        total = torch.zeros(last.shape, dtype=torch.float32)
+        for state in states:
+            if key not in state or state[key].shape != last.shape:
+                raise ValueError(f"{key}: missing or of another shape in one of the {len(states)} state dicts")
+            total += state[key].float()
+        out[key] = (total / len(states)).to(last.dtype)
+    return out
+
+
+def average_file(checkpoints: list[Path], out: Path) -> Path:
+    """Write the average of ``checkpoints``' weights to ``out`` with version 15's inference settings."""
+    model = load_model("pretrained")
+    model.load_state_dict(mean_state([load_checkpoint(c).model_state for c in checkpoints]))
+    return export_safetensors(out, model, inference=model_inference(model))
 
 
 def arm_file(out: Path, alpha: float) -> Path:
@@ -62,6 +95,15 @@ def score(checkpoint: Path, valset: Path, out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    if argv is None:
+        argv = sys.argv[1:]
+    if argv[:1] == ["average"]:
+        avg = argparse.ArgumentParser(prog="weight_line average")
+        avg.add_argument("--out", type=Path, required=True)
+        avg.add_argument("checkpoints", type=Path, nargs="+")
+        a = avg.parse_args(argv[1:])
+        print(average_file(sorted(a.checkpoints), a.out))
+        return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--valset", type=Path, default=Path("/work/valset"))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pipelines.studies.weight_line import on_line
+from pipelines.studies.weight_line import mean_state, on_line
 
 
 def _dicts() -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
@@ -29,3 +29,14 @@ def test_on_line_refuses_mismatch() -> None:
         on_line({"w": start["w"]}, end, 0.5)
     with pytest.raises(ValueError, match="shapes"):
         on_line({"w": torch.zeros(3), "n": start["n"]}, end, 0.5)
+
+
+def test_mean_state_hand_values() -> None:
+    start, end = _dicts()
+    out = mean_state([start, end, {"w": torch.tensor([2.0, 4.0]), "n": torch.tensor([7])}])
+    torch.testing.assert_close(out["w"], torch.tensor([2.0, 2.0]))
+    assert out["n"].item() == 7  # integer buffers from the last state dict
+    with pytest.raises(ValueError, match="no state dict"):
+        mean_state([])
+    with pytest.raises(ValueError, match="another shape"):
+        mean_state([{"w": torch.zeros(3)}, {"w": torch.zeros(2)}])
