@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from optstereo.api import load_model
-from optstereo.checkpoint import export_safetensors, load_checkpoint, model_inference
+from optstereo.checkpoint import average_checkpoints, export_safetensors, model_inference
 
 
 def on_line(start: dict[str, torch.Tensor], end: dict[str, torch.Tensor], alpha: float) -> dict[str, torch.Tensor]:
@@ -44,32 +44,11 @@ def on_line(start: dict[str, torch.Tensor], end: dict[str, torch.Tensor], alpha:
     return out
 
 
-def mean_state(states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """The uniform average of state dicts (float tensors, in float32; others taken from the last).
-
-    Args:
-        states: one or more state dicts with the same keys and shapes (a run's checkpoints).
-    """
-    if not states:
-        raise ValueError("no state dict to average")
-    out = {}
-    for key, last in states[-1].items():
-        if not last.is_floating_point():
-            out[key] = last.clone()
-            continue
-        total = torch.zeros(last.shape, dtype=torch.float32)
-        for state in states:
-            if key not in state or state[key].shape != last.shape:
-                raise ValueError(f"{key}: missing or of another shape in one of the {len(states)} state dicts")
-            total += state[key].float()
-        out[key] = (total / len(states)).to(last.dtype)
-    return out
-
-
 def average_file(checkpoints: list[Path], out: Path) -> Path:
-    """Write the average of ``checkpoints``' weights to ``out`` with version 15's inference settings."""
+    """Write the average of ``checkpoints``' weights (``optstereo.checkpoint.average_checkpoints``) to ``out`` with
+    version 15's inference settings."""
     model = load_model("pretrained")
-    model.load_state_dict(mean_state([load_checkpoint(c).model_state for c in checkpoints]))
+    model.load_state_dict(average_checkpoints(checkpoints).model_state)
     return export_safetensors(out, model, inference=model_inference(model))
 
 

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
-from pipelines.studies.weight_line import mean_state, on_line
+from optstereo.checkpoint import load_checkpoint
+from optstereo.pretrained import resolve_checkpoint_spec
+from pipelines.studies.weight_line import arm_file, average_file, on_line
 
 
 def _dicts() -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
@@ -31,12 +35,11 @@ def test_on_line_refuses_mismatch() -> None:
         on_line({"w": torch.zeros(3), "n": start["n"]}, end, 0.5)
 
 
-def test_mean_state_hand_values() -> None:
-    start, end = _dicts()
-    out = mean_state([start, end, {"w": torch.tensor([2.0, 4.0]), "n": torch.tensor([7])}])
-    torch.testing.assert_close(out["w"], torch.tensor([2.0, 2.0]))
-    assert out["n"].item() == 7  # integer buffers from the last state dict
-    with pytest.raises(ValueError, match="no state dict"):
-        mean_state([])
-    with pytest.raises(ValueError, match="another shape"):
-        mean_state([{"w": torch.zeros(3)}, {"w": torch.zeros(2)}])
+def test_the_average_of_two_arms_is_their_midpoint(tmp_path: Path) -> None:
+    """theta(0.5) and theta(1.5) average to theta(1) = version 15's weights (float rounding only), and the average
+    file carries version 15's inference settings."""
+    out = average_file([arm_file(tmp_path, 0.5), arm_file(tmp_path, 1.5)], tmp_path / "avg.safetensors")
+    avg, v15 = load_checkpoint(out), load_checkpoint(resolve_checkpoint_spec("pretrained"))
+    assert avg.inference_config == v15.inference_config
+    for key, ref in v15.model_state.items():
+        torch.testing.assert_close(avg.model_state[key], ref, atol=1e-6, rtol=0)
