@@ -1,0 +1,210 @@
+"""T3 (docs/registrations.md): the default's pixels spent on width, judged GT-free.
+
+    python -m pipelines.studies.aspect score --valset VAL [--arms 1 1.125 1.25 1.4 1.6] [--int8] [--out DIR]
+    ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 \\
+        python -m pipelines.studies.aspect time --arms 1 A [--rounds 3] [--out DIR]
+    python -m pipelines.studies.aspect gt --arm A [--out DIR]
+
+Version 15 (``pretrained``) as shipped picks a pair's input scale s (``first_scale``: 1, or the S2 pixel budget's
+enlargement of a small pair); arm ``a`` then resizes the pair to (round(H s / a), round(W s a)): the same pixel
+count, ``a`` times the columns. The disparity comes back at the pair's size and in its pixels
+(``disparity_to_size``). ``score``: float32 (``OPTSTEREO_INT8=0`` is set before the model loads), every arm on the
+validation set into DIR/val_a<a>.json (resumable), then the registered rule against a = 1 with the DrivingStereo
+pairs' change beside it. ``time``: seconds per KITTI 2015 frame of each arm, alternating frame by frame with OpenCV
+SGBM-HH as ``make bench`` does (run it with ``ONEDNN_MAX_CPU_ISA=AVX2`` for the proxy row) -> DIR/time.json.
+``gt``: an arm's bad-3 on the GT frames of ``../shared`` (int8, the default's pass) -> DIR/gt_a<a>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import torch
+from torch import nn
+
+from optstereo.api import load_model
+from optstereo.checkpoint import model_inference
+from optstereo.inference.engine import first_scale, network_pass
+from optstereo.inference.rescale import disparity_to_size
+from optstereo.validation import PairScore, open_valset, paired_difference, pooled, score
+
+OUT = Path("results/aspect")
+SHARED = Path("../shared/data")
+ARMS = (1.0, 1.125, 1.25, 1.4, 1.6)
+DRIVING = "2018-"  # the validation set's 12 DrivingStereo pairs: their ids start with the drive's date
+Image = npt.NDArray[np.uint8]
+
+
+def aspect_size(shape: tuple[int, ...], scale: float, aspect: float) -> tuple[int, int]:
+    """(h, w) of an (H, W, ...) pair resized by ``scale`` both ways, then ``aspect`` in width and 1 / ``aspect`` in
+    height: (round(H scale / aspect), round(W scale aspect)), each at least 8."""
+    if not (scale > 0 and aspect > 0):
+        raise ValueError(f"scale and aspect must be positive, got {scale}, {aspect}")
+    return max(8, round(shape[0] * scale / aspect)), max(8, round(shape[1] * scale * aspect))
+
+
+def resize_image(image: Image, size: tuple[int, int]) -> Image:
+    """(H, W, C) uint8 -> (h, w, C): each axis on its own, area averaging where it shrinks, bilinear where it
+    enlarges (rows first); an axis of unchanged length is left as is."""
+    h, w = size
+    out = image
+    if h != out.shape[0]:
+        out = cv2.resize(out, (out.shape[1], h), interpolation=cv2.INTER_AREA if h < out.shape[0]
+                         else cv2.INTER_LINEAR)
+    if w != out.shape[1]:
+        out = cv2.resize(out, (w, out.shape[0]), interpolation=cv2.INTER_AREA if w < out.shape[1]
+                         else cv2.INTER_LINEAR)
+    return out
+
+
+def aspect_predict(model: nn.Module, aspect: float) -> Callable[[Image, Image], npt.NDArray[np.float32]]:
+    """(left, right) (H, W, 3) uint8 -> (H, W) float32 disparity: the model's first scale (its config's), then
+    ``aspect``, one network pass at the config's iterations, back at (H, W) in the pair's pixels. At ``aspect`` = 1
+    it is the model's own run (version 15: one pass, no post-filter; its adaptive second pass cannot fire once the
+    pixel budget has brought a pair to the reference's pixel count, that is for any pair of over 1/16 of it)."""
+    config = model_inference(model)
+    if config.coarse_start or config.refine != "none":
+        raise ValueError("T3 runs one-pass models without a filter (version 15's settings)")
+
+    def predict(left: Image, right: Image) -> npt.NDArray[np.float32]:
+        size = aspect_size(left.shape, first_scale(config, left.shape), aspect)
+        if size == left.shape[:2]:
+            return network_pass(model, left, right, iters=config.iters)
+        disp = network_pass(model, resize_image(left, size), resize_image(right, size), iters=config.iters)
+        return disparity_to_size(disp, left.shape[:2])
+
+    return predict
+
+
+def arm_path(out: Path, aspect: float, int8: bool = False) -> Path:
+    """DIR/val_a<aspect>.json (float32) or DIR/val_a<aspect>.int8.json (the default's int8 pass)."""
+    return out / f"val_a{aspect:g}{'.int8' if int8 else ''}.json"
+
+
+def score_arms(valset: Path, arms: list[float], out: Path, int8: bool = False) -> dict[float, list[PairScore]]:
+    """Every arm on the validation set (float32, or the default's int8 pass with ``int8``; the caller sets
+    ``OPTSTEREO_INT8`` to match before the model loads), resumable: an arm with its file is read back."""
+    out.mkdir(parents=True, exist_ok=True)
+    model = None
+    result = {}
+    for aspect in arms:
+        path = arm_path(out, aspect, int8)
+        if path.exists():
+            result[aspect] = [PairScore(**p) for p in json.loads(path.read_text())["pairs"]]
+            continue
+        model = model or load_model("pretrained")
+        pairs = score(model, open_valset(valset), predict=aspect_predict(model, aspect), progress=True,
+                      what=f"a={aspect:g}").pairs
+        doc = {"aspect": aspect, "valset": str(valset), "float32": not int8, "summary": pooled(pairs),
+               "pairs": [vars(p) for p in pairs]}
+        path.write_text(json.dumps(doc, indent=1) + "\n")
+        result[aspect] = pairs
+    return result
+
+
+def rule(arms: dict[float, list[PairScore]]) -> tuple[float | None, list[str]]:
+    """T3's registered rule against a = 1: (the candidate or None, the table's lines)."""
+    base = arms[1.0]
+    lines = ["| a | PVM bad-3 / EPE | teacher EPE | photometric | PVM EPE change (2 SE) | teacher EPE change (2 SE) "
+             "| photometric change (2 SE) | DrivingStereo PVM EPE change (2 SE) |",
+             "|---|---|---:|---:|---|---|---|---|"]
+    for aspect, pairs in arms.items():
+        s = pooled(pairs)
+        changes = [paired_difference(base, pairs, key) for key in ("pvm_epe", "teacher_epe", "photometric")]
+        driving = paired_difference([p for p in base if p.frame_id.startswith(DRIVING)],
+                                    [p for p in pairs if p.frame_id.startswith(DRIVING)], "pvm_epe")
+        cells = " | ".join(f"{m:+.4f} ({e:.4f})" for m, e in [*changes, driving])
+        lines.append(f"| {aspect:g} | {s['pvm_bad3']:.2f} / {s['pvm_epe']:.3f} | {s['teacher_epe']:.3f} | "
+                     f"{s['photometric']:.4f} | {cells} |")
+    best = min((a for a in arms if a != 1.0), key=lambda a: pooled(arms[a])["pvm_epe"], default=None)
+    if best is None:
+        return None, lines
+    (pvm, pvm_e), (tea, tea_e), (pho, pho_e) = (paired_difference(base, arms[best], key)
+                                                for key in ("pvm_epe", "teacher_epe", "photometric"))
+    ok = pvm < -pvm_e and tea <= tea_e and pho <= pho_e
+    lines.append(f"\nLowest PVM EPE: a = {best:g}; candidate: {best if ok else None}")
+    return (best if ok else None), lines
+
+
+def time_arms(arms: list[float], rounds: int, out: Path) -> dict:
+    """Each arm (the engineered default pass ``load_model`` gives, int8 where the CPU has it) timed beside OpenCV
+    SGBM-HH on the four KITTI 2015 frames of ``make bench`` (``beside_sgbm``), the arms in turn for ``rounds``
+    rounds so the machine's drift falls on all alike; the median over rounds of each arm's ratio -> DIR/time.json
+    (DIR/time_avx2.json when ``ONEDNN_MAX_CPU_ISA`` caps oneDNN, the proxy row)."""
+    from pipelines.bench_labeler import _opencv  # lazy: the bench's helpers load only for timing
+    from pipelines.bench_models import THREADS, _frames, beside_sgbm
+
+    torch.set_num_threads(THREADS)
+    cv2.setNumThreads(THREADS)
+    model = load_model("pretrained")
+    frames = _frames(SHARED)
+    sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
+    ratios: dict[str, list[float]] = {f"{a:g}": [] for a in arms}
+    for _ in range(rounds):
+        for aspect in arms:
+            predict = aspect_predict(model, aspect)
+            row = beside_sgbm(model, frames, 3, sgbm, run=lambda _m, left, right, p=predict: p(left, right))
+            ratios[f"{aspect:g}"].append(row["ratio"])
+    doc = {"isa_cap": os.environ.get("ONEDNN_MAX_CPU_ISA", ""), "rounds": rounds,
+           "ratio_median": {a: statistics.median(r) for a, r in ratios.items()}, "ratios": ratios}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / ("time_avx2.json" if doc["isa_cap"] else "time.json")).write_text(json.dumps(doc, indent=1) + "\n")
+    return doc
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("step", choices=("score", "time", "gt"))
+    parser.add_argument("--valset", type=Path)
+    parser.add_argument("--arms", type=float, nargs="+", default=list(ARMS))
+    parser.add_argument("--arm", type=float)
+    parser.add_argument("--int8", action="store_true", help="score: the default's int8 pass instead of float32")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=OUT)
+    args = parser.parse_args(argv)
+    if args.step == "score":
+        if args.valset is None or 1.0 not in args.arms:
+            parser.error("score needs --valset and the arm 1 (the base of the rule)")
+        if not args.int8:
+            os.environ["OPTSTEREO_INT8"] = "0"  # float32, as W1 scored: read when the model loads
+        torch.set_num_threads(2)
+        _, lines = rule(score_arms(args.valset, args.arms, args.out, args.int8))
+        (args.out / f"table{'_int8' if args.int8 else ''}.md").write_text("\n".join(lines) + "\n")
+        print("\n".join(lines))
+    elif args.step == "time":
+        print(json.dumps(time_arms(args.arms, args.rounds, args.out)["ratio_median"]))
+    else:
+        if args.arm is None:
+            parser.error("gt needs --arm")
+        gt_scores(args.arm, args.out)
+
+
+def gt_scores(aspect: float, out: Path) -> dict:
+    """The arm's bad-3 / EPE on the GT frames of ``../shared`` (int8, the default's pass) -> DIR/gt_a<a>.json."""
+    from optstereo.evaluate import evaluate_frames, model_frames  # lazy: only after the rule picked a candidate
+
+    torch.set_num_threads(2)
+    model = load_model("pretrained")
+    predict = aspect_predict(model, aspect)
+    sets = {"kitti15": "kitti15", "kitti12": "kitti12", "middlebury": "middlebury"}
+    doc: dict = {"aspect": aspect}
+    for name in sets:
+        result = evaluate_frames(model_frames(model, name, predict=predict))
+        doc[name] = result.summary
+        doc[name + "_frames"] = result.rows
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"gt_a{aspect:g}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    print({k: v for k, v in doc.items() if not k.endswith("_frames")})
+    return doc
+
+
+if __name__ == "__main__":
+    main()
