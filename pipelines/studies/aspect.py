@@ -8,7 +8,7 @@
 Version 15 (``pretrained``) as shipped picks a pair's input scale s (``first_scale``: 1, or the S2 pixel budget's
 enlargement of a small pair); arm ``a`` then resizes the pair to (round(H s / a), round(W s a)): the same pixel
 count, ``a`` times the columns. The disparity comes back at the pair's size and in its pixels
-(``disparity_to_size``). ``score``: float32 (``OPTSTEREO_INT8=0`` is set before the model loads), every arm on the
+(``disparity_to_size``). ``score``: float32 (``--int8``: the default's int8 pass), every arm on the
 validation set into DIR/val_a<a>.json (resumable), then the registered rule against a = 1 with the DrivingStereo
 pairs' change beside it. ``time``: seconds per KITTI 2015 frame of each arm, alternating frame by frame with OpenCV
 SGBM-HH as ``make bench`` does (run it with ``ONEDNN_MAX_CPU_ISA=AVX2`` for the proxy row) -> DIR/time.json.
@@ -21,7 +21,7 @@ import argparse
 import json
 import os
 import statistics
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
@@ -33,6 +33,7 @@ from torch import nn
 from optstereo.api import load_model
 from optstereo.checkpoint import model_inference
 from optstereo.inference.engine import first_scale, network_pass
+from optstereo.inference.fastpath import engineering
 from optstereo.inference.rescale import disparity_to_size
 from optstereo.validation import PairScore, open_valset, paired_difference, pooled, score
 
@@ -90,8 +91,8 @@ def arm_path(out: Path, aspect: float, int8: bool = False) -> Path:
 
 
 def score_arms(valset: Path, arms: list[float], out: Path, int8: bool = False) -> dict[float, list[PairScore]]:
-    """Every arm on the validation set (float32, or the default's int8 pass with ``int8``; the caller sets
-    ``OPTSTEREO_INT8`` to match before the model loads), resumable: an arm with its file is read back."""
+    """Every arm on the validation set (float32, or the default's int8 pass with ``int8``; the caller runs it inside
+    ``engineering(True, int8=int8)`` to match), resumable: an arm with its file is read back."""
     out.mkdir(parents=True, exist_ok=True)
     model = None
     result = {}
@@ -173,10 +174,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.step == "score":
         if args.valset is None or 1.0 not in args.arms:
             parser.error("score needs --valset and the arm 1 (the base of the rule)")
-        if not args.int8:
-            os.environ["OPTSTEREO_INT8"] = "0"  # float32, as W1 scored: read when the model loads
         torch.set_num_threads(2)
-        _, lines = rule(score_arms(args.valset, args.arms, args.out, args.int8))
+        with engineering(True, int8=args.int8):  # float32 unless --int8 (OPTSTEREO_INT8 is read at import)
+            _, lines = rule(score_arms(args.valset, args.arms, args.out, args.int8))
         (args.out / f"table{'_int8' if args.int8 else ''}.md").write_text("\n".join(lines) + "\n")
         print("\n".join(lines))
     elif args.step == "time":
@@ -188,21 +188,29 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def gt_scores(aspect: float, out: Path) -> dict:
-    """The arm's bad-3 / EPE on the GT frames of ``../shared`` (int8, the default's pass) -> DIR/gt_a<a>.json."""
-    from optstereo.evaluate import evaluate_frames, model_frames  # lazy: only after the rule picked a candidate
+    """The arm's bad-3 / EPE on the GT frames of ``../shared`` (KITTI 2015, KITTI 2012, Middlebury; the default's
+    pass, int8 where the CPU has it, 2 threads) -> DIR/gt_a<a>.json, pooled per set and per frame."""
+    from optstereo.evaluate import Frame, evaluate_frames  # lazy: only after the rules picked a candidate
+    from pvm_labeler.common.datasets import discover, load_pair
 
     torch.set_num_threads(2)
     model = load_model("pretrained")
     predict = aspect_predict(model, aspect)
-    sets = {"kitti15": "kitti15", "kitti12": "kitti12", "middlebury": "middlebury"}
-    doc: dict = {"aspect": aspect}
-    for name in sets:
-        result = evaluate_frames(model_frames(model, name, predict=predict))
-        doc[name] = result.summary
-        doc[name + "_frames"] = result.rows
+
+    def frames(dataset: str, root: Path) -> Iterator[Frame]:
+        for ref in discover(dataset, root):
+            sample = load_pair(ref)
+            yield Frame(ref.frame_id, predict(sample.left, sample.right), sample.gt, sample.gt_noc, sample.left)
+
+    doc: dict = {"aspect": aspect, "int8": True}
+    for dataset, root in (("kitti15", SHARED / "kitti15"), ("kitti12", SHARED / "kitti12"), ("middlebury", SHARED)):
+        result = evaluate_frames(frames(dataset, root))
+        doc[dataset] = {"summary": result.summary, "frames": result.rows}
     out.mkdir(parents=True, exist_ok=True)
     (out / f"gt_a{aspect:g}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
-    print({k: v for k, v in doc.items() if not k.endswith("_frames")})
+    for dataset in ("kitti15", "kitti12", "middlebury"):
+        print(dataset, f"bad-3 {doc[dataset]['summary']['bad3']:.2f} %",
+              {r["frame_id"]: round(r["bad3"], 2) for r in doc[dataset]["frames"]} if dataset == "middlebury" else "")
     return doc
 
 

@@ -1,0 +1,73 @@
+"""T3's study (pipelines/studies/aspect.py): the sizes by hand, the disparity's units through a width-for-height
+resize, a = 1 scoring exactly as ``optstereo-eval --valset`` does, the registered rule on hand-made scores."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import Echo, make_valset
+
+from optstereo import validation
+from optstereo.inference.config import InferenceConfig
+from pipelines.studies import aspect
+
+
+def echo(pixels: int = 4 * 32 * 64) -> Echo:
+    model = Echo()
+    model.inference_config = InferenceConfig(adaptive_ref_pixels=pixels)
+    return model
+
+
+def test_sizes_by_hand() -> None:
+    assert aspect.aspect_size((375, 1242, 3), 1.0, 1.25) == (300, 1552)  # 375 / 1.25, 1242 * 1.25 = 1552.5 -> 1552
+    assert aspect.aspect_size((375, 1242), 1.0, 1.0) == (375, 1242)
+    assert aspect.aspect_size((100, 200), 2.0, 2.0) == (100, 800)
+    assert aspect.aspect_size((10, 10), 1.0, 4.0) == (8, 40)  # at least 8 rows
+    with pytest.raises(ValueError, match="positive"):
+        aspect.aspect_size((10, 10), 1.0, 0.0)
+
+
+def test_resize_each_axis_keeps_a_constant_image() -> None:
+    image = np.full((30, 40, 3), 77, np.uint8)
+    out = aspect.resize_image(image, (24, 50))
+    assert out.shape == (24, 50, 3) and (out == 77).all()
+    same = np.arange(30 * 40 * 3, dtype=np.uint8).reshape(30, 40, 3)
+    assert aspect.resize_image(same, (30, 40)) is same
+
+
+def test_disparity_comes_back_in_the_pairs_pixels() -> None:
+    """Echo's disparity is the left image's red channel in the pixels it saw: 80 at twice the width is 40 in the
+    pair's own pixels, everywhere (a constant image survives both resizes exactly)."""
+    left = np.zeros((64, 96, 3), np.uint8)
+    left[..., 0] = 80
+    predict = aspect.aspect_predict(echo(pixels=1), 2.0)  # a 1-pixel budget: the first scale stays 1
+    disp = predict(left, left.copy())
+    assert disp.shape == (64, 96) and disp.dtype == np.float32
+    np.testing.assert_allclose(disp, 40.0, atol=1e-4)
+
+
+def test_aspect_one_scores_as_the_valset_does(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    root = make_valset(tmp_path / "val", teacher_digest="not-this-model")
+    monkeypatch.setattr(aspect, "load_model", lambda name: echo())
+    got = aspect.score_arms(root, [1.0], tmp_path / "out")[1.0]
+    want = validation.score(echo(), validation.open_valset(root)).pairs
+    assert [vars(p) for p in got] == [vars(p) for p in want]
+    assert (tmp_path / "out" / "val_a1.json").exists()
+    monkeypatch.setattr(aspect, "load_model", lambda name: pytest.fail("a scored arm is read back"))
+    again = aspect.score_arms(root, [1.0], tmp_path / "out")[1.0]
+    assert [vars(p) for p in again] == [vars(p) for p in want]
+
+
+def pairs(pvm: list[float], teacher: list[float]) -> list[validation.PairScore]:
+    return [validation.PairScore(f"p{i}", pvm_n=1, pvm_err=e, teacher_n=1, teacher_err=t, photo_sum=1.0, photo_n=1)
+            for i, (e, t) in enumerate(zip(pvm, teacher, strict=True))]
+
+
+def test_rule_takes_the_lowest_arm_only() -> None:
+    base = pairs([1.0, 1.1, 0.9, 1.0], [2.0] * 4)
+    better = pairs([0.9, 1.0, 0.8, 0.9], [2.0] * 4)  # -0.1 on every pair, teacher unchanged: a candidate
+    lowest_but_off_teacher = pairs([0.8, 0.9, 0.7, 0.8], [2.5, 2.6, 2.4, 2.5])  # lower, but +0.5 teacher EPE
+    assert aspect.rule({1.0: base, 1.125: better})[0] == 1.125
+    assert aspect.rule({1.0: base, 1.125: better, 1.25: lowest_but_off_teacher})[0] is None
