@@ -1,6 +1,7 @@
 """T3 (docs/registrations.md): the default's pixels spent on width, judged GT-free.
 
-    python -m pipelines.studies.aspect score --valset VAL [--arms 1 1.125 1.25 1.4 1.6] [--int8] [--out DIR]
+    python -m pipelines.studies.aspect score --valset VAL [--arms 1 1.125 1.25 1.4 1.6] [--int8] [--prefix P]
+        [--out DIR]
     ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 \\
         python -m pipelines.studies.aspect time --arms 1 A [--rounds 3] [--out DIR]
     python -m pipelines.studies.aspect gt --arm A [--out DIR]
@@ -12,7 +13,10 @@ count, ``a`` times the columns. The disparity comes back at the pair's size and 
 validation set into DIR/val_a<a>.json (resumable), then the registered rule against a = 1 with the DrivingStereo
 pairs' change beside it. ``time``: seconds per KITTI 2015 frame of each arm, alternating frame by frame with OpenCV
 SGBM-HH as ``make bench`` does (run it with ``ONEDNN_MAX_CPU_ISA=AVX2`` for the proxy row) -> DIR/time.json.
-``gt``: an arm's bad-3 on the GT frames of ``../shared`` (int8, the default's pass) -> DIR/gt_a<a>.json.
+``--prefix ku_`` on a set over the 144 training pairs of ``../shared`` (their labels and the teacher's maps, as
+W2 built them: results/weight_line/w2_run.sh) scores the 87 ``kitti_unlabelled`` pairs alone: the KITTI-domain check
+of a test-time setting (never of weights trained on them). ``gt``: an arm's bad-3 on the GT frames of ``../shared``
+(int8, the default's pass) -> DIR/gt_a<a>.json.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from optstereo.inference.engine import first_scale, network_pass
 from optstereo.inference.fastpath import engineering
 from optstereo.inference.rescale import disparity_to_size
 from optstereo.validation import PairScore, open_valset, paired_difference, pooled, score
+from pvm_labeler.shards import read_index
 
 OUT = Path("results/aspect")
 SHARED = Path("../shared/data")
@@ -90,7 +95,19 @@ def arm_path(out: Path, aspect: float, int8: bool = False) -> Path:
     return out / f"val_a{aspect:g}{'.int8' if int8 else ''}.json"
 
 
-def score_arms(valset: Path, arms: list[float], out: Path, int8: bool = False) -> dict[float, list[PairScore]]:
+def prefixed(valset: Path, prefix: str) -> set[str] | None:
+    """The ids of the set's pairs that start with ``prefix`` (None = every pair, for an empty prefix)."""
+    if not prefix:
+        return None
+    shards = read_index(open_valset(valset).labels).shards
+    ids = {i for _, shard_ids in shards for i in shard_ids if i.startswith(prefix)}
+    if not ids:
+        raise ValueError(f"no pair of {valset} has an id starting with {prefix!r}")
+    return ids
+
+
+def score_arms(valset: Path, arms: list[float], out: Path, int8: bool = False,
+               only: set[str] | None = None) -> dict[float, list[PairScore]]:
     """Every arm on the validation set (float32, or the default's int8 pass with ``int8``; the caller runs it inside
     ``engineering(True, int8=int8)`` to match), resumable: an arm with its file is read back."""
     out.mkdir(parents=True, exist_ok=True)
@@ -103,7 +120,7 @@ def score_arms(valset: Path, arms: list[float], out: Path, int8: bool = False) -
             continue
         model = model or load_model("pretrained")
         pairs = score(model, open_valset(valset), predict=aspect_predict(model, aspect), progress=True,
-                      what=f"a={aspect:g}").pairs
+                      what=f"a={aspect:g}", only=only).pairs
         doc = {"aspect": aspect, "valset": str(valset), "float32": not int8, "summary": pooled(pairs),
                "pairs": [vars(p) for p in pairs]}
         path.write_text(json.dumps(doc, indent=1) + "\n")
@@ -168,6 +185,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--arms", type=float, nargs="+", default=list(ARMS))
     parser.add_argument("--arm", type=float)
     parser.add_argument("--int8", action="store_true", help="score: the default's int8 pass instead of float32")
+    parser.add_argument("--prefix", default="", help="score: only the pairs whose id starts with this")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
@@ -176,7 +194,8 @@ def main(argv: list[str] | None = None) -> None:
             parser.error("score needs --valset and the arm 1 (the base of the rule)")
         torch.set_num_threads(2)
         with engineering(True, int8=args.int8):  # float32 unless --int8 (OPTSTEREO_INT8 is read at import)
-            _, lines = rule(score_arms(args.valset, args.arms, args.out, args.int8))
+            only = prefixed(args.valset, args.prefix)
+            _, lines = rule(score_arms(args.valset, args.arms, args.out, args.int8, only))
         (args.out / f"table{'_int8' if args.int8 else ''}.md").write_text("\n".join(lines) + "\n")
         print("\n".join(lines))
     elif args.step == "time":

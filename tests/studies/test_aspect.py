@@ -71,3 +71,12 @@ def test_rule_takes_the_lowest_arm_only() -> None:
     lowest_but_off_teacher = pairs([0.8, 0.9, 0.7, 0.8], [2.5, 2.6, 2.4, 2.5])  # lower, but +0.5 teacher EPE
     assert aspect.rule({1.0: base, 1.125: better})[0] == 1.125
     assert aspect.rule({1.0: base, 1.125: better, 1.25: lowest_but_off_teacher})[0] is None
+
+
+def test_prefix_picks_pairs_by_id(tmp_path: Path) -> None:
+    root = make_valset(tmp_path / "val", teacher_digest="not-this-model")
+    ids = [p.frame_id for p in validation.score(echo(), validation.open_valset(root)).pairs]
+    assert aspect.prefixed(root, "") is None
+    assert aspect.prefixed(root, ids[0]) == {ids[0]}
+    with pytest.raises(ValueError, match="no pair of .* starting with 'nothing-"):
+        aspect.prefixed(root, "nothing-")
