@@ -37,6 +37,22 @@ def test_resize_each_axis_keeps_a_constant_image() -> None:
     assert aspect.resize_image(same, (30, 40)) is same
 
 
+def test_iterations_reach_the_network() -> None:
+    seen = []
+
+    class Counting(Echo):
+        def forward(self, left, right, iters=None, test_mode=False):  # type: ignore[override]
+            seen.append(iters)
+            return super().forward(left, right, iters, test_mode)
+
+    model = Counting()
+    model.inference_config = InferenceConfig()
+    pair = np.zeros((16, 16, 3), np.uint8)
+    aspect.aspect_predict(model, 1.0)(pair, pair)
+    aspect.aspect_predict(model, 1.0, iters=10)(pair, pair)
+    assert seen == [None, 10]
+
+
 def test_disparity_comes_back_in_the_pairs_pixels() -> None:
     """Echo's disparity is the left image's red channel in the pixels it saw: 80 at twice the width is 40 in the
     pair's own pixels, everywhere (a constant image survives both resizes exactly)."""
@@ -51,12 +67,12 @@ def test_disparity_comes_back_in_the_pairs_pixels() -> None:
 def test_aspect_one_scores_as_the_valset_does(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     root = make_valset(tmp_path / "val", teacher_digest="not-this-model")
     monkeypatch.setattr(aspect, "load_model", lambda name: echo())
-    got = aspect.score_arms(root, [1.0], tmp_path / "out")[1.0]
+    got = aspect.score_arms(root, [aspect.BASE], tmp_path / "out")[aspect.BASE]
     want = validation.score(echo(), validation.open_valset(root)).pairs
     assert [vars(p) for p in got] == [vars(p) for p in want]
     assert (tmp_path / "out" / "val_a1.json").exists()
     monkeypatch.setattr(aspect, "load_model", lambda name: pytest.fail("a scored arm is read back"))
-    again = aspect.score_arms(root, [1.0], tmp_path / "out")[1.0]
+    again = aspect.score_arms(root, [aspect.BASE], tmp_path / "out")[aspect.BASE]
     assert [vars(p) for p in again] == [vars(p) for p in want]
 
 
@@ -69,8 +85,11 @@ def test_rule_takes_the_lowest_arm_only() -> None:
     base = pairs([1.0, 1.1, 0.9, 1.0], [2.0] * 4)
     better = pairs([0.9, 1.0, 0.8, 0.9], [2.0] * 4)  # -0.1 on every pair, teacher unchanged: a candidate
     lowest_but_off_teacher = pairs([0.8, 0.9, 0.7, 0.8], [2.5, 2.6, 2.4, 2.5])  # lower, but +0.5 teacher EPE
-    assert aspect.rule({1.0: base, 1.125: better})[0] == 1.125
-    assert aspect.rule({1.0: base, 1.125: better, 1.25: lowest_but_off_teacher})[0] is None
+    a1, a2, n10 = aspect.BASE, aspect.Arm(1.125), aspect.Arm(1.0, 10)
+    assert aspect.rule({a1: base, a2: better})[0] == a2
+    assert aspect.rule({a1: base, a2: better, n10: lowest_but_off_teacher})[0] is None
+    assert aspect.not_worse(base, better) and not aspect.not_worse(base, lowest_but_off_teacher)
+    assert [a.name for a in (a1, a2, n10)] == ["a1", "a1.125", "a1_n10"]
 
 
 def test_prefix_picks_pairs_by_id(tmp_path: Path) -> None:
