@@ -72,11 +72,11 @@ def resize_image(image: Image, size: tuple[int, int]) -> Image:
     return out
 
 
-def aspect_predict(model: nn.Module, aspect: float,
-                   iters: int | None = None) -> Callable[[Image, Image], npt.NDArray[np.float32]]:
-    """(left, right) (H, W, 3) uint8 -> (H, W) float32 disparity: the model's first scale (its config's), then
-    ``aspect``, one network pass at ``iters`` GRU iterations (None: the config's), back at (H, W) in the pair's
-    pixels. At ``aspect`` = 1
+def aspect_predict(model: nn.Module, aspect: float, iters: int | None = None,
+                   scale: float = 1.0) -> Callable[[Image, Image], npt.NDArray[np.float32]]:
+    """(left, right) (H, W, 3) uint8 -> (H, W) float32 disparity: the model's first scale (its config's) times
+    ``scale``, then ``aspect``, one network pass at ``iters`` GRU iterations (None: the config's), back at (H, W) in
+    the pair's pixels. At ``aspect`` = ``scale`` = 1
     it is the model's own run (version 15: one pass, no post-filter; its adaptive second pass cannot fire once the
     pixel budget has brought a pair to the reference's pixel count, that is for any pair of over 1/16 of it)."""
     config = model_inference(model)
@@ -85,7 +85,7 @@ def aspect_predict(model: nn.Module, aspect: float,
     iters = config.iters if iters is None else iters
 
     def predict(left: Image, right: Image) -> npt.NDArray[np.float32]:
-        size = aspect_size(left.shape, first_scale(config, left.shape), aspect)
+        size = aspect_size(left.shape, first_scale(config, left.shape) * scale, aspect)
         if size == left.shape[:2]:
             return network_pass(model, left, right, iters=iters)
         disp = network_pass(model, resize_image(left, size), resize_image(right, size), iters=iters)
@@ -95,15 +95,18 @@ def aspect_predict(model: nn.Module, aspect: float,
 
 
 class Arm(NamedTuple):
-    """One test-time setting: the width factor and the GRU iterations (None: the model's own)."""
+    """One test-time setting: the width factor, the GRU iterations (None: the model's own) and an enlargement of
+    both axes on top of the model's first scale."""
 
     aspect: float
     iters: int | None = None
+    scale: float = 1.0
 
     @property
     def name(self) -> str:
-        """``a1.125``, ``a1_n10``."""
-        return f"a{self.aspect:g}" + ("" if self.iters is None else f"_n{self.iters}")
+        """``a1.125``, ``a1_n10``, ``a1_n4_s1.125``."""
+        return (f"a{self.aspect:g}" + ("" if self.iters is None else f"_n{self.iters}")
+                + ("" if self.scale == 1.0 else f"_s{self.scale:g}"))
 
 
 BASE = Arm(1.0)
@@ -140,7 +143,7 @@ def score_arms(valset: Path, arms: list[Arm], out: Path, int8: bool = False,
         model = model or load_model("pretrained")
         pairs = score(model, open_valset(valset), predict=aspect_predict(model, *arm), progress=True,
                       what=arm.name, only=only).pairs
-        doc = {"aspect": arm.aspect, "iters": arm.iters, "valset": str(valset), "float32": not int8,
+        doc = {"aspect": arm.aspect, "iters": arm.iters, "scale": arm.scale, "valset": str(valset), "float32": not int8,
                "summary": pooled(pairs), "pairs": [vars(p) for p in pairs]}
         path.write_text(json.dumps(doc, indent=1) + "\n")
         result[arm] = pairs
@@ -202,7 +205,7 @@ def time_arms(arms: list[Arm], rounds: int, out: Path) -> dict:
     doc = {"isa_cap": os.environ.get("ONEDNN_MAX_CPU_ISA", ""), "rounds": rounds,
            "ratio_median": {a: statistics.median(r) for a, r in ratios.items()}, "ratios": ratios}
     out.mkdir(parents=True, exist_ok=True)
-    stem = "time" + "".join(f"_n{a.iters}" for a in arms if a.iters)  # T3's file keeps its name
+    stem = "time" + "".join(f"_{a.name}" for a in arms if a.iters or a.scale != 1)  # T3's file keeps its name
     (out / f"{stem}{'_avx2' if doc['isa_cap'] else ''}.json").write_text(json.dumps(doc, indent=1) + "\n")
     return doc
 
@@ -215,13 +218,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--iters", type=int, nargs="+", default=[None],
                         help="GRU iterations of the arms (default: the model's own); the base a = 1 at the model's "
                              "own is always scored")
+    parser.add_argument("--scales", type=float, nargs="+", default=[1.0],
+                        help="enlargements of both axes on top of the model's first scale")
     parser.add_argument("--arm", type=float)
     parser.add_argument("--int8", action="store_true", help="score: the default's int8 pass instead of float32")
     parser.add_argument("--prefix", default="", help="score: only the pairs whose id starts with this")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    arms = [BASE, *[a for a in (Arm(x, n) for x in args.arms for n in args.iters) if a != BASE]]
+    grid = (Arm(x, n, f) for x in args.arms for n in args.iters for f in args.scales)
+    arms = [BASE, *[a for a in grid if a != BASE]]
     if args.step == "score":
         if args.valset is None:
             parser.error("score needs --valset")
@@ -229,15 +235,15 @@ def main(argv: list[str] | None = None) -> None:
         with engineering(True, int8=args.int8):  # float32 unless --int8 (OPTSTEREO_INT8 is read at import)
             only = prefixed(args.valset, args.prefix)
             _, lines = rule(score_arms(args.valset, arms, args.out, args.int8, only))
-        iters = "".join(f"_n{n}" for n in args.iters if n)
+        iters = "".join(f"_n{n}" for n in args.iters if n) + "".join(f"_s{f:g}" for f in args.scales if f != 1)
         (args.out / f"table{iters}{'_int8' if args.int8 else ''}.md").write_text("\n".join(lines) + "\n")
         print("\n".join(lines))
     elif args.step == "time":
         print(json.dumps(time_arms(arms, args.rounds, args.out)["ratio_median"]))
     else:
-        if args.arm is None or len(args.iters) != 1:
-            parser.error("gt needs --arm and at most one --iters")
-        gt_scores(Arm(args.arm, args.iters[0]), args.out)
+        if args.arm is None or len(args.iters) != 1 or len(args.scales) != 1:
+            parser.error("gt needs --arm and at most one --iters and --scales")
+        gt_scores(Arm(args.arm, args.iters[0], args.scales[0]), args.out)
 
 
 def gt_scores(arm: Arm, out: Path) -> dict:
@@ -255,7 +261,7 @@ def gt_scores(arm: Arm, out: Path) -> dict:
             sample = load_pair(ref)
             yield Frame(ref.frame_id, predict(sample.left, sample.right), sample.gt, sample.gt_noc, sample.left)
 
-    doc: dict = {"aspect": arm.aspect, "iters": arm.iters, "int8": True}
+    doc: dict = {"aspect": arm.aspect, "iters": arm.iters, "scale": arm.scale, "int8": True}
     for dataset, root in (("kitti15", SHARED / "kitti15"), ("kitti12", SHARED / "kitti12"), ("middlebury", SHARED)):
         result = evaluate_frames(frames(dataset, root))
         doc[dataset] = {"summary": result.summary, "frames": result.rows}
