@@ -37,7 +37,8 @@ from torch import nn
 
 from optstereo.api import load_model
 from optstereo.checkpoint import model_inference
-from optstereo.inference.engine import first_scale, network_pass
+from optstereo.inference.config import InferenceConfig
+from optstereo.inference.engine import first_scale, network_pass, run
 from optstereo.inference.fastpath import engineering
 from optstereo.inference.rescale import disparity_to_size
 from optstereo.validation import PairScore, open_valset, paired_difference, pooled, score
@@ -72,6 +73,22 @@ def resize_image(image: Image, size: tuple[int, int]) -> Image:
     return out
 
 
+def config_arm(config: InferenceConfig, scale: float, iters: int | None) -> InferenceConfig:
+    """T7's setting: ``config`` with ``scale``, ``iters`` (None: as it is) and no adaptive second pass."""
+    return config.replace(scale=scale, iters=config.iters if iters is None else iters, adaptive_ref_disp=0.0)
+
+
+def arm_predict(model: nn.Module, arm: Arm) -> Callable[[Image, Image], npt.NDArray[np.float32]]:
+    """The arm's (left, right) -> (H, W) float32 disparity: :func:`aspect_predict`, or for a ``config`` arm the
+    model's own ``run`` with :func:`config_arm`'s settings (what would ship)."""
+    if not arm.config:
+        return aspect_predict(model, arm.aspect, arm.iters, arm.scale)
+    if arm.aspect != 1.0:
+        raise ValueError("a config arm enlarges both axes alike (aspect 1)")
+    config = config_arm(model_inference(model), arm.scale, arm.iters)
+    return lambda left, right: run(model, left, right, config).disparity
+
+
 def aspect_predict(model: nn.Module, aspect: float, iters: int | None = None,
                    scale: float = 1.0) -> Callable[[Image, Image], npt.NDArray[np.float32]]:
     """(left, right) (H, W, 3) uint8 -> (H, W) float32 disparity: the model's first scale (its config's) times
@@ -101,12 +118,13 @@ class Arm(NamedTuple):
     aspect: float
     iters: int | None = None
     scale: float = 1.0
+    config: bool = False  # T7: ``scale`` and ``iters`` set in the model's InferenceConfig, run by ``run`` itself
 
     @property
     def name(self) -> str:
-        """``a1.125``, ``a1_n10``, ``a1_n4_s1.125``."""
+        """``a1.125``, ``a1_n10``, ``a1_n4_s1.125``, ``a1_n4_s1.125_cfg``."""
         return (f"a{self.aspect:g}" + ("" if self.iters is None else f"_n{self.iters}")
-                + ("" if self.scale == 1.0 else f"_s{self.scale:g}"))
+                + ("" if self.scale == 1.0 else f"_s{self.scale:g}") + ("_cfg" if self.config else ""))
 
 
 BASE = Arm(1.0)
@@ -141,9 +159,9 @@ def score_arms(valset: Path, arms: list[Arm], out: Path, int8: bool = False,
             result[arm] = [PairScore(**p) for p in json.loads(path.read_text())["pairs"]]
             continue
         model = model or load_model("pretrained")
-        pairs = score(model, open_valset(valset), predict=aspect_predict(model, *arm), progress=True,
+        pairs = score(model, open_valset(valset), predict=arm_predict(model, arm), progress=False,
                       what=arm.name, only=only).pairs
-        doc = {"aspect": arm.aspect, "iters": arm.iters, "scale": arm.scale, "valset": str(valset), "float32": not int8,
+        doc = {**arm._asdict(), "valset": str(valset), "float32": not int8,
                "summary": pooled(pairs), "pairs": [vars(p) for p in pairs]}
         path.write_text(json.dumps(doc, indent=1) + "\n")
         result[arm] = pairs
@@ -199,13 +217,13 @@ def time_arms(arms: list[Arm], rounds: int, out: Path) -> dict:
     ratios: dict[str, list[float]] = {a.name: [] for a in arms}
     for _ in range(rounds):
         for arm in arms:
-            predict = aspect_predict(model, *arm)
+            predict = arm_predict(model, arm)
             row = beside_sgbm(model, frames, 3, sgbm, run=lambda _m, left, right, p=predict: p(left, right))
             ratios[arm.name].append(row["ratio"])
     doc = {"isa_cap": os.environ.get("ONEDNN_MAX_CPU_ISA", ""), "rounds": rounds,
            "ratio_median": {a: statistics.median(r) for a, r in ratios.items()}, "ratios": ratios}
     out.mkdir(parents=True, exist_ok=True)
-    stem = "time" + "".join(f"_{a.name}" for a in arms if a.iters or a.scale != 1)  # T3's file keeps its name
+    stem = "time" + "".join(f"_{a.name}" for a in arms if a != BASE)  # T3's file keeps its name
     (out / f"{stem}{'_avx2' if doc['isa_cap'] else ''}.json").write_text(json.dumps(doc, indent=1) + "\n")
     return doc
 
@@ -220,13 +238,15 @@ def main(argv: list[str] | None = None) -> None:
                              "own is always scored")
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0],
                         help="enlargements of both axes on top of the model's first scale")
+    parser.add_argument("--config", action="store_true",
+                        help="T7: the scales and iterations set in the model's own InferenceConfig")
     parser.add_argument("--arm", type=float)
     parser.add_argument("--int8", action="store_true", help="score: the default's int8 pass instead of float32")
     parser.add_argument("--prefix", default="", help="score: only the pairs whose id starts with this")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    grid = (Arm(x, n, f) for x in args.arms for n in args.iters for f in args.scales)
+    grid = (Arm(x, n, f, args.config) for x in args.arms for n in args.iters for f in args.scales)
     arms = [BASE, *[a for a in grid if a != BASE]]
     if args.step == "score":
         if args.valset is None:
@@ -235,7 +255,8 @@ def main(argv: list[str] | None = None) -> None:
         with engineering(True, int8=args.int8):  # float32 unless --int8 (OPTSTEREO_INT8 is read at import)
             only = prefixed(args.valset, args.prefix)
             _, lines = rule(score_arms(args.valset, arms, args.out, args.int8, only))
-        iters = "".join(f"_n{n}" for n in args.iters if n) + "".join(f"_s{f:g}" for f in args.scales if f != 1)
+        iters = ("".join(f"_n{n}" for n in args.iters if n) + "".join(f"_s{f:g}" for f in args.scales if f != 1)
+                 + ("_cfg" if args.config else ""))
         (args.out / f"table{iters}{'_int8' if args.int8 else ''}.md").write_text("\n".join(lines) + "\n")
         print("\n".join(lines))
     elif args.step == "time":
@@ -243,7 +264,7 @@ def main(argv: list[str] | None = None) -> None:
     else:
         if args.arm is None or len(args.iters) != 1 or len(args.scales) != 1:
             parser.error("gt needs --arm and at most one --iters and --scales")
-        gt_scores(Arm(args.arm, args.iters[0], args.scales[0]), args.out)
+        gt_scores(Arm(args.arm, args.iters[0], args.scales[0], args.config), args.out)
 
 
 def gt_scores(arm: Arm, out: Path) -> dict:
@@ -254,14 +275,14 @@ def gt_scores(arm: Arm, out: Path) -> dict:
 
     torch.set_num_threads(2)
     model = load_model("pretrained")
-    predict = aspect_predict(model, *arm)
+    predict = arm_predict(model, arm)
 
     def frames(dataset: str, root: Path) -> Iterator[Frame]:
         for ref in discover(dataset, root):
             sample = load_pair(ref)
             yield Frame(ref.frame_id, predict(sample.left, sample.right), sample.gt, sample.gt_noc, sample.left)
 
-    doc: dict = {"aspect": arm.aspect, "iters": arm.iters, "scale": arm.scale, "int8": True}
+    doc: dict = {**arm._asdict(), "int8": True}
     for dataset, root in (("kitti15", SHARED / "kitti15"), ("kitti12", SHARED / "kitti12"), ("middlebury", SHARED)):
         result = evaluate_frames(frames(dataset, root))
         doc[dataset] = {"summary": result.summary, "frames": result.rows}

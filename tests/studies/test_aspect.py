@@ -99,3 +99,21 @@ def test_prefix_picks_pairs_by_id(tmp_path: Path) -> None:
     assert aspect.prefixed(root, ids[0]) == {ids[0]}
     with pytest.raises(ValueError, match="no pair of .* starting with 'nothing-"):
         aspect.prefixed(root, "nothing-")
+
+
+def test_config_arm_runs_the_models_own_path() -> None:
+    """T7's arm is ``run`` with the model's settings changed (scale, iters, no adaptive pass): what would ship."""
+    from optstereo.inference.engine import run
+
+    model = echo(pixels=64 * 96)
+    model.inference_config = InferenceConfig(adaptive_ref_disp=60.0, adaptive_ref_pixels=64 * 96, enlarge_max=4.0)
+    changed = aspect.config_arm(model.inference_config, 1.125, 4)
+    assert (changed.scale, changed.iters, changed.adaptive_ref_disp, changed.enlarge_max) == (1.125, 4, 0.0, 4.0)
+    assert aspect.config_arm(model.inference_config, 1.0, None).iters is None
+    rng = np.random.default_rng(0)
+    left = rng.integers(0, 255, (40, 72, 3), dtype=np.uint8)
+    got = aspect.arm_predict(model, aspect.Arm(1.0, 4, 1.125, config=True))(left, left.copy())
+    np.testing.assert_array_equal(got, run(model, left, left.copy(), changed).disparity)
+    assert aspect.Arm(1.0, 4, 1.125, config=True).name == "a1_n4_s1.125_cfg"
+    with pytest.raises(ValueError, match="aspect 1"):
+        aspect.arm_predict(model, aspect.Arm(1.25, 4, 1.125, config=True))
