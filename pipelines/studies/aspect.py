@@ -240,6 +240,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="enlargements of both axes on top of the model's first scale")
     parser.add_argument("--config", action="store_true",
                         help="T7: the scales and iterations set in the model's own InferenceConfig")
+    parser.add_argument("--only", nargs="+", default=None, metavar="NAME",
+                        help="time: only these arms of the grid (names as in the tables, e.g. a1_n4_s1.125_cfg)")
     parser.add_argument("--arm", type=float)
     parser.add_argument("--int8", action="store_true", help="score: the default's int8 pass instead of float32")
     parser.add_argument("--prefix", default="", help="score: only the pairs whose id starts with this")
@@ -247,7 +249,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     grid = (Arm(x, n, f, args.config) for x in args.arms for n in args.iters for f in args.scales)
-    arms = [BASE, *[a for a in grid if a != BASE]]
+    arms = [BASE, *[a for a in grid if a != BASE and (args.only is None or a.name in args.only)]]
     if args.step == "score":
         if args.valset is None:
             parser.error("score needs --valset")
