@@ -76,6 +76,17 @@ class TestRule:
         assert first_scale(config, (400, 881)) == pytest.approx(math.sqrt(465_750 / (400 * 881)))
         assert first_scale(config.replace(enlarge_max=1.25), (288, 384)) == 1.25
 
+    def test_scale_and_budget_take_the_larger(self) -> None:
+        """T8: with a budget, a pair runs at the larger of ``scale`` and the budget's enlargement of it as given; a
+        budget factor under 1.1 counts as none (1), so it never drags a pair below ``scale``."""
+        config = InferenceConfig(scale=1.0625, adaptive_ref_pixels=465_750, enlarge_max=4.0)
+        assert first_scale(config, (375, 1242)) == 1.0625  # a KITTI frame: no budget enlargement
+        driving = math.sqrt(465_750 / (400 * 881))  # 1.150: over the 1.1 threshold
+        assert first_scale(config, (400, 881)) == pytest.approx(driving)
+        assert first_scale(config, (360, 1200)) == 1.0625  # budget factor 1.037 < 1.1: none
+        assert first_scale(config.replace(scale=1.25), (400, 881)) == 1.25
+        assert first_scale(config.replace(enlarge_max=1.0), (288, 384)) == 1.0625  # no budget: scale alone
+
     def test_references_must_be_positive(self) -> None:
         with pytest.raises(ValueError, match="positive references"):
             adaptive_factor(np.ones((4, 4), np.float32), ref_disp=0.0, ref_pixels=10)

@@ -34,9 +34,10 @@ class InferenceConfig:
             pixels (``optstereo.inference.rescale.adaptive_factor``): the second pass for small pairs.
         adaptive_ref_pixels: the training pairs' pixel count (H x W): the adaptive pass never feeds the network more
             pixels than that (required when ``adaptive_ref_disp`` or ``enlarge_max`` is set).
-        enlarge_max: 1 = off; > 1: a pair with fewer pixels (at ``scale``) than ``adaptive_ref_pixels`` runs its first
-            pass enlarged toward that many, by at most this factor (``optstereo.inference.rescale.budget_factor``):
-            small pairs get the grid a training-size pair gets, at no more than its time per pass.
+        enlarge_max: 1 = off; > 1: a pair with fewer pixels than ``adaptive_ref_pixels`` runs its first pass
+            enlarged toward that many, by at most this factor (``optstereo.inference.rescale.budget_factor``), or at
+            ``scale`` where that is larger: small pairs get the grid a training-size pair gets, at no more than its
+            time per pass.
         coarse_start: the final pass's GRU starts from a pass at half its scale instead of from zero
             (``optstereo.inference.cascade.coarse_start``, the training's own; for weights trained with
             ``data.cascade_p``).

@@ -217,11 +217,12 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
 
 
 def first_scale(config: InferenceConfig, shape: tuple[int, ...]) -> float:
-    """The input scale of :func:`run`'s first pass on an (H, W, ...) pair: ``config.scale``, times the pixel-budget
-    enlargement (``budget_factor``) when ``config.enlarge_max`` > 1."""
+    """The input scale of :func:`run`'s first pass on an (H, W, ...) pair: ``config.scale``; when
+    ``config.enlarge_max`` > 1, the larger of it and the pixel budget's enlargement of the pair as given
+    (``budget_factor``), so a pair is never run smaller than the budget asks (registration T8)."""
     if config.enlarge_max <= 1:
         return config.scale
-    return config.scale * budget_factor(shape, config.adaptive_ref_pixels, config.enlarge_max, config.scale)
+    return max(config.scale, budget_factor(shape, config.adaptive_ref_pixels, config.enlarge_max))
 
 
 def final_scale(config: InferenceConfig, zero: Disparity | None, shape: tuple[int, ...]) -> float:

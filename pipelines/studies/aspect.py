@@ -201,11 +201,13 @@ def not_worse(base: list[PairScore], pairs: list[PairScore]) -> bool:
                                                       for key in ("pvm_epe", "teacher_epe")))
 
 
-def time_arms(arms: list[Arm], rounds: int, out: Path) -> dict:
+def time_arms(arms: list[Arm], rounds: int, out: Path, warm: bool = False) -> dict:
     """Each arm (the engineered default pass ``load_model`` gives, int8 where the CPU has it) timed beside OpenCV
     SGBM-HH on the four KITTI 2015 frames of ``make bench`` (``beside_sgbm``), the arms in turn for ``rounds``
     rounds so the machine's drift falls on all alike; the median over rounds of each arm's ratio -> DIR/time.json
-    (DIR/time_avx2.json when ``ONEDNN_MAX_CPU_ISA`` caps oneDNN, the proxy row)."""
+    (DIR/time_avx2.json when ``ONEDNN_MAX_CPU_ISA`` caps oneDNN, the proxy row). ``warm``: every arm runs each
+    frame twice before the timed rounds (a shape's first calls in a process are slow; T7's run without it read the
+    new shapes ~15 % slow)."""
     from pipelines.bench_labeler import _opencv  # lazy: the bench's helpers load only for timing
     from pipelines.bench_models import THREADS, _frames, beside_sgbm
 
@@ -215,12 +217,17 @@ def time_arms(arms: list[Arm], rounds: int, out: Path) -> dict:
     frames = _frames(SHARED)
     sgbm = _opencv(cv2.STEREO_SGBM_MODE_HH)
     ratios: dict[str, list[float]] = {a.name: [] for a in arms}
+    for arm in arms if warm else []:
+        predict = arm_predict(model, arm)
+        for left, right in frames:
+            predict(left, right)
+            predict(left, right)
     for _ in range(rounds):
         for arm in arms:
             predict = arm_predict(model, arm)
             row = beside_sgbm(model, frames, 3, sgbm, run=lambda _m, left, right, p=predict: p(left, right))
             ratios[arm.name].append(row["ratio"])
-    doc = {"isa_cap": os.environ.get("ONEDNN_MAX_CPU_ISA", ""), "rounds": rounds,
+    doc = {"isa_cap": os.environ.get("ONEDNN_MAX_CPU_ISA", ""), "rounds": rounds, "warm": warm,
            "ratio_median": {a: statistics.median(r) for a, r in ratios.items()}, "ratios": ratios}
     out.mkdir(parents=True, exist_ok=True)
     stem = "time" + "".join(f"_{a.name}" for a in arms if a != BASE)  # T3's file keeps its name
@@ -246,6 +253,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--int8", action="store_true", help="score: the default's int8 pass instead of float32")
     parser.add_argument("--prefix", default="", help="score: only the pairs whose id starts with this")
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--warm", action="store_true", help="time: a warm round of every arm first")
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     grid = (Arm(x, n, f, args.config) for x in args.arms for n in args.iters for f in args.scales)
@@ -262,7 +270,7 @@ def main(argv: list[str] | None = None) -> None:
         (args.out / f"table{iters}{'_int8' if args.int8 else ''}.md").write_text("\n".join(lines) + "\n")
         print("\n".join(lines))
     elif args.step == "time":
-        print(json.dumps(time_arms(arms, args.rounds, args.out)["ratio_median"]))
+        print(json.dumps(time_arms(arms, args.rounds, args.out, args.warm)["ratio_median"]))
     else:
         if args.arm is None or len(args.iters) != 1 or len(args.scales) != 1:
             parser.error("gt needs --arm and at most one --iters and --scales")
