@@ -54,6 +54,33 @@ class TestQuantisers:
         assert q.dtype == torch.uint8 and q.is_contiguous(memory_format=torch.channels_last)
         assert q.flatten().tolist() == [0, 1, 1, 3, 4, 252, 255, 255]
 
+    def test_bands_of_rows_by_hand(self) -> None:
+        big = torch.empty(1, 64, 400, 700)  # 179,200 bytes a row: 93 rows per 16 MiB band
+        bands = int8.row_bands(big)
+        assert [(b.start, b.stop) for b in bands] == [(0, 93), (93, 186), (186, 279), (279, 372), (372, 465)]
+        assert int8.row_bands(torch.empty(1, 8, 5, 7)) == [slice(0, int8.BAND_BYTES // (4 * 8 * 7))]
+
+    def test_quantize_in_bands_equals_one_pass(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        """Banding (T9: no float32 temporary past glibc's mmap threshold) changes no value and leaves x alone."""
+        torch.manual_seed(1)
+        x = (torch.randn(1, 5, 23, 9) * 4).contiguous(memory_format=torch.channels_last)
+        whole = int8.quantize(x, 0.05, 3)
+        monkeypatch.setattr(int8, "BAND_BYTES", 4 * 5 * 9 * 4)  # 4 rows a band: 6 bands
+        before = x.clone()
+        assert len(int8.row_bands(x)) == 6
+        banded = int8.quantize(x, 0.05, 3)
+        assert torch.equal(banded, whole) and torch.equal(x, before)
+        assert banded.is_contiguous(memory_format=torch.channels_last)
+
+    def test_norm_in_place_equals_batch_norm(self) -> None:
+        """The in-place instance norm (batch norm's kernel writing into its input) == ``F.batch_norm``, bit for bit."""
+        torch.manual_seed(2)
+        y = (torch.randn(1, 6, 17, 13) * 2 + 1).contiguous(memory_format=torch.channels_last)
+        want = F.batch_norm(y, None, None, None, None, True, 0.0, 1e-5).relu_()
+        storage = y.data_ptr()
+        got = int8._norm_relu(y, 1e-5)
+        assert torch.equal(got, want) and got.data_ptr() == storage
+
     def test_norm_relu_quantize_equals_its_parts(self) -> None:
         """One image's instance norm, ReLU and quantisation in three passes == the three done one by one (to one
         level, where float rounding lands on a half)."""

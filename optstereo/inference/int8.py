@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from optstereo.models.extractor import FeatureEncoder
@@ -182,23 +181,53 @@ class Int8Conv:
         return quantize(x, self.scale, self.zero)
 
 
+#: Largest float32 temporary the passes below allocate: glibc maps a block over its largest mmap threshold (32 MiB)
+#: afresh, page faults and all, on every call, and the first encoder stage of a pair over ~524,000 pixels makes such
+#: tensors (registration T9). So they work in place, or in bands of rows under this size.
+BAND_BYTES = 16 << 20
+
+
+def row_bands(x: torch.Tensor) -> list[slice]:
+    """Slices of dim 2 (rows) of a (1, C, H, W) tensor whose float32 bands stay under :data:`BAND_BYTES` (one slice
+    for a small tensor)."""
+    row_bytes = 4 * x.shape[1] * x.shape[3]
+    step = max(1, BAND_BYTES // max(1, row_bytes))
+    return [slice(start, start + step) for start in range(0, x.shape[2], step)]
+
+
 def quantize(x: torch.Tensor, scale: float, zero: int = 0) -> torch.Tensor:
-    """Float32 ``x`` -> uint8 ``round(x / scale) + zero`` saturated to [0, 255] (same shape and memory format)."""
-    return torch.add(torch.tensor(zero + _HALF), x, alpha=1.0 / scale).clamp_(0.0, 255.0).to(torch.uint8)
+    """Float32 ``x`` -> uint8 ``round(x / scale) + zero`` saturated to [0, 255] (same shape and memory format),
+    computed band by band (:func:`row_bands`) so no full-size float32 temporary is made; ``x`` is left as it is."""
+    out = torch.empty_like(x, dtype=torch.uint8)
+    offset = torch.tensor(zero + _HALF)
+    for rows in row_bands(x):
+        out[:, :, rows].copy_(torch.add(offset, x[:, :, rows], alpha=1.0 / scale).clamp_(0.0, 255.0))
+    return out
+
+
+def _instance_affine_(y: torch.Tensor, eps: float, weight: float | None = None, bias: float = 0.0) -> torch.Tensor:
+    """``instance_norm(y) * weight + bias`` of one image (B = 1), written into ``y`` itself by batch norm's own
+    kernel (training-mode statistics, the output aliased to the input: the same values as ``F.batch_norm``, no
+    second full-size tensor)."""
+    channels = y.shape[1]
+    w = None if weight is None else torch.full((channels,), weight)
+    b = None if weight is None else torch.full((channels,), bias)
+    stats = torch.empty(channels), torch.empty(channels)
+    torch.ops.aten.native_batch_norm.out(y, w, b, None, None, True, 0.0, eps, out=y, save_mean=stats[0],
+                                         save_invstd=stats[1])
+    return y
 
 
 def norm_relu_quantize(y: torch.Tensor, eps: float, scale: float) -> torch.Tensor:
-    """``quantize(relu(instance_norm(y)), scale)`` for one image (B = 1) in three passes: the norm writes ``IN(y) /
-    scale + 0.5`` (its affine weight and bias), a clamp to [0, 255] is the ReLU and the saturation, the cast rounds."""
-    channels = y.shape[1]
-    weight = torch.full((channels,), 1.0 / scale)
-    bias = torch.full((channels,), _HALF)
-    scaled = F.batch_norm(y, None, None, weight, bias, True, 0.0, eps)
-    return scaled.clamp_(0.0, 255.0).to(torch.uint8)
+    """``quantize(relu(instance_norm(y)), scale)`` for one image (B = 1), overwriting ``y`` (a convolution's output):
+    the norm writes ``IN(y) / scale + 0.5`` in place, a clamp to [0, 255] is the ReLU and the saturation, the cast
+    rounds."""
+    return _instance_affine_(y, eps, 1.0 / scale, _HALF).clamp_(0.0, 255.0).to(torch.uint8)
 
 
 def _norm_relu(y: torch.Tensor, eps: float) -> torch.Tensor:
-    return F.batch_norm(y, None, None, None, None, True, 0.0, eps).relu_()
+    """``relu(instance_norm(y))`` of one image, in place."""
+    return _instance_affine_(y, eps).relu_()
 
 
 class Int8Encoder:
@@ -231,7 +260,8 @@ class Int8Encoder:
         if x.shape[0] != 1:  # instance norm as batch norm needs one image per call
             return torch.cat([self(image) for image in x.split(1)], dim=0)
         encoder = self.encoder
-        x = encoder.stem(x.contiguous(memory_format=torch.channels_last))
+        stem = encoder.stem  # conv, instance norm, ReLU: the norm and the ReLU in place on the conv's output
+        x = _norm_relu(stem[0](x.contiguous(memory_format=torch.channels_last)), stem[1].eps)
         for index, layer in enumerate((encoder.layer1, encoder.layer2, encoder.layer3), start=1):
             for block_index, block in enumerate(layer):
                 x = self._block(block, f"layer{index}.{block_index}.", x)
@@ -296,5 +326,6 @@ def supported(encoder: nn.Module) -> bool:
     if type(encoder) is not FeatureEncoder:
         return False
     blocks = [block for layer in (encoder.layer1, encoder.layer2, encoder.layer3) for block in layer]
-    return all(type(block) is ResidualBlock and type(block.norm1) is InstanceNorm2d
-               and type(block.norm2) is InstanceNorm2d for block in blocks)
+    return type(encoder.stem[1]) is InstanceNorm2d and all(
+        type(block) is ResidualBlock and type(block.norm1) is InstanceNorm2d
+        and type(block.norm2) is InstanceNorm2d for block in blocks)
