@@ -94,14 +94,13 @@ class TestLegacy:
         assert load_model("pretrained-accurate").inference_config == SHIPPED
 
     def test_the_default_file(self) -> None:
-        """Version 15 (``pretrained``): one pass at scale 1, no filter; small pairs enlarged toward a KITTI frame's
-        pixels (S1, S2: by up to 4x, so the adaptive pass, counted from there, runs only on pairs under 1/16 of it)."""
+        """Version 15 (``pretrained``): one pass of 3 GRU iterations at scale 1.125 (T8), no filter; small pairs
+        enlarged to a KITTI frame's pixels where that is more (S1, S2: by up to 4x); no adaptive second pass."""
         from optstereo.api import load_model
 
         config = load_model("pretrained").inference_config
-        assert config == InferenceConfig(scale=1.0, adaptive_ref_disp=60.1, adaptive_ref_pixels=465750,
-                                         enlarge_max=4.0)
-        assert config.passes_for(enlarged=False) == 1 and config.passes == 2
+        assert config == InferenceConfig(scale=1.125, iters=3, adaptive_ref_pixels=465750, enlarge_max=4.0)
+        assert config.passes_for(enlarged=False) == 1 and config.passes == 1
 
     def test_old_files_load_and_new_files_keep_their_own_key(self, tmp_path: Path) -> None:
         from safetensors.torch import save_file

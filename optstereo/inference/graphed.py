@@ -38,10 +38,10 @@ WARMUP_CALLS = 3  # eager calls on a side stream before capture (cuDNN/cuBLAS wo
 class GraphedPass:
     """One plain network pass of a fixed input size, captured as a CUDA graph on CUDA (eager on the CPU).
 
-    ``GraphedPass(model, (375, 1242), device="cuda", amp="bf16")(left, right)`` equals
-    ``infer(model, left, right, device="cuda", amp="bf16")`` (float32: to TF32/kernel rounding) for every pair of
-    that size, without the per-frame launches and allocations. The graph reads the model's parameters in place: a
-    changed state dict is seen, a model moved to another device is not (build a new one).
+    ``GraphedPass(model, (375, 1242), device="cuda", amp="bf16", scale=1.0)(left, right)`` equals
+    ``infer(model, left, right, device="cuda", amp="bf16", scale=1.0)`` (float32: to TF32/kernel rounding) for every
+    pair of that size, without the per-frame launches and allocations. The graph reads the model's parameters in
+    place: a changed state dict is seen, a model moved to another device is not (build a new one).
 
     Args:
         model: OptStereo-like (test_mode=True returns (low, full)); whatever ``optstereo.api.load_model`` gives.
