@@ -116,8 +116,10 @@ def test_predict_cli_sequence_on_a_folder(tmp_path) -> None:
     assert plain.exit_code == 0, plain.output
     seq = [np.load(tmp_path / "seq" / f"{i:04d}.npy") for i in range(3)]
     ind = [np.load(tmp_path / "plain" / f"{i:04d}.npy") for i in range(3)]
-    np.testing.assert_array_equal(seq[0], ind[0])
-    assert not np.allclose(seq[1], ind[1])
+    # each CLI run times Winograd against direct GRU convolutions on its first call and keeps the faster
+    # (fastpath.winograd_choices): two runs may pick differently, which moves a pass by float rounding only
+    np.testing.assert_allclose(seq[0], ind[0], rtol=0, atol=1e-4)
+    assert not np.allclose(seq[1], ind[1], rtol=0, atol=1e-3)
 
 
 def _echo() -> StartEcho:
