@@ -188,9 +188,9 @@ BAND_BYTES = 16 << 20
 
 
 def row_bands(x: torch.Tensor) -> list[slice]:
-    """Slices of dim 2 (rows) of a (1, C, H, W) tensor whose float32 bands stay under :data:`BAND_BYTES` (one slice
-    for a small tensor)."""
-    row_bytes = 4 * x.shape[1] * x.shape[3]
+    """Slices of dim 2 (rows) of a (B, C, H, W) tensor whose bands (all B images, at ``x``'s element size) stay under
+    :data:`BAND_BYTES` (one slice for a small tensor)."""
+    row_bytes = x.element_size() * x.numel() // max(1, x.shape[2])
     step = max(1, BAND_BYTES // max(1, row_bytes))
     return [slice(start, start + step) for start in range(0, x.shape[2], step)]
 
