@@ -106,7 +106,8 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
     recorded = {"inference_config": json.dumps(config.to_dict())}
     cascade = config.coarse_start
     try:
-        return _export(InferenceGraph(model, iters).eval(), Path(out), fmt, example_hw, batch, recorded, cascade)
+        graph = InferenceGraph(model, config.iters).eval()  # the recorded iterations, not the model's default
+        return _export(graph, Path(out), fmt, example_hw, batch, recorded, cascade)
     finally:
         if hasattr(model, "image_chunk"):
             model.image_chunk = saved_chunk

@@ -68,6 +68,23 @@ def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Pa
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
 
 
+def test_onnx_graph_runs_the_recorded_iterations(tmp_path: Path, shared_data: Path) -> None:
+    # A file whose InferenceConfig sets iters (version 15 since T8: 3, its network's default 8) exports a graph of
+    # those iterations, not the network's default: the graph equals the torch pass, which runs the config's.
+    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
+
+    torch.manual_seed(0)
+    model = build_model("optstereo", iters=6, **TINY).eval()
+    model.inference_config = InferenceConfig(iters=2)
+    session = onnx_session(export(model, tmp_path / "iters.onnx"))
+    assert onnx_inference_config(session).iters == 2
+    left, right = kitti_crop(shared_data, 96, 200)
+    ref = infer(model, left, right)
+    assert not np.allclose(ref, infer(model, left, right, iters=6), atol=1e-3)  # the iterations do change the output
+    diff = np.abs(infer_onnx(session, left, right) - ref)
+    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+
+
 def test_onnx_file_records_the_model_refine(tmp_path: Path, shared_data: Path) -> None:
     # The post-filter travels in the metadata too: infer_onnx applies the file's, refine= overrides it.
     from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
