@@ -278,26 +278,31 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def gt_scores(arm: Arm, out: Path) -> dict:
-    """The arm's bad-3 / EPE on the GT frames of ``../shared`` (KITTI 2015, KITTI 2012, Middlebury; the default's
-    pass, int8 where the CPU has it, 2 threads) -> DIR/gt_a<a>.json, pooled per set and per frame."""
+    """The arm's bad-3 / EPE on the GT frames of ``../shared`` -> DIR/gt_a<a>.json (:func:`gt_of`)."""
+    torch.set_num_threads(2)
+    doc = gt_of(arm_predict(load_model("pretrained"), arm), arm.name, out)
+    return {**arm._asdict(), **doc}
+
+
+def gt_of(predict: Callable[[Image, Image], npt.NDArray[np.float32]], name: str, out: Path) -> dict:
+    """``predict``'s bad-3 / EPE on the GT frames of ``../shared`` (KITTI 2015, KITTI 2012, Middlebury; the
+    default's pass, int8 where the CPU has it, 2 threads) -> DIR/gt_<name>.json, pooled per set and per frame."""
     from optstereo.evaluate import Frame, evaluate_frames  # lazy: only after the rules picked a candidate
     from pvm_labeler.common.datasets import discover, load_pair
 
     torch.set_num_threads(2)
-    model = load_model("pretrained")
-    predict = arm_predict(model, arm)
 
     def frames(dataset: str, root: Path) -> Iterator[Frame]:
         for ref in discover(dataset, root):
             sample = load_pair(ref)
             yield Frame(ref.frame_id, predict(sample.left, sample.right), sample.gt, sample.gt_noc, sample.left)
 
-    doc: dict = {**arm._asdict(), "int8": True}
+    doc: dict = {"name": name, "int8": True}
     for dataset, root in (("kitti15", SHARED / "kitti15"), ("kitti12", SHARED / "kitti12"), ("middlebury", SHARED)):
         result = evaluate_frames(frames(dataset, root))
         doc[dataset] = {"summary": result.summary, "frames": result.rows}
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"gt_{arm.name}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    (out / f"gt_{name}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
     for dataset in ("kitti15", "kitti12", "middlebury"):
         print(dataset, f"bad-3 {doc[dataset]['summary']['bad3']:.2f} %",
               {r["frame_id"]: round(r["bad3"], 2) for r in doc[dataset]["frames"]} if dataset == "middlebury" else "")
