@@ -115,9 +115,11 @@ def test_predict_cli_conf_formats_and_min_confidence(tmp_path: Path) -> None:
     res = CliRunner().invoke(predict_main, [*args, "--out", str(tmp_path / "semi"), "--min-confidence", str(cut)])
     assert res.exit_code == 0, res.output
     semi = np.load(tmp_path / "semi" / "l.npy")
-    keep = conf >= cut
-    np.testing.assert_array_equal(semi[keep], dense[keep])
-    assert np.all(np.isnan(semi[~keep])) and 0 < keep.mean() < 1
+    # two runs may time Winograd against direct GRU convolutions differently (float rounding, ~1e-6 px): compare to
+    # 1e-4 and leave out pixels within 0.1 % of the cut (the tiny random network's confidences are ~1e-6)
+    keep, drop = conf > cut * 1.001, conf < cut * 0.999
+    np.testing.assert_allclose(semi[keep], dense[keep], atol=1e-4)
+    assert np.all(np.isnan(semi[drop])) and 0 < keep.mean() < 1 and 0 < drop.mean() < 1
 
 
 
@@ -139,6 +141,22 @@ def test_predict_cli_confidence_pass_runs_at_the_disparity_pass_scale(tmp_path: 
     disp, conf = infer_with_confidence(build_model_from_checkpoint(ckpt), left, right, scale=1.5, refine="none")
     np.testing.assert_allclose(np.load(tmp_path / "o" / "l.npy"), disp, atol=1e-4)
     np.testing.assert_allclose(np.load(tmp_path / "o" / "l_conf.npy"), conf, atol=1e-4)
+
+def test_lr_pass_runs_the_settings_iterations() -> None:
+    """The mirrored pass of ``lr`` runs the GRU iterations of the pass that made the disparity (a file's
+    InferenceConfig.iters, 3 in version 15 since T8), not the network's default (8): both views alike."""
+    from optstereo.inference.confidence import lr_difference, right_view_disparity
+
+    torch.manual_seed(0)
+    model = build_model("optstereo", iters=6, **TINY).eval()
+    model.inference_config = InferenceConfig(iters=2)
+    left, right = _pair(4, (48, 96))
+    disp, conf = infer_with_confidence(model, left, right, method="lr")
+    want = np.exp(-lr_difference(disp, right_view_disparity(model, left, right, iters=2))).astype(np.float32)
+    np.testing.assert_allclose(conf, want, atol=1e-6)
+    default = np.exp(-lr_difference(disp, right_view_disparity(model, left, right))).astype(np.float32)
+    assert not np.allclose(conf, default, atol=1e-3)  # the network's default iterations give another confidence
+
 
 def test_api_predict_with_confidence() -> None:
     from optstereo.api import predict

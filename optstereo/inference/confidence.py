@@ -76,9 +76,10 @@ def lr_difference(disp_left: Map, disp_right: Map) -> Map:
 
 
 def lr_confidence(model: nn.Module, left: Image, right: Image, disp: Map, device: torch.device | str = "cpu",
-                  amp: str = "none", scale: float = 1.0) -> Map:
-    """(H, W) float32 in [0, 1]: exp(-LR difference / LR_SCALE) of ``disp`` against one mirrored pass."""
-    diff = lr_difference(disp, right_view_disparity(model, left, right, device, amp, scale=scale))
+                  amp: str = "none", scale: float = 1.0, iters: int | None = None) -> Map:
+    """(H, W) float32 in [0, 1]: exp(-LR difference / LR_SCALE) of ``disp`` against one mirrored pass at ``scale``
+    and ``iters`` GRU iterations (None: the network's default)."""
+    diff = lr_difference(disp, right_view_disparity(model, left, right, device, amp, iters=iters, scale=scale))
     return np.exp(-diff / LR_SCALE).astype(np.float32)
 
 
@@ -107,18 +108,21 @@ def spread_confidence(model: nn.Module, left: Image, right: Image, device: torch
 
 
 def confidence_of(model: nn.Module, left: Image, right: Image, disp: Map, method: str = DEFAULT_METHOD,
-                  device: torch.device | str = "cpu", amp: str = "none", scale: float = 1.0) -> Map:
+                  device: torch.device | str = "cpu", amp: str = "none", scale: float = 1.0,
+                  iters: int | None = None) -> Map:
     """(H, W) float32 confidence in [0, 1] of ``disp``, the disparity of the (H, W, 3) uint8 pair, by ``method``
-    (one of :data:`METHODS`; ``scale`` is the input scale of the extra pass of ``lr``)."""
+    (one of :data:`METHODS`; ``scale`` and ``iters`` are the input scale and GRU iterations of the extra pass of
+    ``lr``: those of the pass that made ``disp``)."""
     if method not in METHODS:
         raise ValueError(f"confidence method must be one of {METHODS}, got {method!r}")
     if method == "photometric":
         return photometric_confidence(left, right, disp)
     if method == "lr":
-        return lr_confidence(model, left, right, disp, device, amp, scale)
+        return lr_confidence(model, left, right, disp, device, amp, scale, iters)
     if method == "spread":
         return spread_confidence(model, left, right, device)
-    return photometric_confidence(left, right, disp) * lr_confidence(model, left, right, disp, device, amp, scale)
+    return photometric_confidence(left, right, disp) * lr_confidence(model, left, right, disp, device, amp, scale,
+                                                                     iters)
 
 
 def infer_with_confidence(model: nn.Module, left: Image, right: Image, *, method: str = DEFAULT_METHOD,
@@ -126,8 +130,9 @@ def infer_with_confidence(model: nn.Module, left: Image, right: Image, *, method
                           scale: float | None = None, refine: str | None = None) -> tuple[Map, Map]:
     """(disparity, confidence), each (H, W) float32, of one (H, W, 3) uint8 pair: the disparity is exactly
     ``optstereo.inference.engine.infer``'s (same arguments), the confidence :func:`confidence_of` it."""
-    result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
-    conf = confidence_of(model, left, right, result.disparity, method, device, amp, result.input_scale)
+    config = model_inference_config(model, iters, scale, refine)
+    result = run(model, left, right, config, device, amp)
+    conf = confidence_of(model, left, right, result.disparity, method, device, amp, result.input_scale, config.iters)
     return result.disparity, conf
 
 

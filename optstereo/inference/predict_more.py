@@ -87,7 +87,8 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
         else:
             result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
             disp, used_scale = result.disparity, result.input_scale
-        conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale)
+        conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale,
+                           model_inference_config(model, iters, scale, refine).iters)
         logger.info("%s: %.2f s", name, time.perf_counter() - t0)
         written.append(_write(out_dir, name, disp, conf, more, formats, kitti_layout))
     return written
@@ -95,12 +96,13 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
 
 def _confidence(model: nn.Module, left: np.ndarray, right: np.ndarray, disp: npt.NDArray[np.float32],
                 more: MoreOptions, formats: tuple[str, ...], device: torch.device | str,
-                amp: str, scale: float) -> npt.NDArray[np.float32] | None:
+                amp: str, scale: float, iters: int | None) -> npt.NDArray[np.float32] | None:
     """The disparity's confidence when a format or --min-confidence asks for it; the LR pass runs at ``scale``, the
-    input scale of the pass that made ``disp`` (as ``confidence.infer_with_confidence`` does)."""
+    input scale of the pass that made ``disp``, and the settings' ``iters`` (as
+    ``confidence.infer_with_confidence`` does)."""
     if more.min_confidence <= 0 and not any(f in CONF_FORMATS for f in formats):
         return None
-    return confidence_of(model, left, right, disp, device=device, amp=amp, scale=scale)
+    return confidence_of(model, left, right, disp, device=device, amp=amp, scale=scale, iters=iters)
 
 
 def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,
