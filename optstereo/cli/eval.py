@@ -28,7 +28,8 @@ logger = logging.getLogger(__name__)
 @common.reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Report folder.")
-@click.option("--iters", type=int, default=None, help="GRU iterations (default: the checkpoint's settings; `pretrained` 3).")
+@click.option("--iters", type=int, default=None,
+              help="GRU iterations (default: the checkpoint's settings; `pretrained` 3).")
 @click.option("--limit", type=int, default=None, help="Only the first N frames.")
 @click.option("--save-maps/--no-save-maps", default=True, help="Write colour disparity and error maps.")
 @common.device_option

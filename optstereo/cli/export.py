@@ -19,7 +19,8 @@ logger = logging.getLogger(__name__)
               help="Checkpoint file, RUN_DIR, or 'pretrained'.")
 @click.option("--format", "fmt", type=click.Choice(EXPORT_FORMATS), default="onnx")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output file (.onnx / .pt).")
-@click.option("--iters", type=int, default=None, help="GRU iterations unrolled in the graph (default: the checkpoint's settings).")
+@click.option("--iters", type=int, default=None,
+              help="GRU iterations unrolled in the graph (default: the checkpoint's settings).")
 @click.option("--batch", is_flag=True, help="Dynamic batch size (default: batch 1, per-image calls, faster on CPU).")
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
 def export_main(checkpoint: Path, fmt: str, out: Path, iters: int | None, batch: bool, quiet: bool) -> None:

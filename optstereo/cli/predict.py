@@ -34,7 +34,8 @@ logger = logging.getLogger(__name__)
 @common.reader_options
 @click.option("--split", default="training", help="Dataset split.")
 @click.option("--limit", type=int, default=None, help="Only the first N frames of --dataset.")
-@click.option("--iters", type=int, default=None, help="GRU iterations (default: the checkpoint's settings; `pretrained` 3).")
+@click.option("--iters", type=int, default=None,
+              help="GRU iterations (default: the checkpoint's settings; `pretrained` 3).")
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
               type=click.Choice(PREDICT_FORMATS),
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm), "
