@@ -47,42 +47,29 @@ def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_
         assert diff.mean() <= 0.01 and diff.max() <= 0.1, (h, w, diff.mean(), diff.max())
 
 
-def test_onnx_file_records_the_model_input_scale(tmp_path: Path, shared_data: Path) -> None:
-    # A model trained for enlarged inputs (InferenceConfig.scale) exports its scale into the file's metadata,
-    # and infer_onnx resizes by it as infer does: the two still agree at the tolerance.
-    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
-
-    torch.manual_seed(0)
-    model = build_model("optstereo", iters=3, **TINY).eval()
-    model.inference_config = InferenceConfig(scale=1.5)
-    session = onnx_session(export(model, tmp_path / "scaled.onnx"))
-    assert onnx_inference_config(session).scale == 1.5
-    left, right = kitti_crop(shared_data, 96, 200)
-    ref, got = infer(model, left, right), infer_onnx(session, left, right)
-    assert got.shape == (96, 200)
-    assert not np.allclose(ref, infer(model, left, right, scale=1.0), atol=0.1)  # the scale does change the output
-    diff = np.abs(got - ref)
-    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
-    # scale= overrides the file's, as it overrides the model's in infer
-    diff = np.abs(infer_onnx(session, left, right, scale=1.0) - infer(model, left, right, scale=1.0))
-    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
-
-
-def test_onnx_graph_runs_the_recorded_iterations(tmp_path: Path, shared_data: Path) -> None:
-    # A file whose InferenceConfig sets iters (version 15 since T8: 3, its network's default 8) exports a graph of
-    # those iterations, not the network's default: the graph equals the torch pass, which runs the config's.
+@pytest.mark.parametrize(("setting", "plain"), [({"scale": 1.5}, {"scale": 1.0}), ({"iters": 2}, {"iters": 6})])
+def test_onnx_file_records_the_models_settings(tmp_path: Path, shared_data: Path, setting: dict,
+                                              plain: dict) -> None:
+    # A file's InferenceConfig travels into the export: an input scale (a model trained for enlarged inputs) in the
+    # metadata, by which infer_onnx resizes as infer does; GRU iterations (version 15 since T8: 3, its network's
+    # default 8) in the metadata and the unrolled graph. The two agree at the tolerance.
     from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
 
     torch.manual_seed(0)
     model = build_model("optstereo", iters=6, **TINY).eval()
-    model.inference_config = InferenceConfig(iters=2)
-    session = onnx_session(export(model, tmp_path / "iters.onnx"))
-    assert onnx_inference_config(session).iters == 2
+    model.inference_config = InferenceConfig(**setting)
+    session = onnx_session(export(model, tmp_path / "set.onnx"))
+    (key, value), = setting.items()
+    assert getattr(onnx_inference_config(session), key) == value
     left, right = kitti_crop(shared_data, 96, 200)
-    ref = infer(model, left, right)
-    assert not np.allclose(ref, infer(model, left, right, iters=6), atol=1e-3)  # the iterations do change the output
-    diff = np.abs(infer_onnx(session, left, right) - ref)
+    ref, got = infer(model, left, right), infer_onnx(session, left, right)
+    assert got.shape == (96, 200)
+    assert not np.allclose(ref, infer(model, left, right, **plain), atol=1e-3)  # the setting changes the output
+    diff = np.abs(got - ref)
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+    if key == "scale":  # scale= overrides the file's, as it overrides the model's in infer
+        diff = np.abs(infer_onnx(session, left, right, scale=1.0) - infer(model, left, right, scale=1.0))
+        assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
 
 
 def test_onnx_file_records_the_model_refine(tmp_path: Path, shared_data: Path) -> None:
