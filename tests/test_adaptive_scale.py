@@ -87,6 +87,26 @@ class TestRule:
         assert first_scale(config.replace(scale=1.25), (400, 881)) == 1.25
         assert first_scale(config.replace(enlarge_max=1.0), (288, 384)) == 1.0625  # no budget: scale alone
 
+    def test_shrink_large_caps_the_pixels_at_a_training_pairs_at_scale(self) -> None:
+        """T12: with ``shrink_large`` a pair of over 1.21x ``adaptive_ref_pixels`` pixels runs at scale x sqrt(ref /
+        (H W)), so its first pass has ref x scale^2 pixels, as a training-size pair's; smaller pairs, and pairs
+        within 1.1x per side of the reference (as the budget's enlargement leaves them), are unchanged."""
+        config = InferenceConfig(scale=1.125, adaptive_ref_pixels=465_750, enlarge_max=4.0, shrink_large=True)
+        room = first_scale(config, (860, 1080))  # an InStereo2K room: 1.125 x sqrt(465750 / 928800) = 0.797
+        assert room == pytest.approx(1.125 * math.sqrt(465_750 / (860 * 1080)))
+        assert 860 * 1080 * room**2 == pytest.approx(465_750 * 1.125**2)
+        assert first_scale(config, (540, 960)) == 1.125  # FlyingThings3D: 0.948 per side, within 1.1: as before
+        assert first_scale(config, (375, 1242)) == 1.125  # a KITTI frame: the reference itself
+        assert first_scale(config, (376, 1241)) == 1.125  # KITTI 2012's 000070: 866 pixels over, left alone
+        assert first_scale(config, (600, 1000)) == pytest.approx(1.125 * math.sqrt(465_750 / 600_000))  # 0.881
+        assert first_scale(config, (400, 881)) == pytest.approx(math.sqrt(465_750 / (400 * 881)))  # budget as before
+        assert first_scale(config.replace(shrink_large=False), (860, 1080)) == 1.125
+        with pytest.raises(ValueError, match="shrink_large needs adaptive_ref_pixels"):
+            InferenceConfig(shrink_large=True).validate()
+        with pytest.raises(ValueError, match="shrink_large must be true or false"):
+            InferenceConfig(shrink_large=1, adaptive_ref_pixels=10).validate()
+        assert config.fixed(1.0).shrink_large is False  # a given scale is final
+
     def test_references_must_be_positive(self) -> None:
         with pytest.raises(ValueError, match="positive references"):
             adaptive_factor(np.ones((4, 4), np.float32), ref_disp=0.0, ref_pixels=10)
@@ -131,6 +151,16 @@ class TestInfer:
         # no cap: one pass at the budget, where the adaptive pass has nothing left to add
         result = run(self.echo(adaptive_ref_disp=40.0, adaptive_ref_pixels=4 * 40 * 80, enlarge_max=4.0), left, left)
         assert result.input_scale == pytest.approx(2.0)
+
+    def test_large_pair_shrunk_by_the_pixel_cap(self) -> None:
+        # T12: an 80x160 pair against a reference of a quarter of its pixels at scale 1.5: the pass runs at
+        # 1.5 x 0.5 = 0.75 (40 x 60 x 1.5^2 pixels); red 12 is 12 px of the shrunk pair = 16 px of the input
+        left = np.full((80, 160, 3), 12, np.uint8)
+        model = self.echo(scale=1.5, adaptive_ref_pixels=80 * 160 // 4, shrink_large=True)
+        result = run(model, left, left)
+        assert result.input_scale == pytest.approx(0.75)
+        np.testing.assert_allclose(result.disparity, 12 / 0.75, rtol=1e-5)
+        assert run(model, left, left, model_inference_config(model, scale=1.5)).input_scale == 1.5  # given: final
 
     def test_a_given_scale_and_a_model_without_references_are_fixed(self) -> None:
         left = np.full((40, 80, 3), 10, np.uint8)

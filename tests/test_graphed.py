@@ -83,7 +83,7 @@ class TestGraphedPassCPU:
     ({"scale": 1.5}, r"input scale 1 only \(scale=1.5\)"),
     ({"scale": 0.5}, r"input scale 1 only \(scale=0.5\)"),
     ({"adaptive_ref_disp": 60.0, "adaptive_ref_pixels": 465750}, "adaptive_ref_disp=60.0"),
-    ({"adaptive_ref_pixels": 465750, "enlarge_max": 1.25}, r"enlarged 1.250x .*enlarge_max=1.25"),
+    ({"adaptive_ref_pixels": 465750, "enlarge_max": 1.25}, r"resized 1.250x .*enlarge_max=1.25"),
 ])
 def test_refuses_what_it_cannot_capture(config: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):

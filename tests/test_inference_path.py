@@ -95,11 +95,13 @@ class TestLegacy:
 
     def test_the_default_file(self) -> None:
         """Version 15 (``pretrained``): one pass of 3 GRU iterations at scale 1.125 (T8), no filter; small pairs
-        enlarged to a KITTI frame's pixels where that is more (S1, S2: by up to 4x); no adaptive second pass."""
+        enlarged to a KITTI frame's pixels where that is more (S1, S2: by up to 4x), larger ones shrunk to a KITTI
+        frame's pixels at 1.125 (T12); no adaptive second pass."""
         from optstereo.api import load_model
 
         config = load_model("pretrained").inference_config
-        assert config == InferenceConfig(scale=1.125, iters=3, adaptive_ref_pixels=465750, enlarge_max=4.0)
+        assert config == InferenceConfig(scale=1.125, iters=3, adaptive_ref_pixels=465750, enlarge_max=4.0,
+                                         shrink_large=True)
         assert config.passes_for(enlarged=False) == 1 and config.passes == 1
 
     def test_old_files_load_and_new_files_keep_their_own_key(self, tmp_path: Path) -> None:

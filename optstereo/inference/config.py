@@ -38,6 +38,10 @@ class InferenceConfig:
             enlarged toward that many, by at most this factor (``optstereo.inference.rescale.budget_factor``), or at
             ``scale`` where that is larger: small pairs get the grid a training-size pair gets, at no more than its
             time per pass.
+        shrink_large: a pair of over 1.21x ``adaptive_ref_pixels`` pixels runs its first pass with as many pixels
+            as a training-size pair at ``scale`` (``optstereo.inference.rescale.shrink_factor``): it costs no more
+            than that pair's pass (registration T12; 860x1080 indoor rooms ran at 2.5x a KITTI frame's time, and
+            worse).
         coarse_start: the final pass's GRU starts from a pass at half its scale instead of from zero
             (``optstereo.inference.cascade.coarse_start``, the training's own; for weights trained with
             ``data.cascade_p``).
@@ -53,6 +57,7 @@ class InferenceConfig:
     adaptive_ref_disp: float = 0.0
     adaptive_ref_pixels: int = 0
     enlarge_max: float = 1.0
+    shrink_large: bool = False
     coarse_start: bool = False
     select: bool = False
     select_jump: float = 0.0
@@ -84,7 +89,7 @@ class InferenceConfig:
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"inference option {key} must be a finite number, got {value!r}")
-        for key in ("coarse_start", "select"):
+        for key in ("coarse_start", "select", "shrink_large"):
             if not isinstance(getattr(self, key), bool):
                 raise ValueError(f"inference option {key} must be true or false, got {getattr(self, key)!r}")
         if not self.scale > 0:
@@ -109,6 +114,9 @@ class InferenceConfig:
         if self.enlarge_max > 1 and self.adaptive_ref_pixels == 0:
             raise ValueError("inference option enlarge_max needs adaptive_ref_pixels (the pixel count it enlarges "
                              "toward)")
+        if self.shrink_large and self.adaptive_ref_pixels == 0:
+            raise ValueError("inference option shrink_large needs adaptive_ref_pixels (the pixel count it shrinks "
+                             "toward)")
         if self.select and not self.coarse_start:
             raise ValueError("inference option select needs coarse_start (it chooses between the two starts' passes)")
         if self.select_jump < 0:
@@ -132,8 +140,9 @@ class InferenceConfig:
 
     def fixed(self, scale: float) -> InferenceConfig:
         """A validated copy that runs every pair at ``scale`` and nothing else: no adaptive pass, no pixel-budget
-        enlargement (a caller's ``--scale`` is final)."""
-        return self.replace(scale=float(scale), adaptive_ref_disp=0.0, adaptive_ref_pixels=0, enlarge_max=1.0)
+        enlargement or shrinking (a caller's ``--scale`` is final)."""
+        return self.replace(scale=float(scale), adaptive_ref_disp=0.0, adaptive_ref_pixels=0, enlarge_max=1.0,
+                            shrink_large=False)
 
     def replace(self, **changes: Any) -> InferenceConfig:
         """A validated copy with ``changes`` (InferenceConfig fields)."""

@@ -30,7 +30,13 @@ from optstereo.choices import AMP_MODES, REFINERS, AmpMode
 from optstereo.inference.cascade import coarse_start, grid_start, jump_limit, photometric_select
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.padding import InputPadder, divisor_of
-from optstereo.inference.rescale import adaptive_factor, budget_factor, disparity_to_size, rescaled_pair
+from optstereo.inference.rescale import (
+    adaptive_factor,
+    budget_factor,
+    disparity_to_size,
+    rescaled_pair,
+    shrink_factor,
+)
 from pvm_labeler.common.version import cpuinfo_flags
 
 logger = logging.getLogger(__name__)
@@ -219,10 +225,14 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
 def first_scale(config: InferenceConfig, shape: tuple[int, ...]) -> float:
     """The input scale of :func:`run`'s first pass on an (H, W, ...) pair: ``config.scale``; when
     ``config.enlarge_max`` > 1, the larger of it and the pixel budget's enlargement of the pair as given
-    (``budget_factor``), so a pair is never run smaller than the budget asks (registration T8)."""
-    if config.enlarge_max <= 1:
-        return config.scale
-    return max(config.scale, budget_factor(shape, config.adaptive_ref_pixels, config.enlarge_max))
+    (``budget_factor``), so a pair is never run smaller than the budget asks (registration T8); with
+    ``config.shrink_large``, at most ``scale`` x ``shrink_factor``, so that a pair of over 1.21x a training-size
+    pair's pixels runs with as many pixels as one does at ``scale`` (T12)."""
+    scale = config.scale
+    if config.enlarge_max > 1:
+        scale = max(scale, budget_factor(shape, config.adaptive_ref_pixels, config.enlarge_max))
+    shrink = shrink_factor(shape, config.adaptive_ref_pixels) if config.shrink_large else 1.0
+    return config.scale * shrink if shrink < 1.0 else scale
 
 
 def final_scale(config: InferenceConfig, zero: Disparity | None, shape: tuple[int, ...]) -> float:

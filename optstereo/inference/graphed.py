@@ -153,9 +153,10 @@ def check_capturable(config: InferenceConfig, shape: tuple[int, int]) -> None:
         raise ValueError(f"GraphedPass runs no post-filter: refine={config.refine!r} is not captured, use infer "
                          "or refine='none'")
     if first_scale(config, shape) != 1.0:
-        raise ValueError(f"GraphedPass captures input scale 1 only: a {shape[0]}x{shape[1]} pair is enlarged "
+        raise ValueError(f"GraphedPass captures input scale 1 only: a {shape[0]}x{shape[1]} pair is resized "
                          f"{first_scale(config, shape):.3f}x toward the pixel budget (enlarge_max="
-                         f"{config.enlarge_max}); give scale= (turns it off, as infer does) or use infer")
+                         f"{config.enlarge_max}, shrink_large={config.shrink_large}); give scale= (turns it off, as "
+                         "infer does) or use infer")
     if config.adaptive:
         h, w = shape
         bound = math.sqrt(config.adaptive_ref_pixels / (h * w))

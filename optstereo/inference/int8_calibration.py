@@ -76,8 +76,9 @@ def measure(model: nn.Module, pairs: Iterable[tuple[Any, Any]], quantile: float 
         handles.append(model.hidden_init.conv.register_forward_hook(record_f))
     try:
         # the file's scale and adaptive pass, not the pixel budget: which passes a calibrating pair takes (and so the
-        # clips) must not move when only ``enlarge_max`` does, so the default's clips stay those it was judged with
-        config = model_inference_config(model).replace(enlarge_max=1.0)
+        # clips) must not move when only ``enlarge_max`` or ``shrink_large`` does, so the default's clips stay those
+        # it was judged with
+        config = model_inference_config(model).replace(enlarge_max=1.0, shrink_large=False)
         with engineering(False):
             for left, right in pairs:
                 run(model, left, right, config)

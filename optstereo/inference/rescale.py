@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = ["ADAPTIVE_MIN_GAIN", "ADAPTIVE_PERCENTILE", "adaptive_factor", "budget_factor", "disparity_to_size",
-           "rescaled_pair", "scaled_size", "sparse_to_size"]
+           "rescaled_pair", "scaled_size", "shrink_factor", "sparse_to_size"]
 
 #: The percentile of a first pass's disparity that :func:`adaptive_factor` compares with the model's reference: the
 #: top of the pair's disparity range, robust to a few wild pixels.
@@ -85,6 +85,16 @@ def adaptive_factor(disp: npt.NDArray[np.float32], ref_disp: float, ref_pixels: 
     by_pixels = math.sqrt(ref_pixels / (disp.shape[0] * disp.shape[1])) / prior
     factor = min(by_disp, by_pixels)
     return factor if factor >= ADAPTIVE_MIN_GAIN else 1.0
+
+
+def shrink_factor(shape: tuple[int, ...], ref_pixels: int) -> float:
+    """How much to shrink an (H, W, ...) pair with more pixels than ``ref_pixels`` so that it has that many:
+    sqrt(ref_pixels / (H W)); 1 when that is above 1 / ADAPTIVE_MIN_GAIN, as :func:`budget_factor` leaves a pair near
+    the reference size alone (a KITTI frame of 376x1241 is 866 pixels over a 375x1242 one). Registration T12."""
+    if ref_pixels <= 0:
+        raise ValueError(f"the pixel cap needs a positive reference, got ref_pixels {ref_pixels}")
+    factor = math.sqrt(ref_pixels / (shape[0] * shape[1]))
+    return factor if factor * ADAPTIVE_MIN_GAIN <= 1.0 else 1.0
 
 
 def budget_factor(shape: tuple[int, ...], ref_pixels: int, cap: float, scale: float = 1.0) -> float:
