@@ -116,9 +116,10 @@ class TestPredictInputs:
     @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM is Linux-only")
     def test_memory_estimate_against_a_measured_peak(self, tmp_path: Path) -> None:
         # The shipped model on a 1000 x 1500 pair (none of the sizes the estimate was fitted on; more pixels than the
-        # adaptive pass's reference, so one pass), its peak RSS (VmHWM) read by the process itself as it exits. The
-        # estimate must cover it and not refuse pairs that need far less: measured 0.99 GB on a 2-core x86 box (2
-        # threads) against 1.30 GB; the estimate before issue 51 said 2.29 GB (the fit's input scale counted twice).
+        # adaptive pass's reference, so one pass) at a given --scale 1 (final: the file's own would shrink it, T12),
+        # its peak RSS (VmHWM) read by the process itself as it exits. The estimate must cover it and not refuse pairs
+        # that need far less: measured 0.99 GB on a 2-core x86 box (2 threads) against 1.30 GB; the estimate before
+        # issue 51 said 2.29 GB (the fit's input scale counted twice).
         rng = np.random.default_rng(0)
         texture = cv2.GaussianBlur(rng.integers(0, 256, (1000, 1524, 3), dtype=np.uint8), (0, 0), 1.5)
         write_image(tmp_path / "l.png", texture[:, 24:])
@@ -129,7 +130,8 @@ class TestPredictInputs:
         env = {**os.environ, "PYTHONPATH": str(REPO), "CUDA_VISIBLE_DEVICES": ""}
         result = subprocess.run([sys.executable, "-c", wrapper, "--checkpoint", "pretrained", tmp_path / "l.png",
                                  tmp_path / "r.png", "--out", tmp_path / "o", "--format", "npy", "--device", "cpu",
-                                 "--quiet"], cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+                                 "--scale", "1", "--quiet"], cwd=REPO, env=env, capture_output=True, text=True,
+                                timeout=900)
         assert result.returncode == 0, result.stderr[-2000:]
         measured = float(result.stderr.rsplit("PEAK_RSS_MB ", 1)[1].split()[0]) * 2**20
         estimate = memory.estimate_peak_bytes(1000, 1500)
