@@ -228,11 +228,11 @@ def first_scale(config: InferenceConfig, shape: tuple[int, ...]) -> float:
     (``budget_factor``), so a pair is never run smaller than the budget asks (registration T8); with
     ``config.shrink_large``, at most ``scale`` x ``shrink_factor``, so that a pair of over 1.21x a training-size
     pair's pixels runs with as many pixels as one does at ``scale`` (T12)."""
-    scale = config.scale
+    if config.shrink_large and (shrink := shrink_factor(shape, config.adaptive_ref_pixels)) < 1.0:
+        return config.scale * shrink
     if config.enlarge_max > 1:
-        scale = max(scale, budget_factor(shape, config.adaptive_ref_pixels, config.enlarge_max))
-    shrink = shrink_factor(shape, config.adaptive_ref_pixels) if config.shrink_large else 1.0
-    return config.scale * shrink if shrink < 1.0 else scale
+        return max(config.scale, budget_factor(shape, config.adaptive_ref_pixels, config.enlarge_max))
+    return config.scale
 
 
 def final_scale(config: InferenceConfig, zero: Disparity | None, shape: tuple[int, ...]) -> float:

@@ -152,9 +152,9 @@ def check_capturable(config: InferenceConfig, shape: tuple[int, int]) -> None:
     if config.refine != "none":
         raise ValueError(f"GraphedPass runs no post-filter: refine={config.refine!r} is not captured, use infer "
                          "or refine='none'")
-    if first_scale(config, shape) != 1.0:
+    if (first := first_scale(config, shape)) != 1.0:
         raise ValueError(f"GraphedPass captures input scale 1 only: a {shape[0]}x{shape[1]} pair is resized "
-                         f"{first_scale(config, shape):.3f}x toward the pixel budget (enlarge_max="
+                         f"{first:.3f}x toward the pixel budget (enlarge_max="
                          f"{config.enlarge_max}, shrink_large={config.shrink_large}); give scale= (turns it off, as "
                          "infer does) or use infer")
     if config.adaptive:

@@ -71,6 +71,7 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     formats = tuple(formats)
     frames = sorted(frames, key=lambda frame: natural_key(frame[0])) if more.sequence else list(frames)
     state, folder = SequenceState(), None
+    config = model_inference_config(model, iters, scale, refine)  # the same for every frame
     written = []
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):
         if Path(left_path).parent != folder:
@@ -85,10 +86,9 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
                               device=device, amp=amp, scale=scale, refine=refine)
             used_scale = state.scale
         else:
-            result = run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp)
+            result = run(model, left, right, config, device, amp)
             disp, used_scale = result.disparity, result.input_scale
-        conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale,
-                           model_inference_config(model, iters, scale, refine).iters)
+        conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale, config.iters)
         logger.info("%s: %.2f s", name, time.perf_counter() - t0)
         written.append(_write(out_dir, name, disp, conf, more, formats, kitti_layout))
     return written

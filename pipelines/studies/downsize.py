@@ -22,7 +22,6 @@ from collections.abc import Callable
 from pathlib import Path
 from unittest import mock
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 import torch
@@ -32,7 +31,7 @@ from optstereo.api import load_model
 from optstereo.checkpoint import model_inference
 from optstereo.inference import engine
 from optstereo.inference.fastpath import engineering
-from optstereo.inference.rescale import disparity_to_size
+from optstereo.inference.rescale import disparity_to_size, sparse_to_size
 from optstereo.validation import PairScore, open_valset, paired_difference, pooled, score
 from pipelines.studies.aspect import gt_of, prefixed
 
@@ -42,12 +41,9 @@ KEYS = ("pvm_epe", "teacher_epe", "photometric")
 Disparity = npt.NDArray[np.float32]
 
 
-def nearest_to_size(disp: Disparity, shape: tuple[int, int]) -> Disparity:
-    """(h, w) float32 disparity -> ``shape`` (H, W): the source pixel nearest by centres (``INTER_NEAREST_EXACT``),
-    values times W / w; no value that the source does not have (up to that factor)."""
-    h_out, w_out = shape
-    resized = cv2.resize(disp, (w_out, h_out), interpolation=cv2.INTER_NEAREST_EXACT)
-    return (resized * (w_out / disp.shape[1])).astype(np.float32)
+#: (h, w) float32 disparity -> ``shape`` (H, W): the source pixel nearest by centres (``INTER_NEAREST_EXACT``),
+#: values times W / w (the product's resize of sparse labels, which is exactly this on a dense map).
+nearest_to_size = sparse_to_size
 
 
 def hybrid_to_size(disp: Disparity, shape: tuple[int, int], tau: float = TAU) -> Disparity:
