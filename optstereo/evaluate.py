@@ -229,7 +229,8 @@ def evaluate_model(
     config = model_inference_config(model, iters, scale, refine)
     refs = {"scale_ref_disp": config.adaptive_ref_disp, "scale_ref_pixels": config.adaptive_ref_pixels} \
         if config.adaptive else None
-    meta = {"source": "network", "dataset": dataset, "iters": iters, "amp": amp, "input_scale": config.scale,
+    run_iters = config.iters if config.iters is not None else getattr(model, "iters", None)
+    meta = {"source": "network", "dataset": dataset, "iters": run_iters, "amp": amp, "input_scale": config.scale,
             "scale_refs": refs, "refine": config.refine, "inference": config.to_dict(),
             "seconds_per_frame": math.nan, **(meta or {})}
     count = 0

@@ -80,3 +80,19 @@ def test_evaluation_memory_does_not_grow_with_frames(tmp_path: Path) -> None:
         assert result.summary["n_frames"] == limit and np.isfinite(result.summary["epe"])
     # 10x the frames; a list of frames would hold 200 x (2 images + GT + prediction) ~ 6 MB more
     assert peaks[200] < peaks[20] + 1_000_000, peaks
+
+
+@pytest.mark.parametrize(("setting", "given", "ran"), [(None, None, 5), (2, None, 2), (2, 3, 3)])
+def test_eval_summary_records_the_iterations_that_ran(tmp_path: Path, setting: int | None, given: int | None,
+                                                      ran: int) -> None:
+    # The summary's "iters" is the GRU iterations every pass ran: the caller's, else the file's settings, else the
+    # network's default (it once recorded the caller's argument, None for a file whose settings said 3).
+    from optstereo.inference.config import InferenceConfig
+
+    _rig(tmp_path / "rig", 1)
+    torch.manual_seed(0)
+    model = build_model("optstereo", iters=5, **TINY).eval()
+    model.inference_config = InferenceConfig(iters=setting)
+    options = {"left": "cam0", "right": "cam1", "gt": "disp"}
+    result = evaluate_model(model, "folder", tmp_path / "rig", iters=given, reader_options=options)
+    assert result.summary["iters"] == ran
