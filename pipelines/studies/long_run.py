@@ -224,18 +224,25 @@ def curve(run: Path, out: Path, start: dict[str, float] | None = None) -> list[d
     return rows
 
 
-def candidate(base: dict[str, Any], cand: dict[str, Any], z: float = 2.0) -> tuple[bool, str]:
+def candidate(base: dict[str, Any], cand: dict[str, Any], z: float = 2.0,
+              guard: str = "photometric") -> tuple[bool, str]:
     """G2's rule (docs/registrations.md) on two ``optstereo-eval --valset`` results (``gtfree.json``, the same
     pairs): a candidate when its PVM EPE is lower by more than ``z`` standard errors of the per-pair differences and its
-    photometric error is not higher by more than ``z`` of its own; (verdict, one line saying why)."""
+    ``guard`` score (``photometric``, G1-G3's; ``teacher_epe``, G4's amended rule after J2) is not higher by more than
+    ``z`` of its own; (verdict, one line saying why)."""
+    if guard not in ("photometric", "teacher_epe"):
+        raise ValueError(f"guard must be 'photometric' or 'teacher_epe', got {guard!r}")
+
     def pairs(doc: dict[str, Any]) -> list[PairScore]:
         return [PairScore(**p) for p in doc["pairs"]]
 
     epe, epe_margin = paired_difference(pairs(base), pairs(cand), "pvm_epe", z)
-    photo, photo_margin = paired_difference(pairs(base), pairs(cand), "photometric", z)
-    ok = epe < -epe_margin and photo <= photo_margin
+    held, held_margin = paired_difference(pairs(base), pairs(cand), guard, z)
+    ok = epe < -epe_margin and held <= held_margin
+    digits = 4 if guard == "photometric" else 3
     why = (f"PVM EPE {cand['summary']['pvm_epe']:.3f} vs {base['summary']['pvm_epe']:.3f} px (per-pair change "
-           f"{epe:+.3f}, noise {epe_margin:.3f}); photometric {photo:+.4f} (noise {photo_margin:.4f})")
+           f"{epe:+.3f}, noise {epe_margin:.3f}); {guard.replace('_epe', ' EPE')} {held:+.{digits}f} "
+           f"(noise {held_margin:.{digits}f})")
     return ok, ("candidate: " if ok else "not a candidate: ") + why
 
 
@@ -367,6 +374,8 @@ def main(argv: list[str] | None = None) -> None:
     k.add_argument("cand", type=Path, help="gtfree.json of the checkpoint")
     k.add_argument("--non-inferior", action="store_true",
                    help="E5's speed rule (PVM EPE <= +0.005 px, teacher EPE <= +0.02, photometric within noise)")
+    k.add_argument("--guard", choices=("photometric", "teacher_epe"), default="photometric",
+                   help="the score that must not worsen beyond noise: photometric (G1-G3), teacher_epe (G4 after J2)")
     r = sub.add_parser("record", help="append a chapter trained on a lent GPU (its returned snapshots)")
     r.add_argument("snapshots", type=Path, nargs="+", help="<name>-<step>.safetensors files")
     r.add_argument("--run", type=Path, required=True)
@@ -386,8 +395,8 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "chapter":
         print(chapter(args))
     elif args.cmd == "compare":
-        rule = non_inferior if args.non_inferior else candidate
-        print(rule(json.loads(args.base.read_text()), json.loads(args.cand.read_text()))[1])
+        base, cand = (json.loads(path.read_text()) for path in (args.base, args.cand))
+        print(non_inferior(base, cand)[1] if args.non_inferior else candidate(base, cand, guard=args.guard)[1])
     else:
         start = None
         if args.start:
