@@ -112,6 +112,40 @@ class TestPredictInputs:
         result = predict(ckpt, *pair, tmp_path / "o")  # passes the check, then decodes
         assert result.exit_code == 1 and "l.png decoded" in result.output
 
+    def test_a_dataset_too_large_for_memory_is_refused_before_any_frame(self, ckpt: Path, tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+        # `--dataset` checks every pair from its headers first (it had no check): the second pair is too large, so
+        # not even the first, which fits, is run or written, and the message names the large pair's left image.
+        rng = np.random.default_rng(0)
+        for name, (h, w) in {"a": (32, 64), "b": (64, 128)}.items():
+            for side in ("cam0", "cam1"):
+                write_image(tmp_path / "rig" / side / f"{name}.png", rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+        monkeypatch.setattr(memory, "available_bytes", lambda: memory.estimate_peak_bytes(48, 96))
+        args = ["--dataset", "folder", "--root", tmp_path / "rig", "--left", "cam0", "--right", "cam1"]
+        result = invoke(predict_main, "--checkpoint", ckpt, "--out", tmp_path / "o", "--format", "npy", "--quiet",
+                        *args)
+        assert result.exit_code == 1 and "b.png: a 64 x 128 pair at input scale 1" in result.output, result.output
+        assert not (tmp_path / "o").exists()
+        monkeypatch.setattr(memory, "available_bytes", lambda: memory.estimate_peak_bytes(64, 128))
+        result = invoke(predict_main, "--checkpoint", ckpt, "--out", tmp_path / "o", "--format", "npy", "--quiet",
+                        *args)
+        assert result.exit_code == 0, result.output
+        assert sorted(p.name for p in (tmp_path / "o").rglob("*.npy")) == ["a.npy", "b.npy"]
+
+    def test_the_dataset_check_uses_the_files_input_scale(self, tmp_path: Path) -> None:
+        # A file whose settings enlarge by 1.125 needs 1.125^2 the pixels of scale 1: refused where scale 1 would fit.
+        from optstereo.inference.config import InferenceConfig
+        from optstereo.inference.outputs import check_pairs_fit
+
+        write_image(tmp_path / "l.png", np.zeros((100, 200, 3), np.uint8))
+        model = build_model("optstereo", **TINY)
+        fits_at_1 = memory.estimate_peak_bytes(100, 200, 1.05)
+        check_pairs_fit(model, [tmp_path / "l.png"], available=fits_at_1)
+        model.inference_config = InferenceConfig(scale=1.125)
+        with pytest.raises(MemoryError, match=r"l\.png: a 100 x 200 pair at input scale 1\.125"):
+            check_pairs_fit(model, [tmp_path / "l.png"], available=fits_at_1)
+        check_pairs_fit(model, [tmp_path / "l.png"], scale=1.0, available=fits_at_1)  # a given scale is final
+
     @pytest.mark.slow
     @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM is Linux-only")
     def test_memory_estimate_against_a_measured_peak(self, tmp_path: Path) -> None:
@@ -204,6 +238,24 @@ class TestOnnxBackend:
                         tmp_path / "o", "--iters", "2", "--amp", "bf16", "--format", "conf-npy")
         text = " ".join(result.output.split())
         assert result.exit_code == 2 and "--iters 2" in text and "--amp bf16" in text and "--format conf-npy" in text
+
+    def test_memory_check_at_the_graphs_input_scale(self, pair: tuple[Path, Path], tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+        # The check used scale 1 whatever the graph's settings (version 15's: 1.125, ~1.27x the pixels).
+        pytest.importorskip("onnxruntime")
+        from optstereo.export import export
+        from optstereo.inference.config import InferenceConfig
+
+        model = build_model("optstereo", **TINY).eval()
+        model.inference_config = InferenceConfig(scale=1.125)
+        graph = export(model, tmp_path / "model.onnx")
+        monkeypatch.setattr(memory, "available_bytes", lambda: memory.estimate_peak_bytes(32, 64, 1.05))
+        result = invoke(predict_main, "--backend", "onnxruntime", "--checkpoint", graph, *pair, "--out", tmp_path / "o")
+        assert result.exit_code == 1 and "l.png: a 32 x 64 pair at input scale 1.125" in result.output, result.output
+        assert not (tmp_path / "o").exists()
+        result = invoke(predict_main, "--backend", "onnxruntime", "--checkpoint", graph, *pair, "--out", tmp_path / "o",
+                        "--scale", "1")
+        assert result.exit_code == 0, result.output
 
 
 class TestOutputs:

@@ -11,7 +11,7 @@ import torch
 
 from optstereo.choices import CONF_FORMATS, GEOMETRY_FORMATS, PREDICT_FORMATS, VIDEO_DATASETS
 from optstereo.cli import common
-from optstereo.export import infer_onnx, onnx_session
+from optstereo.export import infer_onnx, onnx_inference_config, onnx_session
 from optstereo.geometry import read_calibration
 from optstereo.inference import engine as inference
 from optstereo.inference import outputs
@@ -104,10 +104,13 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     else:
         if submission is not None and "png" not in formats:
             formats = (*formats, "png")
-        written = outputs.predict_dataset(model, dataset, root, out, split=split, iters=iters, formats=formats,
-                                          device=dev, limit=limit, amp=amp, submission=submission,
-                                          reader_options=common.collect_reader_options(**reader), scale=scale,
-                                          refine=refine)
+        try:
+            written = outputs.predict_dataset(model, dataset, root, out, split=split, iters=iters, formats=formats,
+                                              device=dev, limit=limit, amp=amp, submission=submission,
+                                              reader_options=common.collect_reader_options(**reader), scale=scale,
+                                              refine=refine)
+        except MemoryError as exc:  # from the headers, before any frame was run or written
+            raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
 
@@ -140,8 +143,9 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
         raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")
     if not Path(onnx_file).is_file():
         raise click.BadParameter(f"{onnx_file} does not exist", param_hint="--checkpoint")
-    _check_memory(left, right, 1.0 if scale is None else scale, "cpu")
     session = onnx_session(onnx_file, threads=torch.get_num_threads())  # --threads, or one per core
+    _check_memory(left, right, scale if scale is not None else
+                  inference.first_scale(onnx_inference_config(session), image_size(left)), "cpu")
     disp = infer_onnx(session, read_image(left), read_image(right), scale=scale, refine=refine)
     paths = outputs.write_disparity(out, Path(left).stem, disp, formats)
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))

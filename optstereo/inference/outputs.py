@@ -21,10 +21,11 @@ from torch import nn
 
 from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
 from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
-from optstereo.inference.engine import infer
+from optstereo.inference.engine import first_scale, infer, model_inference_config
+from optstereo.memory import check_fits
 from optstereo.submission import write_submission
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
-from pvm_labeler.common.io import read_image, write_disparity_file, write_image, write_npy, write_pfm
+from pvm_labeler.common.io import image_size, read_image, write_disparity_file, write_image, write_npy, write_pfm
 from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)
@@ -115,6 +116,17 @@ def predict_pair(
             **write_geometry(out_dir, stem, disp, left, calib, formats, max_depth)}
 
 
+def check_pairs_fit(model: nn.Module, lefts: Iterable[Path], scale: float | None = None, cuda: bool = False,
+                    available: float | None = None) -> None:
+    """Raise MemoryError naming the first left image whose pair would not fit in the free memory (``available``
+    bytes, None = ask the system) at the input scale the model's settings give it (``scale`` None) or at ``scale``;
+    from the image headers alone, before any pair is decoded or any output written."""
+    config = model_inference_config(model, scale=scale)
+    for left in lefts:
+        size = image_size(left)
+        check_fits(str(left), *size, scale=first_scale(config, size), cuda=cuda, available=available)
+
+
 def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
@@ -123,11 +135,13 @@ def predict_dataset(
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
 
-    With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server.
+    With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server. Every pair's
+    memory need is checked from its image headers before the first is run (:func:`check_pairs_fit`).
     """
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if submission is not None and not dataset.startswith("kitti"):
         raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
+    check_pairs_fit(model, [Path(ref.left) for ref in refs], scale, torch.device(device).type == "cuda")
     written = []
     for ref in refs:
         sample = load_pair(ref)
