@@ -108,6 +108,10 @@ class TestPredictInputs:
         assert result.exit_code == 1 and "l.png: a 32 x 64 pair" in result.output
         assert f"needs about {need / 1e9:.1f} GB of RAM" in result.output and "--scale 0.7" in result.output
         assert not (tmp_path / "o").exists()
+        for extra in (["--format", "conf-npy"], ["--min-confidence", "0.5"]):  # the confidence path had no check
+            result = predict(ckpt, *pair, tmp_path / "o", *extra)
+            assert result.exit_code == 1 and "l.png: a 32 x 64 pair" in result.output, (extra, result.output)
+            assert not (tmp_path / "o").exists()
         monkeypatch.setattr(memory, "available_bytes", lambda: need * 1.01)
         result = predict(ckpt, *pair, tmp_path / "o")  # passes the check, then decodes
         assert result.exit_code == 1 and "l.png decoded" in result.output

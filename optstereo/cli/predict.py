@@ -89,6 +89,10 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
             raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
                                    "--submission outputs")
         frames = frames_of(left, right, dataset, root, split, limit, common.collect_reader_options(**reader))
+        try:  # every pair from its headers, before the first is run (the confidence's second pass is no larger)
+            outputs.check_pairs_fit(model, [frame[1] for frame in frames], scale, dev.type == "cuda")
+        except MemoryError as exc:
+            raise click.ClickException(str(exc)) from exc
         written = predict_frames(model, frames, out, more, formats=formats, iters=iters, device=dev,
                                amp=amp, scale=scale, refine=refine, progress=not quiet,
                                kitti_layout=bool(dataset and dataset.startswith("kitti")))
