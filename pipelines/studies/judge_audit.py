@@ -9,8 +9,8 @@ file's inference settings (today's default), float32 on the engineered pass, on 
 (``optstereo.validation.score``) and on the GT frames of ``../shared`` (``gtfree_agreement.gt_scores``: pooled bad-3
 of KITTI 2015, KITTI 2012 and Middlebury). Reported: Spearman rho of each GT-free score against each GT score, and,
 for each model against version 15, whether the sign of each GT-free change agrees with the sign of its KITTI 2015
-bad-3 change (:func:`verdicts`). Resumable: OUT/NAME.val.json and OUT/NAME.gt.json. An audit: none of these models
-may ship (their GT has been seen).
+bad-3 change (:func:`verdicts`), and each score against KITTI 2015 as a scatter (OUT/audit.png). Resumable:
+OUT/NAME.val.json and OUT/NAME.gt.json. An audit: none of these models may ship (their GT has been seen).
 """
 
 from __future__ import annotations
@@ -106,6 +106,32 @@ def markdown(rows: dict[str, dict[str, Any]], agree: dict[str, dict[str, Any]],
     return "\n".join(lines) + "\n"
 
 
+def plot(rows: dict[str, dict[str, Any]], path: Path, keys: tuple[str, ...] = ("pvm_epe", "teacher_epe",
+                                                                              "photometric")) -> None:
+    """KITTI 2015 bad-3 against each GT-free score in ``keys``, one panel each, the base model ringed -> PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False)
+    for ax, key in zip(axes[0], keys, strict=True):
+        for name, row in rows.items():
+            x, y = row["val"][key], row["gt"]["kitti15"]
+            if not math.isfinite(x):
+                continue
+            ax.scatter([x], [y], s=40 if name == BASE else 14, facecolors="none" if name == BASE else "C0",
+                       edgecolors="C3" if name == BASE else "C0")
+            ax.annotate(name, (x, y), fontsize=6, xytext=(3, 2), textcoords="offset points")
+        ax.set_xlabel(f"{key} on the validation set (lower is better)")
+        ax.set_ylabel("KITTI 2015 bad-3 %")
+        ax.grid(alpha=0.3)
+    fig.suptitle("J2: close models, GT-free score against GT (version 15 ringed)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--valset", type=Path, required=True)
@@ -135,6 +161,7 @@ def main(argv: list[str] | None = None) -> None:
     atomic_write_text(args.out / "audit.json", json.dumps({"models": rows, "spearman": agree, "verdicts": judged},
                                                           indent=1) + "\n")
     atomic_write_text(args.out / "audit.md", markdown(rows, agree, judged))
+    plot(rows, args.out / "audit.png")
     print(markdown(rows, agree, judged))
 
 

@@ -59,3 +59,9 @@ def test_build_runs_a_file_with_todays_settings(tmp_path: Path) -> None:
     shipped = model_inference(judge_audit.build("pretrained", tmp_path))
     assert model_inference(built) == shipped and shipped.iters == 3 and shipped.scale == 1.125
     assert torch.equal(next(built.parameters()), next(model.parameters()))
+
+
+def test_plot_writes_a_png(tmp_path: Path) -> None:
+    rows = {"v15": row(0.50, 0.90, 0.080, 7.3), "own": row(0.49, math.nan, 0.079, 7.1)}
+    judge_audit.plot(rows, tmp_path / "audit.png")
+    assert (tmp_path / "audit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
