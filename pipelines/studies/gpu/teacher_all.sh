@@ -6,6 +6,7 @@
 #   run(command="NAME=G4 PART=D TRAIN=1 SCHEDULE=constant LR=2e-5 SNAPS=3 SPLIT=2 MISSING=drop FILLS=0 SEED=51
 #       JOBS=10 END_S=540 TEACHER_S=300 bash pipelines/studies/gpu/teacher_all.sh", carry=[".carry/D"], timeout_s=590)
 #   (pack D: python -m pipelines.studies.gpu.pack_c .carry/D --quality 88 --exclude pipelines/studies/valset_indoor.txt)
+#   then, here: python -m pipelines.studies.judge_chapter FILES_AT/G4-*.safetensors --valset VAL --out DIR --gt
 # Packs, here, once (WebP, the highest quality under 37 MB each; pipelines/studies/gpu/distill_pack.py):
 #   A = the 144 unlabelled pairs of ../shared/data; B = the 267 more that fetch_unlabelled_more.sh copies (less the 57
 #   that are byte-identical to A's).
