@@ -250,11 +250,29 @@ def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", 
 def write_report(result: ValScore, out: Path, checkpoint: str, valset_dir: Path | str,
                  **extra: Any) -> Path:
     """OUT/gtfree.json (written atomically): ``checkpoint`` (what was scored, in words or a path), the set's
-    directory, ``extra`` fields and the summary with its per-pair sums; returns the file."""
+    directory, ``extra`` fields and the summary with its per-pair sums; and OUT/gtfree.md, the same per pair as a
+    table (:func:`pairs_table`). Returns the JSON file."""
     out.mkdir(parents=True, exist_ok=True)
     doc = {"checkpoint": checkpoint, **extra, "valset": str(valset_dir), **result.to_dict()}
+    atomic_write_text(out / "gtfree.md", f"# {checkpoint} on {valset_dir}\n\n{summary_line(result.summary)}\n\n"
+                      + pairs_table(result.pairs))
     atomic_write_text(out / "gtfree.json", json.dumps(doc, indent=2) + "\n")
     return out / "gtfree.json"
+
+
+def pairs_table(pairs: list[PairScore]) -> str:
+    """Markdown: one row per pair, its own scores, worst PVM EPE first (a pair without a score shows "-")."""
+    def cell(pair: PairScore, key: str, digits: int) -> str:
+        value = pair.value(key)
+        return f"{value:.{digits}f}" if math.isfinite(value) else "-"
+
+    lines = ["| pair | PVM pixels | PVM bad-3 % | PVM EPE px | teacher pixels | teacher bad-3 % | teacher EPE px "
+             "| photometric |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for p in sorted(pairs, key=lambda p: -p.value("pvm_epe") if p.pvm_n else math.inf):
+        lines.append(f"| {p.frame_id} | {p.pvm_n} | {cell(p, 'pvm_bad3', 2)} | {cell(p, 'pvm_epe', 3)} | "
+                     f"{p.teacher_n} | {cell(p, 'teacher_bad3', 2)} | {cell(p, 'teacher_epe', 3)} | "
+                     f"{cell(p, 'photometric', 4)} |")
+    return "\n".join(lines) + "\n"
 
 
 def paired_difference(before: list[PairScore], after: list[PairScore], key: str = "pvm_bad3",

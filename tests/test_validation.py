@@ -143,6 +143,8 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
         assert ("teacher: own maps, not scored" in done.output) == own
         doc = json.loads((out / "gtfree.json").read_text())
         assert len(doc["pairs"]) == 3 and doc["summary"]["own_teacher"] == float(own)
+        table = (out / "gtfree.md").read_text()
+        assert "3 pairs: PVM bad-3" in table and sum(line.startswith("| 00") for line in table.splitlines()) == 3
     wrong = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(pairs), "--out",
                                            str(tmp_path / "e"), "--quiet"])
     assert wrong.exit_code == 2 and "is not a validation set" in wrong.output
@@ -171,3 +173,14 @@ def test_training_hook_logs_scores_and_keeps_the_best(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="is not a validation set"):
         main(tiny_config(labels, tmp_path / "run2", val_set=tmp_path), progress=False)
     assert not (tmp_path / "run2" / "last.pt").exists()
+
+
+def test_pairs_table_by_hand() -> None:
+    pairs = [validation.PairScore("a", pvm_n=4, pvm_err=2.0, pvm_bad=1, teacher_n=0, photo_sum=0.5, photo_n=5),
+             validation.PairScore("b", pvm_n=2, pvm_err=3.0, pvm_bad=0, teacher_n=2, teacher_err=1.0, teacher_bad=1,
+                                  photo_sum=1.0, photo_n=5),
+             validation.PairScore("c")]  # no labelled pixel: last, every score "-"
+    rows = validation.pairs_table(pairs).splitlines()[2:]
+    assert rows == ["| b | 2 | 0.00 | 1.500 | 2 | 50.00 | 0.500 | 0.2000 |",
+                    "| a | 4 | 25.00 | 0.500 | 0 | - | - | 0.1000 |",
+                    "| c | 0 | - | - | 0 | - | - | - |"]

@@ -49,8 +49,8 @@ def score(spec: str | Path, valset: Path, path: Path) -> dict[str, Any]:
     if not path.exists():
         with engineering(True, int8=False):
             result = validation.score(load_model(spec, "cpu"), validation.open_valset(valset))
-        validation.write_report(result, path.parent, str(spec), valset)
-        (path.parent / "gtfree.json").replace(path)
+        doc = {"checkpoint": str(spec), "valset": str(valset), **result.to_dict()}
+        atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
     return json.loads(path.read_text())
 
 
