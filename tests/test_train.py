@@ -183,6 +183,7 @@ class TestRun:
             assert r["L_R"] > 0 and r["L_S"] > 0  # pvm supervision uses the self-supervised terms
         assert yaml.safe_load((run / "config.yaml").read_text())["loss"]["lambda_r"] == 0.1
         assert load_checkpoint(run).step == 4
+        assert (run / "curves.png").read_bytes()[:4] == b"\x89PNG" and not list(run.glob("*.part.png"))
         with pytest.raises(ValueError, match="already holds a training run"):
             loop.main(cfg)  # a second run into the same dir must not overwrite the first silently
 
@@ -472,3 +473,23 @@ def test_logged_lr_is_the_rate_each_step_used(tmp_path: Path) -> None:
     lrs = [loop.train_step(state, batch, loop.build_loss(cfg), cfg, torch.device("cpu"))["lr"] for _ in range(4)]
     assert lrs[0] == pytest.approx(1e-3 / 25) and max(lrs) == pytest.approx(1e-3)
     assert all(lr >= 0 for lr in lrs)
+
+
+def test_plot_curves_draws_the_logged_panels(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from optstereo.training import log
+
+    assert log.plot_curves(tmp_path) is None  # nothing logged: nothing drawn
+    records = [{"step": s, "total": 2.0 / s, "L_P": 1.5 / s, "L_R": 0.1, "L_S": 0.02} for s in range(1, 41)]
+    records.append({"step": 4, "gtfree_pvm_epe": 0.51, "gtfree_teacher_epe": float("nan")})
+    (tmp_path / log.METRICS_FILE).write_text("".join(json.dumps(r) + "\n" for r in records))
+    drawn: list[list[str]] = []
+    real = log.plot_curves
+
+    import matplotlib.axes
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "set_title", lambda self, t, **k: drawn.append([t]))
+    assert real(tmp_path) == tmp_path / log.CURVES_FILE
+    assert [d[0] for d in drawn] == ["losses", "L_R, L_S", "GT-free validation (px)"]
+    assert (tmp_path / log.CURVES_FILE).read_bytes()[:4] == b"\x89PNG"
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", lambda *a, **k: 1 / 0)
+    assert log.plot_curves(tmp_path) is None  # a failing plot is logged, not raised

@@ -1,4 +1,6 @@
-"""Training logs: ``RUN_DIR/metrics.jsonl`` (one JSON record per logged step), TensorBoard scalars and images.
+"""Training logs: ``RUN_DIR/metrics.jsonl`` (one JSON record per logged step), TensorBoard scalars and images, and
+``RUN_DIR/curves.png`` (the losses and GT-free validation scores against the step, :func:`plot_curves`; redrawn at
+every checkpoint and at the end, no TensorBoard needed).
 
 Written by rank 0 only. A resumed run trims the records logged after its checkpoint (:func:`trim_metrics`).
 """
@@ -17,6 +19,10 @@ from pvm_labeler.common.viz import colorize_disparity
 logger = logging.getLogger(__name__)
 
 METRICS_FILE = "metrics.jsonl"
+CURVES_FILE = "curves.png"
+#: Panels of curves.png: (title, keys); a panel none of whose keys was logged is left out.
+PANELS = (("losses", ("total", "L_P")), ("L_R, L_S", ("L_R", "L_S")),
+          ("GT-free validation (px)", ("gtfree_pvm_epe", "gtfree_teacher_epe")))
 
 
 class RunLogger:
@@ -58,6 +64,56 @@ class RunLogger:
     def close(self) -> None:
         if self.tb is not None:
             self.tb.close()
+        if self.enabled:
+            plot_curves(self.path.parent)
+
+
+def plot_curves(run_dir: Path) -> Path | None:
+    """RUN_DIR/curves.png from RUN_DIR/metrics.jsonl: one panel per :data:`PANELS` entry with data, each logged key
+    against the step (log scale for the losses; from 30 records on, thin raw lines under a running mean of a
+    twentieth of them). None (nothing written) without records; a plotting failure is
+    logged, never raised: a picture must not stop a run."""
+    path = Path(run_dir) / METRICS_FILE
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+    panels = [(title, [(k, [(r["step"], r[k]) for r in records if isinstance(r.get(k), (int, float))])
+                       for k in keys]) for title, keys in PANELS]
+    panels = [(title, [(k, pts) for k, pts in series if pts]) for title, series in panels]
+    panels = [(title, series) for title, series in panels if series]
+    if not panels:
+        return None
+    try:
+        import matplotlib  # lazy: only a finished run or a checkpoint draws; trainers start faster without it
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt  # lazy: as above
+
+        fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.3), squeeze=False)
+        for ax, (title, series) in zip(axes[0], panels, strict=True):
+            for i, (key, pts) in enumerate(series):
+                steps, values = (np.asarray(v, float) for v in zip(*pts, strict=True))
+                if len(pts) < 30:
+                    ax.plot(steps, values, color=f"C{i}", label=key, lw=1.2, marker=".")
+                    continue
+                ax.plot(steps, values, color=f"C{i}", lw=0.6, alpha=0.35)  # raw, then a running mean
+                k = max(3, len(pts) // 20)
+                ax.plot(steps[k - 1:], np.convolve(values, np.ones(k) / k, mode="valid"), color=f"C{i}",
+                        label=f"{key} (mean of {k})", lw=1.4)
+            if title == "losses" and all(v > 0 for _, pts in series for _, v in pts):
+                ax.set_yscale("log")
+            ax.set_title(title, fontsize=9)
+            ax.set_xlabel("step")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        out = Path(run_dir) / CURVES_FILE
+        tmp = out.with_name(out.name + ".part.png")
+        fig.savefig(tmp, dpi=100)
+        plt.close(fig)
+        tmp.replace(out)
+        return out
+    except Exception as exc:  # noqa: BLE001 - a picture must not stop a run
+        logger.warning("could not draw %s: %s", Path(run_dir) / CURVES_FILE, exc)
+        return None
 
 
 def trim_metrics(path: Path, last_step: int) -> int:

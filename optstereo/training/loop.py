@@ -35,7 +35,12 @@ from optstereo.models import build_from_config
 from optstereo.training.analogy import analogy_loss, occlude_right, transform_batch
 from optstereo.training.checkpoints import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
 from optstereo.training.config import TrainConfig
-from optstereo.training.log import METRICS_FILE, RunLogger, disparity_images  # noqa: F401  (METRICS_FILE: API)
+from optstereo.training.log import (  # noqa: F401  (METRICS_FILE: API)
+    METRICS_FILE,
+    RunLogger,
+    disparity_images,
+    plot_curves,
+)
 from optstereo.training.losses import PVStereoLoss
 from optstereo.training.validate import gtfree_hook
 
@@ -302,6 +307,14 @@ def evaluate(model: nn.Module, cfg: TrainConfig, device: torch.device, out_dir: 
     return result.summary
 
 
+def redraw_curves(run_dir: Path) -> Callable[[TrainState], None]:
+    """A checkpoint hook that redraws RUN_DIR/curves.png (:func:`optstereo.training.log.plot_curves`)."""
+    def redraw(_: TrainState) -> None:
+        plot_curves(run_dir)
+
+    return redraw
+
+
 def _and_then(first: Callable[[TrainState], None],
               then: Callable[[TrainState], None] | None) -> Callable[[TrainState], None]:
     """``first(state)``, then ``then(state)`` when given (a checkpoint, then its GT-free validation)."""
@@ -366,8 +379,9 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     loss_fn = build_loss(cfg).to(device)
     run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
                            resume_step=state.step if ckpt is not None else None)
-    save = _and_then(checkpoint_saver(run_dir, cfg, info),
-                     gtfree_hook(cfg, run_dir, run_logger, device) if info.is_main else None)
+    save = _and_then(_and_then(checkpoint_saver(run_dir, cfg, info),
+                               gtfree_hook(cfg, run_dir, run_logger, device) if info.is_main else None),
+                     redraw_curves(run_dir) if info.is_main else None)
     start_step, t0 = state.step, time.perf_counter()
     try:
         if state.step < cfg.optim.steps:
