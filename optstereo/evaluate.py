@@ -23,7 +23,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -112,6 +112,15 @@ def _save_maps(out_dir: Path, frame: Frame) -> None:
     write_image(maps / f"{stem}_disp.png", colorize(frame.pred, max_disp=vmax))
     if frame.gt is not None:
         write_image(maps / f"{stem}_error.png", error_picture(frame.pred, frame.gt))
+
+
+def map_writer(out_dir: Path) -> Callable[[str, npt.NDArray[np.float32], npt.NDArray[np.float32]], None]:
+    """(frame id, prediction, reference) -> OUT/maps/<frame>_disp.png and _error.png, as a GT evaluation writes
+    them (the reference in place of GT: NaN where there is none)."""
+    def write(frame_id: str, pred: npt.NDArray[np.float32], ref: npt.NDArray[np.float32]) -> None:
+        _save_maps(Path(out_dir), Frame(frame_id, pred, ref, None))
+
+    return write
 
 
 def evaluate_frames(

@@ -224,13 +224,23 @@ def valset_pairs(valset: ValSet, only: set[str] | None = None) -> Iterator[tuple
         yield sample, consistent_views(*views)[0]
 
 
+def reference(label: npt.NDArray[np.float32], teacher: npt.NDArray[np.float32] | None) -> npt.NDArray[np.float32]:
+    """(H, W) float32: what a pair is scored against, PVM's label on its pixels and the teacher's consistent view
+    (None: not scored) in PVM's holes; NaN elsewhere."""
+    if teacher is None:
+        return label
+    return np.where(np.isfinite(label), label, teacher).astype(np.float32)
+
+
 def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", amp: str = "none",
           only: set[str] | None = None, progress: bool = False, what: str = "",
           predict: Callable[[npt.NDArray[np.uint8], npt.NDArray[np.uint8]], npt.NDArray[np.float32]] | None = None,
+          on_pair: Callable[[str, npt.NDArray[np.float32], npt.NDArray[np.float32]], None] | None = None,
           ) -> ValScore:
     """The model (run with its own inference settings) on every pair of ``valset`` (or of ``only``). ``predict``:
     how a (H, W, 3) uint8 pair becomes its (H, W) float32 disparity (None = ``infer`` on ``device`` with ``amp``), for
-    studies that run the model another way (``pipelines.studies.small_pairs``: on the pair shrunk)."""
+    studies that run the model another way (``pipelines.studies.small_pairs``: on the pair shrunk). ``on_pair``:
+    called with each pair's id, its disparity and its :func:`reference` (``optstereo-eval --valset --save-maps``)."""
     own = weights_digest(model) == valset.teacher_digest
     if own:
         logger.info("the model has the teacher's weights: teacher_* scores are left out (its own maps)")
@@ -242,6 +252,8 @@ def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", 
                 else infer(model, sample.left, sample.right, device=device, amp=amp))
         cost = photometric_costs(sample.left, sample.right, [disp], window=1)[0]
         pairs.append(score_pair(sample.frame_id, disp, sample.label, None if own else teacher, cost))
+        if on_pair is not None:
+            on_pair(sample.frame_id, disp, reference(sample.label, None if own else teacher))
     summary = pooled(pairs)
     summary["own_teacher"] = float(own)
     return ValScore(summary=summary, pairs=pairs)

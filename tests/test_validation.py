@@ -145,6 +145,11 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
         assert len(doc["pairs"]) == 3 and doc["summary"]["own_teacher"] == float(own)
         table = (out / "gtfree.md").read_text()
         assert "3 pairs: PVM bad-3" in table and sum(line.startswith("| 00") for line in table.splitlines()) == 3
+        assert sorted(p.name for p in (out / "maps").iterdir()) == [f"00{i}_{k}.png" for i in range(3)
+                                                                    for k in ("disp", "error")]
+    quiet = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
+                                           str(tmp_path / "nomaps"), "--no-save-maps", "--quiet"])
+    assert quiet.exit_code == 0 and not (tmp_path / "nomaps" / "maps").exists()
     wrong = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(pairs), "--out",
                                            str(tmp_path / "e"), "--quiet"])
     assert wrong.exit_code == 2 and "is not a validation set" in wrong.output
@@ -184,3 +189,11 @@ def test_pairs_table_by_hand() -> None:
     assert rows == ["| b | 2 | 0.00 | 1.500 | 2 | 50.00 | 0.500 | 0.2000 |",
                     "| a | 4 | 25.00 | 0.500 | 0 | - | - | 0.1000 |",
                     "| c | 0 | - | - | 0 | - | - | - |"]
+
+
+def test_reference_is_the_label_then_the_teacher_in_its_holes() -> None:
+    nan = np.nan
+    label = np.array([[1.0, nan, nan]], np.float32)
+    teacher = np.array([[9.0, 2.0, nan]], np.float32)
+    np.testing.assert_array_equal(validation.reference(label, teacher), [[1.0, 2.0, nan]])
+    assert validation.reference(label, None) is label  # the teacher's own weights: labels alone

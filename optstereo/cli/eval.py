@@ -47,7 +47,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
             raise click.UsageError("--valset scores the model with its own inference settings (no --iters, --scale, "
                                    "--refine)")
         common.check_out(out)
-        _eval_valset(checkpoint, valset, out, device, amp, quiet)
+        _eval_valset(checkpoint, valset, out, device, amp, quiet, save_maps)
         return
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
@@ -71,14 +71,18 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
     click.echo(f"reports: {result.files['md']}, {result.files['csv']}, {result.files['json']}")
 
 
-def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp: str, quiet: bool) -> None:
-    """``--valset``: OUT/gtfree.json (summary and per-pair sums) and one summary line."""
+def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp: str, quiet: bool,
+                 save_maps: bool) -> None:
+    """``--valset``: OUT/gtfree.json (summary and per-pair sums), gtfree.md and one summary line; with
+    ``save_maps`` each pair's disparity and its error against the pair's reference (PVM's labels, the teacher's
+    consistent view in their holes) as OUT/maps/<pair>_disp.png and _error.png, KITTI's error colours."""
     try:
         valset = validation.open_valset(valset_dir)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from exc
     model, dev = common.load_model(checkpoint, device)
-    result = validation.score(model, valset, dev, amp, progress=not quiet, what=str(checkpoint))
+    result = validation.score(model, valset, dev, amp, progress=not quiet, what=str(checkpoint),
+                              on_pair=evaluate.map_writer(out) if save_maps else None)
     report = validation.write_report(result, out, str(checkpoint), valset_dir)
     click.echo(validation.summary_line(result.summary))
     click.echo(f"report: {report}")
