@@ -490,6 +490,12 @@ def test_plot_curves_draws_the_logged_panels(tmp_path: Path, monkeypatch: pytest
     monkeypatch.setattr(matplotlib.axes.Axes, "set_title", lambda self, t, **k: drawn.append([t]))
     assert real(tmp_path) == tmp_path / log.CURVES_FILE
     assert [d[0] for d in drawn] == ["losses", "L_R, L_S", "GT-free validation (px)"]
+    drawn.clear()
+    for r in records:  # a run without L_R / L_S logs them as 0: no panel for them
+        r.update({"L_R": 0.0, "L_S": 0.0} if "L_R" in r else {})
+    (tmp_path / log.METRICS_FILE).write_text("".join(json.dumps(r) + "\n" for r in records))
+    real(tmp_path)
+    assert [d[0] for d in drawn] == ["losses", "GT-free validation (px)"]
     assert (tmp_path / log.CURVES_FILE).read_bytes()[:4] == b"\x89PNG"
     monkeypatch.setattr(matplotlib.axes.Axes, "plot", lambda *a, **k: 1 / 0)
     assert log.plot_curves(tmp_path) is None  # a failing plot is logged, not raised

@@ -69,15 +69,15 @@ class RunLogger:
 
 
 def plot_curves(run_dir: Path) -> Path | None:
-    """RUN_DIR/curves.png from RUN_DIR/metrics.jsonl: one panel per :data:`PANELS` entry with data, each logged key
-    against the step (log scale for the losses; from 30 records on, thin raw lines under a running mean of a
-    twentieth of them). None (nothing written) without records; a plotting failure is
-    logged, never raised: a picture must not stop a run."""
+    """RUN_DIR/curves.png from RUN_DIR/metrics.jsonl: one panel per :data:`PANELS` entry with data (a key logged
+    only as 0, such as L_R in a run without it, is left out), each key against the step (log scale for the losses;
+    from 30 records on, thin raw lines under a running mean of a twentieth of them). None (nothing written) without
+    records; a plotting failure is logged, never raised: a picture must not stop a run."""
     path = Path(run_dir) / METRICS_FILE
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
     panels = [(title, [(k, [(r["step"], r[k]) for r in records if isinstance(r.get(k), (int, float))])
                        for k in keys]) for title, keys in PANELS]
-    panels = [(title, [(k, pts) for k, pts in series if pts]) for title, series in panels]
+    panels = [(title, [(k, pts) for k, pts in series if any(v != 0 for _, v in pts)]) for title, series in panels]
     panels = [(title, series) for title, series in panels if series]
     if not panels:
         return None
