@@ -139,16 +139,18 @@ class TestPredictInputs:
     def test_the_dataset_check_uses_the_files_input_scale(self, tmp_path: Path) -> None:
         # A file whose settings enlarge by 1.125 needs 1.125^2 the pixels of scale 1: refused where scale 1 would fit.
         from optstereo.inference.config import InferenceConfig
+        from optstereo.inference.engine import model_inference_config
         from optstereo.inference.outputs import check_pairs_fit
 
         write_image(tmp_path / "l.png", np.zeros((100, 200, 3), np.uint8))
         model = build_model("optstereo", **TINY)
         fits_at_1 = memory.estimate_peak_bytes(100, 200, 1.05)
-        check_pairs_fit(model, [tmp_path / "l.png"], available=fits_at_1)
+        check_pairs_fit(model_inference_config(model), [tmp_path / "l.png"], available=fits_at_1)
         model.inference_config = InferenceConfig(scale=1.125)
         with pytest.raises(MemoryError, match=r"l\.png: a 100 x 200 pair at input scale 1\.125"):
-            check_pairs_fit(model, [tmp_path / "l.png"], available=fits_at_1)
-        check_pairs_fit(model, [tmp_path / "l.png"], scale=1.0, available=fits_at_1)  # a given scale is final
+            check_pairs_fit(model_inference_config(model), [tmp_path / "l.png"], available=fits_at_1)
+        check_pairs_fit(model_inference_config(model, scale=1.0), [tmp_path / "l.png"],
+                        available=fits_at_1)  # a given scale is final
 
     @pytest.mark.slow
     @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="VmHWM is Linux-only")

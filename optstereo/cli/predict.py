@@ -15,8 +15,8 @@ from optstereo.export import infer_onnx, onnx_inference_config, onnx_session
 from optstereo.geometry import read_calibration
 from optstereo.inference import engine as inference
 from optstereo.inference import outputs
+from optstereo.inference.config import InferenceConfig
 from optstereo.inference.predict_more import MoreOptions, frames_of, more_options, predict_frames
-from optstereo.memory import check_fits
 from pvm_labeler.common.io import image_size, read_image
 
 logger = logging.getLogger(__name__)
@@ -89,18 +89,15 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
             raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
                                    "--submission outputs")
         frames = frames_of(left, right, dataset, root, split, limit, common.collect_reader_options(**reader))
-        try:  # every pair from its headers, before the first is run (the confidence's second pass is no larger)
-            outputs.check_pairs_fit(model, [frame[1] for frame in frames], scale, dev.type == "cuda")
-        except MemoryError as exc:
-            raise click.ClickException(str(exc)) from exc
+        # every pair from its headers, before the first is run (the confidence's second pass is no larger)
+        _check_fit(inference.model_inference_config(model, iters, scale, refine), [f[1] for f in frames], dev.type)
         written = predict_frames(model, frames, out, more, formats=formats, iters=iters, device=dev,
                                amp=amp, scale=scale, refine=refine, progress=not quiet,
                                kitti_layout=bool(dataset and dataset.startswith("kitti")))
         click.echo(f"wrote {len(written)} frames into {out}")
         return
     if dataset is None:
-        _check_memory(left, right, scale if scale is not None else
-                      inference.first_scale(inference.model_inference_config(model), image_size(left)), dev.type)
+        _check_memory(left, right, inference.model_inference_config(model, iters, scale, refine), dev.type)
         paths = outputs.predict_pair(model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
                              scale=scale, refine=refine)
@@ -113,7 +110,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                                               device=dev, limit=limit, amp=amp, submission=submission,
                                               reader_options=common.collect_reader_options(**reader), scale=scale,
                                               refine=refine)
-        except MemoryError as exc:  # from the headers, before any frame was run or written
+        except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
                                                                  if submission is not None else ""))
@@ -148,20 +145,26 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
     if not Path(onnx_file).is_file():
         raise click.BadParameter(f"{onnx_file} does not exist", param_hint="--checkpoint")
     session = onnx_session(onnx_file, threads=torch.get_num_threads())  # --threads, or one per core
-    _check_memory(left, right, scale if scale is not None else
-                  inference.first_scale(onnx_inference_config(session), image_size(left)), "cpu")
+    config = onnx_inference_config(session)
+    _check_memory(left, right, config if scale is None else config.fixed(scale), "cpu")
     disp = infer_onnx(session, read_image(left), read_image(right), scale=scale, refine=refine)
     paths = outputs.write_disparity(out, Path(left).stem, disp, formats)
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
 
 
-def _check_memory(left: Path, right: Path, scale: float, device_type: str) -> None:
-    """Exit 1 naming LEFT when the pair's estimated peak memory exceeds the free memory (optstereo.memory); read
-    from the image headers, before either image is decoded. Pairs of different sizes are refused here too."""
+def _check_memory(left: Path, right: Path, config: InferenceConfig, device_type: str) -> None:
+    """Exit 1 naming LEFT when the pair's estimated peak memory at ``config``'s first scale exceeds the free memory
+    (:func:`_check_fit`); read from the image headers, before either image is decoded. Pairs of different sizes are
+    refused here too."""
     size = image_size(left)
     if image_size(right) != size:
         raise click.ClickException(f"left/right sizes differ: {size} vs {image_size(right)}: {left}, {right}")
+    _check_fit(config, [left], device_type)
+
+
+def _check_fit(config: InferenceConfig, lefts: list[Path], device_type: str) -> None:
+    """Exit 1 naming the first left image whose pair would not fit (``outputs.check_pairs_fit``, from the headers)."""
     try:
-        check_fits(str(left), *size, scale=scale, cuda=device_type == "cuda")
+        outputs.check_pairs_fit(config, lefts, device_type == "cuda")
     except MemoryError as exc:
         raise click.ClickException(str(exc)) from exc

@@ -21,6 +21,7 @@ from torch import nn
 
 from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
 from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
+from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import first_scale, infer, model_inference_config
 from optstereo.memory import check_fits
 from optstereo.submission import write_submission
@@ -116,12 +117,11 @@ def predict_pair(
             **write_geometry(out_dir, stem, disp, left, calib, formats, max_depth)}
 
 
-def check_pairs_fit(model: nn.Module, lefts: Iterable[Path], scale: float | None = None, cuda: bool = False,
+def check_pairs_fit(config: InferenceConfig, lefts: Iterable[Path], cuda: bool = False,
                     available: float | None = None) -> None:
     """Raise MemoryError naming the first left image whose pair would not fit in the free memory (``available``
-    bytes, None = ask the system) at the input scale the model's settings give it (``scale`` None) or at ``scale``;
-    from the image headers alone, before any pair is decoded or any output written."""
-    config = model_inference_config(model, scale=scale)
+    bytes, None = ask the system) at the first scale ``config`` gives it (``engine.first_scale``); from the image
+    headers alone, before any pair is decoded or any output written."""
     for left in lefts:
         size = image_size(left)
         check_fits(str(left), *size, scale=first_scale(config, size), cuda=cuda, available=available)
@@ -141,7 +141,8 @@ def predict_dataset(
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if submission is not None and not dataset.startswith("kitti"):
         raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
-    check_pairs_fit(model, [Path(ref.left) for ref in refs], scale, torch.device(device).type == "cuda")
+    check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
+                    torch.device(device).type == "cuda")
     written = []
     for ref in refs:
         sample = load_pair(ref)

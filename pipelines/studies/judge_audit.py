@@ -26,9 +26,10 @@ import torch
 
 from optstereo import validation
 from optstereo.api import load_model
-from optstereo.checkpoint import model_inference
+from optstereo.inference.config import InferenceConfig
 from optstereo.inference.fastpath import engineering
 from pipelines.studies.gtfree_agreement import GT_KEYS, REPO, gt_scores, spearman
+from pipelines.studies.judge_chapter import shipped_settings
 from pvm_labeler.common.atomic import atomic_write_text
 
 #: name -> weights: a shipped name, or a file name under --weights.
@@ -47,10 +48,11 @@ VAL_KEYS = ("pvm_bad3", "pvm_epe", "teacher_bad3", "teacher_epe", "photometric")
 GT_NOISE = 0.1
 
 
-def build(spec: str, weights: Path) -> torch.nn.Module:
-    """The model of ``spec`` (a shipped name or a file under ``weights``) with today's default settings."""
+def build(spec: str, weights: Path, settings: InferenceConfig) -> torch.nn.Module:
+    """The model of ``spec`` (a shipped name or a file under ``weights``) with ``settings`` (today's default's,
+    ``judge_chapter.shipped_settings``)."""
     model = load_model(spec if spec.startswith("pretrained") else str(weights / spec), "cpu")
-    model.inference_config = model_inference(load_model("pretrained", "cpu"))
+    model.inference_config = settings
     return model
 
 
@@ -142,6 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(2)
     args.out.mkdir(parents=True, exist_ok=True)
     rows: dict[str, dict[str, Any]] = {}
+    settings = shipped_settings()
     with engineering(True, int8=False):
         for name, spec in MODELS.items():
             stem = name.replace(" ", "_").replace("=", "")
@@ -149,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
             for part in ("val", "gt"):
                 path = args.out / f"{stem}.{part}.json"
                 if not path.exists():
-                    model = build(spec, args.weights)
+                    model = build(spec, args.weights, settings)
                     scores = (validation.score(model, validation.open_valset(args.valset), what=name,
                                                progress=sys.stderr.isatty()).summary
                               if part == "val" else gt_scores(model, args.shared))

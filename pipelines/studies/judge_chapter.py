@@ -27,6 +27,7 @@ import torch
 from optstereo import validation
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors, model_inference
+from optstereo.inference.config import InferenceConfig
 from optstereo.inference.fastpath import engineering
 from pipelines.studies.gtfree_agreement import REPO, gt_scores
 from pipelines.studies.long_run import candidate
@@ -37,11 +38,15 @@ BASE = "v15"
 SHIP_LIMITS = {"kitti15": 7.27, "kitti12": 8.85 + 0.3, "middlebury": 11.60 + 0.5}
 
 
-def stamp(snapshot: Path, out: Path) -> Path:
-    """``snapshot``'s weights with the shipped default's InferenceConfig -> OUT/<snapshot's name>."""
+def shipped_settings() -> InferenceConfig:
+    """The shipped default's InferenceConfig (read once per command: every snapshot gets the same)."""
+    return model_inference(load_model("pretrained", "cpu"))
+
+
+def stamp(snapshot: Path, out: Path, settings: InferenceConfig) -> Path:
+    """``snapshot``'s weights with ``settings`` (:func:`shipped_settings`) -> OUT/<snapshot's name>."""
     out.mkdir(parents=True, exist_ok=True)
-    model = load_model(snapshot, "cpu")
-    return export_safetensors(out / snapshot.name, model, inference=model_inference(load_model("pretrained", "cpu")))
+    return export_safetensors(out / snapshot.name, load_model(snapshot, "cpu"), inference=settings)
 
 
 def score(spec: str | Path, valset: Path, path: Path) -> dict[str, Any]:
@@ -78,7 +83,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
-    stamped = {p.stem: stamp(p, args.out / "stamped") for p in args.snapshots}
+    settings = shipped_settings()
+    stamped = {p.stem: stamp(p, args.out / "stamped", settings) for p in args.snapshots}
     base = score("pretrained", args.valset, args.out / f"{BASE}.gtfree.json")
     scores = {name: score(path, args.valset, args.out / f"{name}.gtfree.json") for name, path in stamped.items()}
     chosen, why = decide(base, scores)

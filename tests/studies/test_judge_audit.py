@@ -55,8 +55,9 @@ def test_build_runs_a_file_with_todays_settings(tmp_path: Path) -> None:
     torch.manual_seed(0)
     model = build_model("optstereo", iters=5, **TINY)
     export_safetensors(tmp_path / "m.safetensors", model, inference=InferenceConfig(scale=0.5, iters=2))
-    built = judge_audit.build("m.safetensors", tmp_path)
-    shipped = model_inference(judge_audit.build("pretrained", tmp_path))
+    settings = judge_audit.shipped_settings()
+    built = judge_audit.build("m.safetensors", tmp_path, settings)
+    shipped = model_inference(judge_audit.build("pretrained", tmp_path, settings))
     assert model_inference(built) == shipped and shipped.iters == 3 and shipped.scale == 1.125
     assert torch.equal(next(built.parameters()), next(model.parameters()))
 

@@ -31,7 +31,7 @@ def doc(pvm: list[float], teacher: list[float]) -> dict:
 
 def test_stamp_gives_the_shipped_settings_and_keeps_the_weights(tmp_path: Path) -> None:
     snap = tiny_snapshot(tmp_path / "G4-7.safetensors", 0)
-    out = judge_chapter.stamp(snap, tmp_path / "stamped")
+    out = judge_chapter.stamp(snap, tmp_path / "stamped", judge_chapter.shipped_settings())
     assert out == tmp_path / "stamped" / "G4-7.safetensors"
     got, before = judge_chapter.load_model(out, "cpu"), judge_chapter.load_model(snap, "cpu")
     assert model_inference(got) == model_inference(judge_chapter.load_model("pretrained", "cpu"))
