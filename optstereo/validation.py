@@ -16,7 +16,8 @@ A model's scores (:func:`score`, ``optstereo-eval --valset``), pooled over the p
                                0.15 L1, 1 where the warp leaves the image (the reconstruction loss's per-pixel form)
 
 The matcher that made the labels scores ~0 on them, so dense SGM is never judged here. Per-pair scores give the noise
-of a difference between two models (:func:`paired_difference`), which ``optstereo-adapt``'s guard uses.
+of a difference between two models (:func:`paired_difference`), which ``optstereo-adapt``'s guard uses and
+:func:`compare` (``optstereo-eval --valset --against``) reports score by score.
 """
 
 from __future__ import annotations
@@ -308,3 +309,56 @@ def summary_line(summary: dict[str, float]) -> str:
                f"teacher bad-3 {summary['teacher_bad3']:.2f} % (EPE {summary['teacher_epe']:.3f} px)")
     return (f"{int(summary['pairs'])} pairs: PVM bad-3 {summary['pvm_bad3']:.2f} % (EPE {summary['pvm_epe']:.3f} px), "
             f"{teacher}, photometric {summary['photometric']:.4f}")
+
+
+#: The scores :func:`compare` reports, each lower-is-better, with the decimals it prints them at.
+SCORE_DIGITS = {"pvm_bad3": 2, "pvm_epe": 3, "teacher_bad3": 2, "teacher_epe": 3, "photometric": 4}
+
+
+def load_report(path: Path) -> ValScore:
+    """A ``--valset`` report read back (OUT/gtfree.json, or OUT itself); ValueError names a missing or corrupt file."""
+    file = path / "gtfree.json" if path.is_dir() else path
+    try:
+        doc = json.loads(file.read_text())
+        return ValScore(summary=doc["summary"], pairs=[PairScore(**p) for p in doc["pairs"]])
+    except FileNotFoundError:
+        raise ValueError(f"{file}: no such report (optstereo-eval --valset writes OUT/gtfree.json)") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{file} is not a GT-free report (optstereo-eval --valset): {exc!r}") from None
+
+
+def compare(new: ValScore, base: ValScore) -> list[dict[str, Any]]:
+    """``new`` against ``base``, one row per score of :data:`SCORE_DIGITS`: both pooled values, ``change`` (the mean
+    over pairs of new - base, each pair weighing the same), ``noise`` (2 standard errors of those per-pair
+    changes, :func:`paired_difference`) and ``verdict``: "better" / "worse" when the change is beyond its noise,
+    "within noise", or "not scored" (a score one side lacks, e.g. the teacher's own, or fewer than 3 pairs).
+    ValueError when the two were scored on different pairs."""
+    ids_new, ids_base = {p.frame_id for p in new.pairs}, {p.frame_id for p in base.pairs}
+    if ids_new != ids_base:
+        differ = sorted(ids_new ^ ids_base)
+        raise ValueError(f"the two were scored on different pairs ({len(differ)} in one only, e.g. {differ[0]!r}): "
+                         "compare them on the same validation set")
+    rows = []
+    for key in SCORE_DIGITS:
+        change, noise = paired_difference(base.pairs, new.pairs, key)
+        if not (math.isfinite(change) and math.isfinite(noise)):
+            verdict = "not scored"
+        else:
+            verdict = "better" if change < -noise else "worse" if change > noise else "within noise"
+        rows.append({"score": key, "new": new.summary[key], "base": base.summary[key], "change": change,
+                     "noise": noise, "verdict": verdict})
+    return rows
+
+
+def compare_table(rows: list[dict[str, Any]], new: str, base: str) -> str:
+    """Markdown of :func:`compare`'s rows ("-" where a value is missing)."""
+    def cell(value: float, digits: int, sign: str = "") -> str:
+        return f"{value:{sign}.{digits}f}" if math.isfinite(value) else "-"
+
+    lines = [f"| score | {new} | {base} | change (mean per pair) | noise (2 SE) | verdict |",
+             "|---|---:|---:|---:|---:|---|"]
+    for r in rows:
+        d = SCORE_DIGITS[r["score"]]
+        lines.append(f"| {r['score']} | {cell(r['new'], d)} | {cell(r['base'], d)} | {cell(r['change'], d, '+')} | "
+                     f"{cell(r['noise'], d)} | {r['verdict']} |")
+    return "\n".join(lines) + "\n"

@@ -153,6 +153,28 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
     wrong = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(pairs), "--out",
                                            str(tmp_path / "e"), "--quiet"])
     assert wrong.exit_code == 2 and "is not a validation set" in wrong.output
+    # --against: a model scored alongside, or an earlier report read back (the same model: every change 0)
+    vs = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out", str(tmp_path / "c"),
+                                        "--no-save-maps", "--against", str(teacher), "--quiet"])
+    assert vs.exit_code == 0, vs.output
+    rows = {r["score"]: r for r in json.loads((tmp_path / "c" / "compare.json").read_text())["rows"]}
+    assert rows["teacher_epe"]["verdict"] == "not scored"  # the teacher is not scored on its own maps
+    own = json.loads((tmp_path / "eval_teacher" / "gtfree.json").read_text())["summary"]
+    assert rows["pvm_epe"]["base"] == pytest.approx(own["pvm_epe"])
+    assert (tmp_path / "c" / "against" / "gtfree.json").exists()
+    assert "| pvm_epe |" in (tmp_path / "c" / "compare.md").read_text()
+    same = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
+                                          str(tmp_path / "s"), "--no-save-maps", "--against",
+                                          str(tmp_path / "eval_other"), "--quiet"])
+    assert same.exit_code == 0, same.output
+    assert "pvm_epe: within noise (+0.0000, noise 0.0000)" in same.output
+    (tmp_path / "broken.json").write_text("{")
+    broken = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
+                                            str(tmp_path / "b"), "--against", str(tmp_path / "broken.json"), "--quiet"])
+    assert broken.exit_code == 2 and "broken.json is not a GT-free report" in broken.output
+    no_set = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--dataset", "sample", "--out",
+                                            str(tmp_path / "n"), "--against", str(teacher)])
+    assert no_set.exit_code == 2 and "--against compares two models on a GT-free --valset" in no_set.output
 
 
 def test_training_hook_logs_scores_and_keeps_the_best(tmp_path: Path) -> None:
@@ -197,3 +219,48 @@ def test_reference_is_the_label_then_the_teacher_in_its_holes() -> None:
     teacher = np.array([[9.0, 2.0, nan]], np.float32)
     np.testing.assert_array_equal(validation.reference(label, teacher), [[1.0, 2.0, nan]])
     assert validation.reference(label, None) is label  # the teacher's own weights: labels alone
+
+
+def _scores(photo: list[float], pvm_err: list[float], teacher_err: list[float] | None = None) -> validation.ValScore:
+    """Pairs p0, p1, ... of 10 PVM pixels (1 bad), 4 teacher pixels (none: the teacher's own weights), 10 photometric
+    pixels."""
+    teacher = teacher_err or [0.0] * len(photo)
+    pairs = [validation.PairScore(f"p{i}", pvm_n=10, pvm_err=e, pvm_bad=1, teacher_n=4 if teacher_err else 0,
+                                  teacher_err=t, photo_sum=ph, photo_n=10)
+             for i, (ph, e, t) in enumerate(zip(photo, pvm_err, teacher, strict=True))]
+    return validation.ValScore(summary=validation.pooled(pairs), pairs=pairs)
+
+
+def test_compare_by_hand() -> None:
+    """Per-pair PVM EPE changes -0.1, -0.1, -0.05: mean -0.0833, 2 SE = 2 * 0.02887 / sqrt(3) = 0.0333 -> better;
+    photometric +0.05, +0.06, +0.04: 2 SE 0.0115 -> worse; teacher EPE 0, +0.1, -0.05: mean +0.0167 inside 2 SE
+    0.0882 -> within noise; bad-3 unchanged -> within noise (zero change, zero noise); a teacher score one side lacks
+    -> not scored."""
+    base = _scores([1.0, 1.0, 1.0], [5.0, 5.0, 5.0], [2.0, 2.0, 2.0])
+    new = _scores([1.5, 1.6, 1.4], [4.0, 4.0, 4.5], [2.0, 2.4, 1.8])
+    rows = {r["score"]: r for r in validation.compare(new, base)}
+    assert rows["pvm_epe"]["change"] == pytest.approx(-0.25 / 3) and rows["pvm_epe"]["verdict"] == "better"
+    sd = math.sqrt(((1 / 60) ** 2 * 2 + (1 / 30) ** 2) / 2)
+    assert rows["pvm_epe"]["noise"] == pytest.approx(2 * sd / math.sqrt(3))
+    assert rows["teacher_epe"]["change"] == pytest.approx(0.05 / 3) and rows["teacher_epe"]["verdict"] == "within noise"
+    assert rows["teacher_epe"]["noise"] == pytest.approx(2 * np.std([0.0, 0.1, -0.05], ddof=1) / math.sqrt(3))
+    assert rows["pvm_epe"]["new"] == pytest.approx(12.5 / 30) and rows["pvm_epe"]["base"] == pytest.approx(0.5)
+    assert rows["photometric"]["change"] == pytest.approx(0.05) and rows["photometric"]["verdict"] == "worse"
+    assert rows["photometric"]["noise"] == pytest.approx(2 * 0.01 / math.sqrt(3))
+    assert rows["pvm_bad3"]["verdict"] == "within noise" and rows["pvm_bad3"]["noise"] == 0.0
+    lacks = {r["score"]: r["verdict"] for r in validation.compare(_scores([1.0] * 3, [5.0] * 3), base)}
+    assert lacks["teacher_epe"] == lacks["teacher_bad3"] == "not scored" and lacks["pvm_epe"] == "within noise"
+    table = validation.compare_table(validation.compare(new, base), "new", "base").splitlines()
+    assert table[3] == "| pvm_epe | 0.417 | 0.500 | -0.083 | 0.033 | better |"
+    other_pairs = validation.ValScore(base.summary, base.pairs[:2] + [validation.PairScore("q", pvm_n=1)])
+    with pytest.raises(ValueError, match="scored on different pairs \\(2 in one only, e.g. 'p2'\\)"):
+        validation.compare(new, other_pairs)
+
+
+def test_load_report_names_the_file(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="no such report"):
+        validation.load_report(tmp_path)
+    base = _scores([1.0] * 3, [5.0] * 3, [2.0] * 3)
+    validation.write_report(base, tmp_path, "base", "VAL")
+    again = validation.load_report(tmp_path)
+    assert again.summary == base.summary and again.pairs == base.pairs

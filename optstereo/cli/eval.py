@@ -1,8 +1,10 @@
 """``optstereo-eval``: a network (or a shard directory's own labels) on a dataset's GT -> metrics and reports; with
-``--valset``, a network on a GT-free validation set (optstereo.validation)."""
+``--valset``, a network on a GT-free validation set (optstereo.validation), and with ``--against`` that score set
+against another model's, score by score, beyond or within the noise of the pairs."""
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -11,6 +13,7 @@ import click
 
 from optstereo import evaluate, validation
 from optstereo.cli import common
+from pvm_labeler.common.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
 
@@ -23,6 +26,10 @@ logger = logging.getLogger(__name__)
 @click.option("--valset", type=common.EXISTING,
               help="Score --checkpoint without GT on this validation set (optstereo-distill valset): against its PVM "
                    "labels, the teacher's consistent pixels in their holes, and the photometric error.")
+@click.option("--against", "against",
+              help="With --valset: compare with this model (a checkpoint, RUN_DIR or 'pretrained', scored too) or an "
+                   "earlier --valset report (its OUT or OUT/gtfree.json): OUT/compare.md gives each score's change, "
+                   "its noise (2 standard errors over the pairs) and whether it is beyond it.")
 @common.dataset_option
 @click.option("--root", type=common.EXISTING, help="Dataset root folder (not needed for sample).")
 @common.reader_options
@@ -35,7 +42,8 @@ logger = logging.getLogger(__name__)
 @common.device_option
 @common.infer_options
 @click.option("--quiet", is_flag=True, help="Only warnings and errors.")
-def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None, dataset: str | None,
+def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None, against: str | None,
+              dataset: str | None,
               root: Path | None, split: str, out: Path, iters: int | None, limit: int | None, save_maps: bool,
               device: str, amp: str, scale: float | None, refine: str | None, quiet: bool, **reader: Any) -> None:
     """Metrics on ground truth (AEPE, bad-1/2/3, F1, D1 all/noc): per-frame CSV, summary JSON and Markdown."""
@@ -47,8 +55,12 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
             raise click.UsageError("--valset scores the model with its own inference settings (no --iters, --scale, "
                                    "--refine)")
         common.check_out(out)
-        _eval_valset(checkpoint, valset, out, device, amp, quiet, save_maps)
+        result = _eval_valset(checkpoint, valset, out, device, amp, quiet, save_maps)
+        if against is not None:
+            _compare(result, str(checkpoint), against, valset, out, device, amp, quiet)
         return
+    if against is not None:
+        raise click.UsageError("--against compares two models on a GT-free --valset")
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     common.check_out(out)
@@ -72,7 +84,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
 
 
 def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp: str, quiet: bool,
-                 save_maps: bool) -> None:
+                 save_maps: bool) -> validation.ValScore:
     """``--valset``: OUT/gtfree.json (summary and per-pair sums), gtfree.md and one summary line; with
     ``save_maps`` each pair's disparity and its error against the pair's reference (PVM's labels, the teacher's
     consistent view in their holes) as OUT/maps/<pair>_disp.png and _error.png, KITTI's error colours."""
@@ -86,3 +98,31 @@ def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp
     report = validation.write_report(result, out, str(checkpoint), valset_dir)
     click.echo(validation.summary_line(result.summary))
     click.echo(f"report: {report}")
+    return result
+
+
+def _compare(result: validation.ValScore, name: str, against: str, valset_dir: Path, out: Path, device: str,
+             amp: str, quiet: bool) -> None:
+    """``--against``: the other side read from its report or scored (its report in OUT/against/), then
+    OUT/compare.md and OUT/compare.json (:func:`optstereo.validation.compare`) and one line per score."""
+    path = Path(against)
+    try:
+        if path.suffix == ".json" or (path.is_dir() and (path / "gtfree.json").exists()):
+            base = validation.load_report(path)
+        else:
+            model, dev = common.load_model(against, device)
+            base = validation.score(model, validation.open_valset(valset_dir), dev, amp, progress=not quiet,
+                                    what=against)
+            validation.write_report(base, out / "against", against, valset_dir)
+        rows = validation.compare(result, base)
+    except ValueError as exc:
+        raise click.UsageError(f"--against {against}: {exc}") from exc
+    table = validation.compare_table(rows, name, against)
+    atomic_write_text(out / "compare.md", f"# {name} against {against} on {valset_dir}\n\n{table}")
+    atomic_write_text(out / "compare.json", json.dumps({"new": name, "base": against, "valset": str(valset_dir),
+                                                        "rows": rows}, indent=2) + "\n")
+    click.echo(f"against {against}:")
+    for r in rows:
+        numbers = "" if r["verdict"] == "not scored" else f" ({r['change']:+.4f}, noise {r['noise']:.4f})"
+        click.echo(f"  {r['score']}: {r['verdict']}{numbers}")
+    click.echo(f"comparison: {out / 'compare.md'}")
