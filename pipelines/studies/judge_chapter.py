@@ -44,9 +44,10 @@ def shipped_settings() -> InferenceConfig:
 
 
 def stamp(snapshot: Path, out: Path, settings: InferenceConfig) -> Path:
-    """``snapshot``'s weights with ``settings`` (:func:`shipped_settings`) -> OUT/<snapshot's name>."""
+    """``snapshot``'s weights (a .safetensors or a training .pt) with ``settings`` (:func:`shipped_settings`) ->
+    OUT/<snapshot's stem>.safetensors."""
     out.mkdir(parents=True, exist_ok=True)
-    return export_safetensors(out / snapshot.name, load_model(snapshot, "cpu"), inference=settings)
+    return export_safetensors(out / f"{snapshot.stem}.safetensors", load_model(snapshot, "cpu"), inference=settings)
 
 
 def score(spec: str | Path, valset: Path, path: Path) -> dict[str, Any]:
@@ -73,6 +74,17 @@ def ships(gt: dict[str, float], limits: dict[str, float] = SHIP_LIMITS) -> tuple
     return ok, ("ships: " if ok else "does not ship: ") + line
 
 
+def gt_once(stamped: Path, shared: Path, calib_roots: list[Path] | None = None) -> dict[str, float]:
+    """A candidate's int8 clips measured as the default's were (on ``calib_roots``, default the 144 unlabelled pairs
+    of ``shared``), then its pooled bad-3 on every GT set of ``shared``, int8 on the default's pass."""
+    from optstereo.inference.int8_calibration import main as calibrate  # lazy: only a candidate reaches GT
+
+    roots = calib_roots or [shared / "kitti_unlabelled", shared / "unlabelled_more"]
+    calibrate(["--checkpoint", str(stamped), *(a for r in roots for a in ("--root", str(r)))])
+    with engineering(True, int8=True):
+        return gt_scores(load_model(stamped, "cpu"), shared)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("snapshots", type=Path, nargs="+")
@@ -90,12 +102,7 @@ def main(argv: list[str] | None = None) -> None:
     chosen, why = decide(base, scores)
     lines = [why]
     if chosen is not None and args.gt:
-        from optstereo.inference.int8_calibration import main as calibrate
-
-        roots = args.calib_root or [args.shared / "kitti_unlabelled", args.shared / "unlabelled_more"]
-        calibrate(["--checkpoint", str(stamped[chosen]), *(a for r in roots for a in ("--root", str(r)))])
-        with engineering(True, int8=True):
-            gt = gt_scores(load_model(stamped[chosen], "cpu"), args.shared)
+        gt = gt_once(stamped[chosen], args.shared, args.calib_root)
         atomic_write_text(args.out / "gt.json", json.dumps({"candidate": chosen, **gt}) + "\n")
         lines.append(ships(gt)[1])
     atomic_write_text(args.out / "verdict.txt", "\n".join(lines) + "\n")
