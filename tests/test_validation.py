@@ -202,6 +202,64 @@ def test_training_hook_logs_scores_and_keeps_the_best(tmp_path: Path) -> None:
     assert not (tmp_path / "run2" / "last.pt").exists()
 
 
+def test_training_hook_scores_the_init_as_step_0(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A run from --init scores its start first (step 0: metrics, gtfree/step-0000000.json); best.json is the lowest
+    PVM EPE of all the reports, the start included, and each checkpoint is logged against the start. A resumed run
+    does not score the start again."""
+    from conftest import tiny_config
+
+    from optstereo.api import load_model
+    from optstereo.training.loop import main
+
+    valset = _handmade_valset(tmp_path, teacher_digest="someone-else")
+    labels = make_shards(tmp_path / "labels", n=4, with_gt=False)
+    torch.manual_seed(0)
+    init = export_safetensors(tmp_path / "init.safetensors", build_model("optstereo", **TINY, iters=2))
+    cfg = tiny_config(labels, tmp_path / "run", steps=4, ckpt_every=2, lr=1e-3, val_set=valset.root, init=init)
+    with caplog.at_level("INFO", logger="optstereo.training.validate"):
+        main(cfg, progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert sorted(r["step"] for r in rows if "gtfree_pvm_epe" in r) == [0, 2, 4]
+    reports = {int(p.stem[5:]): validation.load_report(p) for p in (tmp_path / "run" / "gtfree").iterdir()}
+    assert sorted(reports) == [0, 2, 4]
+    again = validation.score(load_model(init, "cpu"), valset)
+    assert reports[0].summary["pvm_epe"] == pytest.approx(again.summary["pvm_epe"])
+    best = json.loads((tmp_path / "run" / "best.json").read_text())
+    assert best["step"] == min(reports, key=lambda k: reports[k].summary["pvm_epe"])
+    assert ("against_start" in best) == (best["step"] > 0)
+    change = validation.compare(reports[4], reports[0])[1]
+    assert "step 4 against the start: pvm_bad3 " in caplog.text
+    assert f"pvm_epe {change['change']:+.4f} ({change['verdict']}, noise {change['noise']:.4f})" in caplog.text
+    main(tiny_config(labels, tmp_path / "run", steps=6, ckpt_every=2, lr=1e-3, val_set=valset.root, init=init),
+         resume=True, progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert sorted(r["step"] for r in rows if "gtfree_pvm_epe" in r) == [0, 2, 4, 6]  # the start once
+
+
+def test_the_start_stays_best_until_beaten(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The hook called twice on the same weights (step 0, then step 2): equal is not better, so best.json stays at
+    the start, and the step-2 line reads every change 0, within noise."""
+    from types import SimpleNamespace
+
+    from conftest import tiny_config
+
+    from optstereo.training.log import RunLogger
+    from optstereo.training.validate import gtfree_hook
+
+    valset = _handmade_valset(tmp_path, teacher_digest="someone-else")
+    run = tmp_path / "run"
+    run.mkdir()
+    hook = gtfree_hook(tiny_config(tmp_path, run, val_set=valset.root), run, RunLogger(run, True, False), "cpu")
+    assert hook is not None
+    torch.manual_seed(0)
+    model = build_model("optstereo", **TINY, iters=2)
+    with caplog.at_level("INFO", logger="optstereo.training.validate"):
+        hook(SimpleNamespace(model=model, step=0))
+        hook(SimpleNamespace(model=model, step=2))
+    assert json.loads((run / "best.json").read_text())["step"] == 0
+    assert "step 2 against the start: pvm_bad3 +0.0000 (within noise, noise 0.0000), pvm_epe +0.0000" in caplog.text
+
+
 def test_pairs_table_by_hand() -> None:
     pairs = [validation.PairScore("a", pvm_n=4, pvm_err=2.0, pvm_bad=1, teacher_n=0, photo_sum=0.5, photo_n=5),
              validation.PairScore("b", pvm_n=2, pvm_err=3.0, pvm_bad=0, teacher_n=2, teacher_err=1.0, teacher_bad=1,

@@ -379,8 +379,10 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     loss_fn = build_loss(cfg).to(device)
     run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
                            resume_step=state.step if ckpt is not None else None)
-    save = _and_then(_and_then(checkpoint_saver(run_dir, cfg, info),
-                               gtfree_hook(cfg, run_dir, run_logger, device) if info.is_main else None),
+    validate = gtfree_hook(cfg, run_dir, run_logger, device) if info.is_main else None
+    if validate is not None and ckpt is None and cfg.init is not None:
+        validate(state)  # the start, as step 0: the best until a checkpoint beats it, and what each is compared with
+    save = _and_then(_and_then(checkpoint_saver(run_dir, cfg, info), validate),
                      redraw_curves(run_dir) if info.is_main else None)
     start_step, t0 = state.step, time.perf_counter()
     try:

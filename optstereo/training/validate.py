@@ -1,7 +1,10 @@
 """The GT-free validation hook of a training run: at every checkpoint, the model on a validation set
-(``optstereo.validation``), its scores in metrics.jsonl, and ``best.safetensors`` = the weights with the lowest
-EPE against the PVM labels so far (``best.json`` says which step; both survive ``--resume``). Set with
-``--val-set DIR`` / ``--set val.valset=DIR``; ``val.limit`` scores only the first N pairs."""
+(``optstereo.validation``), its scores in metrics.jsonl, its per-pair report in RUN_DIR/gtfree/step-NNNNNNN.json
+(``optstereo-eval --valset --against`` reads it), and ``best.safetensors`` = the weights with the lowest EPE against
+the PVM labels so far (``best.json`` says which step; both survive ``--resume``). A run from ``--init`` scores its
+start as step 0 first: the start can stay the best, and every later checkpoint is logged against it, score by score,
+beyond or within the noise of the pairs (``optstereo.validation.compare``; ``best.json``'s ``against_start``). Set
+with ``--val-set DIR`` / ``--set val.valset=DIR``; ``val.limit`` scores only the first N pairs."""
 
 from __future__ import annotations
 
@@ -15,12 +18,12 @@ from typing import Any
 from optstereo.checkpoint import export_safetensors, unwrap
 from optstereo.training.config import TrainConfig
 from optstereo.training.log import RunLogger
-from optstereo.validation import open_valset, score
+from optstereo.validation import ValScore, compare, load_report, open_valset, score
 from pvm_labeler.common.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
 
-BEST_WEIGHTS, BEST_RECORD = "best.safetensors", "best.json"
+BEST_WEIGHTS, BEST_RECORD, REPORTS = "best.safetensors", "best.json", "gtfree"
 #: The score that picks the best checkpoint: EPE against the PVM labels of the held-back pairs (of the scores every
 #: model gets, the one that ranked 8 models closest to GT: Spearman 0.95 / 0.90 / 0.88 against KITTI 2015 / 2012 /
 #: Middlebury, PVM bad-3 0.79 / 0.88 / 0.71; RESULTS.md, "Judging without GT").
@@ -46,14 +49,35 @@ def gtfree_hook(cfg: TrainConfig, run_dir: Path, run_logger: RunLogger, device: 
             model.train(was_training)
         values = {f"gtfree_{k}": v for k, v in result.summary.items() if k != "own_teacher" and math.isfinite(v)}
         run_logger.scalars(state.step, values)
+        (run_dir / REPORTS).mkdir(exist_ok=True)
+        atomic_write_text(report_path(run_dir, state.step), json.dumps(result.to_dict(), indent=1) + "\n")
+        against = _against_start(run_dir, state.step, result)
         best = _read_best(run_dir)
         current = result.summary[BEST_KEY]
         if best is None or current < best[BEST_KEY]:
             export_safetensors(run_dir / BEST_WEIGHTS, model, step=state.step)
-            atomic_write_text(run_dir / BEST_RECORD, json.dumps({"step": state.step, **result.summary}, indent=2))
-            logger.info("step %d: GT-free %s %.3f %% (best so far)", state.step, BEST_KEY, current)
+            record = {"step": state.step, **result.summary, **({"against_start": against} if against else {})}
+            atomic_write_text(run_dir / BEST_RECORD, json.dumps(record, indent=2))
+            logger.info("step %d: GT-free %s %.3f (best so far)", state.step, BEST_KEY, current)
 
     return hook
+
+
+def report_path(run_dir: Path, step: int) -> Path:
+    """RUN_DIR/gtfree/step-NNNNNNN.json: the scores of ``step`` (0 = the ``--init`` start), per pair."""
+    return run_dir / REPORTS / f"step-{step:07d}.json"
+
+
+def _against_start(run_dir: Path, step: int, result: ValScore) -> dict[str, str]:
+    """Score -> verdict of ``result`` against the start's report (logged in one line); {} without a start."""
+    start = report_path(run_dir, 0)
+    if step == 0 or not start.is_file():
+        return {}
+    rows = compare(result, load_report(start))
+    logger.info("step %d against the start: %s", step, ", ".join(
+        f"{r['score']} {r['change']:+.4f} ({r['verdict']}, noise {r['noise']:.4f})" for r in rows
+        if r["verdict"] != "not scored"))
+    return {r["score"]: r["verdict"] for r in rows}
 
 
 def _read_best(run_dir: Path) -> dict[str, Any] | None:
