@@ -258,6 +258,9 @@ def test_the_start_stays_best_until_beaten(tmp_path: Path, caplog: pytest.LogCap
         hook(SimpleNamespace(model=model, step=2))
     assert json.loads((run / "best.json").read_text())["step"] == 0
     assert "step 2 against the start: pvm_bad3 +0.0000 (within noise, noise 0.0000), pvm_epe +0.0000" in caplog.text
+    (run / "gtfree" / "step-0000000.json").write_text("{")  # a start report that cannot be read: warned, not fatal
+    hook(SimpleNamespace(model=model, step=4))
+    assert "step 4 not compared with the start" in caplog.text and (run / "gtfree" / "step-0000004.json").exists()
 
 
 def test_pairs_table_by_hand() -> None:

@@ -73,7 +73,11 @@ def _against_start(run_dir: Path, step: int, result: ValScore) -> dict[str, str]
     start = report_path(run_dir, 0)
     if step == 0 or not start.is_file():
         return {}
-    rows = compare(result, load_report(start))
+    try:
+        rows = compare(result, load_report(start))
+    except ValueError as exc:  # e.g. a resumed run given another --val-limit: a comparison is lost, not the run
+        logger.warning("step %d not compared with the start: %s", step, exc)
+        return {}
     logger.info("step %d against the start: %s", step, ", ".join(
         f"{r['score']} {r['change']:+.4f} ({r['verdict']}, noise {r['noise']:.4f})" for r in rows
         if r["verdict"] != "not scored"))
