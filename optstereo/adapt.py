@@ -56,7 +56,7 @@ from optstereo.training import distill
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig
 from optstereo.training.loop import main
-from optstereo.validation import PairScore, paired_difference, pooled, pvm_label, score_pair, shard_samples
+from optstereo.validation import PairScore, paired_difference, pooled, pvm_label, score_pair, shard_samples, verdict
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.shards import ShardRecord, read_index, write_shard_dir
@@ -306,8 +306,8 @@ def decide(before: list[PairScore], after: list[PairScore]) -> Decision:
         return Decision(False, f"no decision can be made: {len(before)} held-back frames, the guard needs "
                                f"{MIN_HELD} (and one more to train on); the start is kept", {})
     changes = {key: paired_difference(before, after, key, Z) for key in SCORES}
-    worse = [k for k, (mean, margin) in changes.items() if mean > margin]
-    better = [k for k, (mean, margin) in changes.items() if mean < -margin]
+    worse = [k for k, change in changes.items() if verdict(*change) == "worse"]
+    better = [k for k, change in changes.items() if verdict(*change) == "better"]
     text = ", ".join(f"{k} {mean:+.3f} (noise {margin:.3f})" for k, (mean, margin) in changes.items())
     if worse:
         return Decision(False, f"start kept: held-back frames worse beyond noise in {', '.join(worse)} ({text})",

@@ -341,13 +341,17 @@ def compare(new: ValScore, base: ValScore) -> list[dict[str, Any]]:
     rows = []
     for key in SCORE_DIGITS:
         change, noise = paired_difference(base.pairs, new.pairs, key)
-        if not (math.isfinite(change) and math.isfinite(noise)):
-            verdict = "not scored"
-        else:
-            verdict = "better" if change < -noise else "worse" if change > noise else "within noise"
         rows.append({"score": key, "new": new.summary[key], "base": base.summary[key], "change": change,
-                     "noise": noise, "verdict": verdict})
+                     "noise": noise, "verdict": verdict(change, noise)})
     return rows
+
+
+def verdict(change: float, noise: float) -> str:
+    """A lower-is-better score's mean change read against its noise (:func:`paired_difference`): "better" /
+    "worse" beyond it, "within noise", or "not scored" (NaN: a score one side lacks, or fewer than 3 pairs)."""
+    if not (math.isfinite(change) and math.isfinite(noise)):
+        return "not scored"
+    return "better" if change < -noise else "worse" if change > noise else "within noise"
 
 
 def compare_table(rows: list[dict[str, Any]], new: str, base: str) -> str:

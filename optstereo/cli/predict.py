@@ -89,11 +89,12 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
             raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
                                    "--submission outputs")
         frames = frames_of(left, right, dataset, root, split, limit, common.collect_reader_options(**reader))
-        # every pair from its headers, before the first is run (the confidence's second pass is no larger)
-        _check_fit(inference.model_inference_config(model, iters, scale, refine), [f[1] for f in frames], dev.type)
-        written = predict_frames(model, frames, out, more, formats=formats, iters=iters, device=dev,
-                               amp=amp, scale=scale, refine=refine, progress=not quiet,
-                               kitti_layout=bool(dataset and dataset.startswith("kitti")))
+        try:
+            written = predict_frames(model, frames, out, more, formats=formats, iters=iters, device=dev,
+                                     amp=amp, scale=scale, refine=refine, progress=not quiet,
+                                     kitti_layout=bool(dataset and dataset.startswith("kitti")))
+        except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
+            raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {len(written)} frames into {out}")
         return
     if dataset is None:
@@ -154,17 +155,12 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
 
 def _check_memory(left: Path, right: Path, config: InferenceConfig, device_type: str) -> None:
     """Exit 1 naming LEFT when the pair's estimated peak memory at ``config``'s first scale exceeds the free memory
-    (:func:`_check_fit`); read from the image headers, before either image is decoded. Pairs of different sizes are
-    refused here too."""
+    (``outputs.check_pairs_fit``); read from the image headers, before either image is decoded. Pairs of different
+    sizes are refused here too."""
     size = image_size(left)
     if image_size(right) != size:
         raise click.ClickException(f"left/right sizes differ: {size} vs {image_size(right)}: {left}, {right}")
-    _check_fit(config, [left], device_type)
-
-
-def _check_fit(config: InferenceConfig, lefts: list[Path], device_type: str) -> None:
-    """Exit 1 naming the first left image whose pair would not fit (``outputs.check_pairs_fit``, from the headers)."""
     try:
-        outputs.check_pairs_fit(config, lefts, device_type == "cuda")
+        outputs.check_pairs_fit(config, [left], device_type == "cuda")
     except MemoryError as exc:
         raise click.ClickException(str(exc)) from exc

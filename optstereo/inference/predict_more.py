@@ -23,7 +23,7 @@ from tqdm import tqdm
 from optstereo.choices import CONF_FORMATS
 from optstereo.inference.confidence import confidence_of, write_confidence
 from optstereo.inference.engine import model_inference_config, run
-from optstereo.inference.outputs import write_disparity
+from optstereo.inference.outputs import check_pairs_fit, write_disparity
 from optstereo.inference.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next, natural_key
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.common.io import read_image
@@ -67,11 +67,14 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     per frame. With ``more.sequence`` the frames run in the natural order of their names
     (``optstereo.inference.sequence.natural_key``: ``frame_2`` before ``frame_10``) and each frame after the first
     starts from the one before (optstereo.inference.sequence); a frame from another folder than the one before
-    (another drive of ``kitti_unlabelled``), of another size, or after a scene cut starts a new sequence."""
+    (another drive of ``kitti_unlabelled``), of another size, or after a scene cut starts a new sequence. MemoryError
+    naming the first pair that would not fit, from the image headers, before any frame is run or written (the
+    confidence's second pass is no larger)."""
     formats = tuple(formats)
     frames = sorted(frames, key=lambda frame: natural_key(frame[0])) if more.sequence else list(frames)
     state, folder = SequenceState(), None
     config = model_inference_config(model, iters, scale, refine)  # the same for every frame
+    check_pairs_fit(config, [Path(frame[1]) for frame in frames], torch.device(device).type == "cuda")
     written = []
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):
         if Path(left_path).parent != folder:
