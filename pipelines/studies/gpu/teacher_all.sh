@@ -25,7 +25,7 @@
 # them), GPUTESTS (1: the gpu-marked tests in the background while the data is made, $OUT/gpu_tests.txt), MISSING
 # (keep: a pair the teacher's box missed trains on PVM's labels alone, as G1 and G3 did; drop: only the shards all of
 # whose pairs have maps train).
-# CPU smoke run: DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 PROBE=2 END_S=100000 STEPS_MAX=4 WORKERS=0 \
+# CPU smoke run (tests/studies/test_gpu_script.py runs G4's call this way): DEVICE=cpu AMP=none BATCH=1 CROP=64x128 ITERS=1 PROBE=2 END_S=100000 STEPS_MAX=4 WORKERS=0 \
 #   THREADS=2 JOBS=2 TEACHER=<small checkpoint> INIT=<small checkpoint> PACK=<small pack> PART=A TRAIN=1 bash ...
 set -uo pipefail
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
@@ -46,6 +46,7 @@ PY=${PY:-python3}
 mkdir -p "$OUTD" "$W"
 exec > >(tee -a "$OUTD/session_$PART.log") 2>&1
 elapsed() { echo "+$(( $(date +%s) - T0 )) s"; }
+failed=()  # the stages that failed: the call exits non-zero when any did
 gpu_tests() {  # limit in s -> $OUT/gpu_tests.txt and one line here
   timeout "$1" $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_graphed.py > "$OUTD/gpu_tests.txt" 2>&1
   echo "gpu tests: exit $? at $(elapsed) ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
@@ -80,11 +81,12 @@ for ((i = 0; i < SPLIT; i++)); do
 done
 for t in "${teachers[@]}"; do wait "$t"; echo "teacher maps (pid $t): exit $? at $(elapsed)"; done
 echo "teacher maps: $(ls "$W/maps" | wc -l) pairs in $W/maps"
-wait "$labeller"
-echo "labels: exit $? at $(elapsed); $(tail -n 1 "$W/labels_$PART.log")"
+wait "$labeller"; rc=$?; [ "$rc" = 0 ] || failed+=(labels)
+echo "labels: exit $rc at $(elapsed); $(tail -n 1 "$W/labels_$PART.log")"
 $PY -m optstereo.cli distill fill "$W/labels_$PART" "$W/maps" "$W/distill_$PART" --compression lzf --allow-missing \
   > "$W/fill_$PART.log" 2>&1
-echo "fill: exit $? at $(elapsed); $(tail -n 1 "$W/fill_$PART.log")"
+rc=$?; [ "$rc" = 0 ] || failed+=(fill)
+echo "fill: exit $rc at $(elapsed); $(tail -n 1 "$W/fill_$PART.log")"
 [ "$FILLS" = 1 ] && ( $PY -m pipelines.studies.gpu.teacher_all fills "$W/labels_$PART" "$W/maps" "$W/fills_$PART" \
     && tar -cf "$W/fills_$PART.tar" -C "$W" "fills_$PART" && echo "fills tar $(du -m "$W/fills_$PART.tar" | cut -f1) MB" ) \
   > "$W/fills_$PART.log" 2>&1 &
@@ -112,7 +114,8 @@ print(sum(r['step_time_s'] for r in half) / len(half))" 2>/dev/null || echo 0.2)
   rm -rf "$W/g1"
   train "$W/g1" "$steps" --ckpt-every $(( steps / SNAPS )) --set keep_ckpts="$SNAPS" \
     --max-minutes "$($PY -c "print(max($budget, 6) / 60)")"
-  echo "$NAME: exit $? at $(elapsed); $(tail -n 1 "$W/g1/metrics.jsonl" 2>/dev/null | cut -c1-300)"
+  rc=$?; [ "$rc" = 0 ] || failed+=("$NAME")
+  echo "$NAME: exit $rc at $(elapsed); $(tail -n 1 "$W/g1/metrics.jsonl" 2>/dev/null | cut -c1-300)"
   $PY -m pipelines.studies.gpu.teacher_all snapshots "$W/g1" "$OUTD" --name "$NAME"
   cp "$W/g1/metrics.jsonl" "$OUTD/${NAME,,}_metrics.jsonl" 2>/dev/null
 fi
@@ -129,4 +132,5 @@ else
   echo "fills_$PART.tar ($(stat -c %s "$W/fills_$PART.tar" 2>/dev/null) bytes) does not fit the $room bytes left in \$OUT: not sent back"
 fi
 ls -l "$OUTD"
-echo "teacher_all $PART end at $(elapsed)"
+echo "teacher_all $PART end at $(elapsed)${failed[*]:+; FAILED: ${failed[*]}}"
+[ "${#failed[@]}" = 0 ]  # the exit status: non-zero when a stage failed (its log above says why)
