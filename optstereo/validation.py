@@ -56,6 +56,8 @@ MANIFEST = "valset.json"
 BAD_PX = 3.0
 #: lzf, built into h5py: a validation set is small and read anywhere without the Blosc plugin.
 SHARD_COMPRESSION = "lzf"
+#: The fewest pairs whose per-pair changes give a noise estimate (:func:`paired_difference`).
+MIN_PAIRS = 3
 
 
 @dataclass(frozen=True)
@@ -269,8 +271,23 @@ def write_report(result: ValScore, out: Path, checkpoint: str, valset_dir: Path 
     doc = {"checkpoint": checkpoint, **extra, "valset": str(valset_dir), **result.to_dict()}
     atomic_write_text(out / "gtfree.md", f"# {checkpoint} on {valset_dir}\n\n{summary_line(result.summary)}\n\n"
                       + pairs_table(result.pairs))
-    atomic_write_text(out / "gtfree.json", json.dumps(doc, indent=2) + "\n")
+    atomic_write_text(out / "gtfree.json", strict_json(doc))
     return out / "gtfree.json"
+
+
+def strict_json(doc: Any) -> str:
+    """``doc`` as JSON that strict parsers read: every non-finite float (a score one side lacks) written as null,
+    read back as NaN by :func:`load_report`."""
+    def clean(value: Any) -> Any:
+        if isinstance(value, float):
+            return value if math.isfinite(value) else None
+        if isinstance(value, dict):
+            return {k: clean(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [clean(v) for v in value]
+        return value
+
+    return json.dumps(clean(doc), indent=2, allow_nan=False) + "\n"
 
 
 def pairs_table(pairs: list[PairScore]) -> str:
@@ -293,12 +310,12 @@ def paired_difference(before: list[PairScore], after: list[PairScore], key: str 
     """(mean over pairs of after - before in ``key``, its noise margin ``z`` standard errors); pairs matched by id.
 
     The margin is the spread of the per-pair differences (a two-sided ~95 % band at z = 2): a mean change inside
-    it is what re-drawing the pairs would give. NaN margin with fewer than 3 pairs (no decision can be made).
+    it is what re-drawing the pairs would give. NaN margin with fewer than :data:`MIN_PAIRS` pairs (no decision).
     """
     by_id = {p.frame_id: p for p in before}
     diffs = np.array([a.value(key) - by_id[a.frame_id].value(key) for a in after if a.frame_id in by_id])
     diffs = diffs[np.isfinite(diffs)]
-    if diffs.size < 3:
+    if diffs.size < MIN_PAIRS:
         return (float(diffs.mean()) if diffs.size else math.nan), math.nan
     return float(diffs.mean()), float(z * diffs.std(ddof=1) / math.sqrt(diffs.size))
 
@@ -319,19 +336,28 @@ def load_report(path: Path) -> ValScore:
     """A ``--valset`` report read back (OUT/gtfree.json, or OUT itself); ValueError names a missing or corrupt file."""
     file = path / "gtfree.json" if path.is_dir() else path
     try:
-        doc = json.loads(file.read_text())
+        doc = report_doc(file)
         return ValScore(summary=doc["summary"], pairs=[PairScore(**p) for p in doc["pairs"]])
     except FileNotFoundError:
         raise ValueError(f"{file}: no such report (optstereo-eval --valset writes OUT/gtfree.json)") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{file} is not a GT-free report (optstereo-eval --valset): {exc!r}") from None
+
+
+def report_doc(file: Path) -> dict[str, Any]:
+    """The JSON of a report file as written (:func:`write_report`), its summary's nulls (scores not taken, written
+    by :func:`strict_json`) read back as NaN."""
+    doc = json.loads(Path(file).read_text())
+    doc["summary"] = {k: math.nan if v is None else v for k, v in doc["summary"].items()}
+    return doc
 
 
 def compare(new: ValScore, base: ValScore) -> list[dict[str, Any]]:
     """``new`` against ``base``, one row per score of :data:`SCORE_DIGITS`: both pooled values, ``change`` (the mean
     over pairs of new - base, each pair weighing the same), ``noise`` (2 standard errors of those per-pair
     changes, :func:`paired_difference`) and ``verdict``: "better" / "worse" when the change is beyond its noise,
-    "within noise", or "not scored" (a score one side lacks, e.g. the teacher's own, or fewer than 3 pairs).
+    "within noise", or "not scored" (a score one side lacks, e.g. the teacher's own, or fewer than 3 pairs), and
+    ``why`` it has no verdict ("" when it has one).
     ValueError when the two were scored on different pairs."""
     ids_new, ids_base = {p.frame_id for p in new.pairs}, {p.frame_id for p in base.pairs}
     if ids_new != ids_base:
@@ -342,8 +368,18 @@ def compare(new: ValScore, base: ValScore) -> list[dict[str, Any]]:
     for key in SCORE_DIGITS:
         change, noise = paired_difference(base.pairs, new.pairs, key)
         rows.append({"score": key, "new": new.summary[key], "base": base.summary[key], "change": change,
-                     "noise": noise, "verdict": verdict(change, noise)})
+                     "noise": noise, "verdict": verdict(change, noise), "why": _unscored_why(change, noise)})
     return rows
+
+
+def _unscored_why(change: float, noise: float) -> str:
+    """Why a row of :func:`compare` has no verdict ("" when it has one): too few pairs for a noise, or a score
+    that one side lacks (the teacher's own maps) or that no pair has."""
+    if math.isfinite(change) and math.isfinite(noise):
+        return ""
+    if math.isfinite(change):
+        return f"fewer than {MIN_PAIRS} pairs: no noise estimate"
+    return "not scored on one side (e.g. the teacher's own maps) or on no pair"
 
 
 def verdict(change: float, noise: float) -> str:
@@ -363,6 +399,7 @@ def compare_table(rows: list[dict[str, Any]], new: str, base: str) -> str:
              "|---|---:|---:|---:|---:|---|"]
     for r in rows:
         d = SCORE_DIGITS[r["score"]]
+        why = f" ({r['why']})" if r.get("why") else ""
         lines.append(f"| {r['score']} | {cell(r['new'], d)} | {cell(r['base'], d)} | {cell(r['change'], d, '+')} | "
-                     f"{cell(r['noise'], d)} | {r['verdict']} |")
+                     f"{cell(r['noise'], d)} | {r['verdict']}{why} |")
     return "\n".join(lines) + "\n"

@@ -232,6 +232,7 @@ class TestCli:
                                            str(root), "--limit", "1", "--out", str(tmp_path / "pred"),
                                            "--format", "png", "--format", "npy"])
         assert res.exit_code == 0, res.output
+        assert f"wrote 1 frame into {tmp_path / 'pred'}" in res.output
         raw = np.load(tmp_path / "pred" / "npy" / "000000_10.npy")
         assert raw.shape == (375, 1242)
         gt = read_kitti_disp(root / "training" / "disp_occ_0" / "000000_10.png")

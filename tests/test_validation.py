@@ -157,8 +157,12 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
     vs = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out", str(tmp_path / "c"),
                                         "--no-save-maps", "--against", str(teacher), "--quiet"])
     assert vs.exit_code == 0, vs.output
-    rows = {r["score"]: r for r in json.loads((tmp_path / "c" / "compare.json").read_text())["rows"]}
+    strict = json.loads((tmp_path / "c" / "compare.json").read_text(),  # no bare NaN: strict parsers read it
+                        parse_constant=lambda name: pytest.fail(f"compare.json holds {name}"))
+    rows = {r["score"]: r for r in strict["rows"]}
     assert rows["teacher_epe"]["verdict"] == "not scored"  # the teacher is not scored on its own maps
+    assert rows["teacher_epe"]["base"] is None and "not scored on one side" in rows["teacher_epe"]["why"]
+    assert "teacher_epe: not scored (not scored on one side" in vs.output
     own = json.loads((tmp_path / "eval_teacher" / "gtfree.json").read_text())["summary"]
     assert rows["pvm_epe"]["base"] == pytest.approx(own["pvm_epe"])
     assert (tmp_path / "c" / "against" / "gtfree.json").exists()
@@ -172,6 +176,11 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
     broken = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
                                             str(tmp_path / "b"), "--against", str(tmp_path / "broken.json"), "--quiet"])
     assert broken.exit_code == 2 and "broken.json is not a GT-free report" in broken.output
+    assert not (tmp_path / "b" / "gtfree.json").exists()  # refused before any pair was scored
+    missing = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
+                                             str(tmp_path / "m"), "--against", str(tmp_path / "nope"), "--quiet"])
+    assert missing.exit_code == 2 and f"--against {tmp_path / 'nope'}: checkpoint" in missing.output
+    assert "does not exist" in missing.output and not (tmp_path / "m" / "gtfree.json").exists()
     no_set = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--dataset", "sample", "--out",
                                             str(tmp_path / "n"), "--against", str(teacher)])
     assert no_set.exit_code == 2 and "--against compares two models on a GT-free --valset" in no_set.output
@@ -313,6 +322,13 @@ def test_compare_by_hand() -> None:
     assert lacks["teacher_epe"] == lacks["teacher_bad3"] == "not scored" and lacks["pvm_epe"] == "within noise"
     table = validation.compare_table(validation.compare(new, base), "new", "base").splitlines()
     assert table[3] == "| pvm_epe | 0.417 | 0.500 | -0.083 | 0.033 | better |"
+    assert all(r["why"] == "" for r in validation.compare(new, base))
+    two = validation.ValScore(validation.pooled(new.pairs[:2]), new.pairs[:2])
+    few = {r["score"]: r for r in validation.compare(two, validation.ValScore(base.summary, base.pairs[:2]))}
+    assert few["pvm_epe"]["verdict"] == "not scored" and few["pvm_epe"]["change"] == pytest.approx(-0.1)
+    assert few["pvm_epe"]["why"] == "fewer than 3 pairs: no noise estimate"
+    assert "| not scored (fewer than 3 pairs: no noise estimate) |" in validation.compare_table(
+        list(few.values()), "a", "b")
     other_pairs = validation.ValScore(base.summary, base.pairs[:2] + [validation.PairScore("q", pvm_n=1)])
     with pytest.raises(ValueError, match="scored on different pairs \\(2 in one only, e.g. 'p2'\\)"):
         validation.compare(new, other_pairs)
@@ -325,3 +341,8 @@ def test_load_report_names_the_file(tmp_path: Path) -> None:
     validation.write_report(base, tmp_path, "base", "VAL")
     again = validation.load_report(tmp_path)
     assert again.summary == base.summary and again.pairs == base.pairs
+    own = _scores([1.0] * 3, [5.0] * 3)  # the teacher's own weights: its teacher scores are NaN, written as null
+    validation.write_report(own, tmp_path / "own", "own", "VAL")
+    text = (tmp_path / "own" / "gtfree.json").read_text()
+    assert "NaN" not in text and json.loads(text)["summary"]["teacher_epe"] is None
+    assert math.isnan(validation.load_report(tmp_path / "own").summary["teacher_epe"])

@@ -4,7 +4,6 @@ against another model's, score by score, beyond or within the noise of the pairs
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -12,7 +11,9 @@ from typing import Any
 import click
 
 from optstereo import evaluate, validation
+from optstereo.checkpoint import CheckpointError
 from optstereo.cli import common
+from optstereo.pretrained import resolve_checkpoint_spec
 from pvm_labeler.common.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
@@ -55,9 +56,10 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
             raise click.UsageError("--valset scores the model with its own inference settings (no --iters, --scale, "
                                    "--refine)")
         common.check_out(out)
+        base = _against_report(against) if against is not None else None  # checked before any pair is scored
         result = _eval_valset(checkpoint, valset, out, device, amp, quiet, save_maps)
         if against is not None:
-            _compare(result, str(checkpoint), against, valset, out, device, amp, quiet)
+            _compare(result, str(checkpoint), against, base, valset, out, device, amp, quiet)
         return
     if against is not None:
         raise click.UsageError("--against compares two models on a GT-free --valset")
@@ -101,15 +103,26 @@ def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp
     return result
 
 
-def _compare(result: validation.ValScore, name: str, against: str, valset_dir: Path, out: Path, device: str,
-             amp: str, quiet: bool) -> None:
-    """``--against``: the other side read from its report or scored (its report in OUT/against/), then
-    OUT/compare.md and OUT/compare.json (:func:`optstereo.validation.compare`) and one line per score."""
+def _against_report(against: str) -> validation.ValScore | None:
+    """``--against`` checked before the scoring: an earlier report read (None when it names a model, whose path
+    or shipped name must resolve); a UsageError naming ``--against`` otherwise."""
     path = Path(against)
     try:
         if path.suffix == ".json" or (path.is_dir() and (path / "gtfree.json").exists()):
-            base = validation.load_report(path)
-        else:
+            return validation.load_report(path)
+        resolve_checkpoint_spec(against)
+    except (ValueError, CheckpointError) as exc:
+        raise click.UsageError(f"--against {against}: {exc}") from exc
+    return None
+
+
+def _compare(result: validation.ValScore, name: str, against: str, base: validation.ValScore | None,
+             valset_dir: Path, out: Path, device: str, amp: str, quiet: bool) -> None:
+    """``--against``: the other side (``base``: its report, read by :func:`_against_report`; None: the model
+    ``against``, scored here, its report in OUT/against/), then OUT/compare.md and OUT/compare.json
+    (:func:`optstereo.validation.compare`) and one line per score."""
+    try:
+        if base is None:
             model, dev = common.load_model(against, device)
             base = validation.score(model, validation.open_valset(valset_dir), dev, amp, progress=not quiet,
                                     what=against)
@@ -119,10 +132,10 @@ def _compare(result: validation.ValScore, name: str, against: str, valset_dir: P
         raise click.UsageError(f"--against {against}: {exc}") from exc
     table = validation.compare_table(rows, name, against)
     atomic_write_text(out / "compare.md", f"# {name} against {against} on {valset_dir}\n\n{table}")
-    atomic_write_text(out / "compare.json", json.dumps({"new": name, "base": against, "valset": str(valset_dir),
-                                                        "rows": rows}, indent=2) + "\n")
+    atomic_write_text(out / "compare.json", validation.strict_json({"new": name, "base": against,
+                                                                    "valset": str(valset_dir), "rows": rows}))
     click.echo(f"against {against}:")
     for r in rows:
-        numbers = "" if r["verdict"] == "not scored" else f" ({r['change']:+.4f}, noise {r['noise']:.4f})"
+        numbers = f" ({r['why']})" if r["why"] else f" ({r['change']:+.4f}, noise {r['noise']:.4f})"
         click.echo(f"  {r['score']}: {r['verdict']}{numbers}")
     click.echo(f"comparison: {out / 'compare.md'}")

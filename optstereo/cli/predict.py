@@ -95,7 +95,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                                      kitti_layout=bool(dataset and dataset.startswith("kitti")))
         except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
-        click.echo(f"wrote {len(written)} frames into {out}")
+        click.echo(f"wrote {_frames(len(written))} into {out}")
         return
     if dataset is None:
         _check_memory(left, right, inference.model_inference_config(model, iters, scale, refine), dev.type)
@@ -113,8 +113,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                                               refine=refine)
         except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
-        click.echo(f"wrote {len(written)} frames into {out}" + (f"; submission {submission} (checked)"
-                                                                 if submission is not None else ""))
+        click.echo(f"wrote {_frames(len(written))} into {out}"
+                   + (f"; submission {submission} (checked)" if submission is not None else ""))
 
 
 def _refuse_for_onnx(*, iters: int | None, amp: str, device: str, sequence: bool, min_confidence: float,
@@ -164,3 +164,8 @@ def _check_memory(left: Path, right: Path, config: InferenceConfig, device_type:
         outputs.check_pairs_fit(config, [left], device_type == "cuda")
     except MemoryError as exc:
         raise click.ClickException(str(exc)) from exc
+
+
+def _frames(n: int) -> str:
+    """"1 frame", "2 frames"."""
+    return f"{n} frame{'' if n == 1 else 's'}"

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from optstereo.training.distill import consistent_views, map_path
-from optstereo.validation import PairScore, paired_difference
+from optstereo.validation import PairScore, paired_difference, report_doc
 from pipelines.studies.gpu.teacher_all import merge_shards, with_maps
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.shards.reader import INDEX_NAME, read_index
@@ -178,7 +178,7 @@ def record(run: Path, snapshots: list[Path], valset: Path, gpu: str, hours: floa
         out = current / "val" / snap.stem
         run_cmd([sys.executable, "-m", "optstereo.cli", "eval", "--checkpoint", str(snap), "--valset", str(valset),
                  "--out", str(out)], current / "eval.log")
-        summary = json.loads((out / "gtfree.json").read_text())["summary"]
+        summary = report_doc(out / "gtfree.json")["summary"]
         val.append({"step": int(snap.stem.rsplit("-", 1)[1]),
                     **{f"gtfree_{k}": v for k, v in summary.items() if k != "own_teacher"}})
     shutil.copy2(snapshots[-1], current / "run" / "model.safetensors")
@@ -395,12 +395,12 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "chapter":
         print(chapter(args))
     elif args.cmd == "compare":
-        base, cand = (json.loads(path.read_text()) for path in (args.base, args.cand))
+        base, cand = (report_doc(path) for path in (args.base, args.cand))
         print(non_inferior(base, cand)[1] if args.non_inferior else candidate(base, cand, guard=args.guard)[1])
     else:
         start = None
         if args.start:
-            summary = json.loads(args.start.read_text())["summary"]
+            summary = report_doc(args.start)["summary"]
             start = {f"gtfree_{k}": v for k, v in summary.items() if isinstance(v, float)}
         curve(args.run, args.out, start)
 

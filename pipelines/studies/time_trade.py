@@ -32,7 +32,7 @@ import torch
 from optstereo.api import load_model
 from optstereo.checkpoint import export_safetensors, model_inference
 from optstereo.evaluate import evaluate_model
-from optstereo.validation import PairScore, paired_difference
+from optstereo.validation import PairScore, paired_difference, report_doc
 from pipelines.bench_labeler import _opencv
 from pipelines.bench_models import THREADS, _frames, beside_sgbm
 
@@ -141,7 +141,7 @@ def table(out: Path, valset_name: str, refine: str = "none", z: float = 2.0) -> 
     accuracy pick and (T1 only) the speed pick."""
     grid = {s.name for s in settings(refine)}
     timing = {k: v for k, v in json.loads((out / "timing.json").read_text()).items() if k in grid}
-    docs = {name: json.loads((out / valset_name / name / "gtfree.json").read_text())
+    docs = {name: report_doc(out / valset_name / name / "gtfree.json")
             for name in timing if (out / valset_name / name / "gtfree.json").exists()}
     base = docs[TODAY.name]
     rows = []
