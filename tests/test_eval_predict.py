@@ -299,3 +299,25 @@ class TestCli:
         res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti99", "--out",
                                         str(tmp_path)])
         assert res.exit_code == 2 and "kitti99" in res.output and "kitti_unlabelled" in res.output
+
+    def test_predict_dataset_skips_a_corrupt_pair_and_lists_it(self, tiny_ckpt: Path, tmp_path: Path) -> None:
+        """One truncated image among three pairs: the other two are written, OUT/failures.json names the bad one and
+        its reason, the run exits 1 saying so; once the image is mended a re-run writes all three and drops the
+        list."""
+        from conftest import make_folder
+
+        root = make_folder(tmp_path / "pairs", n=3)
+        good = (root / "right" / "001.png").read_bytes()
+        (root / "right" / "001.png").write_bytes(good[: len(good) // 3])
+        args = ["--checkpoint", str(tiny_ckpt), "--dataset", "folder", "--root", str(root), "--out",
+                str(tmp_path / "pred"), "--format", "npy", "--quiet"]
+        res = CliRunner().invoke(predict_main, args)
+        assert res.exit_code == 1, res.output
+        assert "1 of 3 pairs could not be read, e.g. 001" in res.output and "the other 2 were written" in res.output
+        assert sorted(p.name for p in (tmp_path / "pred").glob("*.npy")) == ["000.npy", "002.npy"]
+        failures = json.loads((tmp_path / "pred" / "failures.json").read_text())
+        assert list(failures) == ["001"] and "001.png" in failures["001"]
+        (root / "right" / "001.png").write_bytes(good)
+        res = CliRunner().invoke(predict_main, args)
+        assert res.exit_code == 0 and "wrote 3 frames" in res.output, res.output
+        assert not (tmp_path / "pred" / "failures.json").exists()

@@ -110,7 +110,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
             written = outputs.predict_dataset(model, dataset, root, out, split=split, iters=iters, formats=formats,
                                               device=dev, limit=limit, amp=amp, submission=submission,
                                               reader_options=common.collect_reader_options(**reader), scale=scale,
-                                              refine=refine)
+                                              refine=refine, progress=not quiet)
         except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {_frames(len(written))} into {out}"

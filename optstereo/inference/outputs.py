@@ -8,6 +8,7 @@ itself comes from ``optstereo.inference.engine.infer`` (the one inference path).
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Iterable
@@ -18,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
 from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
@@ -25,13 +27,17 @@ from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import first_scale, infer, model_inference_config
 from optstereo.memory import check_fits
 from optstereo.submission import write_submission
+from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
+from pvm_labeler.common.errors import InputError, PVMError
 from pvm_labeler.common.io import image_size, read_image, write_disparity_file, write_image, write_npy, write_pfm
 from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_FORMATS = ("png", "color")
+#: The pairs a dataset run could not read, {frame id: reason}, in its output folder.
+FAILURES = "failures.json"
 
 
 def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
@@ -132,23 +138,47 @@ def predict_dataset(
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
     limit: int | None = None, amp: str = "none", submission: Path | None = None,
     reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
+    progress: bool = False,
 ) -> list[dict[str, Path]]:
-    """Predict every pair of a dataset; KITTI datasets get the submission layout ``disp_0/<frame>_10.png``.
+    """Predict every pair of a dataset (``progress``: a progress bar); KITTI datasets get the submission layout
+    ``disp_0/<frame>_10.png``.
 
     With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server. Every pair's
-    memory need is checked from its image headers before the first is run (:func:`check_pairs_fit`).
+    memory need is checked from its image headers before the first is run (:func:`check_pairs_fit`). A pair that
+    cannot be read (a corrupt or truncated image) is skipped and the others are written; then ``OUT/failures.json``
+    lists each with its reason and an InputError names the first (no submission is written then).
     """
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if submission is not None and not dataset.startswith("kitti"):
         raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
                     torch.device(device).type == "cuda")
-    written = []
-    for ref in refs:
-        sample = load_pair(ref)
+    written, failed = [], {}
+    for ref in tqdm(refs, desc="predict", unit="pair", disable=not progress):
+        try:
+            sample = load_pair(ref)
+        except PVMError as exc:
+            logger.warning("skipped %s: %s", ref.frame_id, exc)
+            failed[ref.frame_id] = str(exc)
+            continue
         disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
                      refine=refine)
         written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
+    record_failures(Path(out_dir), failed, len(refs))
     if submission is not None:
         write_submission(out_dir, submission, refs)
     return written
+
+
+def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
+    """``out_dir/failures.json`` ({frame id: reason}) and an InputError naming the first, when any pair failed; else
+    an earlier run's failures.json is removed (every pair is written now)."""
+    path = out_dir / FAILURES
+    if not failed:
+        path.unlink(missing_ok=True)
+        return
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(failed, indent=2) + "\n")
+    first = next(iter(failed))
+    raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
+                     f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")
