@@ -25,7 +25,7 @@ import click
 import yaml
 
 from pvm_labeler.common.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
-from pvm_labeler.common.errors import ConfigError, PVMError
+from pvm_labeler.common.errors import ConfigError, PVMError, counted
 from pvm_labeler.config import RECIPES, LabelerConfig, recipe_values
 from pvm_labeler.job.spec import DEFAULT_LABELER
 from pvm_labeler.match import MATCH_FORMATS
@@ -202,9 +202,12 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
               show_default=True, help="HDF5 compression of the shards (blosc-* need hdf5plugin, a dependency).")
 @click.option("--numba-threads", type=click.IntRange(min=1), default=None,
               help="Numba threads per worker.  [default: cores // jobs]")
-@click.option("--left", default=None, help="folder dataset: left images (folder or glob, relative to --root).")
-@click.option("--right", default=None, help="folder dataset: right images (folder or glob, relative to --root).")
-@click.option("--gt", default=None, help="folder dataset: optional GT folder (KITTI-style PNG x256, .pfm or .npy).")
+@click.option("--left", default=None, help="folder dataset: left images (folder or glob, relative to --root), "
+              "paired with --right by file name.  [default: left, i.e. ROOT/left]")
+@click.option("--right", default=None, help="folder dataset: right images (folder or glob, relative to --root).  "
+              "[default: right, i.e. ROOT/right]")
+@click.option("--gt", default=None, help="folder dataset: optional GT folder (KITTI-style PNG x256, .pfm or .npy).  "
+              "[default: ROOT/gt when it exists]")
 @click.option("--sceneflow-pass", type=click.Choice(["clean", "final"]), default=None,
               help="sceneflow dataset: render pass.  [default: clean]")
 @click.option("--print-config", is_flag=True, default=False,
@@ -238,18 +241,26 @@ def run_cmd(ctx: click.Context, config_file: Path | None, print_config: bool, ve
 @click.argument("shard_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("-v", "--verbose", count=True, help="-v info logging.")
 def verify_cmd(shard_dir: Path, verbose: int) -> None:
-    """Check a shard directory: schema, counts, readability; names every broken shard (exit 1 if any)."""
+    """Check a shard directory: schema, counts, readability; names every broken shard (exit 1 if any). Pairs the
+    run failed to label (failures.json) are listed; they leave the exit code 0 when the shards are sound."""
     _setup_logging(verbose)
+    from pvm_labeler.job.summary import failures_lines  # lazy: the job package pulls in the labeler (numba)
     from pvm_labeler.shards import read_index, verify
 
     problems = verify(shard_dir)
     if problems:
         for problem in problems:
             click.echo(f"BROKEN: {problem}", err=True)
-        raise click.ClickException(f"{len(problems)} problems in {shard_dir}")
+        raise click.ClickException(f"{counted(len(problems), 'problem')} in {shard_dir}")
     index = read_index(shard_dir)
-    click.echo(f"ok: {index.num_samples} samples in {len(index.shards)} shards, schema version "
-               f"{index.raw['schema']['version']} ({shard_dir})")
+    try:
+        failed = failures_lines(shard_dir, index.num_samples)
+    except PVMError as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(f"ok: {counted(index.num_samples, 'sample')} in {counted(len(index.shards), 'shard')}, schema "
+               f"version {index.raw['schema']['version']} ({shard_dir})")
+    if failed:
+        click.echo("\n".join(failed))
 
 
 @main.command("convert")

@@ -110,8 +110,16 @@ _HEADER = ("| frame | GT px | density % | bad-1 % | bad-2 % | bad-3 % | AEPE px 
            "|---|---:|---:|---:|---:|---:|---:|---:|")
 
 
+def _density_row(name: str, label_fraction: float | None) -> str:
+    """A row of the GT tables for labels without GT: density = % of all pixels labelled, no GT px, no errors."""
+    return f"| {name} | - | {_fmt(label_fraction, 1)} | - | - | - | - | - |"
+
+
 def markdown(runs: list[dict[str, Any]], per_frame: bool = True) -> str:
-    """Markdown tables: one overview row per run and region, then per-frame tables."""
+    """Markdown tables: one overview row per run and region, then per-frame tables.
+
+    A run (or frame) without GT gets its label density over all pixels instead of over the GT-valid ones.
+    """
     lines = ["### Overall (pooled over pixels)", "",
              "| run | region | GT px | density % | bad-1 % | bad-2 % | bad-3 % | AEPE px | D1 % |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -119,10 +127,10 @@ def markdown(runs: list[dict[str, Any]], per_frame: bool = True) -> str:
         for region, m in run["pooled"].items():
             lines.append(_row(f"{run['name']} | {region}", m))
         if not run["pooled"]:
-            lines.append(f"| {run['name']} | (no GT) | - | - | - | - | - | - | - |")
+            lines.append(_density_row(f"{run['name']} | (no GT)", run.get("label_fraction")))
     lines.append("")
-    lines.append("Density = % of GT-valid pixels that got a label; errors are measured on the labelled pixels. "
-                 "`noc` = non-occluded GT, `occ` = GT pixels outside `noc`.")
+    lines.append("Density = % of GT-valid pixels that got a label (without GT: % of all pixels); errors are measured "
+                 "on the labelled pixels. `noc` = non-occluded GT, `occ` = GT pixels outside `noc`.")
     for run in runs:
         if run.get("stages"):
             lines += ["", f"### {run['name']}: what each stage removes (left view, GT noc where present)", "",
@@ -130,10 +138,12 @@ def markdown(runs: list[dict[str, Any]], per_frame: bool = True) -> str:
                       "bad-3 of a removed group: of the label the pixel would have had without any rejection."]
     if per_frame:
         for run in runs:
-            lines += ["", f"### {run['name']}: per frame (region `all`)", "", _HEADER]
+            lines += ["", f"### {run['name']}: per frame (region `all`; no GT: density of all pixels)", "", _HEADER]
             for frame_id, m in run["frames"].items():
                 if "all" in m:
                     lines.append(_row(frame_id, m["all"]))
+                else:
+                    lines.append(_density_row(f"{frame_id} (no GT)", m.get("label_fraction")))
     return "\n".join(lines)
 
 

@@ -48,7 +48,8 @@ class TestRun:
         assert "labelled 3/3 pairs" in result.output and "bad-3" in result.output and "AEPE" in result.output
         assert read_index(out).num_samples == 3
         again = invoke("run", "--dataset", "folder", "--root", data, "--out", out, *SMALL)
-        assert again.exit_code == 0 and "(0 shards written, 2 resumed)" in again.output
+        assert again.exit_code == 0 and "nothing to do: all 3 pairs" in again.output
+        assert "(2 shards resumed" in again.output and "pairs/s" not in again.output
         assert invoke("verify", out).exit_code == 0
 
     def test_yaml_config_and_overrides(self, tmp_path: Path) -> None:
@@ -64,7 +65,8 @@ class TestRun:
         assert read_index(out).config["census_window"] == 7
         # The resolved file is itself a valid --config: re-running from it resumes the same job.
         again = invoke("run", "--config", out / "config.yaml", "--quiet")
-        assert again.exit_code == 0 and "1 resumed" in again.output
+        assert again.exit_code == 0 and "nothing to do: all 1 pair " in again.output
+        assert "(1 shard resumed" in again.output
 
     def test_converted_images(self, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
         data, out = make_folder(tmp_path / "d", n=3), tmp_path / "out"
@@ -178,7 +180,7 @@ class TestBadInput:
         bad.write_bytes(bad.read_bytes()[:200])  # header intact, pixel data cut
         result = invoke("--dataset", "folder", "--root", data, "--out", out, *SMALL, "--shard-size", "2")
         assert result.exit_code == 1
-        assert "1 pairs FAILED" in result.output and "left/001.png" in result.output
+        assert "1 pair FAILED" in result.output and "left/001.png" in result.output
         failures = json.loads((out / "failures.json").read_text())
         assert failures[0]["frame_id"] == "001" and "corrupt or truncated image" in failures[0]["error"]
         index = read_index(out)

@@ -27,3 +27,9 @@ class DiskFullError(ShardError):
 
     Unlike a bad pair, which is recorded and skipped, every later write would fail too; the message names the disk.
     """
+
+
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """``n`` and ``noun`` in the number messages need: ``counted(1, "pair")`` = "1 pair", ``counted(3, "pair")`` =
+    "3 pairs", ``counted(2, "shard", "shards")``; ``plural`` defaults to ``noun + "s"``."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"

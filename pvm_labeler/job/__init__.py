@@ -8,7 +8,8 @@
 3. check the output directory: writable; existing shards must come from the same job (config, dataset, shard
    plan) unless ``overwrite``; ``job.json`` (the plan) and ``config.yaml`` (the resolved config) are written;
 4. label the shards that are not complete yet (a shard is complete when its final file exists, opens, has the
-   same config and plan and every array reads back), one task per shard, streaming results back;
+   same config and plan and every array reads back) or that hold pairs which failed before (they are retried),
+   one task per shard, streaming results back;
 5. write ``failures.json`` if single pairs failed, then ``index.json`` last (atomically).
 
 Shards are assigned deterministically (sorted frame ids, ``shard_size`` per shard) and every frame's labels depend

@@ -1,4 +1,5 @@
-"""``run(spec)``: check, plan, skip the complete shards, fan the rest out longest first, summarise."""
+"""``run(spec)``: check, plan, skip the complete shards (not those holding failed pairs: they are retried), fan the
+rest out longest first, summarise."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import logging
 import time
 
 from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.errors import counted
 from pvm_labeler.job.outdir import complete_shard, job_doc, plan_shards, prepare_out
 from pvm_labeler.job.progress import PairProgress, progress_bar
 from pvm_labeler.job.spec import JobSpec, absolute_paths, preflight
@@ -52,6 +54,12 @@ def run(spec: JobSpec) -> JobSummary:
     for index, shard_refs in enumerate(plan):
         path = spec.out / shard_name(index)
         done = complete_shard(path, [ref.frame_id for ref in shard_refs], config) if spec.resume else None
+        if done is not None and done.failures:
+            # Pairs that failed before are retried (a fixed image gets its label): the shard is relabelled whole
+            # into shard.tmp; the old file stays valid until the new one replaces it.
+            logger.info("shard %s: retrying %s that failed before (%s)", path.name,
+                        counted(len(done.failures), "pair"), ", ".join(f["frame_id"] for f in done.failures[:5]))
+            done = None
         if done is not None:
             done.index = index
             outcomes[index] = done

@@ -10,6 +10,7 @@ from typing import Any
 
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.datasets import PairRef
+from pvm_labeler.common.errors import ShardError, counted
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.job.outdir import FAILURES_FILE
 from pvm_labeler.job.spec import JobSpec
@@ -43,12 +44,15 @@ class JobSummary:
 
     def format(self) -> str:
         """Human-readable multi-line summary."""
-        lines = [
-            f"labelled {self.pairs_labeled}/{self.pairs_total} pairs into {self.out} "
-            f"({self.shards_written} shards written, {self.shards_resumed} resumed) in {self.seconds:.1f} s "
-            f"({self.pairs_per_s:.2f} pairs/s, peak RSS per worker {self.peak_rss_mb_per_worker:.0f} MiB)",
-            f"label density: {self.label_fraction:.1f} % of all pixels",
-        ]
+        if self.shards_total and self.shards_resumed == self.shards_total:  # no pair was labelled by this run
+            head = (f"nothing to do: all {counted(self.pairs_labeled, 'pair')} in {self.out} were already labelled "
+                    f"({counted(self.shards_resumed, 'shard')} resumed, checked in {self.seconds:.1f} s)")
+        else:
+            head = (f"labelled {self.pairs_labeled}/{counted(self.pairs_total, 'pair')} into {self.out} "
+                    f"({counted(self.shards_written, 'shard')} written, {self.shards_resumed} resumed) in "
+                    f"{self.seconds:.1f} s ({self.pairs_per_s:.2f} pairs/s, peak RSS per worker "
+                    f"{self.peak_rss_mb_per_worker:.0f} MiB)")
+        lines = [head, f"label density: {self.label_fraction:.1f} % of all pixels"]
         for name, m in (("GT", self.metrics), ("GT noc", self.metrics_noc)):
             if m and m.get("n_valid"):
                 lines.append(
@@ -56,7 +60,8 @@ class JobSummary:
                     f"bad-3 {m['bad3']:.2f} %, AEPE {m['epe']:.3f} px, D1 {m['d1']:.2f} %"
                 )
         if self.failures:
-            lines.append(f"{len(self.failures)} pairs FAILED (see {Path(self.out) / FAILURES_FILE}):")
+            lines.append(f"{counted(len(self.failures), 'pair')} FAILED (see {Path(self.out) / FAILURES_FILE}; a "
+                         "re-run retries them):")
             lines += [f"  {f['frame_id']}: {f['error']}" for f in self.failures[:10]]
         return "\n".join(lines)
 
@@ -119,3 +124,41 @@ def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcom
     write_index(spec.out, shards, json.loads(spec.config.to_json()), spec.dataset_info(),
                 extra={"summary": _json_safe(summary.to_dict()), "compression": spec.compression})
     return summary
+
+
+def read_failures(out: Path) -> list[dict[str, Any]]:
+    """The failed pairs recorded in ``out/failures.json`` (each {frame_id, error, type, files}); [] without one.
+
+    Raises:
+        ShardError: the file is unreadable or not a JSON list of records with a ``frame_id`` (names the file).
+    """
+    path = Path(out) / FAILURES_FILE
+    if not path.is_file():
+        return []
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ShardError(f"{path}: unreadable ({exc}); re-run the job to rewrite it") from exc
+    if not isinstance(doc, list) or not all(isinstance(f, dict) and "frame_id" in f for f in doc):
+        raise ShardError(f"{path}: expected a JSON list of {{frame_id, error}} records; re-run the job to rewrite it")
+    return doc
+
+
+def failures_lines(out: Path, labelled: int, limit: int = 5) -> list[str]:
+    """What `pvm-label verify` prints about the pairs a run could not label ([] when none failed).
+
+    Args:
+        out: the shard directory.
+        labelled: samples in its shards (the failed pairs are not among them).
+        limit: failed pairs listed by id and reason.
+    """
+    failures = read_failures(out)
+    if not failures:
+        return []
+    total = labelled + len(failures)
+    lines = [f"{len(failures)} of {counted(total, 'pair')} failed to label: see {Path(out) / FAILURES_FILE} "
+             "(a re-run of the job retries them)"]
+    lines += [f"  {f['frame_id']}: {f.get('error', '?')}" for f in failures[:limit]]
+    if len(failures) > limit:
+        lines.append(f"  ... and {len(failures) - limit} more")
+    return lines

@@ -165,7 +165,8 @@ def label_shard(task: ShardTask) -> ShardOutcome:
     """Worker entry: label every pair of one shard and publish the shard file atomically.
 
     Single-pair failures (bad files, sizes, labeler input errors) are recorded and the rest of the shard goes on.
-    A shard in which every pair failed is not published (a resume will retry it).
+    A shard in which every pair failed is not published, and an older file of that shard is removed (a resume
+    retries it, as it retries the failed pairs of a published shard).
     """
     t0, c0 = time.perf_counter(), time.process_time()
     reset_peak_rss()  # the reported peak is this shard's (an in-process --jobs 1 may have done other work before)
@@ -179,9 +180,10 @@ def label_shard(task: ShardTask) -> ShardOutcome:
             writer.set_attr("stats", json.dumps(stats))
             ids = writer.sample_ids
             if ids:
-                writer.close()
+                writer.close()  # replaces an older shard of the same index atomically
             else:
                 writer.abort()
+                path.unlink(missing_ok=True)  # an older shard of this index (a retry that failed again) is stale
         except BaseException:
             writer.abort()
             raise

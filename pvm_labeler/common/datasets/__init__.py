@@ -21,8 +21,8 @@ Supported layouts (``root`` is the folder you pass as ``--root``):
   ``RGB_<pass>``), ``right/``; GT ``<base>/disparity/<rel>/{left,right}/<n>.pfm``; optional
   ``<base>/occlusion/<rel>/left/<n>.png`` (True = occluded) gives the non-occluded GT.
 - ``folder``: any two folders or glob patterns of left/right images (``left=``, ``right=``, optional ``gt=``;
-  defaults ``root/left``, ``root/right``, ``root/gt``), paired by file stem (or by sorted order when the stems differ
-  but the counts match).
+  defaults ``root/left``, ``root/right``, ``root/gt``), paired by file stem; an image without a partner of its name
+  is an error, and only when no stem is shared and the counts match are they paired by sorted order (a warning).
 - ``kitti_unlabelled``: every folder under ``root`` holding a KITTI-style pair of image folders
   (``image_2``/``image_3``, ``image_02``/``image_03``, or their ``data/`` sub-folders) or a ``left.png``/``right.png``
   pair; frame ids are the relative path joined with ``-``. Never any GT: this is self-supervised training data.
@@ -68,6 +68,8 @@ __all__ = ["DATASETS", "DEFAULT_MAX_DISP", "IMAGE_SUFFIXES", "SPLITS", "SYNTHETI
 
 
 # ------------------------------------------------------------------------------------------------- public API
+#: The readers that look at ``split`` (the others ignore it, so their messages do not name it).
+_SPLIT_AWARE: tuple[str, ...] = ("kitti15", "kitti12", "eth3d", "sceneflow")
 _DISCOVER: dict[str, Callable[..., list[PairRef]]] = {
     "kitti15": _discover_kitti15,
     "kitti12": _discover_kitti12,
@@ -113,7 +115,8 @@ def discover(name: str, root: Path | str | None, split: str = "training", **kwar
             _require_dir(root, "folder root")
     refs = _DISCOVER[name](root, split, **kwargs)
     if not refs:
-        raise InputError(f"no stereo pairs found for dataset '{name}' under {root} (split '{split}')")
+        in_split = f" (split '{split}')" if name in _SPLIT_AWARE else ""
+        raise InputError(f"no stereo pairs found for dataset '{name}' under {root}{in_split}")
     refs.sort(key=lambda r: r.frame_id)
     ids = [r.frame_id for r in refs]
     dupes = sorted({i for i in ids if ids.count(i) > 1})

@@ -18,7 +18,7 @@ from pvm_labeler.common.datasets.refs import (
     _require_dir,
     _safe_id,
 )
-from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.errors import InputError, counted
 
 logger = logging.getLogger(__name__)
 
@@ -214,6 +214,47 @@ def _glob_images(spec: str | Path, root: Path | None, what: str) -> tuple[dict[s
     raise InputError(f"folder dataset: {what} '{spec}' is neither a directory nor a glob pattern that exists")
 
 
+def _few(paths: list[Path], limit: int = 5) -> str:
+    """``paths`` for an error message: the first ``limit`` as strings, then how many more there are."""
+    shown = ", ".join(str(p) for p in paths[:limit])
+    return shown + (f" and {len(paths) - limit} more" if len(paths) > limit else "")
+
+
+def _folder_pairs(lefts: dict[str, Path], rights: dict[str, Path], left_spec: str,
+                  right_spec: str) -> list[tuple[str, Path, Path]]:
+    """(frame stem, left, right) of every pair: by stem; by sorted order (with a warning) only when no stem is
+    shared and the counts match (rigs that name the views cam0_0001 / cam1_0001).
+
+    Raises:
+        InputError: no images at all, or some images have no partner (naming a few of them, their count and the
+            folders).
+    """
+    if not lefts and not rights:
+        raise InputError(f"folder dataset: no images found: left '{left_spec}' and right '{right_spec}' hold no "
+                         f"{'/'.join(IMAGE_SUFFIXES)} files (set --left / --right, folders or globs)")
+    shared = sorted(set(lefts) & set(rights))
+    if not shared and len(lefts) == len(rights):
+        left_keys, right_keys = sorted(lefts), sorted(rights)
+        logger.warning("folder dataset: no left image in %s has the name of a right image in %s: paired the %d "
+                       "images by sorted order (first pair %s + %s); check that this is what you want",
+                       left_spec, right_spec, len(lefts), lefts[left_keys[0]].name, rights[right_keys[0]].name)
+        return [(lk, lefts[lk], rights[rk]) for lk, rk in zip(left_keys, right_keys, strict=True)]
+    lonely_left = [lefts[s] for s in sorted(set(lefts) - set(rights))]
+    lonely_right = [rights[s] for s in sorted(set(rights) - set(lefts))]
+    if lonely_left or lonely_right:
+        what = "count mismatch" if len(lefts) != len(rights) else "names do not pair up"
+        details = [f"{counted(len(shared), 'name')} in common"]
+        if lonely_left:
+            details.append(f"{counted(len(lonely_left), 'left image')} without a right image of the same name: "
+                           f"{_few(lonely_left)}")
+        if lonely_right:
+            details.append(f"{counted(len(lonely_right), 'right image')} without a left image of the same name: "
+                           f"{_few(lonely_right)}")
+        raise InputError(f"folder dataset: left/right {what}: {counted(len(lefts), 'image')} in {left_spec} vs "
+                         f"{len(rights)} in {right_spec}; " + "; ".join(details))
+    return [(stem, lefts[stem], rights[stem]) for stem in shared]
+
+
 def _discover_folder(
     root: Path | None,
     split: str,
@@ -225,17 +266,7 @@ def _discover_folder(
 ) -> list[PairRef]:
     lefts, left_spec = _glob_images(left, root, "left")
     rights, right_spec = _glob_images(right, root, "right")
-    if set(lefts) == set(rights):
-        keys = sorted(lefts)
-        pairs = [(k, lefts[k], rights[k]) for k in keys]
-    elif len(lefts) == len(rights):
-        # Rigs often name the views differently (cam0_0001 / cam1_0001): pair by sorted order, keep the left stem.
-        logger.info("folder dataset: left/right stems differ, pairing %d images by sorted order", len(lefts))
-        pairs = [(lk, lefts[lk], rights[rk]) for lk, rk in zip(sorted(lefts), sorted(rights), strict=True)]
-    else:
-        raise InputError(
-            f"left/right count mismatch: {len(lefts)} images in {left_spec} vs {len(rights)} in {right_spec}"
-        )
+    pairs = _folder_pairs(lefts, rights, left_spec, right_spec)
     gts: dict[str, Path] = {}
     if gt is None and root is not None and (root / "gt").is_dir():
         gt = "gt"

@@ -1,0 +1,106 @@
+"""User walkthrough fixes, dataset side: the `folder` reader pairs by name (never silently by order when names partly
+match), says which folders it searched when they are empty, and the messages count in the singular when it is one."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner, Result
+
+from pvm_labeler.cli import main
+from pvm_labeler.common import io
+from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.errors import InputError, counted
+
+
+def _images(folder: Path, stems: list[str], value: int = 0) -> None:
+    """One 20 x 30 grey image per stem in ``folder`` (pixel value ``value`` + its index, to tell them apart)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, stem in enumerate(stems):
+        io.write_image(folder / f"{stem}.png", np.full((20, 30, 3), value + i, np.uint8))
+
+
+def invoke(*args: object) -> Result:
+    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+class TestPairing:
+    def test_partly_matching_names_are_an_error_not_an_order_pairing(self, tmp_path: Path) -> None:
+        # The walkthrough: left {0000, 0020}, right {0000, 0040} paired left 0020 with right 0040 and exited 0.
+        _images(tmp_path / "left", ["0000", "0020"])
+        _images(tmp_path / "right", ["0000", "0040"])
+        with pytest.raises(InputError) as info:
+            discover("folder", tmp_path)
+        text = str(info.value)
+        assert "names do not pair up: 2 images in " + str(tmp_path / "left") + " vs 2 in " in text
+        assert str(tmp_path / "right") in text and "1 name in common" in text
+        assert f"1 left image without a right image of the same name: {tmp_path / 'left/0020.png'}" in text
+        assert f"1 right image without a left image of the same name: {tmp_path / 'right/0040.png'}" in text
+
+    def test_many_unmatched_names_show_five_and_a_count(self, tmp_path: Path) -> None:
+        _images(tmp_path / "left", ["a", *[f"l{i}" for i in range(7)]])
+        _images(tmp_path / "right", ["a", "r0"])
+        with pytest.raises(InputError, match=r"left/right count mismatch: 8 images in .*left vs 2 in") as info:
+            discover("folder", tmp_path)
+        text = str(info.value)
+        assert "7 left images without a right image" in text and "and 2 more" in text
+        assert "l4.png" in text and "l5.png" not in text  # sorted l0..l6: the first five are shown
+        assert "1 right image without a left image of the same name: " + str(tmp_path / "right/r0.png") in text
+
+    def test_names_match_exactly(self, tmp_path: Path) -> None:
+        _images(tmp_path / "left", ["b", "a"])
+        _images(tmp_path / "right", ["a", "b"], value=100)
+        refs = discover("folder", tmp_path)
+        assert [(r.frame_id, r.left.name, r.right.name) for r in refs] == [("a", "a.png", "a.png"),
+                                                                         ("b", "b.png", "b.png")]
+
+    def test_no_shared_name_pairs_by_sorted_order_with_a_warning(self, tmp_path: Path,
+                                                                caplog: pytest.LogCaptureFixture) -> None:
+        _images(tmp_path / "cam0", ["cam0_0002", "cam0_0001"])
+        _images(tmp_path / "cam1", ["cam1_0001", "cam1_0002"])
+        with caplog.at_level(logging.WARNING):
+            refs = discover("folder", tmp_path, left="cam0", right="cam1")
+        assert [(r.frame_id, r.right.name) for r in refs] == [("cam0_0001", "cam1_0001.png"),
+                                                              ("cam0_0002", "cam1_0002.png")]
+        warnings = [r for r in caplog.records if r.levelno == logging.WARNING and "sorted order" in r.getMessage()]
+        assert len(warnings) == 1  # WARNING: printed by `pvm-label` without -v
+        assert "first pair cam0_0001.png + cam1_0001.png" in warnings[0].getMessage()
+
+    def test_cli_writes_nothing_for_unpaired_names(self, tmp_path: Path) -> None:
+        _images(tmp_path / "d/left", ["0000", "0020"])
+        _images(tmp_path / "d/right", ["0000", "0040"])
+        result = invoke("run", "--dataset", "folder", "--root", tmp_path / "d", "--left", "left", "--right", "right",
+                        "--out", tmp_path / "o", "--k", "2", "--max-disp", "8", "--quiet")
+        assert result.exit_code == 1 and "0020.png" in result.output and "0040.png" in result.output
+        assert not (tmp_path / "o").exists()
+
+
+class TestMessages:
+    def test_empty_folder_names_the_searched_folders_not_the_split(self, tmp_path: Path) -> None:
+        (tmp_path / "left").mkdir()
+        (tmp_path / "right").mkdir()
+        result = invoke("run", "--dataset", "folder", "--root", tmp_path, "--out", tmp_path / "o", "--quiet")
+        assert result.exit_code == 1 and "no images found" in result.output
+        assert str(tmp_path / "left") in result.output and str(tmp_path / "right") in result.output
+        assert "split" not in result.output
+        glob = str(tmp_path / "left/*.jpg")
+        with pytest.raises(InputError, match=r"no images found: left '.*\*\.jpg' and right '.*right'"):
+            discover("folder", None, left=glob, right=tmp_path / "right")
+
+    def test_split_named_only_where_it_is_used(self, tmp_path: Path) -> None:
+        with pytest.raises(InputError, match=r"no stereo pairs found for dataset 'middlebury' under \S+$"):
+            discover("middlebury", tmp_path)
+        (tmp_path / "testing").mkdir()
+        with pytest.raises(InputError, match=r"no stereo pairs found.*\(split 'testing'\)"):
+            discover("sceneflow", tmp_path, split="testing")
+
+    def test_help_names_the_left_right_defaults(self) -> None:
+        text = " ".join(invoke("run", "--help").output.split())
+        assert "[default: left, i.e. ROOT/left]" in text and "[default: right, i.e. ROOT/right]" in text
+
+    def test_counted(self) -> None:
+        assert [counted(n, "pair") for n in (0, 1, 2)] == ["0 pairs", "1 pair", "2 pairs"]
+        assert counted(1, "shard", "shards") == "1 shard" and counted(3, "index", "indices") == "3 indices"
