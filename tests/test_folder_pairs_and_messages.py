@@ -1,4 +1,4 @@
-"""User walkthrough fixes, dataset side: the `folder` reader pairs by name (never silently by order when names partly
+"""The `folder` reader pairs by name (never silently by order when names partly
 match), says which folders it searched when they are empty, and the messages count in the singular when it is one."""
 
 from __future__ import annotations

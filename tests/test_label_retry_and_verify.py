@@ -1,4 +1,4 @@
-"""User walkthrough fixes, job side: a re-run retries the pairs that failed (the shard holding them is redone
+"""A re-run retries the pairs that failed (the shard holding them is redone
 atomically), `verify` lists failed pairs, a report without GT shows the densities, and the summary of a run with
 nothing left to do says so. The labeler is a tiny deterministic fake (``JobSpec.label_fn``), the data a folder."""
 
