@@ -30,7 +30,7 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import save_file
+from safetensors.torch import save as safetensors_bytes
 from torch import nn
 
 from optstereo.inference.config import InferenceConfig
@@ -142,8 +142,11 @@ def export_safetensors(path: Path, model: nn.Module, step: int | None = None,
         "step": str(step if step is not None else -1),
         "code_version": json.dumps(code_version()),
     }
+    # The bytes, written by us: safetensors' save_file writes through a private temp file of mode 0600, which the
+    # rename would keep (every other file of a run gets the umask's mode, 0644 under umask 022).
+    data = safetensors_bytes(tensors, metadata=metadata)
     with atomic_path(path) as tmp:
-        save_file(tensors, str(tmp), metadata=metadata)
+        tmp.write_bytes(data)
     return path
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig, read_yaml
 from optstereo.training.layering import merge
 from optstereo.training.loop import main
+from optstereo.training.stopping import TrainingInterrupted
 from pvm_labeler.common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -136,7 +138,14 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
         return
     if cfg.data.labels is None or cfg.out is None:
         raise click.UsageError("--labels SHARDS_DIR and --out RUN_DIR are required (or --resume RUN_DIR)")
-    summary = main(cfg, resume=resume is not None, progress=not quiet, init_ckpt=init_ckpt)
+    try:
+        summary = main(cfg, resume=resume is not None, progress=not quiet, init_ckpt=init_ckpt)
+    except TrainingInterrupted as exc:  # Ctrl-C / SIGTERM: its checkpoint is saved; exit as the signal would
+        click.echo(str(exc), err=True)
+        sys.exit(exc.exit_code)  # not ctx.exit: click's Exit is a RuntimeError, which GuardedCommand reports
+    if "nothing_to_do" in summary:
+        click.echo(summary["nothing_to_do"])
+        return
     last = summary.get("last", {})
     click.echo(f"trained {summary['start_step']} -> {summary['step']} steps in {summary['seconds']:.0f} s; "
                f"last L_P {last.get('L_P', math.nan):.3f}; checkpoint {summary['checkpoint']}")

@@ -5,7 +5,8 @@
 ``restore`` puts a checkpoint's model/optimizer/scheduler/scaler/RNG states back into it; ``config_for_resume``
 rebuilds the run's TrainConfig from its last checkpoint (nested, or the flat dict of runs saved before the config
 had sections); ``init_settings`` and ``init_weights`` take the model settings and the weights of an ``--init``
-checkpoint, which is read once (``load_checkpoint``) and passed to both.
+checkpoint, which is read once (``load_checkpoint``) and passed to both; ``redraw_curves`` and ``and_then`` are
+checkpoint hooks (the loop chains the writer, the GT-free validation and curves.png).
 """
 
 from __future__ import annotations
@@ -21,8 +22,18 @@ import torch
 from torch import nn
 
 from optstereo import distributed as ddp
-from optstereo.checkpoint import LAST, CheckpointError, LoadedCheckpoint, load_checkpoint, save_checkpoint, unwrap
+from optstereo.checkpoint import (
+    CHECKPOINT_SUFFIXES,
+    LAST,
+    CheckpointError,
+    LoadedCheckpoint,
+    load_checkpoint,
+    save_checkpoint,
+    unwrap,
+)
 from optstereo.training.config import CONFIG_FILE, TrainConfig, read_yaml
+from optstereo.training.log import plot_curves
+from optstereo.training.runpaths import absolute_paths, check_resume_paths, recorded_paths_layer
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.errors import ConfigError
 
@@ -47,7 +58,7 @@ def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Cal
     def save(state: TrainState) -> None:
         if not info.is_main:
             return
-        numbered = run_dir / f"ckpt-{state.step:07d}.pt"
+        numbered = numbered_checkpoint(run_dir, state.step)
         save_checkpoint(numbered, model=state.model, step=state.step, optimizer=state.optimizer,
                         scheduler=state.scheduler, scaler=state.scaler, train_config=cfg.to_dict())
         with atomic_path(run_dir / LAST) as tmp:
@@ -58,6 +69,11 @@ def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Cal
         logger.info("checkpoint %s (step %d)", numbered, state.step)
 
     return save
+
+
+def numbered_checkpoint(run_dir: Path, step: int) -> Path:
+    """RUN_DIR/ckpt-<step>.pt, the numbered checkpoint :func:`checkpoint_saver` writes at ``step``."""
+    return Path(run_dir) / f"ckpt-{step:07d}.pt"
 
 
 def remove_stale_temps(run_dir: Path) -> list[Path]:
@@ -110,7 +126,8 @@ def init_weights(model: nn.Module, source: Path | LoadedCheckpoint) -> None:
             "leave --model and --set model.* unset)"
         )
     unwrap(model).load_state_dict(ckpt.model_state)
-    logger.info("initialised from %s (its step %d)", ckpt.path, ckpt.step)
+    # a weights export written outside a run has no step (-1): say none rather than "its step -1"
+    logger.info("initialised from %s%s", ckpt.path, f" (its step {ckpt.step})" if ckpt.step >= 0 else "")
 
 
 def init_settings(source: Path | LoadedCheckpoint) -> dict[str, Any]:
@@ -133,18 +150,69 @@ def init_settings(source: Path | LoadedCheckpoint) -> dict[str, Any]:
 def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """The saved config of RUN_DIR's last checkpoint with ``overrides`` applied (e.g. more --steps, --workers).
 
-    The saved config may be nested or the flat dict of an older run; ``overrides`` may be either too.
+    The saved config may be nested or the flat dict of an older run; ``overrides`` may be either too. Its paths come
+    back absolute: a relative one of an older run is found from here or from where the run was started
+    (``optstereo.training.runpaths``), else a ConfigError names it. A setting ``overrides`` changes is logged
+    as a warning (:func:`changed_settings`; not --steps and the like, which a resume is for).
     """
-    ckpt = load_checkpoint(run_dir)
+    ckpt = load_checkpoint(_resume_source(Path(run_dir)))
     if not ckpt.train_config:
         raise ValueError(f"checkpoint {ckpt.path} holds no training config; cannot resume from it")
-    saved = TrainConfig.from_layers(legacy_loss(ckpt.train_config), {"out": Path(run_dir)})
-    cfg = TrainConfig.from_layers(legacy_loss(ckpt.train_config), overrides, {"out": Path(run_dir)})
+    recorded = legacy_loss(ckpt.train_config)
+    out = {"out": Path(run_dir)}
+    as_recorded = TrainConfig.from_layers(recorded)
+    paths = recorded_paths_layer(as_recorded, as_recorded.out, run_dir)
+    saved = TrainConfig.from_layers(recorded, paths, out)
+    cfg = TrainConfig.from_layers(recorded, paths, overrides, out)
     _check_same_model(saved, cfg, f"--resume {run_dir}: the command line")
     written = Path(run_dir) / CONFIG_FILE
     if written.is_file():  # config.yaml of another run beside this last.pt (files copied between run dirs)
         _check_same_model(saved, TrainConfig.from_layers(read_yaml(written)), f"--resume {run_dir}: {written}")
+    cfg = check_resume_paths(cfg, run_dir)
+    changes = changed_settings(absolute_paths(saved, missing=False), cfg)
+    if changes:
+        logger.warning("--resume %s changes the run's saved settings: %s (the run continues with the new values; "
+                       "%s records them)", run_dir, "; ".join(f"{k}: {a} -> {b}" for k, (a, b) in changes.items()),
+                       written)
     return cfg
+
+
+#: Settings a resume is expected to change (more steps, another time budget, the RUN_DIR as typed this time, the
+#: CPU threads): :func:`changed_settings` leaves them out.
+EXPECTED_CHANGES = ("optim.steps", "max_minutes", "out", "threads")
+
+
+def changed_settings(saved: TrainConfig, new: TrainConfig) -> dict[str, tuple[Any, Any]]:
+    """{dotted setting: (saved value, new value)} of every setting ``new`` changes, EXPECTED_CHANGES aside; values
+    as YAML writes them (a crop is a list)."""
+    old_flat, new_flat = _flatten(saved.to_dict()), _flatten(new.to_dict())
+    keys = [*new_flat, *(k for k in old_flat if k not in new_flat)]  # in the order of config.yaml
+    return {k: (old_flat.get(k), new_flat.get(k)) for k in keys
+            if k not in EXPECTED_CHANGES and old_flat.get(k) != new_flat.get(k)}
+
+
+def _flatten(nested: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in nested.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _resume_source(run_dir: Path) -> Path:
+    """RUN_DIR to load for --resume; a CheckpointError with what to do instead when it holds no training
+    checkpoint (a run stopped before its first one: there is nothing to resume)."""
+    if run_dir.is_dir() and not any(p.is_file() and p.suffix in CHECKPOINT_SUFFIXES[:3] for p in run_dir.iterdir()):
+        config = run_dir / CONFIG_FILE
+        again = f"optstereo-train --config {config}" if config.is_file() else f"optstereo-train --out {run_dir} ..."
+        raise CheckpointError(
+            f"--resume {run_dir}: no training checkpoint ({LAST}, ckpt-*.pt) in {run_dir}: the run never saved one "
+            f"(it stopped before its first checkpoint), so there is nothing to resume; start it again: {again} "
+            "(with --init WEIGHTS to start from weights)"
+        )
+    return run_dir
 
 
 def _check_same_model(saved: TrainConfig, other: TrainConfig, who: str) -> None:
@@ -165,3 +233,24 @@ def legacy_loss(saved: dict[str, Any]) -> dict[str, Any]:
     if isinstance(loss, dict):
         return saved if "color_norm" in loss else {**saved, "loss": {**loss, "color_norm": "mean"}}
     return saved if "color_norm" in saved else {**saved, "color_norm": "mean"}
+
+
+def redraw_curves(run_dir: Path) -> Callable[[TrainState], None]:
+    """A checkpoint hook that redraws RUN_DIR/curves.png (:func:`optstereo.training.log.plot_curves`)."""
+    def redraw(_: TrainState) -> None:
+        plot_curves(run_dir)
+
+    return redraw
+
+
+def and_then(first: Callable[[TrainState], None],
+             then: Callable[[TrainState], None] | None) -> Callable[[TrainState], None]:
+    """``first(state)``, then ``then(state)`` when given (a checkpoint, then its GT-free validation)."""
+    if then is None:
+        return first
+
+    def both(state: TrainState) -> None:
+        first(state)
+        then(state)
+
+    return both

@@ -47,7 +47,7 @@ from optstereo.training.sections import (
 from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.errors import ConfigError
 
-__all__ = ["CONFIG_FILE", "TrainConfig", "parse_crop"]
+__all__ = ["CONFIG_FILE", "TrainConfig", "parse_crop", "path_fields"]
 
 CONFIG_FILE = "config.yaml"
 _SECTIONS: dict[str, type] = {
@@ -172,6 +172,11 @@ class TrainConfig:
         path = Path(run_dir) / CONFIG_FILE
         atomic_write_text(path, self.to_yaml())
         return path
+
+
+def path_fields() -> tuple[str, ...]:
+    """Dotted names of every path field of a TrainConfig ("data.labels", "val.valset", "out", ...)."""
+    return (*(f"{name}.{key}" for name, cls in _SECTIONS.items() for key in getattr(cls, "PATHS", ())), *_PATHS)
 
 
 def read_yaml(path: Path) -> dict[str, Any]:

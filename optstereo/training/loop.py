@@ -14,7 +14,7 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,15 @@ from optstereo.inference.cascade import coarse_start
 from optstereo.inference.engine import warn_if_emulated_bf16
 from optstereo.models import build_from_config
 from optstereo.training.analogy import analogy_loss, occlude_right, transform_batch
-from optstereo.training.checkpoints import TrainState, checkpoint_saver, init_weights, remove_stale_temps, restore
+from optstereo.training.checkpoints import (
+    TrainState,
+    and_then,
+    checkpoint_saver,
+    init_weights,
+    redraw_curves,
+    remove_stale_temps,
+    restore,
+)
 from optstereo.training.config import TrainConfig
 from optstereo.training.log import (  # noqa: F401  (METRICS_FILE: API)
     METRICS_FILE,
@@ -42,6 +50,8 @@ from optstereo.training.log import (  # noqa: F401  (METRICS_FILE: API)
     plot_curves,
 )
 from optstereo.training.losses import PVStereoLoss
+from optstereo.training.runpaths import absolute_paths
+from optstereo.training.stopping import nothing_to_do, stop_on_signal
 from optstereo.training.validate import gtfree_hook
 
 logger = logging.getLogger(__name__)
@@ -307,39 +317,22 @@ def evaluate(model: nn.Module, cfg: TrainConfig, device: torch.device, out_dir: 
     return result.summary
 
 
-def redraw_curves(run_dir: Path) -> Callable[[TrainState], None]:
-    """A checkpoint hook that redraws RUN_DIR/curves.png (:func:`optstereo.training.log.plot_curves`)."""
-    def redraw(_: TrainState) -> None:
-        plot_curves(run_dir)
-
-    return redraw
-
-
-def _and_then(first: Callable[[TrainState], None],
-              then: Callable[[TrainState], None] | None) -> Callable[[TrainState], None]:
-    """``first(state)``, then ``then(state)`` when given (a checkpoint, then its GT-free validation)."""
-    if then is None:
-        return first
-
-    def both(state: TrainState) -> None:
-        first(state)
-        then(state)
-
-    return both
-
-
 # -- entry point ---------------------------------------------------------------------------------------------------
 def main(cfg: TrainConfig, resume: bool = False, progress: bool = True,
          init_ckpt: LoadedCheckpoint | None = None) -> dict[str, Any]:
     """Train (or resume) a run; returns a summary dict (steps, final logs, checkpoint path, validation metrics).
 
     With ``resume=True`` the run directory's last.pt is loaded and training continues at its step; pass the
-    config from ``train_resume.config_for_resume`` so the schedule and data order are the original ones. A new run
-    refuses a RUN_DIR that already holds a last.pt (it would silently mix two runs). ``progress`` shows the tqdm bar
-    (only on a TTY). ``init_ckpt`` is cfg.init already loaded (the CLI read it for the model settings); None loads it.
+    config from ``checkpoints.config_for_resume`` so the schedule and data order are the original ones; a run
+    already at its steps trains nothing and rewrites nothing (the summary's ``nothing_to_do`` says so). A new run
+    refuses a RUN_DIR that already holds a last.pt (it would silently mix two runs). The paths are recorded absolute
+    (``runpaths.absolute_paths``). SIGINT/SIGTERM: a checkpoint at the last completed step, then
+    ``stopping.TrainingInterrupted``. ``progress`` shows the tqdm bar (only on a TTY). ``init_ckpt`` is cfg.init
+    already loaded (the CLI read it for the model settings); None loads it.
     """
     if cfg.out is None:
         raise ValueError("--out RUN_DIR is required")
+    cfg = absolute_paths(cfg, missing=not resume)  # recorded absolute: --resume works from any directory
     run_dir = Path(cfg.out)
     device = ddp.resolve_device(cfg.device, ddp.env_info().local_rank)
     info = ddp.setup(device)
@@ -359,6 +352,8 @@ def main(cfg: TrainConfig, resume: bool = False, progress: bool = True,
 def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistInfo, resume: bool,
          progress: bool, init_ckpt: LoadedCheckpoint | None) -> dict:
     ckpt = load_checkpoint(run_dir) if resume else None
+    if ckpt is not None and ckpt.step >= cfg.optim.steps:  # leave its summary, config and weights as they are
+        return nothing_to_do(run_dir, ckpt.step, cfg.optim.steps)
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg.save(run_dir)
@@ -382,14 +377,15 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     validate = gtfree_hook(cfg, run_dir, run_logger, device) if info.is_main else None
     if validate is not None and ckpt is None and cfg.init is not None:
         validate(state)  # the start, as step 0: the best until a checkpoint beats it, and what each is compared with
-    save = _and_then(_and_then(checkpoint_saver(run_dir, cfg, info), validate),
-                     redraw_curves(run_dir) if info.is_main else None)
+    save = and_then(and_then(checkpoint_saver(run_dir, cfg, info), validate),
+                    redraw_curves(run_dir) if info.is_main else None)
     start_step, t0 = state.step, time.perf_counter()
     try:
         if state.step < cfg.optim.steps:
             loader = build_loader(cfg, info, start_step=state.step)
-            train_steps(state, iter(loader), loss_fn, cfg, device, run_logger=run_logger, on_checkpoint=save,
-                        show_progress=progress and info.is_main)
+            with stop_on_signal(state, cfg, info) as stop:  # Ctrl-C / SIGTERM: checkpoint, TrainingInterrupted
+                train_steps(state, stop.watch(iter(loader)), loss_fn, cfg, device, run_logger=run_logger,
+                            on_checkpoint=save, show_progress=progress and info.is_main)
             if state.step % cfg.ckpt_every != 0:
                 save(state)
         elapsed = time.perf_counter() - t0

@@ -1,0 +1,243 @@
+"""Runs record absolute paths and older runs' relative ones are found
+(or named) on resume; a resume with nothing to train touches nothing; a resume that changes settings says which;
+Ctrl-C / SIGTERM save a checkpoint at the last completed step and exit 130 / 143; --resume of a run without a
+checkpoint says to start again; an --init without a step logs none; model.safetensors gets the umask's mode."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from click.testing import CliRunner
+from conftest import TINY, tiny_config
+
+from optstereo.checkpoint import export_safetensors, load_checkpoint, save_checkpoint
+from optstereo.cli import train_main
+from optstereo.models import build_model
+from optstereo.training import loop, runpaths
+from optstereo.training.checkpoints import config_for_resume, init_weights
+from optstereo.training.runpaths import started_from
+from optstereo.training.stopping import TrainingInterrupted
+from pvm_labeler.common.errors import ConfigError
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+REPO = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}
+
+
+def _as_old_run(run: Path, labels: str, out: str) -> None:
+    """Make ``run`` look like a run written before paths were recorded absolute: ``data.labels`` and ``out`` as
+    typed (relative) in its last.pt and config.yaml."""
+    ckpt = load_checkpoint(run)
+    config = {**ckpt.train_config, "out": out, "data": {**ckpt.train_config["data"], "labels": labels}}
+    model = build_model(ckpt.model_name, **{k: v for k, v in ckpt.model_config.items() if k != "name"})
+    model.load_state_dict(ckpt.model_state)
+    save_checkpoint(run / "last.pt", model=model, step=ckpt.step, train_config=config)
+    (run / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+
+
+@pytest.fixture
+def finished_run(tiny_shards: Path, tmp_path: Path) -> Path:
+    """A tiny run of 2 steps, finished (model.safetensors, summary.json)."""
+    loop.main(tiny_config(tiny_shards, tmp_path / "run", steps=2), progress=False)
+    return tmp_path / "run"
+
+
+class TestPaths:
+    def test_new_run_records_absolute_paths_and_resumes_from_elsewhere(
+            self, tiny_shards: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        (tmp_path / "a").mkdir()
+        shutil.copytree(tiny_shards, tmp_path / "labels")
+        monkeypatch.chdir(tmp_path / "a")
+        loop.main(tiny_config(Path("../labels"), Path("../run"), steps=2), progress=False)
+        saved = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
+        assert saved["data"]["labels"] == str(tmp_path / "labels") and saved["out"] == str(tmp_path / "run")
+        assert load_checkpoint(tmp_path / "run").train_config["data"]["labels"] == str(tmp_path / "labels")
+        monkeypatch.chdir(tmp_path)
+        result = CliRunner().invoke(train_main, ["--resume", "run", "--steps", "3", "--quiet"])
+        assert result.exit_code == 0, result.output
+        assert "trained 2 -> 3 steps" in result.output
+
+    def test_old_relative_paths_are_found_from_where_the_run_started(
+            self, finished_run: Path, tiny_shards: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+            caplog: pytest.LogCaptureFixture) -> None:
+        shutil.copytree(tiny_shards, tmp_path / "labels")
+        (tmp_path / "elsewhere").mkdir()
+        _as_old_run(finished_run, labels="labels", out="run")  # started from tmp_path
+        monkeypatch.chdir(tmp_path / "elsewhere")
+        with caplog.at_level(logging.WARNING):
+            cfg = config_for_resume(Path("../run"), {"steps": 3})
+        assert cfg.data.labels == tmp_path / "labels" and cfg.out == tmp_path / "run"
+        assert "relative to the directory the run was started from" in caplog.text
+        assert "changes the run's saved settings" not in caplog.text  # the same labels, found: no change
+
+    def test_old_relative_path_not_found_names_field_file_and_flag(
+            self, finished_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        _as_old_run(finished_run, labels="../out/labels", out="somewhere/else")
+        monkeypatch.chdir(tmp_path)
+        with pytest.raises(ConfigError) as err:
+            config_for_resume(Path("run"), {"steps": 3})
+        message = str(err.value)
+        assert "data.labels ../out/labels" in message and str(Path("run") / "config.yaml") in message
+        assert "--labels PATH" in message and "ShardError" not in message
+        result = CliRunner().invoke(train_main, ["--resume", "run", "--steps", "3"])
+        assert result.exit_code == 2 and "data.labels ../out/labels" in result.output
+
+    def test_relative_path_given_again_resumes(self, finished_run: Path, tiny_shards: Path, tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+        _as_old_run(finished_run, labels="../out/labels", out="somewhere/else")
+        monkeypatch.chdir(tmp_path)
+        cfg = config_for_resume(Path("run"), {"steps": 3, "labels": tiny_shards})
+        assert cfg.data.labels == tiny_shards
+
+    @pytest.mark.parametrize("out, run_dir, path, found", [
+        ("run", "/data/run", "labels", "/data/labels"),
+        ("out/run2", "/w/out/run2", "../out/labels", "/out/labels"),
+        ("../out/run1", "/w/out/run1", "../out/labels", "/w/out/labels"),  # the hidden name does not matter
+        ("../out/run1", "/w/out/run1", "labels", None),  # it does: unknown
+        ("other/run", "/w/out/run1", "labels", None),
+        ("/abs/run", "/w/out/run1", "labels", None),
+    ])
+    def test_started_from(self, out: str, run_dir: str, path: str, found: str | None) -> None:
+        start = started_from(out, Path(run_dir))
+        resolved = None if start is None else os.path.normpath(start / path)
+        assert (None if resolved is None or runpaths._UNKNOWN in resolved else resolved) == found
+
+
+class TestNothingToDo:
+    def test_resume_of_a_finished_run_touches_nothing(self, finished_run: Path) -> None:
+        files = ("summary.json", "model.safetensors", "config.yaml", "last.pt", "metrics.jsonl")
+        before = {name: (finished_run / name).read_bytes() for name in files}
+        result = CliRunner().invoke(train_main, ["--resume", str(finished_run), "--steps", "2"])
+        assert result.exit_code == 0, result.output
+        assert f"{finished_run} is already at step 2 of 2: nothing to do; raise --steps to continue" in result.output
+        assert "nan" not in result.output and "trained" not in result.output
+        assert {name: (finished_run / name).read_bytes() for name in files} == before
+        assert json.loads(before["summary.json"])["last"]  # and it still has its last logs
+
+    def test_past_the_steps(self, finished_run: Path) -> None:
+        summary = loop.main(config_for_resume(finished_run, {"steps": 1}), resume=True, progress=False)
+        assert "at step 2, past --steps 1: nothing to do" in summary["nothing_to_do"]
+
+
+class TestChangedSettings:
+    def test_resume_warns_of_each_changed_setting(self, finished_run: Path,
+                                                  caplog: pytest.LogCaptureFixture) -> None:
+        with caplog.at_level(logging.WARNING):
+            config_for_resume(finished_run, {"lr": 5e-3, "crop": "96x160", "steps": 9, "max_minutes": 1.0})
+        warning = next(r.getMessage() for r in caplog.records if "changes the run's saved settings" in r.getMessage())
+        assert "optim.lr: 0.0001 -> 0.005" in warning and "data.crop: [32, 64] -> [96, 160]" in warning
+        assert "steps" not in warning and "max_minutes" not in warning
+
+    def test_steps_alone_warn_nothing(self, finished_run: Path, caplog: pytest.LogCaptureFixture) -> None:
+        with caplog.at_level(logging.WARNING):
+            config_for_resume(finished_run, {"steps": 9, "max_minutes": 2.0, "threads": 1})
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def _interrupt_at(monkeypatch: pytest.MonkeyPatch, step: int, signum: int) -> None:
+    """Send ``signum`` to this process in the middle of step ``step`` (after its forward pass), as Ctrl-C would."""
+    real = loop.train_step
+
+    def train_step(state, *args, **kwargs):
+        if state.step + 1 == step:
+            # without the trainer's handler the signal would stop (SIGINT) or kill (SIGTERM) pytest itself
+            assert signal.getsignal(signum) not in (signal.SIG_DFL, signal.default_int_handler), "no handler"
+            os.kill(os.getpid(), signum)
+        return real(state, *args, **kwargs)
+
+    monkeypatch.setattr(loop, "train_step", train_step)
+
+
+class TestInterrupt:
+    @pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+    def test_signal_finishes_the_step_saves_and_resumes_exactly(
+            self, tiny_shards: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, signum: int,
+            code: int) -> None:
+        full = loop.main(tiny_config(tiny_shards, tmp_path / "full", schedule="onecycle"), progress=False)
+        _interrupt_at(monkeypatch, 3, signum)
+        handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        with pytest.raises(TrainingInterrupted) as err:  # ckpt_every 2: step 3 is saved by the interrupt only
+            loop.main(tiny_config(tiny_shards, tmp_path / "part", schedule="onecycle"), progress=False)
+        assert {s: signal.getsignal(s) for s in handlers} == handlers  # put back
+        assert (err.value.step, err.value.exit_code) == (3, code)
+        assert f"--resume {tmp_path / 'part'}" in str(err.value)
+        assert load_checkpoint(tmp_path / "part").step == 3 and not list((tmp_path / "part").glob("*.tmp"))
+        monkeypatch.undo()
+        resumed = loop.main(config_for_resume(tmp_path / "part"), resume=True, progress=False)
+        assert (resumed["start_step"], resumed["step"]) == (3, 4)
+        assert resumed["param_checksum"] == pytest.approx(full["param_checksum"], rel=1e-6)
+
+    def test_ctrl_c_of_the_cli_saves_a_checkpoint_and_exits_130(self, tiny_shards: Path, tmp_path: Path) -> None:
+        """The real thing: SIGINT to a training subprocess once it logged a step."""
+        run = tmp_path / "run"
+        cmd = [sys.executable, "-m", "optstereo.cli", "train", "--labels", str(tiny_shards), "--out", str(run),
+               "--steps", "100000", "--batch-size", "2", "--crop", "32x64", "--iters", "2", "--workers", "0",
+               "--threads", "1", "--device", "cpu", "--log-every", "1", "--ckpt-every", "100000",
+               "--set", "tensorboard=false", *(f"--set=model.{k}={v}" for k, v in TINY.items())]
+        proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 300
+            while proc.poll() is None and time.monotonic() < deadline:
+                if (run / "metrics.jsonl").is_file() and (run / "metrics.jsonl").read_text().strip():
+                    break
+                time.sleep(0.05)
+            assert proc.poll() is None, f"the run ended before the signal: {proc.communicate()[1][-2000:]}"
+            proc.send_signal(signal.SIGINT)
+            _, stderr = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert proc.returncode == 130, stderr[-3000:]
+        step = load_checkpoint(run).step
+        logged = [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+        assert step >= 1 and logged[-1] == step  # the last completed step, every one of them logged
+        assert f"SIGINT: stopped at step {step} of 100000" in stderr
+        assert f"continue with: optstereo-train --resume {run}" in stderr and "Aborted!" not in stderr
+        more = CliRunner().invoke(train_main, ["--resume", str(run), "--steps", str(step + 1), "--quiet"])
+        assert more.exit_code == 0, more.output
+        assert f"trained {step} -> {step + 1} steps" in more.output
+
+    def test_resume_without_a_checkpoint_says_to_start_again(self, tiny_shards: Path, tmp_path: Path) -> None:
+        run = tmp_path / "run"
+        run.mkdir()
+        tiny_config(tiny_shards, run).save(run)  # what a run killed before its first checkpoint leaves
+        result = CliRunner().invoke(train_main, ["--resume", str(run)])
+        assert result.exit_code == 1
+        assert "the run never saved one" in result.output and f"--config {run / 'config.yaml'}" in result.output
+
+
+class TestNits:
+    def test_init_without_a_step_logs_none(self, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+        model = build_model("optstereo", **TINY)
+        export_safetensors(tmp_path / "w.safetensors", model)  # no step: stored as -1
+        with caplog.at_level(logging.INFO, logger="optstereo.training.checkpoints"):
+            init_weights(build_model("optstereo", **TINY), tmp_path / "w.safetensors")
+        assert [r.getMessage() for r in caplog.records] == [f"initialised from {tmp_path / 'w.safetensors'}"]
+        caplog.clear()
+        export_safetensors(tmp_path / "s.safetensors", model, step=7)
+        with caplog.at_level(logging.INFO, logger="optstereo.training.checkpoints"):
+            init_weights(build_model("optstereo", **TINY), tmp_path / "s.safetensors")
+        assert "(its step 7)" in caplog.text
+
+    def test_safetensors_export_gets_the_umask_mode(self, tmp_path: Path) -> None:
+        old = os.umask(0o022)
+        try:
+            path = export_safetensors(tmp_path / "m.safetensors", build_model("optstereo", **TINY))
+            plain = tmp_path / "plain"
+            plain.write_text("x")
+        finally:
+            os.umask(old)
+        assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777 == 0o644
+        assert load_checkpoint(path).step == -1 and not list(tmp_path.glob("*.tmp"))
