@@ -102,7 +102,10 @@ def test_predict_cli_sequence_on_a_folder(tmp_path) -> None:
     from pvm_labeler.common.io import write_image
 
     torch.manual_seed(0)
-    ckpt = save_checkpoint(tmp_path / "tiny.pt", model=build_model("optstereo", **TINY), step=0)
+    model = build_model("optstereo", **TINY)
+    zero_only = save_checkpoint(tmp_path / "zero.pt", model=model, step=0)
+    model.inference_config = InferenceConfig(coarse_start=True)  # a model trained with starts (version 14's kind)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", model=model, step=0)
     for i, (left, right) in enumerate(_frames(3)):
         for side, image in (("left", left), ("right", right)):
             (tmp_path / "rig" / side).mkdir(parents=True, exist_ok=True)
@@ -112,6 +115,10 @@ def test_predict_cli_sequence_on_a_folder(tmp_path) -> None:
     res = CliRunner().invoke(predict_main, [*args, "--out", str(tmp_path / "seq"), "--sequence", "--sequence-iters",
                                             "1"])
     assert res.exit_code == 0, res.output
+    zero_args = [*args[:1], str(zero_only), *args[2:]]
+    refused = CliRunner().invoke(predict_main, [*zero_args, "--out", str(tmp_path / "z"), "--sequence"])
+    assert refused.exit_code == 2 and "was trained from a zero start only" in " ".join(refused.output.split())
+    assert not list((tmp_path / "z").glob("*.npy"))
     plain = CliRunner().invoke(predict_main, [*args, "--out", str(tmp_path / "plain")])
     assert plain.exit_code == 0, plain.output
     seq = [np.load(tmp_path / "seq" / f"{i:04d}.npy") for i in range(3)]
