@@ -56,7 +56,8 @@ def more_options(fn):
                         help="--dataset frames (folder, kitti_unlabelled, sceneflow) are a video in frame-name order "
                              "(frame_2 before frame_10): each frame's GRU starts from the previous frame's answer with "
                              "--sequence-iters iterations; the first frame, a frame of another folder or size, and a "
-                             "scene cut run the plain path.")(fn)
+                             "scene cut run the plain path. Only for models trained with such starts "
+                             "(pretrained-accurate); refused for one trained from a zero start (pretrained).")(fn)
 
 
 def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], out_dir: Path, more: MoreOptions, *,

@@ -37,8 +37,8 @@ logger = logging.getLogger(__name__)
 Image = npt.NDArray[np.uint8]
 Disparity = npt.NDArray[np.float32]
 
-#: GRU iterations of every frame after the first (the shipped model's own is 8): the start is already within a
-#: fraction of a grid cell for most pixels. results/sequence.json measures 4 against independent frames.
+#: GRU iterations of every frame after the first (`pretrained-accurate`'s own is 8): the start is already within a
+#: fraction of a grid cell for most pixels. results/sequence/ measures 4 and 8 against independent frames.
 DEFAULT_SEQUENCE_ITERS = 4
 #: Pixels whose flow-warped previous left image differs from the current one by more than this (mean |RGB| / 255)
 #: are left out of :func:`temporal_change`: occlusions, moving objects, flow failures.
