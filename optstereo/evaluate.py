@@ -130,6 +130,9 @@ def evaluate_frames(
     """Measure every frame, pool the counts, and (with out_dir) write metrics.csv, summary.json, summary.md."""
     acc_all, acc_noc = MetricAccumulator(), MetricAccumulator()
     rows = []
+    if out_dir is not None:  # an earlier evaluation's summaries would pass for this one's if it stops midway
+        for name in ("summary.json", "summary.md"):
+            (Path(out_dir) / name).unlink(missing_ok=True)
     with contextlib.ExitStack() as stack:
         writer = None
         for frame in frames:
@@ -174,8 +177,11 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
             writer.writerows(result.rows)
     clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.summary.items()}
     keys = [k for k in SUMMARY_KEYS if k in result.summary]
+    n_noc = result.summary.get("n_frames_noc", result.summary["n_frames"])
+    noc = "" if n_noc == result.summary["n_frames"] else \
+        f" The *_noc columns cover the {n_noc} frame{'' if n_noc == 1 else 's'} with a non-occluded GT."
     lines = [f"# {title}", "", f"{result.summary['n_frames']} frames; pixels pooled over frames. EPE in px, "
-             "the others in %; F1 = bad3 (> 3 px, the paper's definition); D1 = > 3 px and > 5 % (KITTI).", "",
+             "the others in %; F1 = bad3 (> 3 px, the paper's definition); D1 = > 3 px and > 5 % (KITTI)." + noc, "",
              "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys),
              "| " + " | ".join(_fmt(result.summary[k]) for k in keys) + " |", "", "## Per frame", "",
              "| frame | epe | bad3 | d1_all | d1_noc | density |", "|---|---|---|---|---|---|"]
@@ -236,6 +242,7 @@ def evaluate_model(
     frame's final scale in its row).
     """
     config = model_inference_config(model, iters, scale, refine)
+    _require_gt(dataset, root, split, limit, reader_options)
     refs = {"scale_ref_disp": config.adaptive_ref_disp, "scale_ref_pixels": config.adaptive_ref_pixels} \
         if config.adaptive else None
     run_iters = config.iters if config.iters is not None else getattr(model, "iters", None)
@@ -255,6 +262,19 @@ def evaluate_model(
             yield frame
 
     return evaluate_frames(timed(), out_dir, save_maps=save_maps, meta=meta, title=f"OptStereo on {dataset}")
+
+
+def _require_gt(dataset: str, root: Path | None, split: str, limit: int | None,
+                reader_options: dict[str, Any] | None) -> None:
+    """ValueError before any network pass when no pair of the dataset (its first ``limit``) has a GT file (the
+    embedded ``sample`` keeps its GT in memory: not checked here)."""
+    if dataset == "sample":
+        return
+    pairs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
+    if pairs and all(ref.gt is None and ref.gt_noc is None for ref in pairs):
+        raise ValueError(f"none of the {len(pairs)} pairs of {dataset} under {root} has ground truth (split {split!r}"
+                         f"; a folder's GT: --gt DIR or ROOT/gt): optstereo-eval measures against GT; without it, "
+                         f"score a model on a GT-free validation set (--valset) or just predict")
 
 
 def evaluate_labels(

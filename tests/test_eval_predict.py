@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,7 @@ from conftest import TINY, Echo, make_shards
 
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, predict_main
-from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels
+from optstereo.evaluate import Frame, evaluate_frames, evaluate_labels, evaluate_model
 from optstereo.inference import engine as predict_mod
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import infer, model_inference_config, warn_if_emulated_bf16
@@ -53,10 +55,37 @@ class TestMetrics:
         s = evaluate_frames(frames, tmp_path).summary
         assert s["epe"] == pytest.approx(1.0) and s["n_frames"] == 2  # 4 px over 4 pixels, not mean(4, 0)
         assert math.isnan(s["d1_noc"]) and json.loads((tmp_path / "summary.json").read_text())["d1_noc"] is None
+        assert "The *_noc columns cover the 0 frames with a non-occluded GT." in (tmp_path / "summary.md").read_text()
 
     def test_exception_without_gt(self) -> None:
         with pytest.raises(ValueError, match="no frame with ground truth"):
             evaluate_frames([Frame("x", np.zeros((2, 2), np.float32), None)])
+
+    def test_an_earlier_summary_is_removed_before_the_first_frame(self, tmp_path: Path) -> None:
+        """summary.json marks a finished evaluation: an evaluation into the same folder that stops midway must not
+        leave the earlier one's summaries beside its own metrics.csv."""
+        gt = np.full((1, 2), 5.0, np.float32)
+        evaluate_frames([Frame("a", gt, gt)], tmp_path)
+        assert (tmp_path / "summary.json").exists() and (tmp_path / "summary.md").exists()
+
+        def dies() -> Iterator[Frame]:
+            yield Frame("b", gt + 1, gt)
+            raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):
+            evaluate_frames(dies(), tmp_path)
+        assert not (tmp_path / "summary.json").exists() and not (tmp_path / "summary.md").exists()
+        assert (tmp_path / "metrics.csv").read_text().splitlines()[1].startswith("b,")
+
+    def test_a_dataset_without_gt_is_refused_before_any_pass(self, tmp_path: Path) -> None:
+        from conftest import make_folder
+
+        root = make_folder(tmp_path / "pairs", n=2)
+        shutil.rmtree(root / "gt")
+        model = build_model("optstereo", **TINY, iters=1)
+        model.forward = None  # any network pass would fail differently
+        with pytest.raises(ValueError, match="none of the 2 pairs of folder under .* has ground truth"):
+            evaluate_model(model, "folder", root)
 
     def test_labels_of_shards(self, tmp_path: Path) -> None:
         shards = make_shards(tmp_path / "s", n=3, shard_size=2, height=8, width=16)

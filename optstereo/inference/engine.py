@@ -198,8 +198,9 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     device = torch.device(device)
     scale = first_scale(config, left.shape)
     if scale != config.scale:
-        logger.info("input scale by pixel budget: %dx%d pair enlarged %.3f -> %.3f", left.shape[1], left.shape[0],
-                    config.scale, scale)
+        logger.info("%dx%d pair run at input scale %.3f (the model's %.3f, %s toward a training-size pair's "
+                    "pixels)", left.shape[1], left.shape[0], scale, config.scale,
+                    "enlarged" if scale > config.scale else "shrunk")
     zero = coarse = None
     with _eval_mode(model):
         if not config.coarse_start or config.select or config.adaptive:
