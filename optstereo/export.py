@@ -46,9 +46,11 @@ runtime.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -124,9 +126,10 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
     with atomic_path(out) as tmp, torch.no_grad():
         if fmt == "onnx":
             dims = {0: "batch", 2: "height", 3: "width"} if batch else {2: "height", 3: "width"}
-            program = torch.onnx.export(graph, inputs, dynamo=True, input_names=names,
-                                        output_names=["disparity"], dynamic_shapes={n: dims for n in names},
-                                        opset_version=OPSET, optimize=False, verbose=False)
+            with _exporter_quiet():
+                program = torch.onnx.export(graph, inputs, dynamo=True, input_names=names,
+                                            output_names=["disparity"], dynamic_shapes={n: dims for n in names},
+                                            opset_version=OPSET, optimize=False, verbose=False)
             # the model's InferenceConfig travels in the file: infer_onnx runs it, as infer does
             program.model.metadata_props.update(recorded)
             program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
@@ -135,6 +138,25 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
             torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), buffer)
             tmp.write_bytes(buffer.getvalue())
     return out
+
+
+@contextlib.contextmanager
+def _exporter_quiet() -> Iterator[None]:
+    """torch.onnx's exporter without its chatter, none of it about this model: warnings that torchvision's
+    detection ops cannot be registered (not installed, not used), deprecations inside torch, onnx_ir's pass log and
+    "axis name not used" for the height and width that the two images share. Errors still raise."""
+    loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnx_ir", "onnxscript")]
+    levels = [lg.level for lg in loggers]
+    try:
+        for lg in loggers:
+            lg.setLevel(logging.ERROR)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.filterwarnings("ignore", message=r".*axis name.*will not be used", category=UserWarning)
+            yield
+    finally:
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
 
 
 def onnx_session(path: Path | str, threads: int = 0):

@@ -171,3 +171,18 @@ def test_shipped_model_onnx_at_kitti_size(tmp_path: Path, shared_data: Path, nam
         assert diff.mean() <= 0.01 and diff.max() <= 0.1, (coarse, diff.mean(), diff.max())
     assert end_to_end.mean() <= 0.01 and (end_to_end > 0.1).mean() <= 5e-4, (end_to_end.mean(),
                                                                               (end_to_end > 0.1).sum())
+
+
+def test_export_prints_no_exporter_chatter(exported: tuple[Path, Path], tmp_path: Path) -> None:
+    """A fresh process (the exporter warns once per process): torchvision's missing detection ops, torch's
+    deprecations, onnx_ir's pass log and the shared-axis notes are not the user's concern; the one line is."""
+    import subprocess
+    import sys
+
+    ckpt, _ = exported
+    done = subprocess.run([sys.executable, "-m", "optstereo.cli", "export", "--checkpoint", str(ckpt), "--out",
+                           str(tmp_path / "t.onnx")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    for chatter in ("torchvision", "FutureWarning", "onnx_ir", "axis name"):
+        assert chatter not in done.stderr + done.stdout, (chatter, done.stderr[-2000:])
+    assert f"wrote {tmp_path / 't.onnx'} (onnx" in done.stdout
