@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -13,8 +14,13 @@ from optstereo import validation
 from optstereo.api import load_model
 from optstereo.choices import AMP_MODES
 from optstereo.cli.common import GuardedCommand
+from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill
 from pvm_labeler.common.datasets import discover
+from pvm_labeler.shards import read_index
+
+#: The failed pairs ``maps`` lists at its end (all are in OUT/failures.json).
+MAX_LISTED = 20
 
 
 @click.group(help="Distillation targets: a teacher's dense views where PVM has no label (optstereo.training.distill).")
@@ -23,7 +29,8 @@ def distill_main() -> None:
 
 
 @distill_main.command("maps", cls=GuardedCommand,
-                      help="The teacher's two views of every pair of a dataset, one .npz each (resumable).")
+                      help="The teacher's two views of every pair of a dataset, one .npz each (resumable; the teacher "
+                           "is recorded in OUT/teacher.json, and a run with another teacher is refused).")
 @click.option("--checkpoint", required=True, help="Teacher: a checkpoint file, run directory or 'pretrained'.")
 @click.option("--dataset", default="folder", show_default=True, help="Dataset reader (pvm-label's names).")
 @click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), help="Dataset root.")
@@ -32,13 +39,29 @@ def distill_main() -> None:
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder of the .npz maps.")
 @click.option("--device", type=click.Choice(("cpu", "cuda")), default="cpu", show_default=True)
 @click.option("--amp", type=click.Choice(AMP_MODES), default="none", show_default=True, help="fp16: CUDA only.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
 def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str, out: Path, device: str,
-         amp: str) -> None:
+         amp: str, quiet: bool) -> None:
+    """Record the teacher in OUT (refusing another's maps), write the missing maps, list the unreadable pairs."""
     kwargs = {"left": left, "right": right} if dataset == "folder" else {}
     refs = discover(dataset, root, **kwargs)
     model = load_model(checkpoint, device)  # the engineered CPU pass, as every inference command loads it
-    written = distill.write_teacher_maps(model, refs, out, device, amp, progress=True)
+    record = distill.teacher_record(model, checkpoint, resolve_checkpoint_spec(checkpoint),
+                                    validation.weights_digest(model), amp)
+    try:
+        distill.claim_maps_dir(out, record)
+    except distill.TeacherMismatchError as exc:
+        raise click.BadParameter(str(exc), param_hint="--out") from exc
+    failures: list[dict[str, Any]] = []
+    written = distill.write_teacher_maps(model, refs, out, device, amp, progress=not quiet, failures=failures)
+    listed = distill.write_failures(out, failures)
     click.echo(f"{written} new teacher maps ({len(refs)} pairs) in {out}")
+    if failures:
+        shown = [f"  {f['frame_id']}: {f['error']}" for f in failures[:MAX_LISTED]]
+        more = [f"  ... and {len(failures) - MAX_LISTED} more"] if len(failures) > MAX_LISTED else []
+        click.echo("\n".join([f"{len(failures)} pairs FAILED (listed in {listed}):", *shown, *more]), err=True)
+        raise click.ClickException(f"{len(failures)} of {len(refs)} pairs have no map, first {failures[0]['frame_id']}"
+                                   f": {failures[0]['error']}; mend their images and re-run: only they are retried")
 
 
 @distill_main.command("fill", cls=GuardedCommand,
@@ -52,9 +75,18 @@ def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str
 @click.option("--allow-missing", is_flag=True, help="A pair without a map keeps its PVM labels (else an error).")
 def fill_command(labels: Path, maps_dir: Path, out: Path, fill_confidence: float, max_lr_diff: float,
                  compression: str | None, allow_missing: bool) -> None:
+    """Fill LABELS' holes from MAPS into OUT and print the label density before and after."""
     distill.fill(labels, maps_dir, out, fill_confidence, max_lr_diff, compression, progress=True,
                  allow_missing=allow_missing)
-    click.echo(f"teacher-filled shards in {out}")
+    summary = read_index(out).raw["summary"]
+    teacher = (distill.read_teacher_record(maps_dir) or {}).get("spec", "unrecorded (maps of an earlier version)")
+    click.echo(f"teacher-filled shards in {out}: label density {_percent(summary['label_fraction_pvm'])} -> "
+               f"{_percent(summary['label_fraction'])} of all pixels (teacher {teacher})")
+
+
+def _percent(value: float | None) -> str:
+    """'42.4 %', or 'n/a' for a density of no pixel."""
+    return "n/a" if value is None else f"{value:.1f} %"
 
 
 @distill_main.command("valset", cls=GuardedCommand,

@@ -11,13 +11,21 @@ confidence-weighted L_P learns in one pass what the teacher gives with several.
     optstereo-distill maps --checkpoint TEACHER --dataset folder --root PACK --out MAPS    one .npz per pair (resumable)
     optstereo-distill fill LABELS MAPS OUT [--fill-confidence 0.5] [--max-lr-diff 1.0]      PVM shards + teacher fills
 
+``maps`` records its teacher in ``MAPS/teacher.json`` (:func:`claim_maps_dir`: the checkpoint as given, its weights'
+digest, its inference settings): a re-run with the same teacher resumes, one with another is refused, since maps of
+two teachers must not mix. A folder of an earlier version (maps, no record) still reads everywhere; its teacher is
+unknown. Pairs whose images cannot be read are skipped and listed in ``MAPS/failures.json`` (pvm-label's form).
+
 No GT is read: the maps are made from the images alone, and ``fill`` refuses a shard directory whose samples carry GT
 (a GT frame must never enter a self-supervised training set).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -27,11 +35,13 @@ import numpy.typing as npt
 from torch import nn
 from tqdm import tqdm
 
+from optstereo.checkpoint import model_inference
 from optstereo.inference.engine import infer
 from optstereo.training.augment import right_view
-from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.atomic import atomic_path, atomic_write_text
 from pvm_labeler.common.datasets import load_pair, safe_stem
-from pvm_labeler.shards import rewrite
+from pvm_labeler.common.errors import InputError
+from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, rewrite
 from pvm_labeler.shards.fills import add_fills, right_confidence
 
 logger = logging.getLogger(__name__)
@@ -43,6 +53,14 @@ FILL_CONFIDENCE = 0.5
 #: The labeler's own left-right threshold (``LabelerConfig.lr_threshold``).
 MAX_LR_DIFF = 1.0
 MAP_SUFFIX = ".npz"
+#: A maps folder's record of its teacher (:func:`claim_maps_dir`); folders of earlier versions have none.
+RECORD = "teacher.json"
+#: A maps folder's pairs whose images could not be read (pvm-label's form: frame_id, error, type, files).
+FAILURES = "failures.json"
+
+
+class TeacherMismatchError(ValueError):
+    """A maps folder holds another teacher's maps than the one given (maps of two teachers must not mix)."""
 
 
 def teacher_views(model: nn.Module, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8],
@@ -88,21 +106,101 @@ def map_path(maps_dir: Path, frame_id: str) -> Path:
 
 
 def write_teacher_maps(model: nn.Module, refs: list[Any], maps_dir: Path, device: str = "cpu", amp: str = "none",
-                       progress: bool = False) -> int:
+                       progress: bool = False, failures: list[dict[str, Any]] | None = None) -> int:
     """Write ``MAPS/<frame id>.npz`` (``left``, ``right``: (H, W) float32 teacher views) for every pair of ``refs``
     (``pvm_labeler.common.datasets.PairRef``); a pair whose file exists is skipped (a re-run resumes). Each file is
-    written to a temporary name and renamed, so a killed run leaves no partial map. Returns the pairs written."""
+    written to a temporary name and renamed, so a killed run leaves no partial map. ``progress``: a tqdm bar on
+    stderr. With ``failures`` (a list), a pair whose images cannot be read (InputError) is appended to it in
+    pvm-label's form and skipped; without, the error is raised. Returns the pairs written."""
     maps_dir = Path(maps_dir)
     maps_dir.mkdir(parents=True, exist_ok=True)
     written = 0
-    for ref in tqdm(refs, desc="teacher", unit="pair", file=sys.stderr, disable=not (progress and sys.stderr.isatty())):
+    for ref in tqdm(refs, desc="teacher", unit="pair", file=sys.stderr, disable=not progress, dynamic_ncols=True):
         target = map_path(maps_dir, ref.frame_id)
         if target.exists():
             continue
-        sample = load_pair(ref)
+        try:
+            sample = load_pair(ref)
+        except InputError as exc:
+            if failures is None:
+                raise
+            logger.warning("pair %s skipped: %s", ref.frame_id, exc)
+            failures.append({"frame_id": ref.frame_id, "error": str(exc), "type": type(exc).__name__,
+                             "files": ref.to_dict()})
+            continue
         save_teacher_map(target, *teacher_views(model, sample.left, sample.right, device, amp))
         written += 1
     return written
+
+
+def write_failures(maps_dir: Path, failures: list[dict[str, Any]]) -> Path:
+    """Write ``MAPS/failures.json`` (atomically), or remove a stale one when ``failures`` is empty; its path."""
+    path = Path(maps_dir) / FAILURES
+    if failures:
+        atomic_write_text(path, json.dumps(failures, indent=2) + "\n")
+    else:
+        path.unlink(missing_ok=True)
+    return path
+
+
+def teacher_record(model: nn.Module, spec: str | Path, path: Path, digest: str, amp: str = "none") -> dict[str, Any]:
+    """What :func:`claim_maps_dir` records of a teacher: the checkpoint ``spec`` as given, the file it resolved to
+    (``path``) and that file's SHA-256 (None for a run directory), the weights' ``digest``
+    (``optstereo.validation.weights_digest``), the model's InferenceConfig and the ``amp`` mode."""
+    path = Path(path)
+    sha = None
+    if path.is_file():
+        sha = hashlib.sha256()
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                sha.update(block)
+    record = {"spec": str(spec), "file": str(path), "sha256": None if sha is None else sha.hexdigest(),
+              "digest": digest, "inference": model_inference(model).to_dict(), "amp": amp}
+    return json.loads(json.dumps(record))  # as it reads back: tuples become lists
+
+
+def read_teacher_record(maps_dir: Path) -> dict[str, Any] | None:
+    """``MAPS/teacher.json``, or None for a folder without one (an earlier version's); ValueError when corrupt."""
+    path = Path(maps_dir) / RECORD
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is corrupt ({exc}): remove it to record the teacher anew") from exc
+    if not isinstance(record, dict) or not isinstance(record.get("digest"), str):
+        raise ValueError(f"{path} is corrupt: no teacher digest; remove it to record the teacher anew")
+    return record
+
+
+def claim_maps_dir(maps_dir: Path, record: dict[str, Any]) -> str:
+    """Check that ``maps_dir`` holds no other teacher's maps than ``record``'s (:func:`teacher_record`), and record
+    it there (atomically) when none is: "new" (recorded), "same" (the recorded teacher: a re-run resumes) or
+    "unchecked" (maps without a record, from an earlier version: recorded now, with how many maps predate it).
+
+    Raises:
+        TeacherMismatchError: the recorded teacher has other weights or inference settings; names both.
+    """
+    maps_dir = Path(maps_dir)
+    old = read_teacher_record(maps_dir)
+    if old is not None:
+        changed = [key for key in ("digest", "inference") if old.get(key) != record[key]]
+        if changed:
+            settings = "" if "digest" in changed else " (same weights, other inference settings)"
+            raise TeacherMismatchError(
+                f"{maps_dir} holds the maps of teacher {old.get('spec')!r} (weights {old['digest']}); this run's "
+                f"teacher is {record['spec']!r} (weights {record['digest']}){settings}: maps of two teachers must not "
+                "mix; give another --out (or remove the folder to remake its maps)")
+        if old.get("amp") != record["amp"]:
+            logger.warning("%s: maps made with --amp %s, this run's are %s", maps_dir, old.get("amp"), record["amp"])
+        return "same"
+    maps_dir.mkdir(parents=True, exist_ok=True)
+    earlier = sum(1 for _ in maps_dir.glob(f"*{MAP_SUFFIX}"))
+    if earlier:
+        logger.warning("%s holds %d teacher maps without a record of their teacher (an earlier version's): it "
+                       "cannot be checked that they are %r's; resuming", maps_dir, earlier, record["spec"])
+    atomic_write_text(maps_dir / RECORD, json.dumps({**record, "unrecorded_maps": earlier}, indent=2) + "\n")
+    return "unchecked" if earlier else "new"
 
 
 def save_teacher_map(target: Path, left: npt.NDArray[np.float32], right: npt.NDArray[np.float32]) -> None:
@@ -140,6 +238,8 @@ def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float, max_lr_diff
     if allow_missing and not map_path(maps_dir, sample.frame_id).is_file():
         logger.warning("no teacher map for %s: its PVM labels stay as they are", sample.frame_id)
         return {}, {"distill_missing": 1}
+    if not map_path(maps_dir, sample.frame_id).is_file():
+        raise ValueError(missing_maps_message(maps_dir, [sample.frame_id], 1))
     teacher_left, teacher_right = consistent_views(*read_teacher_maps(maps_dir, sample.frame_id,
                                                                       sample.label.shape), max_lr_diff)
     label, conf, n_left = add_fills(sample.label, sample.confidence, teacher_left, fill_confidence)
@@ -161,27 +261,74 @@ def teacher_sample(sample: Any, maps_dir: Path, max_lr_diff: float) -> tuple[dic
     return arrays, {"teacher_only": 1, "teacher_pixels_left": int(np.isfinite(left).sum())}
 
 
+def missing_maps_message(maps_dir: Path, missing: list[str], total: int, allow_hint: bool = True) -> str:
+    """Why ``fill`` stops: which pairs have no map in ``maps_dir`` and the ways on (``--allow-missing`` with
+    ``allow_hint``)."""
+    first = f"pair {missing[0]} ({map_path(maps_dir, missing[0])})"
+    some = first if len(missing) == 1 else f"{len(missing)} of {total} pairs, first {first},"
+    hint = ", or pass --allow-missing to keep PVM's labels of the pairs without one" if allow_hint else ""
+    return f"no teacher map for {some}: run `optstereo-distill maps` over the same pairs first{hint}"
+
+
+def label_fraction(shard_dir: Path) -> float:
+    """% of all left-view pixels of a shard directory's samples that carry a label (pvm-label's ``label_fraction``);
+    NaN without a pixel."""
+    labelled = total = 0
+    for path, ids in read_index(shard_dir).shards:
+        with open_shard(path) as h5:
+            for frame_id in ids:
+                label = h5[frame_id]["label"][()]
+                labelled += int(np.isfinite(label).sum())
+                total += label.size
+    return 100.0 * labelled / total if total else float("nan")
+
+
 def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CONFIDENCE,
          max_lr_diff: float = MAX_LR_DIFF, compression: str | None = None, progress: bool = False,
          allow_missing: bool = False, teacher_only: bool = False) -> Path:
     """Rewrite the PVM shard directory ``src`` into ``out`` with the teacher's left-right consistent disparities in
     both views' holes (:func:`fill_sample`), or with ``teacher_only`` in place of PVM's labels
-    (:func:`teacher_sample`); resumable and atomic like ``pvm_labeler.shards.rewrite``.
+    (:func:`teacher_sample`); resumable and atomic like ``pvm_labeler.shards.rewrite``. ``out/index.json`` records
+    the settings and the maps' teacher (``distill``: ``MAPS/teacher.json``, None for maps of an earlier version),
+    and its ``summary.label_fraction`` is the filled shards' (the input's under ``label_fraction_pvm``).
 
     Raises:
-        ValueError: ``fill_confidence`` outside (0, 1], ``max_lr_diff`` < 0, a missing or mis-sized map, GT in a
-            sample.
+        ValueError: ``fill_confidence`` outside (0, 1], ``max_lr_diff`` < 0, a missing (before anything is written,
+            unless ``allow_missing``) or mis-sized map, GT in a sample.
     """
     if not 0 < fill_confidence <= 1 or not max_lr_diff >= 0:
         raise ValueError(f"distill fill: need 0 < fill_confidence <= 1 and max_lr_diff >= 0, got {fill_confidence} "
                          f"and {max_lr_diff}")
-    settings = {"maps": str(Path(maps_dir).resolve()), "fill_confidence": fill_confidence, "max_lr_diff": max_lr_diff,
-                "teacher_only": teacher_only}
+    maps_dir = Path(maps_dir)
+    ids = [frame_id for _, shard_ids in read_index(src).shards for frame_id in shard_ids]
+    missing = [frame_id for frame_id in ids if not map_path(maps_dir, frame_id).is_file()]
+    if missing and (teacher_only or not allow_missing):
+        raise ValueError(missing_maps_message(maps_dir, missing, len(ids), allow_hint=not teacher_only))
+    teacher = read_teacher_record(maps_dir)
+    if teacher is None:
+        logger.info("%s has no %s (maps of an earlier version): the teacher goes unrecorded", maps_dir, RECORD)
+    settings = {"maps": str(maps_dir.resolve()), "fill_confidence": fill_confidence, "max_lr_diff": max_lr_diff,
+                "teacher_only": teacher_only, "teacher": teacher}
     kwargs = {} if compression is None else {"compression": compression}
     def transform(sample: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         if teacher_only:
-            return teacher_sample(sample, Path(maps_dir), max_lr_diff)
-        return fill_sample(sample, Path(maps_dir), fill_confidence, max_lr_diff, allow_missing)
+            return teacher_sample(sample, maps_dir, max_lr_diff)
+        return fill_sample(sample, maps_dir, fill_confidence, max_lr_diff, allow_missing)
 
-    return rewrite(src, out, transform=transform, extra={"distilled_from": str(src), "distill": settings},
-                   progress=progress, **kwargs)
+    out = rewrite(src, out, transform=transform, extra={"distilled_from": str(src), "distill": settings},
+                  progress=progress, **kwargs)
+    _record_density(Path(out), label_fraction(Path(src)), label_fraction(Path(out)))
+    return Path(out)
+
+
+def _record_density(out: Path, before: float, after: float) -> None:
+    """Set ``out/index.json``'s ``summary.label_fraction`` to the filled shards' ``after`` (the input's
+    ``before`` kept as ``label_fraction_pvm``), rewriting the index atomically."""
+    path = out / INDEX_NAME
+    doc = json.loads(path.read_text())
+    summary = doc.get("summary") if isinstance(doc.get("summary"), dict) else {}
+    def finite(value: float) -> float | None:
+        return value if math.isfinite(value) else None
+
+    doc["summary"] = {**summary, "label_fraction": finite(after), "label_fraction_pvm": finite(before)}
+    atomic_write_text(path, json.dumps(doc, indent=2))
