@@ -1,6 +1,7 @@
 """Adapt the network to a new rig without ground truth: ``optstereo-adapt``.
 
-Steps, each resumable from ``OUT``:
+Steps, each resumable from ``OUT`` by the same command (``OUT/adapt_options.json`` records the options that define
+the adaptation when it starts; a re-run with other ones is refused, naming them: ``optstereo.adapt_record``):
 
 1. ``OUT/labels``: PVM labels of the rig's pairs, by the labeling job itself (``pvm-label run`` in a subprocess, so
    the trainer does not import the labeler; the job skips shards already complete).
@@ -26,7 +27,8 @@ Steps, each resumable from ``OUT``:
    neither is worse by more than it; otherwise the start is kept. With fewer than ``MIN_HELD`` frames to hold back
    (and one to train on) no decision can be made and the start is kept, saying so.
 5. ``OUT/report.json`` / ``report.md``: both scores before and after, the decision and why, and GT bad-3 on every frame
-   when the dataset has GT, read only after the decision. ``OUT/adapted.<ext>``: the kept weights.
+   when the dataset has GT, read only after the decision. ``OUT/adapted.<ext>``: the kept weights. Each is written
+   whole (a temporary file renamed), ``report.json`` last: it marks a finished adaptation.
 """
 
 from __future__ import annotations
@@ -34,7 +36,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from optstereo.adapt_label import label_rig
+from optstereo.adapt_record import forget_start, record_options, write_report, write_split, write_weights
+from optstereo.adapt_report import changes_text, report_markdown
 from optstereo.api import load_model
 from optstereo.checkpoint import load_checkpoint, model_inference
 from optstereo.data.transforms import rescale_sample
@@ -56,10 +60,11 @@ from optstereo.training import distill
 from optstereo.training.checkpoints import config_for_resume, init_settings
 from optstereo.training.config import TrainConfig
 from optstereo.training.loop import main
-from optstereo.validation import PairScore, paired_difference, pooled, pvm_label, score_pair, shard_samples, verdict
+from optstereo.validation import PairScore, paired_difference, pooled, score_pair, shard_samples, verdict
 from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.errors import counted
 from pvm_labeler.common.metrics import MetricAccumulator
-from pvm_labeler.shards import ShardRecord, read_index, write_shard_dir
+from pvm_labeler.shards import ShardRecord, open_shard, read_index, write_shard_dir
 
 logger = logging.getLogger(__name__)
 
@@ -122,8 +127,8 @@ class AdaptConfig:
             raise ValueError(f"--lr must be > 0, got {self.lr}")
         if not 0 < self.holdout < 1:
             raise ValueError(f"--holdout must be in (0, 1), got {self.holdout}")
-        if self.steps is not None and self.steps < 0:
-            raise ValueError(f"--steps must be >= 0, got {self.steps}")
+        if self.steps is not None and self.steps < 1:  # the trainer takes no 0-step run
+            raise ValueError(f"--steps must be >= 1, got {self.steps}")
         if not self.minutes > 0:
             raise ValueError(f"--minutes must be > 0, got {self.minutes}")
         if self.teacher_only and self.teacher is None:
@@ -262,7 +267,7 @@ def budget_steps(cfg: AdaptConfig, train_labels: Path, run_dir: Path) -> int:
     steps = int(min(MAX_STEPS, max(PROBE_STEPS, cfg.minutes * 60.0 / s_per_step)))
     atomic_write_text(record, json.dumps({"minutes": cfg.minutes, "probe_steps": PROBE_STEPS,
                                           "s_per_step": s_per_step, "steps": steps}, indent=2))
-    logger.info("budget: %d steps fit %.1f minutes at %.2f s per step", steps, cfg.minutes, s_per_step)
+    logger.info("budget: %s fit %g minutes at %.2f s per step", counted(steps, "step"), cfg.minutes, s_per_step)
     return steps
 
 
@@ -303,12 +308,12 @@ def decide(before: list[PairScore], after: list[PairScore]) -> Decision:
     """Keep the adapted weights only when a GT-free score of the held-back frames is better by more than its noise
     and none is worse by more than its noise (see the module docstring)."""
     if len(before) < MIN_HELD:
-        return Decision(False, f"no decision can be made: {len(before)} held-back frames, the guard needs "
-                               f"{MIN_HELD} (and one more to train on); the start is kept", {})
+        return Decision(False, f"no decision can be made: {counted(len(before), 'held-back frame')}, the guard "
+                               f"needs {MIN_HELD} (and one more to train on); the start is kept", {})
     changes = {key: paired_difference(before, after, key, Z) for key in SCORES}
     worse = [k for k, change in changes.items() if verdict(*change) == "worse"]
     better = [k for k, change in changes.items() if verdict(*change) == "better"]
-    text = ", ".join(f"{k} {mean:+.3f} (noise {margin:.3f})" for k, (mean, margin) in changes.items())
+    text = changes_text(changes)
     if worse:
         return Decision(False, f"start kept: held-back frames worse beyond noise in {', '.join(worse)} ({text})",
                         changes)
@@ -318,32 +323,56 @@ def decide(before: list[PairScore], after: list[PairScore]) -> Decision:
                     changes)
 
 
-def gt_scores(checkpoint: str | Path, labels: Path, device: str = "auto", quiet: bool = False,
+def gt_frames(labels: Path) -> list[str]:
+    """The frames of a shard directory that have GT (a finite pixel of it); only their GT is read."""
+    ids = []
+    for path, shard_ids in read_index(labels).shards:
+        with open_shard(path) as h5:
+            ids += [i for i in shard_ids if "gt" in h5[i] and np.isfinite(h5[i]["gt"][()]).any()]
+    return ids
+
+
+def gt_scores(checkpoint: str | Path, labels: Path, ids: list[str], device: str = "auto", quiet: bool = False,
               what: str = "") -> dict[str, Any]:
-    """GT bad-3 / EPE of every frame that has GT, pooled and per frame ({} when none has GT); score only."""
+    """GT bad-3 / EPE of the frames ``ids`` (:func:`gt_frames`), pooled and per frame ({} when there are none: no
+    model loaded, no progress bar); score only."""
+    if not ids:
+        return {}
     model = load_model(checkpoint, device)
     dev = next(model.parameters()).device
     pooled_acc, frames = MetricAccumulator(), {}
-    for s in tqdm(shard_samples(labels), desc=f"GT {what}".strip(), unit="pair", disable=quiet):
-        if s.gt is not None and np.isfinite(s.gt).any():
-            disp = infer(model, s.left, s.right, device=dev)
-            frames[s.frame_id] = pooled_acc.update(disp, s.gt)["bad3"]
-    if not pooled_acc.n_covered:
-        return {}
+    for s in tqdm(shard_samples(labels, set(ids)), total=len(ids), desc=f"GT {what}".strip(), unit="pair",
+                  disable=quiet):
+        disp = infer(model, s.left, s.right, device=dev)
+        frames[s.frame_id] = pooled_acc.update(disp, s.gt)["bad3"]
     gt = pooled_acc.compute()
     return {"gt_bad3": gt["bad3"], "gt_epe": gt["epe"], "gt_frames": frames}
 
 
 def run(cfg: AdaptConfig) -> dict[str, Any]:
-    """All steps; returns the report (also written to OUT/report.json and OUT/report.md)."""
+    """All steps; returns the report (also written to OUT/report.json, last, and OUT/report.md).
+
+    A re-run into the same OUT resumes it when its options are the ones OUT was started with (ConfigError naming
+    those that differ otherwise, before anything is done); a run that fails before anything is done leaves OUT as
+    it found it."""
     cfg.check()
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    labels = pvm_label(cfg.dataset, cfg.root, cfg.out / "labels", cfg.reader_options, cfg.limit, cfg.max_disp,
-                       cfg.quiet)
+    created = not cfg.out.exists()
+    wrote_record = record_options(cfg)
+    try:
+        return _run(cfg)
+    except BaseException:
+        forget_start(cfg.out, created, wrote_record)
+        raise
+
+
+def _run(cfg: AdaptConfig) -> dict[str, Any]:
+    """:func:`run`'s steps, in a started OUT."""
+    init = resolve_checkpoint_spec(cfg.init)
+    labels = label_rig(cfg.dataset, cfg.root, cfg.out / "labels", cfg.reader_options, cfg.limit, cfg.max_disp,
+                       cfg.quiet, SHARD_COMPRESSION)
     ids = [i for _, shard_ids in read_index(labels).shards for i in shard_ids]
     train_ids, held_ids = split_frames(ids, cfg.holdout, cfg.seed)
-    atomic_write_text(cfg.out / "split.json", json.dumps({"train": train_ids, "held_back": held_ids}, indent=2))
-    init = resolve_checkpoint_spec(cfg.init)
+    write_split(cfg.out, train_ids, held_ids)
     train = write_train_labels(cfg, labels, train_ids)
     targets = distill_train_labels(cfg, train) if cfg.teacher is not None else train
     trained, steps = finetune(cfg, at_inference_scale(cfg, targets))
@@ -351,17 +380,14 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
         before = score_frames(init, labels, held_ids, cfg.device, cfg.quiet, "before")
         after = score_frames(trained, labels, held_ids, cfg.device, cfg.quiet, "after")
     decision = decide(before, after)
-    source = trained if decision.adapted else init
-    adapted = cfg.out / f"adapted{source.suffix or '.pt'}"
-    for stale in cfg.out.glob("adapted.*"):  # a resumed run's earlier decision, its int8 clips too
-        stale.unlink()
-    shutil.copyfile(source, adapted)
+    # GT, where the rig has it, is read only now: it scores the decision, it never makes it
+    with_gt = gt_frames(labels)
+    with engineering(True, int8=False):
+        gt_before = gt_scores(init, labels, with_gt, cfg.device, cfg.quiet, "before")
+        gt_after = gt_scores(trained, labels, with_gt, cfg.device, cfg.quiet, "after")
+    adapted = write_weights(cfg.out, trained if decision.adapted else init)  # whole or not at all
     clips = inherit_clips(adapted, init, not decision.adapted, lambda: [  # int8 as fast as the start, if it has it
         (s.left, s.right) for s in shard_samples(labels, set(spread(sorted(train_ids), PAIRS)))])
-    # GT, where the rig has it, is read only now: it scores the decision, it never makes it
-    with engineering(True, int8=False):
-        gt_before = gt_scores(init, labels, cfg.device, cfg.quiet, "before")
-        gt_after = gt_scores(trained, labels, cfg.device, cfg.quiet, "after")
     report = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
               "init": str(init), "pairs": len(ids), "steps": steps, "train_frames": train_ids,
               "held_back_frames": held_ids,
@@ -369,8 +395,7 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
               "lr": cfg.learning_rate(), "adapted": decision.adapted, "changes": decision.changes,
               "checkpoint": str(adapted), "int8_clips": None if clips is None else str(clips),
               "trained": str(trained), "decision": decision.reason}
-    (cfg.out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
-    (cfg.out / "report.md").write_text(report_markdown(report))
+    write_report(cfg.out, report, report_markdown(report))  # report.json last: it marks a finished adaptation
     return report
 
 
@@ -381,33 +406,3 @@ def _summary(scores: list[PairScore]) -> dict[str, Any]:
     return {"held_frames": len(scores), "held_bad3": p["pvm_bad3"], "held_epe": p["pvm_epe"],
             "held_pixels": int(p["pvm_pixels"]), "photometric_holes": p["photometric"],
             "per_frame": {s.frame_id: {k: s.value(k) for k in SCORES} for s in scores}}
-
-
-def _teacher_words(config: dict[str, Any]) -> str:
-    """The report's words for the run's targets."""
-    if not config.get("teacher"):
-        return "."
-    if config.get("teacher_only"):
-        return f"; the teacher `{config['teacher']}`'s consistent views alone (no PVM labels, no L_R / L_S)."
-    return f"; the teacher `{config['teacher']}` in PVM's holes."
-
-
-def report_markdown(report: dict[str, Any]) -> str:
-    """The report as a short Markdown table."""
-    rows = [("held-back frames: PVM bad-3 (%)", "held_bad3"), ("held-back frames: PVM EPE (px)", "held_epe"),
-            ("held-back frames: photometric error in PVM's holes", "photometric_holes"),
-            ("GT bad-3 (%), every frame, score only", "gt_bad3"), ("GT EPE (px), score only", "gt_epe")]
-    lines = ["# optstereo-adapt report", "", f"{report['pairs']} pairs ({len(report['held_back_frames'])} held back); "
-             f"start `{report['init']}`; {report.get('steps', report['config']['steps'])} steps"
-             + ("" if report["config"].get("steps") is not None
-                else f" (as many as fit {report['config']['minutes']:g} minutes)")
-             + (f" at lr {report['lr']:g}" if "lr" in report else "")
-             + _teacher_words(report["config"]), "", "| | before | after |",
-             "| --- | --- | --- |"]
-    for name, key in rows:
-        if key in report["before"] and not math.isnan(float(report["before"][key])):
-            lines.append(f"| {name} | {report['before'][key]:.3f} | {report['after'][key]:.3f} |")
-    lines += ["", f"**{report['decision']}**", "", f"checkpoint `{report['checkpoint']}`", ""]
-    if not report.get("adapted", True) and report.get("trained"):
-        lines += [f"the trained weights, not chosen (use them at your own risk): `{report['trained']}`", ""]
-    return "\n".join(lines)

@@ -8,6 +8,7 @@ from typing import Any
 import click
 
 from optstereo.adapt import DEFAULT_LR, DEFAULT_MINUTES, DEFAULT_TEACHER_LR, AdaptConfig, run
+from optstereo.adapt_label import LabelingError
 from optstereo.cli.common import (
     EXISTING,
     GuardedCommand,
@@ -25,12 +26,13 @@ from optstereo.cli.common import (
 @click.option("--root", type=EXISTING, help="The rig's folder (its pairs; GT, if any, is used only to score).")
 @reader_options
 @click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Output folder: labels/, split.json, train_labels/, run/, report.json/.md, adapted.* (resumable).")
+              help="Output folder: labels/, split.json, train_labels/, run/, report.json/.md, adapted.* (resumable: "
+                   "the same command again continues it; other options need a fresh folder).")
 @click.option("--init", default="pretrained", help="Start from this checkpoint (file, RUN_DIR or 'pretrained').")
 @click.option("--minutes", type=click.FloatRange(min=0, min_open=True), default=DEFAULT_MINUTES,
               help="Fine-tuning budget in wall minutes (batch 1, 320x736 crops): the step count is set from the "
                    "first 10 steps' time (~150 steps on 2 AVX2 cores, 460-640 on a Zen 5), plus labeling and scoring.")
-@click.option("--steps", type=click.IntRange(min=0), default=None,
+@click.option("--steps", type=click.IntRange(min=1), default=None,
               help="Fine-tuning steps, instead of --minutes.  [default: as many as fit --minutes]")
 @click.option("--lr", type=float, default=None,
               help=f"Adam learning rate of the fine-tuning. "
@@ -64,5 +66,8 @@ def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, min
                       init=init, steps=steps, minutes=minutes, lr=lr, holdout=holdout, limit=limit,
                       max_disp=max_disp, seed=seed, device=device, teacher=teacher, teacher_only=teacher_only,
                       inference_scale=inference_scale, quiet=quiet)
-    report = run(cfg)
+    try:
+        report = run(cfg)
+    except LabelingError as exc:  # the labeler's own message, once (its type says nothing to the user)
+        raise click.ClickException(str(exc)) from exc
     click.echo(f"{report['decision']}; checkpoint {report['checkpoint']}")
