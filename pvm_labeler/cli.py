@@ -5,6 +5,7 @@ Forms::
     pvm-label --dataset kitti15 --root data/kitti15 --out out/labels/kitti15   # same as `pvm-label run ...`
     pvm-label run --config labels.yaml --kappa1 0.8                            # YAML sets defaults, flags win
     pvm-label run --config labels.yaml --print-config                          # the resolved YAML; labels nothing
+    pvm-label pack-gt --dataset kitti15 --root data/kitti15 --out out/gt       # images + GT shards, no labels
     pvm-label verify DIR                                                       # schema, counts, readability
     pvm-label report DIR [DIR ...] --out REPORT_DIR                            # label quality vs GT + pictures
     pvm-label densify DIR OUT                                                  # holes filled by superpixel planes
@@ -24,14 +25,13 @@ from typing import Any
 import click
 import yaml
 
+from pvm_labeler.cli_options import job_options, reader_option_values, reader_options
 from pvm_labeler.common.datasets import DATASETS, DEFAULT_MAX_DISP, SPLITS
 from pvm_labeler.common.errors import ConfigError, PVMError, counted
-from pvm_labeler.config import RECIPES, LabelerConfig, recipe_values
+from pvm_labeler.config import LabelerConfig, recipe_values
 from pvm_labeler.job.spec import DEFAULT_LABELER
 from pvm_labeler.match import MATCH_FORMATS
 from pvm_labeler.packgt import PACK_GT_LABELER
-from pvm_labeler.parallel import BACKENDS
-from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
 
 _DEFAULTS = LabelerConfig()
 
@@ -48,9 +48,7 @@ class _DefaultRunGroup(click.Group):
     """A group whose default command is ``run``, so ``pvm-label --dataset X`` works as the issue spells it."""
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        if args and args[0] == "pack-gt":  # GT shards, no labeling pass: run with --labels none
-            args = ["run", "--labels", "none", *args[1:]]
-        elif not args or (args[0] not in self.commands and args[0] not in ("--help", "-h", "--version")):
+        if not args or (args[0] not in self.commands and args[0] not in ("--help", "-h", "--version")):
             args = ["run", *args]
         return super().parse_args(ctx, args)
 
@@ -60,7 +58,7 @@ class _DefaultRunGroup(click.Group):
 def main() -> None:
     """PVM pseudo-labels for stereo datasets: label (default command `run`), `verify`, `report`, `convert`, `densify`,
     `match` (dense SGM + fill, no network);
-    `pack-gt` = `run --labels none` (images + GT in shards, no labeling pass, for --supervision gt)."""
+    `pack-gt` (GT-only shards: images + GT, no labeling pass, for optstereo-train --supervision gt)."""
 
 
 def _setup_logging(verbose: int) -> None:
@@ -125,12 +123,7 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
         config = LabelerConfig.from_dict({**recipe_values(values.get("recipe") or "default"), **labeler})
     except TypeError as exc:
         raise ConfigError(f"bad labeler config: {exc}") from exc
-    options = dict(yaml_doc.get("dataset_options") or {})
-    for key in ("left", "right", "gt"):
-        if values.get(key) is not None:
-            options[key] = str(values[key])
-    if values.get("sceneflow_pass") is not None:
-        options["pass_"] = values["sceneflow_pass"]
+    options = {**(yaml_doc.get("dataset_options") or {}), **reader_option_values(values)}
     label_fn = DEFAULT_LABELER
     if values.get("labels") == "none":  # recorded in the config, so resume never mixes a GT pack with labels
         label_fn = PACK_GT_LABELER
@@ -159,69 +152,34 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
 
 
 @main.command("run")
-@click.option("--dataset", type=click.Choice(DATASETS), default="sample", show_default=True,
-              help="Dataset reader (official layouts; `sample` needs no files).")
-@click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
-              help="Dataset folder (KITTI: the folder holding training/ and testing/). Not needed for `sample`.")
-@click.option("--out", type=click.Path(path_type=Path), default=None,
-              help="Shard output directory.  [default: out/labels/DATASET]")
-@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
-              help="YAML file of option defaults (flag names with underscores; `labeler:` mapping for all "
-                   "LabelerConfig fields). Flags override it. The resolved config is written to OUT/config.yaml.")
-@click.option("--recipe", type=click.Choice(sorted(RECIPES)), default="default", show_default=True,
-              help="Starting point of the labeler config: 'paper' = the paper's PVM as written (finest-scale label, "
-                   "binary votes on C1 and C2, LRDCC, nothing else); --config's labeler: and the flags override it.")
-@click.option("--labels", type=click.Choice(["pvm", "none"]), default="pvm", show_default=True,
-              help="none = no labeling pass: shards of images + GT only (every pair needs GT), for "
-                   "optstereo-train --supervision gt; `pvm-label pack-gt` is the same.")
-@click.option("--k", type=int, default=_DEFAULTS.k, show_default=True, help="Pyramid scales K (>= 2).")
-@click.option("--kappa1", type=float, default=_DEFAULTS.kappa1, show_default=True,
-              help="Threshold on the std of disparity across scales, px (full resolution).")
-@click.option("--kappa2", type=float, default=_DEFAULTS.kappa2, show_default=True,
-              help="Threshold on the std of the normalized inverse cost across scales (unitless).")
-@click.option("--max-disp", type=int, default=_DEFAULTS.max_disp, show_default=True,
-              help="Search range [0, max-disp) at full resolution, px (sample: 64 unless given).")
-@click.option("--lr-threshold", type=float, default=_DEFAULTS.lr_threshold, show_default=True,
-              help="Left-right consistency threshold, px.")
-@click.option("--seed", type=int, default=_DEFAULTS.seed, show_default=True, help="Seed of the pyramid jitter.")
-@click.option("--split", type=click.Choice(SPLITS), default="training", show_default=True, help="Dataset split.")
-@click.option("--limit", type=click.IntRange(min=1), default=None, help="Label only the first N pairs (sorted ids).")
-@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Parallel workers (numba threads per worker = cores // jobs).")
-@click.option("--backend", type=click.Choice(BACKENDS), default="loky", show_default=True,
-              help="loky processes, threads, or a Dask distributed cluster.")
-@click.option("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) for --backend dask; "
-              "without it a local cluster of --jobs workers is started. OUT must be on a shared file system.")
-@click.option("--shard-size", type=click.IntRange(min=1), default=2, show_default=True,
-              help="Pairs per shard (the unit of parallel work and of resume).")
-@click.option("--resume/--no-resume", default=True, show_default=True,
-              help="Skip shards that are already complete and match this config.")
-@click.option("--overwrite", is_flag=True, default=False, help="Delete this job's previous files in OUT first.")
-@click.option("--quiet", is_flag=True, default=False, help="No progress bar (it is also off when stderr is not a TTY).")
-@click.option("--compression", type=click.Choice(COMPRESSIONS), default=DEFAULT_COMPRESSION,
-              show_default=True, help="HDF5 compression of the shards (blosc-* need hdf5plugin, a dependency).")
-@click.option("--numba-threads", type=click.IntRange(min=1), default=None,
-              help="Numba threads per worker.  [default: cores // jobs]")
-@click.option("--left", default=None, help="folder dataset: left images (folder or glob, relative to --root), "
-              "paired with --right by file name.  [default: left, i.e. ROOT/left]")
-@click.option("--right", default=None, help="folder dataset: right images (folder or glob, relative to --root).  "
-              "[default: right, i.e. ROOT/right]")
-@click.option("--gt", default=None, help="folder dataset: optional GT folder (KITTI-style PNG x256, .pfm or .npy).  "
-              "[default: ROOT/gt when it exists]")
-@click.option("--sceneflow-pass", type=click.Choice(["clean", "final"]), default=None,
-              help="sceneflow dataset: render pass.  [default: clean]")
-@click.option("--print-config", is_flag=True, default=False,
-              help="Print the resolved configuration (defaults + --config + flags) as YAML, the content "
-                   "OUT/config.yaml would get, and exit without labelling.")
-@click.option("-v", "--verbose", count=True, help="-v info, -vv debug logging on stderr.")
+@job_options()
 @click.pass_context
 def run_cmd(ctx: click.Context, config_file: Path | None, print_config: bool, verbose: int, **_: Any) -> None:
     """Label a dataset into versioned HDF5 shards (resumable; see docs/labeling.md)."""
+    _run_job(ctx, config_file, print_config, verbose)
+
+
+@main.command("pack-gt")
+@job_options(pack_gt=True)
+@click.pass_context
+def pack_gt_cmd(ctx: click.Context, config_file: Path | None, print_config: bool, verbose: int, **_: Any) -> None:
+    """Pack a dataset's images and ground truth into versioned HDF5 shards with no labeling pass: GT-only shards
+    for supervised training (optstereo-train --supervision gt). Every pair needs GT. Resumable like `run` (the same
+    as `run --labels none`); the labeler's options are accepted but unused."""
+    _run_job(ctx, config_file, print_config, verbose, labels="none")
+
+
+def _run_job(ctx: click.Context, config_file: Path | None, print_config: bool, verbose: int,
+             labels: str | None = None) -> None:
+    """`run` and `pack-gt`: merge flags and --config, build the JobSpec, run it and print its summary (exit 1 when
+    pairs failed). ``labels``: forced ``--labels`` value (`pack-gt`: none)."""
     _setup_logging(verbose)
     from pvm_labeler.job import run
 
     yaml_doc = _load_yaml(config_file)
     values = _merged(ctx, yaml_doc)
+    if labels is not None:
+        values["labels"] = labels
     try:
         spec = build_spec(values, yaml_doc)
         if print_config:
@@ -308,8 +266,10 @@ def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fi
 
 
 @main.command("match")
-@click.argument("left", required=False, type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.argument("right", required=False, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("left_file", metavar="[LEFT]", required=False,
+                type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("right_file", metavar="[RIGHT]", required=False,
+                type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--out", type=click.Path(path_type=Path), required=True,
               help="Output folder: OUT/<left stem or frame id>.<format>.")
 @click.option("--format", "formats", type=click.Choice(MATCH_FORMATS), multiple=True, default=("png",),
@@ -328,26 +288,31 @@ def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fi
 @click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
               help="Pairs matched at once (numba threads per pair = cores // jobs).")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar (also off when stderr is not a TTY).")
+@reader_options
 @click.option("-v", "--verbose", count=True, help="-v info logging.")
-def match_cmd(left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...], dataset: str | None,
-              root: Path | None, split: str, limit: int | None, max_disp: int | None, fill: bool, jobs: int,
-              quiet: bool, verbose: int) -> None:
+def match_cmd(left_file: Path | None, right_file: Path | None, out: Path, formats: tuple[str, ...],
+              dataset: str | None, root: Path | None, split: str, limit: int | None, max_disp: int | None, fill: bool,
+              jobs: int, quiet: bool, verbose: int, **reader: str | None) -> None:
     """Dense disparity fast on a CPU, no network: census SGM + row fill (pvm_labeler.dense), for LEFT RIGHT or
-    --dataset NAME --root DIR."""
+    --dataset NAME --root DIR. With --dataset, a pair that cannot be read is skipped and listed in
+    OUT/failures.json (exit 1 after the others are written)."""
     _setup_logging(verbose)
     from pvm_labeler.match import match_dataset, match_pair
 
-    if dataset is None and (left is None or right is None):
+    if dataset is None and (left_file is None or right_file is None):
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME (with --root)")
-    if dataset is not None and left is not None:
+    if dataset is not None and left_file is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
+    given = sorted(f"--{name.replace('_', '-')}" for name, value in reader.items() if value is not None)
+    if dataset is None and given:
+        raise click.UsageError(f"{', '.join(given)}: dataset reader options; give them with --dataset")
     try:
         if dataset is None:
-            paths = match_pair(left, right, out, formats=formats, max_disp=max_disp, fill=fill)
+            paths = match_pair(left_file, right_file, out, formats=formats, max_disp=max_disp, fill=fill)
             click.echo(f"wrote {', '.join(str(p) for p in paths.values())}")
             return
         done = match_dataset(dataset, root, out, split=split, formats=formats, max_disp=max_disp, fill=fill,
-                             jobs=jobs, limit=limit, quiet=quiet)
+                             jobs=jobs, limit=limit, quiet=quiet, reader_options=reader_option_values(reader))
     except (PVMError, OSError) as exc:  # OSError: OUT not writable (a file, no permission, disk full)
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {len(done)} pairs into {out} ({', '.join(formats)})")

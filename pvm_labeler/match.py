@@ -8,11 +8,14 @@ disparity of exactly 0 and the holes of ``--no-fill`` both read back as unknown)
 
 Search range: ``max_disp`` when given, else (datasets) the pair's own hint (Middlebury / ETH3D ``calib.txt`` ndisp)
 or the dataset's default, else ``LabelerConfig().max_disp`` (192). Datasets run ``jobs`` pairs at once over
-:func:`pvm_labeler.parallel.run_tasks` (joblib loky), each with ``cores // jobs`` numba threads.
+:func:`pvm_labeler.parallel.run_tasks` (joblib loky), each with ``cores // jobs`` numba threads. A dataset pair that
+cannot be read (a corrupt or truncated image, left/right sizes that differ) is skipped, the others are written, and
+``OUT/failures.json`` ({frame id: reason}) lists the skipped ones, as ``optstereo-predict --dataset`` does.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,10 +25,13 @@ import numpy as np
 import numpy.typing as npt
 
 from pvm_labeler.common import io
+from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.datasets import DEFAULT_MAX_DISP, PairRef, check_pair_sizes, discover, load_pair
-from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.errors import InputError, PVMError
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.dense import fill_rows_nearest, sgm_left
+from pvm_labeler.job import progress
+from pvm_labeler.job.outdir import FAILURES_FILE
 from pvm_labeler.parallel import numba_threads_per_worker, run_tasks, thread_budget
 
 logger = logging.getLogger(__name__)
@@ -93,11 +99,17 @@ class MatchTask:
     fill: bool
     threads: int
     paths: dict[str, Path] = field(default_factory=dict)
+    error: str | None = None  # why the pair could not be read (then nothing was written for it)
 
 
 def _match_task(task: MatchTask) -> MatchTask:
+    """Match and write one pair; a pair that cannot be read comes back with ``error`` set and no ``paths``."""
     with thread_budget(task.threads):
-        sample = load_pair(task.ref)
+        try:
+            sample = load_pair(task.ref)
+        except PVMError as exc:
+            task.error = str(exc)
+            return task
         max_disp = task.max_disp or sample.max_disp or DEFAULT_MAX_DISP.get(task.ref.meta.get("dataset", ""))
         disp = _match_named(sample.left, sample.right, max_disp, task.fill,
                             f"pair {task.ref.frame_id} ({task.ref.left}, {task.ref.right})")
@@ -111,21 +123,56 @@ def match_dataset(dataset: str, root: Path | None, out_dir: Path, *, split: str 
                   ) -> list[MatchTask]:
     """Match every pair of a dataset (its official layout, :mod:`pvm_labeler.common.datasets`) into ``out_dir``.
 
-    Every pair's files are checked (existence, equal sizes, from the headers) before the first is matched, so a bad
-    file stops the run at once, named. A progress bar over pairs goes to stderr (off when ``quiet`` or stderr is
-    no TTY). Returns the finished tasks (``.paths``) in completion order.
-    """
-    from pvm_labeler.job.progress import progress_bar
+    Every pair's files are checked from their headers (existence, equal sizes) before the first is matched. A pair
+    that cannot be read (there, or when decoded: a corrupt or truncated image) is skipped and the others are written;
+    then ``out_dir/failures.json`` lists each skipped pair with its reason and an InputError names the first. A run
+    with no such pair removes an earlier run's failures.json. A progress bar over pairs goes to stderr (off when
+    ``quiet`` or stderr is no TTY). Returns the written tasks (``.paths``) in completion order.
 
+    Raises:
+        InputError: no pairs found, or some pairs could not be read (after the others were written).
+    """
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
+    failed: dict[str, str] = {}
+    readable = []
     for ref in refs:
-        check_pair_sizes(ref)
-    jobs = min(jobs, len(refs))
+        try:
+            check_pair_sizes(ref)
+        except PVMError as exc:
+            logger.warning("skipped %s: %s", ref.frame_id, exc)
+            failed[ref.frame_id] = str(exc)
+        else:
+            readable.append(ref)
+    jobs = max(1, min(jobs, len(readable)))
     threads = numba_threads_per_worker(jobs)
-    tasks = [MatchTask(ref, Path(out_dir), tuple(formats), max_disp, fill, threads) for ref in refs]
+    tasks = [MatchTask(ref, Path(out_dir), tuple(formats), max_disp, fill, threads) for ref in readable]
     done = []
-    with progress_bar(len(tasks), 0, quiet, desc="pvm-label match") as bar:
+    with progress.progress_bar(len(refs), len(failed), quiet, desc="pvm-label match") as bar:
         for task in run_tasks(_match_task, tasks, "loky", jobs):
-            done.append(task)
+            if task.error is None:
+                done.append(task)
+            else:
+                logger.warning("skipped %s: %s", task.ref.frame_id, task.error)
+                failed[task.ref.frame_id] = task.error
             bar.update(1)
+    record_failures(Path(out_dir), {ref.frame_id: failed[ref.frame_id] for ref in refs if ref.frame_id in failed},
+                    len(refs))
     return done
+
+
+def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
+    """Write ``out_dir/failures.json`` ({frame id: reason}) and raise an InputError naming the first, when any pair
+    could not be read; else remove an earlier run's failures.json (every pair is written now).
+
+    Raises:
+        InputError: "N of M pairs could not be read, e.g. ID: REASON; the other K were written; the list: PATH".
+    """
+    path = out_dir / FAILURES_FILE
+    if not failed:
+        path.unlink(missing_ok=True)
+        return
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(failed, indent=2) + "\n")
+    first = next(iter(failed))
+    raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
+                     f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")

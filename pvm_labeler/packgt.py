@@ -30,5 +30,6 @@ def require_gt(refs: list[PairRef]) -> None:
     missing = [r for r in refs if r.gt is None]
     if missing:
         names = ", ".join(f"{r.frame_id} ({r.left})" for r in missing[:5])
-        raise InputError(f"--labels none packs ground truth, but {len(missing)} of {len(refs)} pairs have none: "
-                         f"{names}{' ...' if len(missing) > 5 else ''}")
+        raise InputError(f"pack-gt (run --labels none) packs ground truth, but {len(missing)} of {len(refs)} pairs "
+                         f"have none: {names}{' ...' if len(missing) > 5 else ''} (a folder dataset reads "
+                         "its GT from --gt, default ROOT/gt)")

@@ -148,11 +148,11 @@ class TestDataset:
         assert len(done) == 2 and seen == {"updates": 2, "total": 2, "desc": "pvm-label match"}
 
     def test_exception(self, tmp_path: Path) -> None:
-        """A pair whose sizes differ stops the run before anything is matched, naming the file."""
+        """A pair whose sizes differ is skipped, named with the file, and listed; the other pair is written."""
         root = make_folder(tmp_path / "data", n=2, size=(32, 64))
         io.write_image(root / "right/001.png", np.zeros((32, 60, 3), np.uint8))
         result = _invoke("--dataset", "folder", "--root", root, "--out", tmp_path / "out", "--max-disp", 16)
         assert result.exit_code == 1 and "sizes differ" in result.output and "right/001.png" in result.output
-        assert not (tmp_path / "out").exists()
+        assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["000.png", "failures.json"]
         missing = _invoke("--dataset", "kitti15", "--root", tmp_path / "nowhere", "--out", tmp_path / "out")
         assert missing.exit_code == 2 and "nowhere" in missing.output

@@ -15,6 +15,7 @@ from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.job.outdir import FAILURES_FILE
 from pvm_labeler.job.spec import JobSpec
 from pvm_labeler.job.worker import ShardOutcome
+from pvm_labeler.packgt import PACK_GT_LABELER
 from pvm_labeler.shards import write_index
 
 
@@ -38,27 +39,32 @@ class JobSummary:
     cpu_seconds_per_pair: float  # worker CPU time (all threads) per labelled pair: load-independent cost
     parallel: dict[str, Any]
     failures: list[dict[str, Any]]
+    gt_only: bool = False  # a GT pack (pvm-label pack-gt): images + GT, no labels
+    gt_fraction: float = math.nan  # % of all image pixels with valid GT
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     def format(self) -> str:
-        """Human-readable multi-line summary."""
-        if self.shards_total and self.shards_resumed == self.shards_total:  # no pair was labelled by this run
-            head = (f"nothing to do: all {counted(self.pairs_labeled, 'pair')} in {self.out} were already labelled "
+        """Human-readable multi-line summary (a GT pack's: pairs packed and GT density, no label lines)."""
+        done = "packed" if self.gt_only else "labelled"
+        if self.shards_total and self.shards_resumed == self.shards_total:  # no pair was worked on by this run
+            head = (f"nothing to do: all {counted(self.pairs_labeled, 'pair')} in {self.out} were already {done} "
                     f"({counted(self.shards_resumed, 'shard')} resumed, checked in {self.seconds:.1f} s)")
         else:
-            head = (f"labelled {self.pairs_labeled}/{counted(self.pairs_total, 'pair')} into {self.out} "
+            speed = (f" ({self.pairs_per_s:.2f} pairs/s, peak RSS per worker {self.peak_rss_mb_per_worker:.0f} MiB)"
+                     if self.pairs_per_s > 0 else "")  # NaN or 0: no pair was worked on, nothing to time
+            what = " (images + GT, no labels)" if self.gt_only else ""
+            head = (f"{done} {self.pairs_labeled}/{counted(self.pairs_total, 'pair')}{what} into {self.out} "
                     f"({counted(self.shards_written, 'shard')} written, {self.shards_resumed} resumed) in "
-                    f"{self.seconds:.1f} s ({self.pairs_per_s:.2f} pairs/s, peak RSS per worker "
-                    f"{self.peak_rss_mb_per_worker:.0f} MiB)")
-        lines = [head, f"label density: {self.label_fraction:.1f} % of all pixels"]
-        for name, m in (("GT", self.metrics), ("GT noc", self.metrics_noc)):
-            if m and m.get("n_valid"):
-                lines.append(
-                    f"vs {name}: density {m['density']:.1f} % of GT-valid pixels, bad-1 {m['bad1']:.2f} %, "
-                    f"bad-3 {m['bad3']:.2f} %, AEPE {m['epe']:.3f} px, D1 {m['d1']:.2f} %"
-                )
+                    f"{self.seconds:.1f} s{speed}")
+        if self.gt_only:  # no labels: label density and errors vs GT would read as a failure (0 %, NaN)
+            lines = [head, f"GT density: {self.gt_fraction:.1f} % of all pixels"]
+        else:
+            lines = [head, f"label density: {self.label_fraction:.1f} % of all pixels"]
+            lines += [f"vs {name}: density {m['density']:.1f} % of GT-valid pixels, bad-1 {m['bad1']:.2f} %, "
+                      f"bad-3 {m['bad3']:.2f} %, AEPE {m['epe']:.3f} px, D1 {m['d1']:.2f} %"
+                      for name, m in (("GT", self.metrics), ("GT noc", self.metrics_noc)) if m and m.get("n_valid")]
         if self.failures:
             lines.append(f"{counted(len(self.failures), 'pair')} FAILED (see {Path(self.out) / FAILURES_FILE}; a "
                          "re-run retries them):")
@@ -116,6 +122,8 @@ def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcom
         parallel={"backend": spec.backend, "jobs": spec.jobs, "numba_threads_per_worker": threads,
                   "scheduler": spec.scheduler},
         failures=failures,
+        gt_only=spec.label_fn == PACK_GT_LABELER,
+        gt_fraction=100.0 * acc.n_valid / total_px if total_px else math.nan,
     )
     if failures:
         atomic_write_text(spec.out / FAILURES_FILE, json.dumps(failures, indent=2))
