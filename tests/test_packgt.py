@@ -50,3 +50,18 @@ def test_a_gt_pack_is_never_resumed_as_labels(tmp_path: Path) -> None:
     assert runner.invoke(pvm_main, ["pack-gt", *args]).exit_code == 0
     again = runner.invoke(pvm_main, ["run", *args])  # a PVM run into the GT pack's directory
     assert again.exit_code != 0 and "labels" in again.output
+
+
+def test_pack_gt_of_pairs_narrower_than_the_search_range(tmp_path: Path) -> None:
+    """A GT pack runs no matcher: pairs narrower than the labeler's 192-px search are packed (the labeling job
+    refuses them, since its pyramid could not search them)."""
+    from conftest import make_folder
+
+    root = make_folder(tmp_path / "pairs", n=2, size=(32, 64))
+    result = CliRunner().invoke(pvm_main, ["pack-gt", "--dataset", "folder", "--root", str(root), "--out",
+                                           str(tmp_path / "gt"), "--quiet"])
+    assert result.exit_code == 0, result.output
+    assert read_index(tmp_path / "gt").num_samples == 2
+    labelled = CliRunner().invoke(pvm_main, ["run", "--dataset", "folder", "--root", str(root), "--out",
+                                             str(tmp_path / "labels"), "--quiet"])
+    assert labelled.exit_code != 0 and "must be smaller than the image width 64" in labelled.output

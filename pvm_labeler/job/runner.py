@@ -43,7 +43,7 @@ def run(spec: JobSpec) -> JobSummary:
         refs = refs[: spec.limit]
     if spec.label_fn == PACK_GT_LABELER:
         require_gt(refs)
-    work = preflight(refs, spec.config)
+    work = preflight(refs, spec.config, matcher=spec.label_fn != PACK_GT_LABELER)
     plan = plan_shards(refs, spec.shard_size)
     doc = job_doc(spec, plan)
     prepare_out(spec, doc)

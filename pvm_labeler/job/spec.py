@@ -123,18 +123,21 @@ def _check_frame_size(height: int, width: int, cfg: LabelerConfig, frame_id: str
     return geometry
 
 
-def preflight(refs: list[PairRef], cfg: LabelerConfig) -> dict[str, int]:
+def preflight(refs: list[PairRef], cfg: LabelerConfig, matcher: bool = True) -> dict[str, int]:
     """Check every pair from file headers before anything is written; raise one InputError listing all problems.
+    ``matcher`` False (a GT pack: no matching) checks the files and sizes only, not the pyramid's needs.
 
     Returns:
-        {frame_id: predicted work} of every pair (:func:`predicted_work`, used to order the shards).
+        {frame_id: predicted work} of every pair (:func:`predicted_work`, used to order the shards; the pixel count
+        without the matcher).
     """
     problems = []
     work = {}
     for ref in refs:
         try:
             height, width = check_pair_sizes(ref)
-            work[ref.frame_id] = predicted_work(_check_frame_size(height, width, cfg, ref.frame_id))
+            work[ref.frame_id] = (predicted_work(_check_frame_size(height, width, cfg, ref.frame_id)) if matcher
+                                  else height * width)
         except InputError as exc:
             problems.append(f"{ref.frame_id}: {exc}")
     if problems:
