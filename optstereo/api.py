@@ -82,5 +82,8 @@ def predict(
     if right is None:
         if isinstance(left, np.ndarray):
             raise ValueError("predict(model, left, right): give the right image, or a list of (left, right) pairs")
+        if isinstance(left, tuple) and len(left) == 2 and all(isinstance(x, np.ndarray) and x.ndim == 3 for x in left):
+            raise ValueError("predict(model, (left, right)): one pair is predict(model, left, right) (or "
+                             "predict(model, *pair)); several are a list of (left, right) tuples")
         return [one(lft, rgt) for lft, rgt in left]
     return one(np.asarray(left), np.asarray(right))

@@ -41,7 +41,9 @@ def resolve_device(name: str, local_rank: int = 0) -> torch.device:
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name == "cuda":
         if not torch.cuda.is_available():
-            raise RuntimeError("--device cuda was requested but torch.cuda.is_available() is False")
+            build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
+            raise RuntimeError(f"device cuda was requested but torch.cuda.is_available() is False (torch "
+                               f"{torch.__version__}, {build}): use device cpu (or auto), or install a CUDA torch")
         return torch.device("cuda", local_rank)
     if name != "cpu":
         raise ValueError(f"--device must be auto, cpu or cuda, got {name!r}")

@@ -73,8 +73,9 @@ def _motorcycle_metrics(disp, gt) -> str:
 SHOWN = ("pretrained", "pretrained-accurate")
 
 
-def overview(out: Path, pred_npy: Path, shipped_npy: dict[str, Path]) -> Path:
-    """left | PVM labels | GT / demo network | each shipped network for the motorcycle pair, metrics in the titles."""
+def overview(out: Path, pred_npy: Path, shipped_npy: dict[str, Path], minutes: float = 4.0) -> Path:
+    """left | PVM labels | GT / demo network (trained ``minutes``) | each shipped network for the motorcycle pair,
+    metrics in the titles."""
     import matplotlib  # lazy: matplotlib.use("Agg") must run before pyplot loads
 
     matplotlib.use("Agg")
@@ -91,7 +92,7 @@ def overview(out: Path, pred_npy: Path, shipped_npy: dict[str, Path]) -> Path:
     fig, axes = plt.subplots(2, 3, figsize=(17, 8.5))
     panels = [("left image", sample.left), (f"PVM labels: {_motorcycle_metrics(label, sample.gt)}", label),
               ("ground truth", sample.gt),
-              (f"demo OptStereo, 4 CPU min: {_motorcycle_metrics(pred, sample.gt)}", pred)]
+              (f"demo OptStereo, {minutes:g} CPU min: {_motorcycle_metrics(pred, sample.gt)}", pred)]
     for name, path in shipped_npy.items():
         disp = np.load(path)
         panels.append((f"shipped {name}: {_motorcycle_metrics(disp, sample.gt)}", disp))
@@ -163,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
               str(data / "motorcycle_right.png"), "--out", str(out / f"predict_{name}"), "--format", "npy",
               "--format", "color", "--device", "cpu"], log)
     picture = overview(out, out / "predict" / "motorcycle_left.npy",
-                       {name: out / f"predict_{name}" / "motorcycle_left.npy" for name in SHOWN})
+                       {name: out / f"predict_{name}" / "motorcycle_left.npy" for name in SHOWN}, args.minutes)
 
     net = json.loads((out / "eval_network" / "summary.json").read_text())
     lab = json.loads((out / "eval_labels" / "summary.json").read_text())

@@ -358,3 +358,59 @@ class TestTrain:
         assert result.exit_code == 2 and f"{run / 'config.yaml'} changes the model" in result.output
         assert "model.hidden_dim: 16 -> 32" in result.output
         assert json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["step"] == 1  # nothing trained
+
+
+class TestApiImages:
+    """The Python API names a wrong image before any network pass, with the conversion that fixes it: a float image
+    in [0, 1] used to run as a nearly black one and return a wrong map without a word."""
+
+    @pytest.fixture(scope="class")
+    def model(self) -> torch.nn.Module:
+        model = build_model("optstereo", **TINY_BASE, iters=1).eval()
+        model.forward = None  # any network pass would fail with another error
+        return model
+
+    @pytest.mark.parametrize("make, message", [
+        (lambda im: im / 255.0, r"must be uint8 \(0-255\) RGB, got float64: values in \[0, 1\]\?"),
+        (lambda im: im.astype(np.uint16) * 257, r"got uint16: 16-bit\? \(image // 257\)"),
+        (lambda im: im[..., 0], r"got shape \(32, 64\) \(a grey image"),
+        (lambda im: im[..., :1], r"got shape \(32, 64, 1\) \(a grey image"),
+        (lambda im: np.concatenate([im, im[..., :1]], axis=2), r"got shape \(32, 64, 4\) \(RGBA"),
+        (lambda im: im.transpose(2, 0, 1), r"got shape \(3, 32, 64\) \(channels first"),
+    ])
+    def test_wrong_images_are_named(self, model: torch.nn.Module, make, message: str) -> None:
+        from optstereo import predict
+
+        image = np.random.default_rng(0).integers(0, 256, (32, 64, 3), dtype=np.uint8)
+        with pytest.raises(ValueError, match="left image .*" + message):
+            predict(model, make(image), image)
+
+    def test_one_pair_as_a_tuple(self, model: torch.nn.Module) -> None:
+        from optstereo import predict
+
+        image = np.zeros((32, 64, 3), np.uint8)
+        with pytest.raises(ValueError, match=r"one pair is predict\(model, left, right\)"):
+            predict(model, (image, image))
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("model.iters=", "model option iters must be an integer >= 1, got None"),
+    ("model.feature_dim=null", "model option feature_dim must be an integer >= 1, got None"),
+    ("optim.lr=null", "optim.lr needs a value of type float, got null"),
+])
+def test_a_null_setting_is_named_not_a_traceback(setting: str, message: str, tmp_path: Path) -> None:
+    """An empty --set value or YAML's null for a numeric setting: a usage error naming it (was a TypeError
+    traceback from a comparison with None)."""
+    shards = make_shards(tmp_path / "s", n=1, shard_size=1)
+    result = invoke(train_main, "--labels", shards, "--out", tmp_path / "run", "--print-config", "--set", setting)
+    assert result.exit_code in (1, 2) and message in result.output, result.output
+    assert not isinstance(result.exception, TypeError)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the message is for a machine without CUDA")
+def test_cuda_without_cuda_says_which_torch(tmp_path: Path) -> None:
+    from optstereo import load_model
+
+    ckpt = save_checkpoint(tmp_path / "t.pt", model=build_model("optstereo", **TINY_BASE), step=0)
+    with pytest.raises(RuntimeError, match=rf"torch {torch.__version__.replace('+', '[+]')}, .*use device cpu"):
+        load_model(ckpt, device="cuda")

@@ -19,6 +19,7 @@ import functools
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -50,6 +51,34 @@ def to_batch(image: npt.NDArray[np.uint8], device: torch.device) -> torch.Tensor
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) RGB image, got shape {image.shape}")
     return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float()[None].to(device)
+
+
+def check_image(image: Any, which: str) -> None:
+    """ValueError unless ``image`` is an (H, W, 3) uint8 RGB array, naming what it is and how to get there: a grey
+    (H, W) or (H, W, 1) image, RGBA, channels first (3, H, W), float or 16-bit values (the network reads 0-255
+    intensities: a float image in [0, 1] would be read as nearly black, without an error)."""
+    shape = getattr(image, "shape", None)
+    dtype = getattr(image, "dtype", None)
+    if shape is None or dtype is None:
+        raise ValueError(f"{which} image must be a NumPy array (H, W, 3) uint8 RGB, got {type(image).__name__}")
+    if len(shape) == 2 or (len(shape) == 3 and shape[2] == 1):
+        hint = "a grey image: np.repeat(image.reshape(H, W, 1), 3, axis=2) gives RGB"
+    elif len(shape) == 3 and shape[2] == 4:
+        hint = "RGBA: image[..., :3]"
+    elif len(shape) == 3 and shape[0] in (1, 3) and shape[2] not in (1, 3):
+        hint = "channels first: image.transpose(1, 2, 0)"
+    elif len(shape) != 3 or shape[2] != 3:
+        hint = "not an image of one view"
+    else:
+        hint = ""
+    if hint:
+        raise ValueError(f"{which} image must be (H, W, 3) uint8 RGB, got shape {tuple(shape)} ({hint})")
+    if dtype != np.uint8:
+        how = ("values in [0, 1]? (image * 255).round().astype(np.uint8)" if np.dtype(dtype).kind == "f" else
+               "16-bit? (image // 257).astype(np.uint8)" if np.dtype(dtype) == np.uint16 else
+               "image.astype(np.uint8) if its values are 0-255")
+        raise ValueError(f"{which} image must be uint8 (0-255) RGB, got {dtype}: {how}; "
+                         "pvm_labeler.common.io.read_image reads any image file as such")
 
 
 NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")  # x86 /proc/cpuinfo "flags"; aarch64 "Features"
@@ -175,8 +204,6 @@ def infer(
     Returns:
         (H, W) float32 disparity in pixels of the input (positive, left(x) matches right(x - d)).
     """
-    if left.shape != right.shape:
-        raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     return run(model, left, right, model_inference_config(model, iters, scale, refine), device, amp).disparity
 
 
@@ -193,6 +220,8 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
     Returns the (H, W) float32 disparity in the input's pixels and the scale of the final pass.
     """
     config = (config or model_inference(model)).validate()
+    check_image(left, "left")
+    check_image(right, "right")
     if left.shape != right.shape:
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     device = torch.device(device)

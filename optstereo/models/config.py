@@ -78,8 +78,11 @@ class NetworkConfig:
 def check_at_least(config: NetworkConfig, minimum: int, *keys: str) -> None:
     """ValueError naming the first of ``keys`` whose value in ``config`` is below ``minimum``."""
     for key in keys:
-        if getattr(config, key) < minimum:
-            raise ValueError(f"model option {key} must be >= {minimum}, got {getattr(config, key)}")
+        value = getattr(config, key)
+        if isinstance(value, bool) or not isinstance(value, int):  # null from YAML / an empty --set, a string
+            raise ValueError(f"model option {key} must be an integer >= {minimum}, got {value!r}")
+        if value < minimum:
+            raise ValueError(f"model option {key} must be >= {minimum}, got {value}")
 
 
 @dataclass(frozen=True)

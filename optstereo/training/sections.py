@@ -97,8 +97,11 @@ def _typed(cls: type, key: str, value: Any) -> Any:
     string), as a float. Fields whose default is None, a tuple or a list are checked by the section itself."""
     default = next((f.default for f in dataclasses.fields(cls) if f.name == key), None)
     kind = type(default) if isinstance(default, (bool, int, float, str)) else None
-    if kind is None or value is None or type(value) is kind:
+    if kind is None or type(value) is kind:
         return value
+    if value is None:  # YAML's null or an empty --set value: no scalar field of a section takes it
+        raise ConfigError(f"{cls.NAME}.{key} needs a value of type {kind.__name__}, got null (an empty --set value "
+                          f"or YAML's null); its default is {default!r}")
     if kind is float and not isinstance(value, bool):
         try:
             return float(value)
