@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import yaml
 from click.testing import CliRunner
-from conftest import TINY, tiny_config
+from conftest import TINY, make_shards, tiny_config
 
 from optstereo.checkpoint import export_safetensors, load_checkpoint, save_checkpoint
 from optstereo.cli import train_main
@@ -241,3 +241,19 @@ class TestNits:
             os.umask(old)
         assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777 == 0o644
         assert load_checkpoint(path).step == -1 and not list(tmp_path.glob("*.tmp"))
+
+
+def test_under_torchrun_only_rank_0_prints_the_summary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every rank runs the command; the run's closing lines come once, from rank 0."""
+    from click.testing import CliRunner
+
+    import optstereo.cli.train as train_cli
+    from optstereo.cli import train_main
+
+    summary = {"start_step": 0, "step": 4, "seconds": 1.0, "last": {"L_P": 0.5}, "checkpoint": "RUN/last.pt"}
+    monkeypatch.setattr(train_cli, "main", lambda *a, **k: summary)
+    shards = make_shards(tmp_path / "s", n=1, shard_size=1)
+    args = ["--labels", str(shards), "--out", str(tmp_path / "run"), "--quiet"]
+    assert "trained 0 -> 4 steps" in CliRunner(env={"RANK": "0"}).invoke(train_main, args).output
+    other = CliRunner(env={"RANK": "1"}).invoke(train_main, args)
+    assert other.exit_code == 0 and "trained" not in other.output, other.output

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -143,6 +144,8 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
     except TrainingInterrupted as exc:  # Ctrl-C / SIGTERM: its checkpoint is saved; exit as the signal would
         click.echo(str(exc), err=True)
         sys.exit(exc.exit_code)  # not ctx.exit: click's Exit is a RuntimeError, which GuardedCommand reports
+    if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 speaks for the run
+        return
     if "nothing_to_do" in summary:
         click.echo(summary["nothing_to_do"])
         return
