@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import IO, Any, cast
 
+from optstereo.validation import label_command
 from pvm_labeler.common.errors import counted
 
 logger = logging.getLogger(__name__)
@@ -28,9 +29,6 @@ FAILURES = "failures.json"
 #: What to do about a pair the labeler could not read.
 MEND_HINT = ("Mend or remove the pair (both views), then re-run the same command: it resumes, the pairs already "
              "labelled are kept")
-#: The reader-option keys and pvm-label's flags for them.
-READER_FLAGS = {"left": "--left", "right": "--right", "gt": "--gt", "gt_scale": "--gt-scale",
-                "pass_": "--sceneflow-pass"}
 
 
 class LabelingError(RuntimeError):
@@ -98,23 +96,6 @@ def run_labeler(cmd: list[str]) -> tuple[int, str, str]:
         stdout.seek(0)
         printed = stdout.read().decode(errors="replace")
     return code, printed, relay.finish()
-
-
-def label_command(dataset: str, root: Path | None, out: Path, reader_options: dict[str, Any] | None,
-                  limit: int | None, max_disp: int | None, quiet: bool, compression: str) -> list[str]:
-    """The ``pvm-label run`` command line of a rig."""
-    cmd = [sys.executable, "-m", "pvm_labeler.cli", "run", "--dataset", dataset, "--out", str(out),
-           "--compression", compression]
-    if root is not None:
-        cmd += ["--root", str(root)]
-    for key, flag in READER_FLAGS.items():
-        if (reader_options or {}).get(key) is not None:
-            cmd += [flag, str(reader_options[key])]
-    if limit:
-        cmd += ["--limit", str(limit)]
-    if max_disp:
-        cmd += ["--max-disp", str(max_disp)]
-    return cmd + (["--quiet"] if quiet else [])
 
 
 def failed_pairs_text(out: Path, since: float = 0.0) -> str:

@@ -133,24 +133,34 @@ def open_valset(root: Path | str) -> ValSet:
     return ValSet(root=root, labels=root / "labels", maps=root / "maps", manifest=manifest)
 
 
-def pvm_label(dataset: str, root: Path | None, out: Path, reader_options: dict[str, Any] | None = None,
-              limit: int | None = None, max_disp: int | None = None, quiet: bool = False) -> Path:
-    """``pvm-label run`` into ``out`` in a subprocess (the trainer never imports the labeler); resumes a half-done
-    job. RuntimeError with the job's last output when it fails."""
+#: The reader-option keys and pvm-label's flags for them.
+READER_FLAGS = {"left": "--left", "right": "--right", "gt": "--gt", "gt_scale": "--gt-scale",
+                "pass_": "--sceneflow-pass"}
+
+
+def label_command(dataset: str, root: Path | None, out: Path, reader_options: dict[str, Any] | None = None,
+                  limit: int | None = None, max_disp: int | None = None, quiet: bool = False,
+                  compression: str = SHARD_COMPRESSION) -> list[str]:
+    """The ``pvm-label run`` command line (this interpreter's) labeling a dataset into ``out``."""
     cmd = [sys.executable, "-m", "pvm_labeler.cli", "run", "--dataset", dataset, "--out", str(out),
-           "--compression", SHARD_COMPRESSION]
+           "--compression", compression]
     if root is not None:
         cmd += ["--root", str(root)]
-    flags = {"left": "--left", "right": "--right", "gt": "--gt", "pass_": "--sceneflow-pass"}
-    for key, flag in flags.items():
+    for key, flag in READER_FLAGS.items():
         if (reader_options or {}).get(key) is not None:
             cmd += [flag, str(reader_options[key])]
     if limit:
         cmd += ["--limit", str(limit)]
     if max_disp:
         cmd += ["--max-disp", str(max_disp)]
-    if quiet:
-        cmd += ["--quiet"]
+    return cmd + (["--quiet"] if quiet else [])
+
+
+def pvm_label(dataset: str, root: Path | None, out: Path, reader_options: dict[str, Any] | None = None,
+              limit: int | None = None, max_disp: int | None = None, quiet: bool = False) -> Path:
+    """``pvm-label run`` into ``out`` in a subprocess (the trainer never imports the labeler); resumes a half-done
+    job. RuntimeError with the job's last output when it fails."""
+    cmd = label_command(dataset, root, out, reader_options, limit, max_disp, quiet)
     logger.info("labeling: %s", " ".join(cmd))
     done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
     if done.returncode != 0:

@@ -15,7 +15,6 @@ cannot be read (a corrupt or truncated image, left/right sizes that differ) is s
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,13 +24,12 @@ import numpy as np
 import numpy.typing as npt
 
 from pvm_labeler.common import io
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import DEFAULT_MAX_DISP, PairRef, check_pair_sizes, discover, load_pair
 from pvm_labeler.common.errors import InputError, PVMError
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.dense import fill_rows_nearest, sgm_left
 from pvm_labeler.job import progress
-from pvm_labeler.job.outdir import FAILURES_FILE
 from pvm_labeler.parallel import numba_threads_per_worker, run_tasks, thread_budget
 
 logger = logging.getLogger(__name__)
@@ -159,20 +157,3 @@ def match_dataset(dataset: str, root: Path | None, out_dir: Path, *, split: str 
                     len(refs))
     return done
 
-
-def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
-    """Write ``out_dir/failures.json`` ({frame id: reason}) and raise an InputError naming the first, when any pair
-    could not be read; else remove an earlier run's failures.json (every pair is written now).
-
-    Raises:
-        InputError: "N of M pairs could not be read, e.g. ID: REASON; the other K were written; the list: PATH".
-    """
-    path = out_dir / FAILURES_FILE
-    if not failed:
-        path.unlink(missing_ok=True)
-        return
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(failed, indent=2) + "\n")
-    first = next(iter(failed))
-    raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
-                     f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")

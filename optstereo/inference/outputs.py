@@ -8,7 +8,6 @@ itself comes from ``optstereo.inference.engine.infer`` (the one inference path).
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from collections.abc import Iterable
@@ -27,17 +26,15 @@ from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import first_scale, infer, model_inference_config
 from optstereo.memory import check_fits
 from optstereo.submission import write_submission
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
-from pvm_labeler.common.errors import InputError, PVMError
+from pvm_labeler.common.errors import PVMError
 from pvm_labeler.common.io import image_size, read_image, write_disparity_file, write_image, write_npy, write_pfm
 from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_FORMATS = ("png", "color")
-#: The pairs a dataset run could not read, {frame id: reason}, in its output folder.
-FAILURES = "failures.json"
 
 
 def colorize(disp: npt.NDArray[np.float32], max_disp: float | None = None) -> npt.NDArray[np.uint8]:
@@ -169,16 +166,3 @@ def predict_dataset(
         write_submission(out_dir, submission, refs)
     return written
 
-
-def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
-    """``out_dir/failures.json`` ({frame id: reason}) and an InputError naming the first, when any pair failed; else
-    an earlier run's failures.json is removed (every pair is written now)."""
-    path = out_dir / FAILURES
-    if not failed:
-        path.unlink(missing_ok=True)
-        return
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(failed, indent=2) + "\n")
-    first = next(iter(failed))
-    raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
-                     f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")

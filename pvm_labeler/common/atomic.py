@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+
+from pvm_labeler.common.errors import InputError
 
 
 @contextlib.contextmanager
@@ -41,3 +44,25 @@ def atomic_write_text(path: Path | str, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+#: The list of pairs a batch job could not read, {frame id: reason}, in its output folder (every program's).
+FAILURES_FILE = "failures.json"
+
+
+def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
+    """Write ``out_dir/failures.json`` ({frame id: reason}) and raise an InputError naming the first, when any pair
+    could not be read; else remove an earlier run's failures.json (every pair is written now).
+
+    Raises:
+        InputError: "N of M pairs could not be read, e.g. ID: REASON; the other K were written; the list: PATH".
+    """
+    path = Path(out_dir) / FAILURES_FILE
+    if not failed:
+        path.unlink(missing_ok=True)
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(failed, indent=2) + "\n")
+    first = next(iter(failed))
+    raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
+                     f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")

@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text
 from pvm_labeler.common.datasets import PairRef
 from pvm_labeler.common.errors import InputError, ShardError
 from pvm_labeler.config import LabelerConfig
@@ -26,7 +26,6 @@ logger = logging.getLogger(__name__)
 
 JOB_FILE = "job.json"
 CONFIG_FILE = "config.yaml"
-FAILURES_FILE = "failures.json"
 #: Files the job owns in its output directory (``overwrite`` deletes exactly these, nothing else).
 OWNED_GLOBS: tuple[str, ...] = ("shard-*.h5", f"shard-*.h5{TMP_SUFFIX}", INDEX_NAME, JOB_FILE, CONFIG_FILE,
                                 FAILURES_FILE) + tuple(f"{name}.*.tmp" for name in (INDEX_NAME, JOB_FILE, CONFIG_FILE,
