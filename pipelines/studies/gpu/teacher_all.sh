@@ -80,7 +80,7 @@ for ((i = 0; i < SPLIT; i++)); do
   teachers+=($!)
 done
 for t in "${teachers[@]}"; do wait "$t"; echo "teacher maps (pid $t): exit $? at $(elapsed)"; done
-echo "teacher maps: $(ls "$W/maps" | wc -l) pairs in $W/maps"
+echo "teacher maps: $(ls "$W/maps" | grep -c "\.npz$") pairs in $W/maps"
 wait "$labeller"; rc=$?; [ "$rc" = 0 ] || failed+=(labels)
 echo "labels: exit $rc at $(elapsed); $(tail -n 1 "$W/labels_$PART.log")"
 $PY -m optstereo.cli distill fill "$W/labels_$PART" "$W/maps" "$W/distill_$PART" --compression lzf --allow-missing \
