@@ -17,6 +17,7 @@ from pvm_labeler.common.datasets.refs import (
     _images_in,
     _require_dir,
     _safe_id,
+    by_stem,
 )
 from pvm_labeler.common.errors import InputError, counted
 
@@ -210,7 +211,7 @@ def _glob_images(spec: str | Path, root: Path | None, what: str) -> tuple[dict[s
         return _images_in(spec), str(spec)
     if any(ch in str(spec) for ch in "*?["):
         files = sorted(Path(p) for p in globlib.glob(str(spec)) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
-        return {p.stem: p for p in files}, str(spec)
+        return by_stem(files, str(spec)), str(spec)
     raise InputError(f"folder dataset: {what} '{spec}' is neither a directory nor a glob pattern that exists")
 
 

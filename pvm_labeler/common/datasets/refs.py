@@ -91,7 +91,24 @@ def _require_dir(path: Path, what: str) -> Path:
 
 def _images_in(folder: Path) -> dict[str, Path]:
     """stem -> image path for every image file directly inside ``folder``."""
-    return {p.stem: p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+    return by_stem([p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES],
+                   str(folder))
+
+
+def by_stem(files: list[Path], where: str) -> dict[str, Path]:
+    """stem -> path of ``files``; InputError naming the files when two share a stem (0000.png and 0000.jpg, or the
+    same name in two folders a glob spans): which of them is the view would be a guess."""
+    out: dict[str, Path] = {}
+    clashes: list[str] = []
+    for path in files:
+        if path.stem in out:
+            clashes.append(f"{out[path.stem]} and {path}")
+        out.setdefault(path.stem, path)
+    if clashes:
+        more = f" (and {len(clashes) - 3} more)" if len(clashes) > 3 else ""
+        raise InputError(f"{where}: images share a name, so which is the view cannot be told: "
+                         f"{'; '.join(clashes[:3])}{more}; keep one image per name")
+    return out
 
 
 def _check_counts(left: dict[str, Path], right: dict[str, Path], left_dir: Path, right_dir: Path) -> None:
