@@ -336,10 +336,11 @@ class TestCli:
         from conftest import make_folder
 
         root = make_folder(tmp_path / "pairs", n=3)
-        good = (root / "right" / "001.png").read_bytes()
-        (root / "right" / "001.png").write_bytes(good[: len(good) // 3])
         args = ["--checkpoint", str(tiny_ckpt), "--dataset", "folder", "--root", str(root), "--out",
                 str(tmp_path / "pred"), "--format", "npy", "--quiet"]
+        assert CliRunner().invoke(predict_main, args).exit_code == 0  # an earlier run's 001.npy is there
+        good = (root / "right" / "001.png").read_bytes()
+        (root / "right" / "001.png").write_bytes(good[: len(good) // 3])
         res = CliRunner().invoke(predict_main, args)
         assert res.exit_code == 1, res.output
         assert "1 of 3 pairs could not be read, e.g. 001" in res.output and "the other 2 were written" in res.output
@@ -350,3 +351,10 @@ class TestCli:
         res = CliRunner().invoke(predict_main, args)
         assert res.exit_code == 0 and "wrote 3 frames" in res.output, res.output
         assert not (tmp_path / "pred" / "failures.json").exists()
+        # the per-frame loop (confidence formats, --sequence) skips and lists the same way
+        (root / "right" / "001.png").write_bytes(good[: len(good) // 3])
+        conf = [*args[:-4], str(tmp_path / "conf"), "--format", "npy", "--format", "conf-npy", "--quiet"]
+        res = CliRunner().invoke(predict_main, conf)
+        assert res.exit_code == 1 and "1 of 3 pairs could not be read, e.g. 001" in res.output, res.output
+        assert sorted(p.name for p in (tmp_path / "conf").glob("*.npy")) == ["000.npy", "000_conf.npy", "002.npy",
+                                                                             "002_conf.npy"]

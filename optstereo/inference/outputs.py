@@ -52,24 +52,34 @@ def write_disparity(
     ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders. A ``name`` that
     is no plain file name (``../x``: a shard's frame id) is made one (``pvm_labeler.common.datasets.safe_stem``).
     """
+    paths = disparity_paths(out_dir, name, formats, kitti_layout=kitti_layout)
+    for fmt, path in paths.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if fmt == "color":
+            write_image(path, colorize(disp, max_disp))
+        else:
+            write_disparity_file(path, disp)
+    return paths
+
+
+def disparity_paths(out_dir: Path, name: str, formats: Iterable[str] = DEFAULT_FORMATS, *,
+                    kitti_layout: bool = False) -> dict[str, Path]:
+    """format -> the file :func:`write_disparity` writes for frame ``name`` (geometry formats left out)."""
     name = safe_stem(name)
     formats = tuple(f for f in formats if f not in GEOMETRY_FORMATS)
     unknown = sorted(set(formats) - set(DISPARITY_FORMATS))
     if unknown:
         raise ValueError(f"unknown output formats {unknown}; choose from {DISPARITY_FORMATS}")
-    out_dir = Path(out_dir)
     folders = {"png": "disp_0", "pfm": "pfm", "npy": "npy", "color": "color"} if kitti_layout else {}
-    paths: dict[str, Path] = {}
-    for fmt in formats:
-        folder = out_dir / folders.get(fmt, "")
-        folder.mkdir(parents=True, exist_ok=True)
-        if fmt == "color":
-            paths[fmt] = folder / f"{name}_color.png"
-            write_image(paths[fmt], colorize(disp, max_disp))
-        else:
-            paths[fmt] = folder / f"{name}.{fmt}"
-            write_disparity_file(paths[fmt], disp)
-    return paths
+    return {fmt: Path(out_dir) / folders.get(fmt, "") / (f"{name}_color.png" if fmt == "color" else f"{name}.{fmt}")
+            for fmt in formats}
+
+
+def forget_frame(out_dir: Path, name: str, formats: Iterable[str], kitti_layout: bool = False) -> None:
+    """Remove an earlier run's files of frame ``name`` in ``out_dir``: a frame that failed now must not leave an
+    old answer beside this run's (failures.json lists it)."""
+    for path in disparity_paths(out_dir, name, formats, kitti_layout=kitti_layout).values():
+        path.unlink(missing_ok=True)
 
 
 def write_geometry(
@@ -146,6 +156,7 @@ def predict_dataset(
     lists each with its reason and an InputError names the first (no submission is written then).
     """
     refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
+    formats = tuple(formats)
     if submission is not None and not dataset.startswith("kitti"):
         raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
@@ -157,6 +168,7 @@ def predict_dataset(
         except PVMError as exc:
             logger.warning("skipped %s: %s", ref.frame_id, exc)
             failed[ref.frame_id] = str(exc)
+            forget_frame(Path(out_dir), ref.frame_id, formats, kitti_layout=dataset.startswith("kitti"))
             continue
         disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
                      refine=refine)

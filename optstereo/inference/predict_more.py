@@ -23,9 +23,11 @@ from tqdm import tqdm
 from optstereo.choices import CONF_FORMATS
 from optstereo.inference.confidence import confidence_of, write_confidence
 from optstereo.inference.engine import model_inference_config, run
-from optstereo.inference.outputs import check_pairs_fit, write_disparity
+from optstereo.inference.outputs import check_pairs_fit, forget_frame, write_disparity
 from optstereo.inference.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next, natural_key
+from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.errors import InputError, PVMError
 from pvm_labeler.common.io import read_image
 
 logger = logging.getLogger(__name__)
@@ -67,7 +69,9 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     """Predict (name, left path, right path) frames in order and write each one's files; returns format -> path
     per frame. With ``more.sequence`` the frames run in the natural order of their names
     (``optstereo.inference.sequence.natural_key``: ``frame_2`` before ``frame_10``) and each frame after the first
-    starts from the one before (optstereo.inference.sequence); a frame from another folder than the one before
+    starts from the one before (optstereo.inference.sequence); a frame that cannot be read is skipped (its earlier
+    files removed) and listed in ``out_dir/failures.json``, then InputError names it; a frame from another folder than
+    the one before
     (another drive of ``kitti_unlabelled``), of another size, or after a scene cut starts a new sequence. MemoryError
     naming the first pair that would not fit, from the image headers, before any frame is run or written (the
     confidence's second pass is no larger)."""
@@ -76,14 +80,23 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     state, folder = SequenceState(), None
     config = model_inference_config(model, iters, scale, refine)  # the same for every frame
     check_pairs_fit(config, [Path(frame[1]) for frame in frames], torch.device(device).type == "cuda")
-    written = []
+    written, failed = [], {}
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):
         if Path(left_path).parent != folder:
             state, folder = SequenceState(), Path(left_path).parent
-        left, right = read_image(left_path), read_image(right_path)
-        if left.shape != right.shape:
-            raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, "
-                             f"{right_path}")
+        try:
+            left, right = read_image(left_path), read_image(right_path)
+            if left.shape != right.shape:
+                raise InputError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, "
+                                 f"{right_path}")
+        except PVMError as exc:  # skipped and listed; a sequence starts afresh after the gap
+            if len(frames) == 1:  # one pair given as files: its own error
+                raise
+            logger.warning("skipped %s: %s", name, exc)
+            failed[name] = str(exc)
+            forget_frame(Path(out_dir), name, [f for f in formats if f not in CONF_FORMATS], kitti_layout)
+            state = SequenceState()
+            continue
         t0 = time.perf_counter()
         if more.sequence:
             disp = infer_next(model, left, right, state, iters=iters, sequence_iters=more.sequence_iters,
@@ -95,6 +108,8 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
         conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale, config.iters)
         logger.info("%s: %.2f s", name, time.perf_counter() - t0)
         written.append(_write(out_dir, name, disp, conf, more, formats, kitti_layout))
+    if len(frames) > 1:
+        record_failures(Path(out_dir), failed, len(frames))
     return written
 
 
