@@ -372,6 +372,7 @@ class TestApiImages:
 
     @pytest.mark.parametrize("make, message", [
         (lambda im: im / 255.0, r"must be uint8 \(0-255\) RGB, got float64: values in \[0, 1\]\?"),
+        (lambda im: im.astype(np.float32), r"got float32: values 0-255\? image.round\(\).clip"),
         (lambda im: im.astype(np.uint16) * 257, r"got uint16: 16-bit\? \(image // 257\)"),
         (lambda im: im[..., 0], r"got shape \(32, 64\) \(a grey image"),
         (lambda im: im[..., :1], r"got shape \(32, 64, 1\) \(a grey image"),

@@ -71,7 +71,7 @@ def test_maps_of_an_earlier_version_resume_with_a_warning(tmp_path: Path, caplog
              right=np.full((32, 64), 3.0, np.float32))
     done = _maps(root, _teacher(tmp_path / "t.safetensors", 0), out)
     assert done.exit_code == 0, done.output
-    assert "1 new teacher maps" in done.output
+    assert "1 new teacher map (" in done.output
     assert "cannot be checked" in caplog.text
     assert json.loads((out / distill.RECORD).read_text())["unrecorded_maps"] == 1
 
@@ -90,7 +90,7 @@ def test_maps_skips_and_lists_unreadable_pairs(tmp_path: Path) -> None:
     (root / "left" / "b.png").write_bytes(good)  # mended: the re-run makes only its map and clears the list
     again = _maps(root, teacher, out, "--quiet")
     assert again.exit_code == 0, again.output
-    assert "1 new teacher maps" in again.output and not (out / distill.FAILURES).exists()
+    assert "1 new teacher map (" in again.output and not (out / distill.FAILURES).exists()
 
 
 def _constant_maps(shards: Path, out: Path, skip: str | None = None) -> Path:

@@ -17,6 +17,7 @@ from optstereo.cli.common import GuardedCommand
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill
 from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.errors import counted
 from pvm_labeler.shards import read_index
 
 #: The failed pairs ``maps`` lists at its end (all are in OUT/failures.json).
@@ -55,11 +56,12 @@ def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str
     failures: list[dict[str, Any]] = []
     written = distill.write_teacher_maps(model, refs, out, device, amp, progress=not quiet, failures=failures)
     listed = distill.write_failures(out, failures)
-    click.echo(f"{written} new teacher maps ({len(refs)} pairs) in {out}")
+    click.echo(f"{counted(written, 'new teacher map')} ({counted(len(refs), 'pair')}) in {out}")
     if failures:
         shown = [f"  {f['frame_id']}: {f['error']}" for f in failures[:MAX_LISTED]]
         more = [f"  ... and {len(failures) - MAX_LISTED} more"] if len(failures) > MAX_LISTED else []
-        click.echo("\n".join([f"{len(failures)} pairs FAILED (listed in {listed}):", *shown, *more]), err=True)
+        click.echo("\n".join([f"{counted(len(failures), 'pair')} FAILED (listed in {listed}):", *shown, *more]),
+                   err=True)
         raise click.ClickException(f"{len(failures)} of {len(refs)} pairs have no map, first {failures[0]['frame_id']}"
                                    f": {failures[0]['error']}; mend their images and re-run: only they are retried")
 

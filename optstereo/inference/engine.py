@@ -74,7 +74,9 @@ def check_image(image: Any, which: str) -> None:
     if hint:
         raise ValueError(f"{which} image must be (H, W, 3) uint8 RGB, got shape {tuple(shape)} ({hint})")
     if dtype != np.uint8:
-        how = ("values in [0, 1]? (image * 255).round().astype(np.uint8)" if np.dtype(dtype).kind == "f" else
+        floats = np.dtype(dtype).kind == "f"
+        how = ("values in [0, 1]? (image * 255).round().astype(np.uint8)" if floats and np.nanmax(image) <= 1.0 else
+               "values 0-255? image.round().clip(0, 255).astype(np.uint8)" if floats else
                "16-bit? (image // 257).astype(np.uint8)" if np.dtype(dtype) == np.uint16 else
                "image.astype(np.uint8) if its values are 0-255")
         raise ValueError(f"{which} image must be uint8 (0-255) RGB, got {dtype}: {how}; "
