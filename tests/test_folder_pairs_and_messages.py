@@ -120,3 +120,13 @@ def test_two_images_of_one_name_on_a_side_are_an_error(tmp_path: Path) -> None:
         io.write_image(tmp_path / name, image)
     with pytest.raises(InputError, match=r"images share a name.*a/x/0000\.png and .*a/y/0000\.png"):
         discover("folder", tmp_path, left="a/*/*.png", right="b")
+
+
+def test_a_kitti_style_root_without_left_right_is_hinted(tmp_path: Path) -> None:
+    image = np.zeros((8, 16, 3), np.uint8)
+    for name in ("image_2/0000.png", "image_3/0000.png"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        io.write_image(tmp_path / name, image)
+    with pytest.raises(InputError, match=r"holds image_2/ and image_3/: give --left image_2 --right image_3"):
+        discover("folder", tmp_path)
+    assert [r.frame_id for r in discover("folder", tmp_path, left="image_2", right="image_3")] == ["0000"]

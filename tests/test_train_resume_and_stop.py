@@ -139,6 +139,13 @@ class TestChangedSettings:
         assert "optim.lr: 0.0001 -> 0.005" in warning and "data.crop: [32, 64] -> [96, 160]" in warning
         assert "steps" not in warning and "max_minutes" not in warning
 
+    def test_a_finished_run_is_not_said_to_continue(self, finished_run: Path,
+                                                     caplog: pytest.LogCaptureFixture) -> None:
+        """At its --steps nothing runs, so no "the run continues with the new values" for a changed setting."""
+        with caplog.at_level(logging.WARNING):
+            config_for_resume(finished_run, {"lr": 5e-3, "steps": 2})
+        assert not any("changes the run's saved settings" in r.getMessage() for r in caplog.records)
+
     def test_steps_alone_warn_nothing(self, finished_run: Path, caplog: pytest.LogCaptureFixture) -> None:
         with caplog.at_level(logging.WARNING):
             config_for_resume(finished_run, {"steps": 9, "max_minutes": 2.0, "threads": 1})

@@ -170,7 +170,7 @@ def config_for_resume(run_dir: Path, overrides: dict[str, Any] | None = None) ->
         _check_same_model(saved, TrainConfig.from_layers(read_yaml(written)), f"--resume {run_dir}: {written}")
     cfg = check_resume_paths(cfg, run_dir)
     changes = changed_settings(absolute_paths(saved, missing=False), cfg)
-    if changes:
+    if changes and ckpt.step < cfg.optim.steps:  # a run already at its --steps trains nothing and records nothing
         logger.warning("--resume %s changes the run's saved settings: %s (the run continues with the new values; "
                        "%s records them)", run_dir, "; ".join(f"{k}: {a} -> {b}" for k, (a, b) in changes.items()),
                        written)

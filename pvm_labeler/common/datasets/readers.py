@@ -212,7 +212,23 @@ def _glob_images(spec: str | Path, root: Path | None, what: str) -> tuple[dict[s
     if any(ch in str(spec) for ch in "*?["):
         files = sorted(Path(p) for p in globlib.glob(str(spec)) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
         return by_stem(files, str(spec)), str(spec)
-    raise InputError(f"folder dataset: {what} '{spec}' is neither a directory nor a glob pattern that exists")
+    raise InputError(f"folder dataset: {what} '{spec}' is neither a directory nor a glob pattern that exists"
+                     + _layout_hint(root))
+
+
+#: Left / right folder names of common layouts (KITTI, KITTI raw, EuRoC-style rigs), for the hint of a miss.
+KNOWN_VIEW_FOLDERS = (("image_2", "image_3"), ("image_02", "image_03"), ("image_0", "image_1"), ("cam0", "cam1"))
+
+
+def _layout_hint(root: Path | None) -> str:
+    """"; it holds image_2/ and image_3/: give --left image_2 --right image_3" when ``root`` holds a known pair of
+    view folders (the default left/ and right/ missing), else ""."""
+    if root is None:
+        return ""
+    for left, right in KNOWN_VIEW_FOLDERS:
+        if (root / left).is_dir() and (root / right).is_dir():
+            return f"; {root} holds {left}/ and {right}/: give --left {left} --right {right}"
+    return ""
 
 
 def _few(paths: list[Path], limit: int = 5) -> str:
