@@ -10,7 +10,7 @@ Search range: ``max_disp`` when given, else (datasets) the pair's own hint (Midd
 or the dataset's default, else ``LabelerConfig().max_disp`` (192). Datasets run ``jobs`` pairs at once over
 :func:`pvm_labeler.parallel.run_tasks` (joblib loky), each with ``cores // jobs`` numba threads. A dataset pair that
 cannot be read (a corrupt or truncated image, left/right sizes that differ) is skipped, the others are written, and
-``OUT/failures.json`` ({frame id: reason}) lists the skipped ones, as ``optstereo-predict --dataset`` does.
+``OUT/failures.json`` ({"frame_id", "error"} records) lists the skipped ones, as ``optstereo-predict --dataset`` does.
 """
 
 from __future__ import annotations

@@ -345,8 +345,8 @@ class TestCli:
         assert res.exit_code == 1, res.output
         assert "1 of 3 pairs could not be read, e.g. 001" in res.output and "the other 2 were written" in res.output
         assert sorted(p.name for p in (tmp_path / "pred").glob("*.npy")) == ["000.npy", "002.npy"]
-        failures = json.loads((tmp_path / "pred" / "failures.json").read_text())
-        assert list(failures) == ["001"] and "001.png" in failures["001"]
+        failures = json.loads((tmp_path / "pred" / "failures.json").read_text())  # the labeling job's record form
+        assert [f["frame_id"] for f in failures] == ["001"] and "001.png" in failures[0]["error"]
         (root / "right" / "001.png").write_bytes(good)
         res = CliRunner().invoke(predict_main, args)
         assert res.exit_code == 0 and "wrote 3 frames" in res.output, res.output

@@ -74,7 +74,7 @@ class TestMatchSkipsUnreadablePairs:
         assert ("3 of 4 pairs could not be read, e.g. 000: " in result.output
                 and f"the other 1 were written; the list: {listed}" in result.output), result.output
         assert sorted(p.name for p in out.iterdir()) == ["003.npy", "failures.json"]
-        failures = json.loads(listed.read_text())
+        failures = {f["frame_id"]: f["error"] for f in json.loads(listed.read_text())}  # the job's record form
         assert list(failures) == ["000", "001", "002"]
         assert "left/000.png" in failures["000"] and "right/001.png" in failures["001"]
         assert "sizes differ" in failures["002"]

@@ -46,13 +46,14 @@ def atomic_write_text(path: Path | str, text: str) -> None:
         tmp.write_text(text, encoding="utf-8")
 
 
-#: The list of pairs a batch job could not read, {frame id: reason}, in its output folder (every program's).
+#: The list of pairs a batch job could not read ({"frame_id", "error", ...} records), in its output folder.
 FAILURES_FILE = "failures.json"
 
 
 def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
-    """Write ``out_dir/failures.json`` ({frame id: reason}) and raise an InputError naming the first, when any pair
-    could not be read; else remove an earlier run's failures.json (every pair is written now).
+    """Write ``out_dir/failures.json`` and raise an InputError naming the first, when any pair of ``failed`` ({frame
+    id: reason}) could not be read; else remove an earlier run's failures.json (every pair is written now). The file
+    is a list of {"frame_id", "error"} records, the labeling job's form (which adds "type" and "files").
 
     Raises:
         InputError: "N of M pairs could not be read, e.g. ID: REASON; the other K were written; the list: PATH".
@@ -62,7 +63,8 @@ def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
         path.unlink(missing_ok=True)
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(failed, indent=2) + "\n")
+    records = [{"frame_id": frame_id, "error": reason} for frame_id, reason in failed.items()]
+    atomic_write_text(path, json.dumps(records, indent=2) + "\n")
     first = next(iter(failed))
     raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
                      f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")
