@@ -18,14 +18,15 @@ from pathlib import Path
 from typing import IO, Any, cast
 
 from optstereo.validation import label_command
+from pvm_labeler.common.atomic import FAILURES_FILE
 from pvm_labeler.common.errors import counted
 
 logger = logging.getLogger(__name__)
 
 #: How click starts the message of a command that failed (pvm-label's last words on stderr).
 ERROR_PREFIX = "Error:"
-#: The labeler's list of failed pairs in its output folder (``pvm_labeler.job.outdir.FAILURES_FILE``).
-FAILURES = "failures.json"
+#: The labeler's list of failed pairs in its output folder.
+FAILURES = FAILURES_FILE
 #: What to do about a pair the labeler could not read.
 MEND_HINT = ("Mend or remove the pair (both views), then re-run the same command: it resumes, the pairs already "
              "labelled are kept")

@@ -35,7 +35,7 @@ from torch import nn
 
 from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.outputs import colorize
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
 from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator
@@ -175,7 +175,7 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
             writer = csv.DictWriter(fh, fieldnames=list(result.rows[0]))
             writer.writeheader()
             writer.writerows(result.rows)
-    clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in result.summary.items()}
+    clean = json_safe(result.summary)
     keys = [k for k in SUMMARY_KEYS if k in result.summary]
     n_noc = result.summary.get("n_frames_noc", result.summary["n_frames"])
     noc = "" if n_noc == result.summary["n_frames"] else \

@@ -45,7 +45,7 @@ from optstereo.inference.engine import infer
 from optstereo.inference.fastpath import engineer
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training.distill import consistent_views, read_teacher_maps, write_teacher_maps
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.shards import open_shard, read_index, read_sample
 
@@ -288,16 +288,7 @@ def write_report(result: ValScore, out: Path, checkpoint: str, valset_dir: Path 
 def strict_json(doc: Any) -> str:
     """``doc`` as JSON that strict parsers read: every non-finite float (a score one side lacks) written as null,
     read back as NaN by :func:`load_report`."""
-    def clean(value: Any) -> Any:
-        if isinstance(value, float):
-            return value if math.isfinite(value) else None
-        if isinstance(value, dict):
-            return {k: clean(v) for k, v in value.items()}
-        if isinstance(value, (list, tuple)):
-            return [clean(v) for v in value]
-        return value
-
-    return json.dumps(clean(doc), indent=2, allow_nan=False) + "\n"
+    return json.dumps(json_safe(doc), indent=2, allow_nan=False) + "\n"
 
 
 def pairs_table(pairs: list[PairScore]) -> str:

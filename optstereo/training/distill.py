@@ -22,10 +22,8 @@ No GT is read: the maps are made from the images alone, and ``fill`` refuses a s
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -37,8 +35,9 @@ from tqdm import tqdm
 
 from optstereo.checkpoint import model_inference
 from optstereo.inference.engine import infer
+from optstereo.inference.int8 import file_sha256
 from optstereo.training.augment import right_view
-from pvm_labeler.common.atomic import atomic_path, atomic_write_text
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_path, atomic_write_text, json_safe
 from pvm_labeler.common.datasets import load_pair, safe_stem
 from pvm_labeler.common.errors import InputError
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, rewrite
@@ -56,7 +55,7 @@ MAP_SUFFIX = ".npz"
 #: A maps folder's record of its teacher (:func:`claim_maps_dir`); folders of earlier versions have none.
 RECORD = "teacher.json"
 #: A maps folder's pairs whose images could not be read (pvm-label's form: frame_id, error, type, files).
-FAILURES = "failures.json"
+FAILURES = FAILURES_FILE
 
 
 class TeacherMismatchError(ValueError):
@@ -148,13 +147,7 @@ def teacher_record(model: nn.Module, spec: str | Path, path: Path, digest: str, 
     (``path``) and that file's SHA-256 (None for a run directory), the weights' ``digest``
     (``optstereo.validation.weights_digest``), the model's InferenceConfig and the ``amp`` mode."""
     path = Path(path)
-    sha = None
-    if path.is_file():
-        sha = hashlib.sha256()
-        with open(path, "rb") as handle:
-            for block in iter(lambda: handle.read(1 << 20), b""):
-                sha.update(block)
-    record = {"spec": str(spec), "file": str(path), "sha256": None if sha is None else sha.hexdigest(),
+    record = {"spec": str(spec), "file": str(path), "sha256": file_sha256(path) if path.is_file() else None,
               "digest": digest, "inference": model_inference(model).to_dict(), "amp": amp}
     return json.loads(json.dumps(record))  # as it reads back: tuples become lists
 
@@ -327,8 +320,5 @@ def _record_density(out: Path, before: float, after: float) -> None:
     path = out / INDEX_NAME
     doc = json.loads(path.read_text())
     summary = doc.get("summary") if isinstance(doc.get("summary"), dict) else {}
-    def finite(value: float) -> float | None:
-        return value if math.isfinite(value) else None
-
-    doc["summary"] = {**summary, "label_fraction": finite(after), "label_fraction_pvm": finite(before)}
+    doc["summary"] = {**summary, **json_safe({"label_fraction": after, "label_fraction_pvm": before})}
     atomic_write_text(path, json.dumps(doc, indent=2))

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from pvm_labeler.common.errors import InputError
 
@@ -68,3 +70,15 @@ def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
     first = next(iter(failed))
     raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
                      f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN, inf) replaced by None, in dicts, lists and tuples (as lists): what
+    strict JSON parsers read (NaN is not JSON)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value

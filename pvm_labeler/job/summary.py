@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.datasets import PairRef
 from pvm_labeler.common.errors import ShardError, counted
 from pvm_labeler.common.metrics import MetricAccumulator
@@ -72,17 +72,6 @@ class JobSummary:
         return "\n".join(lines)
 
 
-def _json_safe(value: Any) -> Any:
-    """Replace NaN/inf by None so index.json stays strict JSON (readable outside Python)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_json_safe(v) for v in value]
-    return value
-
-
 def _pooled(outcomes: list[ShardOutcome]) -> tuple[MetricAccumulator, MetricAccumulator, int, int]:
     """GT accumulators (all, noc) and labelled / total pixels summed over the shards."""
     acc, acc_noc = MetricAccumulator(), MetricAccumulator()
@@ -130,7 +119,7 @@ def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcom
     else:
         (spec.out / FAILURES_FILE).unlink(missing_ok=True)
     write_index(spec.out, shards, json.loads(spec.config.to_json()), spec.dataset_info(),
-                extra={"summary": _json_safe(summary.to_dict()), "compression": spec.compression})
+                extra={"summary": json_safe(summary.to_dict()), "compression": spec.compression})
     return summary
 
 
