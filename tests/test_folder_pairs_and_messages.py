@@ -118,8 +118,49 @@ def test_two_images_of_one_name_on_a_side_are_an_error(tmp_path: Path) -> None:
     for name in ("a/x/0000.png", "a/y/0000.png", "b/0000.png"):
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         io.write_image(tmp_path / name, image)
-    with pytest.raises(InputError, match=r"images share a name.*a/x/0000\.png and .*a/y/0000\.png"):
+    with pytest.raises(InputError, match=r"count mismatch.*a/x/0000\.png.*named by those folders too"):
         discover("folder", tmp_path, left="a/*/*.png", right="b")
+
+
+def _tree(root: Path, names: list[str]) -> None:
+    """One 8 x 16 image per relative path, its pixels the path's index (to tell the files apart)."""
+    for i, name in enumerate(names):
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        io.write_image(root / name, np.full((8, 16, 3), i, np.uint8))
+
+
+def test_sequences_in_folders_of_their_own_pair_by_folder_and_name(tmp_path: Path) -> None:
+    """seq1/left/0000.png and seq2/left/0000.png: a glob over both sequences names each image by the folder its
+    wildcard matched, so every view pairs with its own sequence's partner (the frame id says which)."""
+    names = [f"{seq}/{side}/{n}.png" for seq in ("seq1", "seq2") for side in ("left", "right")
+             for n in ("0000", "0001")]
+    _tree(tmp_path, names)
+    refs = discover("folder", tmp_path, left="*/left/*.png", right="*/right/*.png")
+    assert [r.frame_id for r in refs] == ["seq1-0000", "seq1-0001", "seq2-0000", "seq2-0001"]
+    for ref in refs:
+        seq, frame = ref.frame_id.split("-")
+        assert ref.left == tmp_path / seq / "left" / f"{frame}.png"
+        assert ref.right == tmp_path / seq / "right" / f"{frame}.png"
+
+
+def test_a_double_star_glob_reaches_any_depth(tmp_path: Path) -> None:
+    """``**`` spans folders at any depth (it used to act as one ``*``): EuRoC-like mav0/cam0/data under two runs."""
+    names = [f"{run}/mav0/{cam}/data/{t}.png" for run in ("MH_01", "V1_02") for cam in ("cam0", "cam1")
+             for t in ("100", "200")]
+    _tree(tmp_path, names)
+    refs = discover("folder", tmp_path, left="**/cam0/data/*.png", right="**/cam1/data/*.png")
+    assert [r.frame_id for r in refs] == ["MH_01-mav0-100", "MH_01-mav0-200", "V1_02-mav0-100", "V1_02-mav0-200"]
+    assert all(r.left.parent.parent.name == "cam0" and r.right.parent.parent.name == "cam1" for r in refs)
+    assert all(r.left.parts[-5] == r.right.parts[-5] for r in refs)  # the same run on both sides
+    unique = discover("folder", tmp_path / "MH_01", left="**/cam0/data/*.png", right="**/cam1/data/*.png")
+    assert [r.frame_id for r in unique] == ["100", "200"]  # names unique: plain stems, as before
+
+
+def test_a_flat_gt_folder_with_sequences_sharing_names_is_refused(tmp_path: Path) -> None:
+    _tree(tmp_path, [f"{seq}/{side}/0000.png" for seq in ("s1", "s2") for side in ("left", "right")]
+          + ["gt/0000.png"])
+    with pytest.raises(InputError, match=r"--gt is one folder of names.*give one sequence at a time"):
+        discover("folder", tmp_path, left="*/left/*.png", right="*/right/*.png", gt="gt")
 
 
 def test_a_kitti_style_root_without_left_right_is_hinted(tmp_path: Path) -> None:

@@ -21,8 +21,10 @@ Supported layouts (``root`` is the folder you pass as ``--root``):
   ``RGB_<pass>``), ``right/``; GT ``<base>/disparity/<rel>/{left,right}/<n>.pfm``; optional
   ``<base>/occlusion/<rel>/left/<n>.png`` (True = occluded) gives the non-occluded GT.
 - ``folder``: any two folders or glob patterns of left/right images (``left=``, ``right=``, optional ``gt=``;
-  defaults ``root/left``, ``root/right``, ``root/gt``), paired by file stem; an image without a partner of its name
-  is an error, and only when no stem is shared and the counts match are they paired by sorted order (a warning).
+  defaults ``root/left``, ``root/right``, ``root/gt``), paired by file stem (by the folders a glob's wildcards matched
+  and the stem when a glob finds two images of one stem: sequences in folders of their own); an image without a
+  partner of its name is an error, and only when no stem is shared and the counts match are they paired by sorted
+  order (a warning).
 - ``kitti_unlabelled``: every folder under ``root`` holding a KITTI-style pair of image folders
   (``image_2``/``image_3``, ``image_02``/``image_03``, or their ``data/`` sub-folders) or a ``left.png``/``right.png``
   pair; frame ids are the relative path joined with ``-``. Never any GT: this is self-supervised training data.

@@ -203,17 +203,65 @@ def _discover_sceneflow(root: Path, split: str, pass_: str = "clean", **_: Any) 
 
 
 # ------------------------------------------------------------------------------------------------------ folder
-def _glob_images(spec: str | Path, root: Path | None, what: str) -> tuple[dict[str, Path], str]:
+_WILDCARD = re.compile(r"[*?\[]")
+
+
+def _image_files(spec: str | Path, root: Path | None, what: str) -> tuple[list[Path], Path, bool]:
+    """(image files, the spec as a path under ``root``, whether it is a glob) of a --left/--right value: a folder's
+    images, or a glob's (``**`` spans any depth of folders)."""
     spec = Path(spec)
     if root is not None and not spec.is_absolute():
         spec = root / spec
     if spec.is_dir():
-        return _images_in(spec), str(spec)
-    if any(ch in str(spec) for ch in "*?["):
-        files = sorted(Path(p) for p in globlib.glob(str(spec)) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
-        return by_stem(files, str(spec)), str(spec)
+        return list(_images_in(spec).values()), spec, False
+    if _WILDCARD.search(str(spec)):
+        files = sorted(Path(p) for p in globlib.glob(str(spec), recursive=True)
+                       if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+        return files, spec, True
     raise InputError(f"folder dataset: {what} '{spec}' is neither a directory nor a glob pattern that exists"
                      + _layout_hint(root))
+
+
+def glob_key(path: Path, pattern: Path) -> str:
+    """The name of an image a glob found, with the folders its wildcards matched: ``seq1/0001`` for
+    ``seq1/left/0001.png`` under ``*/left/*.png`` (the pattern's literal folders, here ``left``, dropped), so that
+    the left and right views of one frame get one name across sequences whose files share names."""
+    parts = pattern.parts
+    fixed = next((i for i, part in enumerate(parts) if _WILDCARD.search(part)), len(parts))
+    literal = {part for part in parts[fixed:-1] if not _WILDCARD.search(part)}
+    folders = [part for part in path.parts[fixed:-1] if part not in literal]
+    return "/".join([*folders, path.stem])
+
+
+def _keyed_views(left: str | Path, right: str | Path, root: Path | None
+                 ) -> tuple[dict[str, Path], dict[str, Path], str, str]:
+    """(left name -> file, right name -> file, left spec, right spec). Names are file stems; when a glob finds two
+    images of one stem on either side (sequences in folders of their own), every glob's images are named by
+    :func:`glob_key` instead (a folder's by their stems).
+
+    Raises:
+        InputError: a spec that is neither a folder nor a glob; two images of one name on a side all the same
+            (0000.png beside 0000.jpg).
+    """
+    (left_files, left_spec, left_glob), (right_files, right_spec, right_glob) = (
+        _image_files(left, root, "left"), _image_files(right, root, "right"))
+    by_folder = any(is_glob and len({p.stem for p in files}) < len(files)
+                    for files, is_glob in ((left_files, left_glob), (right_files, right_glob)))
+
+    def keyed(files: list[Path], spec: Path, is_glob: bool) -> dict[str, Path]:
+        if not (by_folder and is_glob):
+            return by_stem(files, str(spec))
+        out: dict[str, Path] = {}
+        for path in files:
+            key = glob_key(path, spec)
+            if key in out:
+                raise InputError(f"{spec}: images share a name, so which is the view cannot be told: {out[key]} and "
+                                 f"{path}; keep one image per name")
+            out[key] = path
+        return out
+
+    return (keyed(left_files, left_spec, left_glob), keyed(right_files, right_spec, right_glob), str(left_spec),
+            str(right_spec))
 
 
 #: Left / right folder names of common layouts (KITTI, KITTI raw, EuRoC-style rigs), for the hint of a miss.
@@ -267,6 +315,9 @@ def _folder_pairs(lefts: dict[str, Path], rights: dict[str, Path], left_spec: st
         if lonely_right:
             details.append(f"{counted(len(lonely_right), 'right image')} without a left image of the same name: "
                            f"{_few(lonely_right)}")
+        if any("/" in name for name in [*lefts, *rights]):
+            details.append("images a glob finds in folders of their own are named by those folders too (seq1/0001 "
+                           "for seq1/left/0001.png under */left/*.png), as two images of one name were found")
         raise InputError(f"folder dataset: left/right {what}: {counted(len(lefts), 'image')} in {left_spec} vs "
                          f"{len(rights)} in {right_spec}; " + "; ".join(details))
     return [(stem, lefts[stem], rights[stem]) for stem in shared]
@@ -281,13 +332,16 @@ def _discover_folder(
     gt_scale: float = io.KITTI_SCALE,
     **_: Any,
 ) -> list[PairRef]:
-    lefts, left_spec = _glob_images(left, root, "left")
-    rights, right_spec = _glob_images(right, root, "right")
+    lefts, rights, left_spec, right_spec = _keyed_views(left, right, root)
     pairs = _folder_pairs(lefts, rights, left_spec, right_spec)
     gts: dict[str, Path] = {}
     if gt is None and root is not None and (root / "gt").is_dir():
         gt = "gt"
     if gt is not None:
+        if any("/" in name for name in lefts):
+            raise InputError(f"folder dataset: --gt is one folder of names, but the views' globs span folders whose "
+                             f"images share names ({_few([Path(n) for n in list(lefts)[:5]])}): give one "
+                             "sequence at a time with its GT folder")
         gt_path = Path(gt) if root is None or Path(gt).is_absolute() else root / gt
         _require_dir(gt_path, "folder dataset GT folder")
         gts = {p.stem: p for p in sorted(gt_path.iterdir()) if p.suffix.lower() in (".png", ".pfm", ".npy")}
