@@ -6,6 +6,8 @@
 #   run(command="NAME=G4 PART=D TRAIN=1 SCHEDULE=constant LR=2e-5 SNAPS=3 SPLIT=2 MISSING=drop FILLS=0 SEED=51
 #       JOBS=10 END_S=540 TEACHER_S=300 bash pipelines/studies/gpu/teacher_all.sh", carry=[".carry/D"], timeout_s=590)
 #   (pack D: python -m pipelines.studies.gpu.pack_c .carry/D --quality 88 --exclude pipelines/studies/valset_indoor.txt)
+#   (pack D from scratch, one command: bash pipelines/studies/gpu/build_pack_d.sh /work/.mirror: ../shared/data and
+#   three fetched snapshots, its header says which; 212 pairs, 34.0 MB, checked against pack_d_manifest.txt)
 #   then, here: python -m pipelines.studies.judge_chapter FILES_AT/G4-*.safetensors --valset VAL --out DIR --gt
 # Packs, here, once (WebP, the highest quality under 37 MB each; pipelines/studies/gpu/distill_pack.py):
 #   A = the 144 unlabelled pairs of ../shared/data; B = the 267 more that fetch_unlabelled_more.sh copies (less the 57
