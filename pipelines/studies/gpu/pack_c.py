@@ -4,8 +4,9 @@ One folder pack (``OUT/{left,right}/<name>.webp``, the names of the link packs):
 (74: 50 InStereo2K rooms, 24 ZED frames) and ``/work/pack/tabletop_half`` (57 table-tops at half size) re-encoded at
 WebP quality ``Q``, plus pack A's (``.carry/A``, WebP q90) 87 ``kitti_unlabelled`` pairs and its four single
 ``unlabelled_more`` pairs (``um_misc_*``, ``um_sid_*``), copied; ``--every N`` keeps every N-th of those. At q88: 222
-pairs, 36.1 MB, which with the tracked tree (~25 MB then, ~30 MB on 11-29) fits the device's 64 MiB carry. ``--exclude FILE`` leaves out the
-pairs named in FILE (one per line, ``#`` comments): pack D is pack C less the indoor validation set's pairs.
+pairs, 36.1 MB, which with the tracked tree (~25 MB then, ~30 MB on 11-29) fits the device's 64 MiB carry.
+``--exclude FILE`` leaves out the pairs named in FILE (one per line, ``#`` comments): pack D is pack C less the
+indoor validation set's pairs.
 
     python -m pipelines.studies.gpu.pack_c .carry/C --quality 88
     python -m pipelines.studies.gpu.pack_c .carry/D --quality 88 --exclude pipelines/studies/valset_indoor.txt
