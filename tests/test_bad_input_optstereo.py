@@ -186,6 +186,20 @@ class TestCheckpoints:
         result = predict(cut, *pair, tmp_path / "o")
         assert result.exit_code == 1 and f"{cut}" in result.output and "truncated" in result.output
 
+    def test_project_errors_read_as_messages_not_type_names(self, ckpt: Path, pair: tuple[Path, Path],
+                                                            tmp_path: Path) -> None:
+        """A corrupt image and a truncated checkpoint: "Error: <the message naming the file>", as pvm-label says
+        it (no "InputError:" / "CheckpointError:" in front)."""
+        junk = tmp_path / "junk.png"
+        junk.write_bytes(b"not a png")
+        result = predict(ckpt, junk, junk, tmp_path / "o")
+        assert result.exit_code == 1 and result.output.strip().splitlines()[-1].startswith("Error: corrupt")
+        assert str(junk) in result.output and "InputError" not in result.output
+        cut = tmp_path / "cut.pt"
+        cut.write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+        result = predict(cut, *pair, tmp_path / "o")
+        assert result.exit_code == 1 and "CheckpointError" not in result.output
+
     def test_random_file(self, pair: tuple[Path, Path], tmp_path: Path) -> None:
         junk = tmp_path / "junk.pt"
         junk.write_bytes(np.random.default_rng(0).bytes(5000))

@@ -116,15 +116,18 @@ def setup_logging(quiet: bool) -> None:
 
 class GuardedCommand(click.Command):
     """A click command whose library errors become click's exits, the one error handler of every optstereo command:
-    a ConfigError (a bad option or config value) exits 2 as a usage error, the library's other errors (PVMError,
-    CheckpointError, a non-finite loss, ValueError, RuntimeError, OSError) exit 1 with their type and message."""
+    a ConfigError (a bad option or config value) exits 2 as a usage error, the project's other errors (PVMError,
+    CheckpointError, a non-finite loss) exit 1 with their message, which names the file and the problem, as
+    pvm-label's do; errors from elsewhere (ValueError, RuntimeError, OSError) with their type too."""
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except ConfigError as exc:
             raise click.UsageError(str(exc)) from exc
-        except (PVMError, CheckpointError, NonFiniteLossError, ValueError, RuntimeError, OSError) as exc:
+        except (PVMError, CheckpointError, NonFiniteLossError) as exc:
+            raise click.ClickException(str(exc)) from exc
+        except (ValueError, RuntimeError, OSError) as exc:
             raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
 
 
