@@ -108,10 +108,37 @@ def _yaml_value(ctx: click.Context, name: str, value: Any) -> Any:
         raise click.BadParameter(f"{name}: {exc.message}", ctx=ctx, param_hint="--config") from exc
 
 
+#: The reader options and the one dataset that reads each (``--left`` given to ``kitti15`` would be ignored).
+_READER_OWNERS = {"left": "folder", "right": "folder", "gt": "folder", "sceneflow_pass": "sceneflow"}
+
+
+def check_dataset_options(values: dict[str, Any]) -> None:
+    """ConfigError for options the chosen dataset would ignore: ``--root`` with ``sample`` (the default, built in:
+    a forgotten ``--dataset`` used to label the four sample pairs and report them as a success) and a reader's
+    option given to another dataset."""
+    dataset = values["dataset"]
+    if dataset == "sample" and values.get("root") is not None:
+        raise ConfigError(f"--root {values['root']} given with the dataset `sample` (the default: built in, it "
+                          "reads no files): give --dataset folder (with --left/--right) or the dataset's name "
+                          "(kitti15, middlebury, ...)")
+    ignored = [name for name, owner in _READER_OWNERS.items() if values.get(name) is not None and owner != dataset]
+    if ignored:
+        flags = ", ".join(f"--{name.replace('_', '-')}" for name in ignored)
+        owners = " / ".join(sorted({_READER_OWNERS[name] for name in ignored}))
+        raise ConfigError(f"{flags} {'is' if len(ignored) == 1 else 'are'} read by the {owners} dataset only, and "
+                          f"--dataset is {dataset}: give --dataset {owners.split(' / ')[0]} or leave "
+                          f"{'it' if len(ignored) == 1 else 'them'} out")
+
+
 def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
-    """JobSpec from merged option values (exposed for tests and pipelines)."""
+    """JobSpec from merged option values (exposed for tests and pipelines).
+
+    Raises:
+        ConfigError: options the dataset would ignore (:func:`check_dataset_options`), a bad labeler config.
+    """
     from pvm_labeler.job import JobSpec
 
+    check_dataset_options(values)
     labeler = dict(yaml_doc.get("labeler") or {})
     for flag, field_name in _LABELER_FLAGS.items():
         if values.get(f"_{flag}_given"):

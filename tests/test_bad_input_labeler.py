@@ -140,3 +140,17 @@ def test_room_counts_the_file_size_limit(tmp_path: Path) -> None:
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
     assert room_for_file(tmp_path) == os.statvfs(tmp_path).f_bavail * os.statvfs(tmp_path).f_frsize
+
+
+def test_root_without_a_dataset_is_refused_not_the_sample_labelled(tmp_path: Path) -> None:
+    """`--root` with the default dataset `sample` used to label the four built-in pairs and report them as a success
+    (a forgotten `--dataset folder`); a reader option given to another dataset would be ignored too: usage errors,
+    nothing written."""
+    data = make_folder(tmp_path / "d", n=1)
+    result = invoke("--root", data, "--out", tmp_path / "o", *SMALL)
+    assert result.exit_code == 2 and "given with the dataset `sample`" in result.output
+    assert "--dataset folder" in result.output and not (tmp_path / "o").exists()
+    result = invoke("--dataset", "sample", "--left", "cam0", "--right", "cam1", "--out", tmp_path / "o", *SMALL)
+    assert result.exit_code == 2 and "--left, --right are read by the folder dataset only" in result.output
+    assert not (tmp_path / "o").exists()
+    assert invoke("--dataset", "folder", "--root", data, "--out", tmp_path / "o", *SMALL).exit_code == 0

@@ -324,6 +324,21 @@ class TestTrain:
         result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "4", *TRAIN)
         assert result.exit_code == 1 and "shard-00001.h5: schema" in result.output and "version 99" in result.output
 
+    def test_a_bad_val_dataset_stops_the_run_before_its_first_step(self, tmp_path: Path) -> None:
+        """--val-dataset is read at the start (it used to fail only after the whole run): a folder without
+        left/right, and one without GT, exit 1 naming the folder, with no run directory written."""
+        shards, empty = make_shards(tmp_path / "s", n=2), tmp_path / "rig"
+        (empty / "cam_left").mkdir(parents=True)
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "2",
+                        "--val-dataset", "folder", "--val-root", empty, *TRAIN)
+        assert result.exit_code == 1 and f"{empty / 'left'}" in result.output and not (tmp_path / "r").exists()
+        for side in ("left", "right"):  # a pair without GT
+            (empty / side).mkdir()
+            cv2.imwrite(str(empty / side / "0000.png"), np.zeros((32, 64, 3), np.uint8))
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "2",
+                        "--val-dataset", "folder", "--val-root", empty, *TRAIN)
+        assert result.exit_code == 1 and "has ground truth" in result.output and not (tmp_path / "r").exists()
+
     def test_corrupt_shard_in_the_middle_stops_the_run_naming_it(self, tmp_path: Path) -> None:
         shards = make_shards(tmp_path / "s", n=6)
         bad = shards / "shard-00002.h5"

@@ -111,7 +111,8 @@ _D = TrainConfig()
 @click.option("--log-every", type=int, help=f"Steps between metric records. [default: {_D.log_every}]")
 @click.option("--ckpt-every", type=int, help=f"Steps between checkpoints. [default: {_D.ckpt_every}]")
 @click.option("--max-minutes", type=float, help="Stop (and checkpoint) after this many minutes; 0 = no limit.")
-@click.option("--val-dataset", help="Dataset evaluated on GT at the end (e.g. sample, kitti15).")
+@click.option("--val-dataset", help="Dataset evaluated on GT at the end (e.g. sample, kitti15; folder: ROOT/left, "
+              "ROOT/right, ROOT/gt). Read before the first step.")
 @click.option("--val-root", type=EXISTING, help="Root folder of --val-dataset.")
 @click.option("--val-limit", type=int, help="Evaluate only the first N validation frames (0 = all).")
 @click.option("--val-set", type=EXISTING, help="GT-free validation set (optstereo-distill valset) scored at every "

@@ -52,7 +52,7 @@ from optstereo.training.log import (  # noqa: F401  (METRICS_FILE: API)
 from optstereo.training.losses import PVStereoLoss
 from optstereo.training.runpaths import absolute_paths
 from optstereo.training.stopping import nothing_to_do, stop_on_signal
-from optstereo.training.validate import gtfree_hook
+from optstereo.training.validate import check_val_dataset, gtfree_hook
 
 logger = logging.getLogger(__name__)
 
@@ -343,6 +343,7 @@ def main(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     warn_if_emulated_bf16(cfg.amp, device)
     if not resume and (run_dir / LAST).exists():
         raise ValueError(f"{run_dir} already holds a training run ({LAST}); use --resume {run_dir} or another --out")
+    check_val_dataset(cfg)  # before anything is written or trained
     try:
         return _run(cfg, run_dir, device, info, resume, progress, init_ckpt)
     finally:

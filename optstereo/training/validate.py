@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from optstereo.checkpoint import export_safetensors, unwrap
+from optstereo.evaluate import _require_gt as require_gt
 from optstereo.training.config import TrainConfig
 from optstereo.training.log import RunLogger
 from optstereo.validation import ValScore, compare, load_report, open_valset, score
@@ -28,6 +29,18 @@ BEST_WEIGHTS, BEST_RECORD, REPORTS = "best.safetensors", "best.json", "gtfree"
 #: model gets, the one that ranked 8 models closest to GT: Spearman 0.95 / 0.90 / 0.88 against KITTI 2015 / 2012 /
 #: Middlebury, PVM bad-3 0.79 / 0.88 / 0.71; RESULTS.md, "Judging without GT").
 BEST_KEY = "pvm_epe"
+
+
+def check_val_dataset(cfg: TrainConfig) -> None:
+    """The end-of-run GT evaluation's dataset (``val.dataset`` / ``val.root``) read before the first step: a folder
+    that is not there, or a dataset without GT, used to fail only after the whole training run.
+
+    Raises:
+        PVMError: the dataset cannot be read (naming the folder).
+        ValueError: none of its pairs has GT.
+    """
+    if cfg.val.dataset:
+        require_gt(cfg.val.dataset, cfg.val.root, "training", cfg.val.limit or None, None)
 
 
 def gtfree_hook(cfg: TrainConfig, run_dir: Path, run_logger: RunLogger, device: Any) -> Callable[[Any], None] | None:
