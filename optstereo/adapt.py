@@ -33,7 +33,6 @@ the adaptation when it starts; a re-run with other ones is refused, naming them:
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import shutil
@@ -45,7 +44,14 @@ import numpy as np
 from tqdm import tqdm
 
 from optstereo.adapt_label import label_rig
-from optstereo.adapt_record import forget_start, record_options, write_report, write_split, write_weights
+from optstereo.adapt_record import (
+    forget_start,
+    record_options,
+    report_config,
+    write_report,
+    write_split,
+    write_weights,
+)
 from optstereo.adapt_report import changes_text, report_markdown
 from optstereo.api import load_model
 from optstereo.checkpoint import load_checkpoint, model_inference
@@ -388,7 +394,7 @@ def _run(cfg: AdaptConfig) -> dict[str, Any]:
     adapted = write_weights(cfg.out, trained if decision.adapted else init)  # whole or not at all
     clips = inherit_clips(adapted, init, not decision.adapted, lambda: [  # int8 as fast as the start, if it has it
         (s.left, s.right) for s in shard_samples(labels, set(spread(sorted(train_ids), PAIRS)))])
-    report = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
+    report = {"config": report_config(cfg),
               "init": str(init), "pairs": len(ids), "steps": steps, "train_frames": train_ids,
               "held_back_frames": held_ids,
               "before": {**_summary(before), **gt_before}, "after": {**_summary(after), **gt_after},

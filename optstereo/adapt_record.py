@@ -6,6 +6,7 @@ finished adaptation); and an output folder a failed start leaves as it was.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -55,6 +56,15 @@ def defining_options(cfg: Any) -> dict[str, Any]:
                "teacher": _where(cfg.teacher), "teacher_only": cfg.teacher_only,
                "inference_scale": cfg.inference_scale, "train_overrides": cfg.train_overrides}
     return json.loads(json.dumps(options, default=str))
+
+
+def report_config(cfg: Any) -> dict[str, Any]:
+    """An ``AdaptConfig`` as report.json records it: every field (paths as strings), with the values the run used
+    where the options left them to a default: ``lr`` the rate it trained at, ``minutes`` None when ``steps`` was
+    given (the budget did not apply)."""
+    config = {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()}
+    config = {**config, "lr": cfg.learning_rate(), "minutes": cfg.minutes if cfg.steps is None else None}
+    return json.loads(json.dumps(config, default=str))  # as report.json reads back (tuples as lists)
 
 
 def _shown(value: Any) -> str:

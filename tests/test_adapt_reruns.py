@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import json
 import shutil
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -18,11 +19,13 @@ import pytest
 from click.testing import CliRunner
 from conftest import make_synthetic_pair
 
+import optstereo.cli.adapt as adapt_cli
 from optstereo import adapt, adapt_record
 from optstereo.adapt import AdaptConfig
 from optstereo.adapt_label import MEND_HINT, LabelingError, _Relay, label_rig
 from optstereo.adapt_report import change_text, report_markdown, score_text
 from optstereo.cli import adapt_main
+from optstereo.training.stopping import TrainingInterrupted
 from optstereo.validation import PairScore
 from pvm_labeler.common.datasets import make_layered_scene
 from pvm_labeler.common.errors import ConfigError
@@ -206,3 +209,34 @@ def test_a_corrupt_image_says_what_to_do(tmp_path: Path) -> None:
     with pytest.raises(LabelingError, match="unusable") as err:
         label_rig("folder", tmp_path / "rig", tmp_path / "labels2", {}, max_disp=32, quiet=True)
     assert MEND_HINT in str(err.value)
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_an_interrupted_adaptation_says_how_to_continue(signum: int, code: int, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C in adaptation's training: the checkpoint is saved; the CLI exits as the signal would and says to run the
+    same command again (it used to print click's "Aborted!", exit 1, no hint; the trainer's own text names
+    optstereo-train --resume, which is not how an adaptation continues)."""
+    def interrupted(cfg: object) -> None:
+        raise TrainingInterrupted("SIGINT: ... continue with: optstereo-train --resume X", signum, 7, tmp_path / "c")
+
+    monkeypatch.setattr(adapt_cli, "run", interrupted)
+    (tmp_path / "l").mkdir()
+    result = CliRunner().invoke(adapt_cli.adapt_main, ["--root", str(tmp_path), "--left", "l", "--right", "l", "--out",
+                                                       str(tmp_path / "o")])
+    assert result.exit_code == code
+    assert f"{signal.Signals(signum).name}: stopped at step 7, its checkpoint saved" in result.output
+    assert "same optstereo-adapt command again" in result.output
+    assert "Aborted!" not in result.output and "optstereo-train --resume" not in result.output
+
+
+def test_the_report_records_the_rate_and_budget_the_run_used(tmp_path: Path) -> None:
+    """report.json's config said "lr": null and "minutes": 10.0 for a run given --steps 15 at the default rate:
+    it records the rate trained at, and no minutes when the steps were given."""
+    cfg = AdaptConfig(dataset="folder", root=tmp_path, out=tmp_path / "o", steps=15)
+    config = adapt_record.report_config(cfg)
+    assert config["lr"] == cfg.learning_rate() == adapt.DEFAULT_LR and config["minutes"] is None
+    assert config["steps"] == 15 and config["root"] == str(tmp_path) and config["out"] == str(tmp_path / "o")
+    teacher = adapt_record.report_config(AdaptConfig(dataset="folder", root=tmp_path, out=tmp_path, teacher="t"))
+    assert teacher["lr"] == adapt.DEFAULT_TEACHER_LR and teacher["minutes"] == adapt.DEFAULT_MINUTES
+    assert json.loads(json.dumps(config)) == config  # JSON-ready

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +21,7 @@ from optstereo.cli.common import (
     reader_options,
     setup_logging,
 )
+from optstereo.training.stopping import TrainingInterrupted
 
 
 @click.command(cls=GuardedCommand, context_settings={"show_default": True})
@@ -70,4 +73,8 @@ def adapt_main(dataset: str | None, root: Path | None, out: Path, init: str, min
         report = run(cfg)
     except LabelingError as exc:  # the labeler's own message, once (its type says nothing to the user)
         raise click.ClickException(str(exc)) from exc
+    except TrainingInterrupted as exc:  # Ctrl-C / SIGTERM in training: its checkpoint is saved
+        click.echo(f"{signal.Signals(exc.signum).name}: stopped at step {exc.step}, its checkpoint saved; run the "
+                   "same optstereo-adapt command again to continue from it", err=True)
+        sys.exit(exc.exit_code)  # as the signal would (130 / 143); not ctx.exit, which GuardedCommand would report
     click.echo(f"{report['decision']}; checkpoint {report['checkpoint']}")
