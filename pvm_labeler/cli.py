@@ -213,6 +213,10 @@ def _run_job(ctx: click.Context, config_file: Path | None, print_config: bool, v
             click.echo(yaml.safe_dump(spec.validate().resolved(), sort_keys=False), nl=False)
             return
         summary = run(spec)
+    except KeyboardInterrupt:  # Ctrl-C: shards are written whole or not at all, so a re-run resumes
+        click.echo(f"interrupted: the complete shards in {spec.out} are kept; run the same command again to label "
+                   "the rest (--resume is the default)", err=True)
+        sys.exit(130)  # as the signal would; click's own handler said "Aborted!" and exited 1
     except ConfigError as exc:
         raise click.UsageError(str(exc), ctx=ctx) from exc
     except PVMError as exc:

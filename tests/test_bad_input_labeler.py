@@ -154,3 +154,18 @@ def test_root_without_a_dataset_is_refused_not_the_sample_labelled(tmp_path: Pat
     assert result.exit_code == 2 and "--left, --right are read by the folder dataset only" in result.output
     assert not (tmp_path / "o").exists()
     assert invoke("--dataset", "folder", "--root", data, "--out", tmp_path / "o", *SMALL).exit_code == 0
+
+
+def test_ctrl_c_says_how_to_resume_and_exits_130(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C during a labeling job: click used to print "Aborted!" and exit 1; now it names OUT, says the same
+    command resumes, and exits as SIGINT would."""
+    import pvm_labeler.job as job  # lazy: the module whose `run` this test replaces (the CLI imports it lazily too)
+
+    def interrupted(spec: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(job, "run", interrupted)
+    result = CliRunner().invoke(main, ["--out", str(tmp_path / "o"), *map(str, SMALL)])
+    assert result.exit_code == 130, result.output
+    assert f"the complete shards in {tmp_path / 'o'} are kept; run the same command again" in result.output
+    assert "Aborted!" not in result.output
