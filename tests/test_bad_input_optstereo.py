@@ -200,6 +200,21 @@ class TestCheckpoints:
         result = predict(cut, *pair, tmp_path / "o")
         assert result.exit_code == 1 and "CheckpointError" not in result.output
 
+    def test_a_missing_checkpoint_names_the_option_given(self, pair: tuple[Path, Path], tmp_path: Path) -> None:
+        """predict has no --init: its error named "--checkpoint/--init"; the trainer's names --init."""
+        result = predict(tmp_path / "nope.pt", *pair, tmp_path / "o")
+        assert result.exit_code == 2 and "Invalid value for --checkpoint:" in result.output
+        assert "--init" not in result.output
+        result = invoke(train_main, "--labels", tmp_path, "--out", tmp_path / "r", "--init", tmp_path / "nope.pt")
+        assert result.exit_code == 2 and "Invalid value for --init:" in result.output
+
+    def test_folders_given_as_left_right_get_the_folder_dataset_hint(self, ckpt: Path, tmp_path: Path) -> None:
+        for side in ("cam_left", "cam_right"):
+            (tmp_path / "rig" / side).mkdir(parents=True)
+        result = predict(ckpt, tmp_path / "rig/cam_left", tmp_path / "rig/cam_right", tmp_path / "o")
+        assert result.exit_code == 2 and not (tmp_path / "o").exists()
+        assert f"--dataset folder --root {tmp_path / 'rig'} --left cam_left --right cam_right" in result.output
+
     def test_random_file(self, pair: tuple[Path, Path], tmp_path: Path) -> None:
         junk = tmp_path / "junk.pt"
         junk.write_bytes(np.random.default_rng(0).bytes(5000))

@@ -171,3 +171,13 @@ def test_a_kitti_style_root_without_left_right_is_hinted(tmp_path: Path) -> None
     with pytest.raises(InputError, match=r"holds image_2/ and image_3/: give --left image_2 --right image_3"):
         discover("folder", tmp_path)
     assert [r.frame_id for r in discover("folder", tmp_path, left="image_2", right="image_3")] == ["0000"]
+
+
+def test_a_root_of_other_view_folders_names_them(tmp_path: Path) -> None:
+    """cam_left/ and cam_right/ (no left/, right/, and no known pair of names): the error lists the folders that
+    hold images, so the user sees what to give (it said only that ROOT/left does not exist)."""
+    _tree(tmp_path, ["cam_left/0000.png", "cam_right/0000.png"])
+    (tmp_path / "calib").mkdir()
+    (tmp_path / "calib" / "notes.txt").write_text("no images here")
+    with pytest.raises(InputError, match=r"folders of images in .*: cam_left/, cam_right/: give --left and --right"):
+        discover("folder", tmp_path)

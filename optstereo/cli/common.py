@@ -141,12 +141,13 @@ def _parse_model_opts(values: tuple[str, ...], hint: str = "--set") -> dict[str,
     return out
 
 
-def _resolve_checkpoint(spec: Path | str) -> Path:
-    """'pretrained' -> the shipped weights; else the path, which must exist (exit 2 naming it otherwise)."""
+def _resolve_checkpoint(spec: Path | str, flag: str = "--checkpoint") -> Path:
+    """'pretrained' -> the shipped weights; else the path, which must exist (exit 2 naming it and ``flag``, the
+    option it came from, otherwise)."""
     try:
         return resolve_checkpoint_spec(spec)
     except CheckpointError as exc:
-        raise click.BadParameter(str(exc), param_hint="--checkpoint/--init") from exc
+        raise click.BadParameter(str(exc), param_hint=flag) from exc
 
 
 def load_model(checkpoint: Path, device: str) -> tuple[Any, Any]:

@@ -64,6 +64,9 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     common.setup_logging(quiet)
     if dataset is None and (left is None or right is None):
         raise click.UsageError("give LEFT RIGHT image files, or --dataset NAME --root PATH")
+    if left is not None and right is not None and left.is_dir() and right.is_dir():
+        raise click.UsageError(f"LEFT and RIGHT are one pair's image files; for folders of pairs give --dataset "
+                               f"folder --root {left.parent} --left {left.name} --right {right.name}")
     if dataset is not None and left is not None:
         raise click.UsageError("give either LEFT RIGHT or --dataset, not both")
     if sequence and dataset is not None and dataset not in VIDEO_DATASETS:

@@ -130,7 +130,7 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
         if init is not None:
             if resume is not None:
                 raise click.UsageError("--init starts a new run from weights; --resume continues a run: pick one")
-            overrides["init"] = _resolve_checkpoint(init)
+            overrides["init"] = _resolve_checkpoint(init, "--init")
             init_ckpt, init_layer = _init_layer(overrides["init"], overrides)
         cfg = _train_config(config_file, resume, init_layer, overrides)
     except ConfigError as exc:

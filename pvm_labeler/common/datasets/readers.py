@@ -270,12 +270,16 @@ KNOWN_VIEW_FOLDERS = (("image_2", "image_3"), ("image_02", "image_03"), ("image_
 
 def _layout_hint(root: Path | None) -> str:
     """"; it holds image_2/ and image_3/: give --left image_2 --right image_3" when ``root`` holds a known pair of
-    view folders (the default left/ and right/ missing), else ""."""
-    if root is None:
+    view folders (the default left/ and right/ missing), else the (first six) sub-folders holding images, else ""."""
+    if root is None or not root.is_dir():
         return ""
     for left, right in KNOWN_VIEW_FOLDERS:
         if (root / left).is_dir() and (root / right).is_dir():
             return f"; {root} holds {left}/ and {right}/: give --left {left} --right {right}"
+    with_images = sorted(p.name for p in root.iterdir() if p.is_dir() and any(
+        f.suffix.lower() in IMAGE_SUFFIXES for f in p.iterdir() if f.is_file()))
+    if with_images:
+        return f"; folders of images in {root}: {', '.join(n + '/' for n in with_images[:6])}: give --left and --right"
     return ""
 
 
