@@ -79,7 +79,8 @@ class TestDisparityFile:
         io.write_disparity_file(tmp_path / "d.npy", disp.astype(np.float64))
         kitti = io.read_kitti_disp(tmp_path / "d.png")  # x 256 exactly here; 0 and NaN are "no disparity"
         np.testing.assert_array_equal(kitti, np.array([[1.5, np.nan], [40.25, np.nan]], np.float32))
-        np.testing.assert_array_equal(io.read_pfm(tmp_path / "d.pfm"), disp)
+        pfm = io.read_pfm(tmp_path / "d.pfm")  # Middlebury's convention: a pixel without a value is inf
+        np.testing.assert_array_equal(pfm, np.array([[1.5, np.inf], [40.25, 0.0]], np.float32))
         npy = np.load(tmp_path / "d.npy")
         assert npy.dtype == np.float32
         np.testing.assert_array_equal(npy, disp)

@@ -51,7 +51,7 @@ def more_options(fn):
     """--sequence, --sequence-iters and --min-confidence for optstereo-predict."""
     fn = click.option("--min-confidence", type=click.FloatRange(0, 1), default=0.0,
                       help="Semi-dense output: pixels whose confidence (optstereo.inference.confidence) is below "
-                           "this get no value (0 in png, NaN in pfm/npy). 0 = dense.")(fn)
+                           "this get no value (0 in png, inf in pfm as Middlebury's, NaN in npy). 0 = dense.")(fn)
     fn = click.option("--sequence-iters", type=click.IntRange(min=1), default=DEFAULT_SEQUENCE_ITERS,
                       help="--sequence: GRU iterations of every frame after the first.")(fn)
     return click.option("--sequence", is_flag=True,

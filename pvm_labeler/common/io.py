@@ -233,12 +233,17 @@ DISPARITY_SUFFIXES = ("png", "pfm", "npy")
 
 
 def write_disparity_file(path: Path | str, disp: np.ndarray) -> None:
-    """Write an (H, W) disparity in the format its suffix names (``DISPARITY_SUFFIXES``), atomically."""
+    """Write an (H, W) disparity in the format its suffix names (``DISPARITY_SUFFIXES``), atomically. Pixels
+    without a value (NaN) follow each format's convention: 0 in a KITTI PNG, inf in a PFM (Middlebury's), NaN in
+    a ``.npy``."""
     suffix = Path(path).suffix.lstrip(".").lower()
+    disp = np.asarray(disp, dtype=np.float32)
     if suffix == "png":
         write_kitti_disp(path, disp)
-    elif suffix in ("pfm", "npy"):
-        (write_pfm if suffix == "pfm" else write_npy)(path, np.asarray(disp, dtype=np.float32))
+    elif suffix == "pfm":
+        write_pfm(path, np.where(np.isfinite(disp), disp, np.float32(np.inf)))
+    elif suffix == "npy":
+        write_npy(path, disp)
     else:
         raise InputError(f"{path}: a disparity file is one of {', '.join(DISPARITY_SUFFIXES)}")
 
