@@ -20,7 +20,14 @@ from pvm_labeler.common.datasets import safe_stem
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator
-from pvm_labeler.common.viz import colorize_disparity, density_error_plot, error_map
+from pvm_labeler.common.viz import (
+    colorize_disparity,
+    density_error_plot,
+    disparity_legend,
+    error_legend,
+    error_map,
+    with_legend,
+)
 from pvm_labeler.shards import open_shard, read_index, read_sample
 from pvm_labeler.stages import add_counts, stage_markdown, stage_rows
 
@@ -88,12 +95,16 @@ def _pictures(sample: Any, picture_dir: Path) -> list[str]:
     picture_dir.mkdir(parents=True, exist_ok=True)
     gt = sample.gt
     vmax = float(np.nanmax(gt)) if gt is not None and np.isfinite(gt).any() else None
+    if vmax is None:
+        finite = np.isfinite(sample.label)
+        vmax = float(sample.label[finite].max()) if finite.any() else 1.0
     stem = safe_stem(sample.frame_id)  # a shard's ids come from files anyone can write
+    width = sample.label.shape[1]
     paths = [picture_dir / f"{stem}_label.png"]
-    write_image(paths[0], colorize_disparity(sample.label, max_disp=vmax))
+    write_image(paths[0], with_legend(colorize_disparity(sample.label, max_disp=vmax), disparity_legend(width, vmax)))
     if gt is not None:
         paths.append(picture_dir / f"{stem}_error.png")
-        write_image(paths[1], error_map(sample.label, gt, dilate=1))
+        write_image(paths[1], with_legend(error_map(sample.label, gt, dilate=1), error_legend(width)))
     return [str(p) for p in paths]
 
 

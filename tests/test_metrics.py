@@ -107,6 +107,31 @@ class TestViz:
         assert tuple(img[0, 0]) == (0, 0, 0) and img[0, 2].any() and not (img[0, 1] == img[0, 2]).all()
 
 
+    def test_legends_show_the_pictures_own_colours(self) -> None:
+        """The disparity legend's ramp runs from colorize_disparity's colour of 0 to its colour of the top value; the
+        error legend shows error_map's ten bins in order, each under its lower bound; both fit the picture's width."""
+        from pvm_labeler.common.viz import (
+            KITTI_ERROR_BINS,
+            LEGEND_HEIGHT,
+            colorize_disparity,
+            disparity_legend,
+            error_legend,
+            with_legend,
+        )
+
+        strip = disparity_legend(300, 80.0)
+        assert strip.shape == (LEGEND_HEIGHT, 300, 3) and strip.dtype == np.uint8
+        ends = colorize_disparity(np.array([[0.0, 80.0]], np.float32), max_disp=80.0)[0]
+        assert tuple(strip[0, 0]) == tuple(ends[0]) and tuple(strip[0, -1]) == tuple(ends[1])
+        errors = error_legend(400)
+        assert errors.shape == (LEGEND_HEIGHT, 400, 3)
+        assert [tuple(errors[0, 20 + 40 * i]) for i in range(10)] == [rgb for _, _, rgb in KITTI_ERROR_BINS]
+        assert errors[LEGEND_HEIGHT // 2:].any()  # the numbers and words are drawn
+        picture = np.full((5, 300, 3), 7, np.uint8)
+        both = with_legend(picture, strip)
+        assert both.shape == (5 + LEGEND_HEIGHT, 300, 3) and (both[:5] == 7).all() and (both[5:] == strip).all()
+
+
 class TestReportRegions:
     def test_all_noc_occ(self, tmp_path) -> None:  # noqa: ANN001
         from pvm_labeler.report import build_report

@@ -84,6 +84,48 @@ def error_map(
     return out
 
 
+LEGEND_HEIGHT = 40  # px of the strip a legend adds below a picture: colours, numbers, a line of words
+
+
+def _text(strip: npt.NDArray[np.uint8], text: str, x: int, y: int, rgb: tuple[int, int, int] = (255, 255, 255)
+          ) -> None:
+    """Small Hershey text drawn into the (h, w, 3) uint8 RGB ``strip`` in place, its left end at x (kept inside)."""
+    (w, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)
+    cv2.putText(strip, text, (int(min(max(x, 1), strip.shape[1] - w - 1)), y), cv2.FONT_HERSHEY_SIMPLEX, 0.35, rgb, 1,
+                cv2.LINE_AA)
+
+
+def disparity_legend(width: int, max_disp: float, colormap: int = cv2.COLORMAP_TURBO) -> npt.NDArray[np.uint8]:
+    """(LEGEND_HEIGHT, width, 3) uint8 RGB strip: the colour ramp of :func:`colorize_disparity` from 0 to
+    ``max_disp`` px, ticks at 0, a half and the top, and "black: no disparity"."""
+    strip = np.zeros((LEGEND_HEIGHT, width, 3), np.uint8)
+    ramp = np.linspace(0, 255, width).astype(np.uint8)[None, :]
+    strip[:12] = cv2.applyColorMap(np.repeat(ramp, 12, axis=0), colormap)[..., ::-1]
+    for frac in (0.0, 0.5, 1.0):
+        _text(strip, f"{frac * max_disp:.3g} px", int(frac * width) - (0 if frac == 0 else 24), 24)
+    _text(strip, "disparity; black: none", 2, 37, (160, 160, 160))
+    return strip
+
+
+def error_legend(width: int, tau: tuple[float, float] = (3.0, 0.05)) -> npt.NDArray[np.uint8]:
+    """(LEGEND_HEIGHT, width, 3) uint8 RGB strip: :func:`error_map`'s ten bins side by side, each under its lower
+    bound in px (the bins of error / tau[0]; an error under tau[1] of the disparity counts as the smaller), with
+    grey = no prediction, black = no GT."""
+    strip = np.zeros((LEGEND_HEIGHT, width, 3), np.uint8)
+    step = width / len(KITTI_ERROR_BINS)
+    for i, (low, _, rgb) in enumerate(KITTI_ERROR_BINS):
+        strip[:12, int(i * step):int((i + 1) * step)] = rgb
+        _text(strip, f"{low * tau[0]:.2g}", int(i * step) + 2, 24)
+    _text(strip, f"error from px (or {tau[1]:.0%} of the disparity); grey: no prediction, black: no GT", 2, 37,
+          (160, 160, 160))
+    return strip
+
+
+def with_legend(picture: npt.NDArray[np.uint8], legend: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """The (H, W, 3) uint8 ``picture`` with the (h, W, 3) ``legend`` strip below it: (H + h, W, 3)."""
+    return np.concatenate([picture, legend], axis=0)
+
+
 def density_error_plot(
     runs: Sequence[dict[str, Any]],
     path: Path | str,
