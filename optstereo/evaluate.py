@@ -13,6 +13,10 @@ Metrics (definitions in pvm_labeler/common/metrics.py; thresholds on the absolut
     density   % of GT-valid pixels with a prediction (100 for the network; the label density for PVM labels).
 Summary numbers pool pixels over all frames (MetricAccumulator), like the KITTI devkit; the per-frame CSV holds each
 frame's own numbers.
+
+Each frame's GT is checked first (``pvm_labeler.common.metrics.gt_problems``: read at the wrong scale or byte order,
+negated, 0 for "unknown"): a warning per problem, and the summary's ``gt_warnings``. A frame whose pair cannot be
+read or does not fit (a :class:`Skipped`) is left out and listed in OUT/failures.json and the summary's ``skipped``.
 """
 
 from __future__ import annotations
@@ -35,10 +39,11 @@ from torch import nn
 
 from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.outputs import colorize
-from pvm_labeler.common.atomic import atomic_write_text, json_safe
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text, json_safe
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
-from pvm_labeler.common.io import write_image
-from pvm_labeler.common.metrics import MetricAccumulator
+from pvm_labeler.common.errors import InputError, PVMError, counted
+from pvm_labeler.common.io import KITTI_SCALE, write_image
+from pvm_labeler.common.metrics import MetricAccumulator, gt_problems
 from pvm_labeler.common.viz import error_map
 from pvm_labeler.shards import open_shard, read_index, read_sample
 
@@ -58,6 +63,16 @@ class Frame:
     left: npt.NDArray[np.uint8] | None = None
     seconds: float = math.nan
     input_scale: float = math.nan  # a network's final pass (optstereo.inference.engine.run); NaN for labels
+    gt_file: str | None = None  # where the GT came from, for the GT check's warnings (None: "frame <id>")
+    gt_scale: float | None = None  # an integer PNG GT's divisor (value / scale); None: float GT (PFM, NPY, a shard)
+
+
+@dataclass
+class Skipped:
+    """A frame that could not be evaluated (its images or GT cannot be read, or do not fit): listed, not scored."""
+
+    frame_id: str
+    error: str
 
 
 @dataclass
@@ -104,8 +119,12 @@ def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) ->
     return error_map(pred, gt)
 
 
-def _save_maps(out_dir: Path, frame: Frame) -> None:
+def _save_maps(out_dir: Path, frame: Frame | Skipped) -> None:
     maps = out_dir / "maps"
+    if isinstance(frame, Skipped):  # an earlier run's maps of it would pass for this run's
+        for kind in ("disp", "error"):
+            (maps / f"{safe_stem(frame.frame_id)}_{kind}.png").unlink(missing_ok=True)
+        return
     maps.mkdir(parents=True, exist_ok=True)
     vmax = float(np.nanmax(frame.gt)) if frame.gt is not None and np.isfinite(frame.gt).any() else None
     stem = safe_stem(frame.frame_id)  # a shard's ids come from files anyone can write
@@ -123,22 +142,47 @@ def map_writer(out_dir: Path) -> Callable[[str, npt.NDArray[np.float32], npt.NDA
     return write
 
 
+def check_gt(frame: Frame) -> list[dict[str, str]]:
+    """The GT check of one frame (:func:`pvm_labeler.common.metrics.gt_problems`), each problem logged as a warning
+    naming the GT file: [{"frame_id", "gt", "problem"}]."""
+    where = frame.gt_file or f"frame {frame.frame_id}"
+    found = []
+    for problem in gt_problems(frame.gt, frame.gt_scale):
+        logger.warning("GT of %s looks wrong: %s: %s", frame.frame_id, where, problem)
+        found.append({"frame_id": frame.frame_id, "gt": where, "problem": problem})
+    return found
+
+
 def evaluate_frames(
-    frames: Iterable[Frame], out_dir: Path | None = None, *, save_maps: bool = False, meta: dict | None = None,
-    title: str = "Evaluation",
+    frames: Iterable[Frame | Skipped], out_dir: Path | None = None, *, save_maps: bool = False,
+    meta: dict | None = None, title: str = "Evaluation",
 ) -> EvalResult:
-    """Measure every frame, pool the counts, and (with out_dir) write metrics.csv, summary.json, summary.md."""
+    """Measure every frame, pool the counts, and (with out_dir) write metrics.csv, summary.json, summary.md.
+
+    A :class:`Skipped` frame is left out, listed in the summary's ``skipped`` and (with out_dir) OUT/failures.json;
+    InputError when every frame was skipped. The summary's ``gt_warnings`` lists the GT check's problems."""
     acc_all, acc_noc = MetricAccumulator(), MetricAccumulator()
-    rows = []
+    rows: list[dict[str, Any]] = []
+    skipped: list[dict[str, str]] = []
+    warnings: list[dict[str, str]] = []
     if out_dir is not None:  # an earlier evaluation's summaries would pass for this one's if it stops midway
-        for name in ("summary.json", "summary.md"):
+        for name in ("summary.json", "summary.md", FAILURES_FILE):
             (Path(out_dir) / name).unlink(missing_ok=True)
     with contextlib.ExitStack() as stack:
         writer = None
         for frame in frames:
+            if isinstance(frame, Skipped):
+                logger.warning("skipped %s: %s", frame.frame_id, frame.error)
+                skipped.append({"frame_id": frame.frame_id, "error": frame.error})
+                if out_dir is not None:
+                    atomic_write_text(Path(out_dir) / FAILURES_FILE, json.dumps(skipped, indent=2) + "\n")
+                    if save_maps:
+                        _save_maps(Path(out_dir), frame)
+                continue
             if frame.gt is None or not np.isfinite(frame.gt).any():
                 logger.warning("frame %s has no ground truth; skipped", frame.frame_id)
                 continue
+            warnings += check_gt(frame)
             rows.append(_frame_row(frame, acc_all, acc_noc))
             if out_dir is not None:  # per-frame CSV as it goes: a long run that dies keeps the frames done so far
                 if writer is None:
@@ -150,9 +194,13 @@ def evaluate_frames(
                 fh.flush()
                 if save_maps:
                     _save_maps(Path(out_dir), frame)
+    if not rows and skipped:
+        where = "" if out_dir is None else f"; the list: {Path(out_dir) / FAILURES_FILE}"
+        raise InputError(f"no frame could be evaluated: {counted(len(skipped), 'frame')} skipped, e.g. "
+                         f"{skipped[0]['frame_id']}: {skipped[0]['error']}{where}")
     if not rows:
         raise ValueError("no frame with ground truth to evaluate (is this a testing split or a dataset without GT?)")
-    summary = {**summarise(acc_all, acc_noc), **(meta or {})}
+    summary = {**summarise(acc_all, acc_noc), **(meta or {}), "gt_warnings": warnings, "skipped": skipped}
     result = EvalResult(rows=rows, summary=summary)
     if out_dir is not None:
         result.files = write_reports(result, Path(out_dir), title, write_csv=False)  # streamed above
@@ -163,6 +211,24 @@ def _fmt(value: Any) -> str:
     if isinstance(value, float):
         return "n/a" if math.isnan(value) else f"{value:.3f}"
     return str(value)
+
+
+def skipped_line(skipped: list[dict[str, str]]) -> str:
+    """"N frame(s) skipped: ID: ERROR; ..." ("" when none was)."""
+    if not skipped:
+        return ""
+    return f"{counted(len(skipped), 'frame')} skipped: " + "; ".join(f"{s['frame_id']}: {s['error']}" for s in skipped)
+
+
+def _problem_lines(summary: dict[str, Any]) -> list[str]:
+    """The report's lines on skipped frames (also in failures.json) and GT warnings, each block ending blank."""
+    lines = []
+    if summary.get("skipped"):
+        lines += [f"**{skipped_line(summary['skipped'])}** (not scored; the list: {FAILURES_FILE})", ""]
+    if summary.get("gt_warnings"):
+        lines += ["## GT warnings", "", "The GT of these frames looks wrong; their numbers are likely meaningless.",
+                  "", *(f"- {w['frame_id']} ({w['gt']}): {w['problem']}" for w in summary["gt_warnings"]), ""]
+    return lines
 
 
 def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool = True) -> dict[str, Path]:
@@ -183,7 +249,8 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
     lines = [f"# {title}", "", f"{result.summary['n_frames']} frames; pixels pooled over frames. EPE in px, "
              "the others in %; F1 = bad3 (> 3 px, the paper's definition); D1 = > 3 px and > 5 % (KITTI)." + noc, "",
              "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys),
-             "| " + " | ".join(_fmt(result.summary[k]) for k in keys) + " |", "", "## Per frame", "",
+             "| " + " | ".join(_fmt(result.summary[k]) for k in keys) + " |", "", *_problem_lines(result.summary),
+             "## Per frame", "",
              "| frame | epe | bad3 | d1_all | d1_noc | density |", "|---|---|---|---|---|---|"]
     for row in result.rows:
         lines.append("| " + " | ".join(_fmt(row[k]) for k in ("frame_id", "epe", "bad3", "d1_all", "d1_noc",
@@ -195,23 +262,33 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
     return files
 
 
+def gt_divisor(meta: dict[str, Any]) -> float | None:
+    """An integer PNG GT's divisor (disparity = value / divisor) from a pair's metadata; None for float GT."""
+    return {"kitti": KITTI_SCALE, "scaled": meta.get("gt_scale")}.get(meta.get("gt_format", ""))
+
+
 # -- sources of frames ---------------------------------------------------------------------------------------------
 def model_frames(
     model: nn.Module, dataset: str, root: Path | None, *, split: str = "training", iters: int | None = None,
     device: torch.device | str = "cpu", limit: int | None = None, amp: str = "none",
     reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
-) -> Iterator[Frame]:
-    """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames."""
+) -> Iterator[Frame | Skipped]:
+    """Run the network over a dataset (pvm_labeler.common.datasets readers and their options), yielding timed Frames
+    (a Skipped for a pair that cannot be read or whose maps do not fit its images)."""
     config = model_inference_config(model, iters, scale, refine)
     for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
-        sample = load_pair(ref)
+        try:
+            sample = load_pair(ref)
+        except PVMError as exc:
+            yield Skipped(ref.frame_id, str(exc))
+            continue
         t0 = time.perf_counter()
         result = run(model, sample.left, sample.right, config, device, amp)
         seconds = time.perf_counter() - t0
         logger.info("%s: %dx%d in %.2f s (input scale %.3f)", ref.frame_id, sample.left.shape[0],
                     sample.left.shape[1], seconds, result.input_scale)
         yield Frame(ref.frame_id, result.disparity, sample.gt, sample.gt_noc, sample.left, seconds,
-                    result.input_scale)
+                    result.input_scale, gt_file=sample.sources.get("gt"), gt_scale=gt_divisor(ref.meta))
 
 
 def label_frames(labels_dir: Path, limit: int | None = None) -> Iterator[Frame]:
@@ -225,7 +302,8 @@ def label_frames(labels_dir: Path, limit: int | None = None) -> Iterator[Frame]:
                     return
                 sample = read_sample(h5, frame_id)
                 count += 1
-                yield Frame(str(frame_id), sample.label, sample.gt, sample.gt_noc, sample.left)
+                yield Frame(str(frame_id), sample.label, sample.gt, sample.gt_noc, sample.left,
+                            gt_file=f"shard {path}, sample {frame_id}")
 
 
 def evaluate_model(
@@ -251,11 +329,14 @@ def evaluate_model(
             "seconds_per_frame": math.nan, **(meta or {})}
     count = 0
 
-    def timed() -> Iterator[Frame]:
+    def timed() -> Iterator[Frame | Skipped]:
         nonlocal count
         total = 0.0
         for frame in model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit, amp=amp,
                                   reader_options=reader_options, scale=scale, refine=refine):
+            if isinstance(frame, Skipped):
+                yield frame
+                continue
             count += 1
             total += frame.seconds
             meta["seconds_per_frame"] = total / count  # evaluate_frames reads meta after the last frame

@@ -389,18 +389,3 @@ def verdict(change: float, noise: float) -> str:
     if not (math.isfinite(change) and math.isfinite(noise)):
         return "not scored"
     return "better" if change < -noise else "worse" if change > noise else "within noise"
-
-
-def compare_table(rows: list[dict[str, Any]], new: str, base: str) -> str:
-    """Markdown of :func:`compare`'s rows ("-" where a value is missing)."""
-    def cell(value: float, digits: int, sign: str = "") -> str:
-        return f"{value:{sign}.{digits}f}" if math.isfinite(value) else "-"
-
-    lines = [f"| score | {new} | {base} | change (mean per pair) | noise (2 SE) | verdict |",
-             "|---|---:|---:|---:|---:|---|"]
-    for r in rows:
-        d = SCORE_DIGITS[r["score"]]
-        why = f" ({r['why']})" if r.get("why") else ""
-        lines.append(f"| {r['score']} | {cell(r['new'], d)} | {cell(r['base'], d)} | {cell(r['change'], d, '+')} | "
-                     f"{cell(r['noise'], d)} | {r['verdict']}{why} |")
-    return "\n".join(lines) + "\n"

@@ -16,6 +16,7 @@ from conftest import TINY, make_folder, make_shards, make_valset
 
 from optstereo import validation
 from optstereo.checkpoint import export_safetensors
+from optstereo.cli.eval import compare_table
 from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import infer
 from optstereo.models import build_model
@@ -320,14 +321,14 @@ def test_compare_by_hand() -> None:
     assert rows["pvm_bad3"]["verdict"] == "within noise" and rows["pvm_bad3"]["noise"] == 0.0
     lacks = {r["score"]: r["verdict"] for r in validation.compare(_scores([1.0] * 3, [5.0] * 3), base)}
     assert lacks["teacher_epe"] == lacks["teacher_bad3"] == "not scored" and lacks["pvm_epe"] == "within noise"
-    table = validation.compare_table(validation.compare(new, base), "new", "base").splitlines()
+    table = compare_table(validation.compare(new, base), "new", "base").splitlines()
     assert table[3] == "| pvm_epe | 0.417 | 0.500 | -0.083 | 0.033 | better |"
     assert all(r["why"] == "" for r in validation.compare(new, base))
     two = validation.ValScore(validation.pooled(new.pairs[:2]), new.pairs[:2])
     few = {r["score"]: r for r in validation.compare(two, validation.ValScore(base.summary, base.pairs[:2]))}
     assert few["pvm_epe"]["verdict"] == "not scored" and few["pvm_epe"]["change"] == pytest.approx(-0.1)
     assert few["pvm_epe"]["why"] == "fewer than 3 pairs: no noise estimate"
-    assert "| not scored (fewer than 3 pairs: no noise estimate) |" in validation.compare_table(
+    assert "| not scored (fewer than 3 pairs: no noise estimate) |" in compare_table(
         list(few.values()), "a", "b")
     other_pairs = validation.ValScore(base.summary, base.pairs[:2] + [validation.PairScore("q", pvm_n=1)])
     with pytest.raises(ValueError, match="scored on different pairs \\(2 in one only, e.g. 'p2'\\)"):

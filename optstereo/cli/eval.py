@@ -5,6 +5,8 @@ against another model's, score by score, beyond or within the noise of the pairs
 from __future__ import annotations
 
 import logging
+import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +16,8 @@ from optstereo import evaluate, validation
 from optstereo.checkpoint import CheckpointError
 from optstereo.cli import common
 from optstereo.pretrained import resolve_checkpoint_spec
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text
+from pvm_labeler.common.errors import counted
 
 logger = logging.getLogger(__name__)
 
@@ -79,10 +82,44 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
                                          limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
                                          amp=amp, reader_options=common.collect_reader_options(**reader),
                                          scale=scale, refine=refine)
-    s = result.summary
-    click.echo(f"{s['n_frames']} frames: EPE {s['epe']:.3f} px, bad3 {s['bad3']:.2f} %, D1-all {s['d1_all']:.2f} %, "
-               f"D1-noc {s['d1_noc']:.2f} %, density {s['density']:.1f} %")
+    click.echo(summary_line(result.summary))
+    for line in problem_lines(result.summary, out):
+        click.echo(line)
     click.echo(f"reports: {result.files['md']}, {result.files['csv']}, {result.files['json']}")
+    if result.summary.get("skipped"):
+        sys.exit(1)  # as optstereo-predict and pvm-label do when pairs failed: the scores lack those frames
+
+
+def _unit(value: float, digits: int, unit: str) -> str:
+    """``value`` with ``unit``, or "n/a" (NaN: no pixel to measure, e.g. no non-occluded GT), as summary.md says."""
+    return "n/a" if math.isnan(value) else f"{value:.{digits}f} {unit}"
+
+
+def summary_line(s: dict[str, Any]) -> str:
+    """The console's one line of an evaluation's summary."""
+    return (f"{counted(s['n_frames'], 'frame')}: EPE {_unit(s['epe'], 3, 'px')}, bad3 {_unit(s['bad3'], 2, '%')}, "
+            f"D1-all {_unit(s['d1_all'], 2, '%')}, D1-noc {_unit(s['d1_noc'], 2, '%')}, "
+            f"density {_unit(s['density'], 1, '%')}")
+
+
+#: The console lists this many GT warnings; summary.md and summary.json hold them all.
+SHOWN_WARNINGS = 5
+
+
+def problem_lines(s: dict[str, Any], out: Path) -> list[str]:
+    """The console's lines on skipped frames and GT warnings (the log's warnings scroll away)."""
+    lines = []
+    if s.get("skipped"):
+        lines.append(f"{evaluate.skipped_line(s['skipped'])} (the list: {out / FAILURES_FILE})")
+    warnings = s.get("gt_warnings", [])
+    if warnings:
+        frames = counted(len({w["frame_id"] for w in warnings}), "frame")
+        lines.append(f"WARNING: the GT of {frames} looks wrong; the numbers are likely meaningless (all in "
+                     f"{out / 'summary.md'}):")
+        lines += [f"  {w['gt']}: {w['problem']}" for w in warnings[:SHOWN_WARNINGS]]
+        if len(warnings) > SHOWN_WARNINGS:
+            lines.append(f"  ... and {len(warnings) - SHOWN_WARNINGS} more")
+    return lines
 
 
 def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp: str, quiet: bool,
@@ -130,12 +167,52 @@ def _compare(result: validation.ValScore, name: str, against: str, base: validat
         rows = validation.compare(result, base)
     except ValueError as exc:
         raise click.UsageError(f"--against {against}: {exc}") from exc
-    table = validation.compare_table(rows, name, against)
+    table = compare_table(rows, name, against)
     atomic_write_text(out / "compare.md", f"# {name} against {against} on {valset_dir}\n\n{table}")
     atomic_write_text(out / "compare.json", validation.strict_json({"new": name, "base": against,
                                                                     "valset": str(valset_dir), "rows": rows}))
     click.echo(f"against {against}:")
     for r in rows:
-        numbers = f" ({r['why']})" if r["why"] else f" ({r['change']:+.4f}, noise {r['noise']:.4f})"
+        change, noise = change_and_noise(r["change"], r["noise"], 4)
+        numbers = f" ({r['why']})" if r["why"] else f" ({change}, noise {noise})"
         click.echo(f"  {r['score']}: {r['verdict']}{numbers}")
     click.echo(f"comparison: {out / 'compare.md'}")
+
+
+#: Past this many decimals :func:`change_and_noise` writes scientific notation.
+MAX_DECIMALS = 8
+
+
+def change_and_noise(change: float, noise: float, digits: int) -> tuple[str, str]:
+    """A score's change (signed) and noise, both at ``digits`` decimals or as many more as show the noise (or, without
+    one, the change) to 2 significant digits: a photometric change of 4.1e-05 against a noise of 1.4e-05 reads
+    "+0.000041", "0.000014", not "+0.0000", "0.0000"; scientific past MAX_DECIMALS; "-" when not finite."""
+    scale = noise if math.isfinite(noise) and noise != 0 else change
+    if math.isfinite(scale) and scale != 0:
+        digits = max(digits, 1 - math.floor(math.log10(abs(scale))))
+    form = ".1e" if digits > MAX_DECIMALS else f".{digits}f"
+
+    def text(value: float, sign: str = "") -> str:
+        if not math.isfinite(value):
+            return "-"
+        out = f"{value:{sign}{form}}"
+        return f"{0.0:{sign}{form}}" if float(out) == 0 else out  # "+0.0000", not "-0.0000"
+
+    return text(change, "+"), text(noise)
+
+
+def compare_table(rows: list[dict[str, Any]], new: str, base: str) -> str:
+    """Markdown of :func:`optstereo.validation.compare`'s rows: values at their score's decimals
+    (``validation.SCORE_DIGITS``), change and noise by :func:`change_and_noise`; "-" where a value is missing."""
+    def cell(value: float, digits: int) -> str:
+        return f"{value:.{digits}f}" if math.isfinite(value) else "-"
+
+    lines = [f"| score | {new} | {base} | change (mean per pair) | noise (2 SE) | verdict |",
+             "|---|---:|---:|---:|---:|---|"]
+    for r in rows:
+        d = validation.SCORE_DIGITS[r["score"]]
+        change, noise = change_and_noise(r["change"], r["noise"], d)
+        why = f" ({r['why']})" if r.get("why") else ""
+        lines.append(f"| {r['score']} | {cell(r['new'], d)} | {cell(r['base'], d)} | {change} | {noise} | "
+                     f"{r['verdict']}{why} |")
+    return "\n".join(lines) + "\n"

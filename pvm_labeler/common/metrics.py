@@ -125,3 +125,62 @@ def disparity_metrics(pred: npt.ArrayLike, gt: npt.ArrayLike, valid: npt.ArrayLi
         dict with density (%), epe (px), bad1/bad2/bad3 (%), d1 (%), n_valid, n_covered.
     """
     return MetricAccumulator().update(pred, gt, valid)
+
+
+# ------------------------------------------------------------------------------------------------ GT sanity check
+# Plainly wrong GT (read at the wrong scale or byte order, negated, 0 for "unknown") scores as confident nonsense, so
+# :func:`gt_problems` names it. Shares are of the GT-valid (finite) pixels unless said otherwise. Every real GT set in
+# ../shared/data (KITTI 2012/2015, Middlebury 2001/2003/2014, FlyingThings3D) is far from each: disparities of ~1 to
+# ~150 px, none below 1 px, none negative, none exactly 0.
+#: Below 1 px (of the non-zero ones): an 8-bit PNG of disparity x4 read as value / 256 has all of them there; a real
+#: frame's far points, where it has any, are a small part of it.
+SUBPIXEL_SHARE = 0.99
+#: Negative: a negated map or the right view's GT (a left-view disparity x_left - x_right is >= 0).
+NEGATIVE_SHARE = 0.01
+#: Exactly 0, as a share of ALL pixels: a float GT (PFM, NPY) whose unknowns are 0 instead of inf; an integer PNG's
+#: 0 is read as "no GT" already, so this only fires for float GT.
+ZERO_SHARE = 0.005
+#: |d| outside [TINY_DISP, HUGE_DISP] (d != 0) is no disparity: floats read with the wrong byte order land there
+#: (100.0 written little-endian, read big-endian, is 7.2e-41), at most IMPLAUSIBLE_SHARE of a real frame.
+TINY_DISP, HUGE_DISP, IMPLAUSIBLE_SHARE = 1e-6, 1e5, 0.01
+
+
+def gt_problems(gt: npt.ArrayLike, scale: float | None = None) -> list[str]:
+    """What is plainly wrong with a GT map, each problem with its likely fix ([] for plausible GT).
+
+    Args:
+        gt: (H, W) float disparity as the readers decode it (NaN/inf = unknown; an integer PNG's 0 is NaN already).
+        scale: the integer PNG's divisor (disparity = value / scale), None for float GT (PFM, NPY).
+    """
+    gt = np.asarray(gt, dtype=np.float64)
+    d = gt[np.isfinite(gt)]
+    if d.size == 0:
+        return []
+    odd = (d != 0) & ((np.abs(d) < TINY_DISP) | (np.abs(d) > HUGE_DISP))
+    if odd.mean() > IMPLAUSIBLE_SHARE:  # the other checks would only echo it
+        return [f"{_pct(odd.mean())} of the valid disparities are not disparities (|d| < {TINY_DISP:g} or > "
+                f"{HUGE_DISP:g} px, e.g. {d[odd][0]:.2g}): a big-endian/little-endian mix-up? (a PFM's scale sign "
+                "gives its byte order: negative = little-endian)"]
+    problems = []
+    negative = d < 0
+    negated = negative.mean() > NEGATIVE_SHARE
+    if negated:
+        problems.append(f"{_pct(negative.mean())} of the valid disparities are negative (min {d.min():.3g} px): "
+                        "negative disparities come from a negated map or the right view's GT; the left view's "
+                        "disparity x_left - x_right is >= 0")
+    nonzero = d[d != 0]
+    if not negated and nonzero.size and (nonzero < 1).mean() >= SUBPIXEL_SHARE:
+        share = "all" if (nonzero < 1).all() else _pct((nonzero < 1).mean()) + " of the"
+        fix = (f"the PNG is read as value / {scale:g}: an 8-bit PNG needs --gt-scale (its disparity multiplier, "
+               "e.g. 4)" if scale is not None else
+               "a map in another unit (normalised by the image width?) or no disparity map")
+        problems.append(f"{share} {nonzero.size:,} valid disparities are below 1 px (max {nonzero.max():.3g}): {fix}")
+    zero = float((gt == 0).mean())
+    if zero > ZERO_SHARE:
+        problems.append(f"{_pct(zero)} of the pixels are exactly 0: PFM unknowns should be inf (0 counts as a "
+                        "disparity of 0)")
+    return problems
+
+
+def _pct(share: float) -> str:
+    return f"{100 * share:.3g} %"
