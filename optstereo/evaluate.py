@@ -44,7 +44,7 @@ from pvm_labeler.common.datasets import discover, load_pair, safe_stem
 from pvm_labeler.common.errors import InputError, PVMError, counted
 from pvm_labeler.common.io import KITTI_SCALE, write_image
 from pvm_labeler.common.metrics import MetricAccumulator, gt_problems
-from pvm_labeler.common.viz import error_map
+from pvm_labeler.common.viz import disparity_legend, error_legend, error_map, with_legend
 from pvm_labeler.shards import open_shard, read_index, read_sample
 
 logger = logging.getLogger(__name__)
@@ -115,8 +115,8 @@ def summarise(acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[st
 
 
 def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
-    """KITTI-style error map (the base's viz.error_map): (H, W, 3) uint8."""
-    return error_map(pred, gt)
+    """KITTI-style error map (the base's viz.error_map) with its legend below: (H + LEGEND_HEIGHT, W, 3) uint8."""
+    return with_legend(error_map(pred, gt), error_legend(gt.shape[1]))
 
 
 def _save_maps(out_dir: Path, frame: Frame | Skipped) -> None:
@@ -126,9 +126,11 @@ def _save_maps(out_dir: Path, frame: Frame | Skipped) -> None:
             (maps / f"{safe_stem(frame.frame_id)}_{kind}.png").unlink(missing_ok=True)
         return
     maps.mkdir(parents=True, exist_ok=True)
-    vmax = float(np.nanmax(frame.gt)) if frame.gt is not None and np.isfinite(frame.gt).any() else None
+    shown = frame.gt if frame.gt is not None and np.isfinite(frame.gt).any() else frame.pred
+    vmax = float(np.nanmax(shown)) if np.isfinite(shown).any() else 1.0
     stem = safe_stem(frame.frame_id)  # a shard's ids come from files anyone can write
-    write_image(maps / f"{stem}_disp.png", colorize(frame.pred, max_disp=vmax))
+    disp = colorize(frame.pred, max_disp=vmax)
+    write_image(maps / f"{stem}_disp.png", with_legend(disp, disparity_legend(disp.shape[1], vmax)))
     if frame.gt is not None:
         write_image(maps / f"{stem}_error.png", error_picture(frame.pred, frame.gt))
 

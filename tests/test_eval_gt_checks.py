@@ -204,3 +204,15 @@ def test_compare_numbers_show_two_significant_digits(tmp_path: Path, capsys: pyt
     _compare(None, "new", "base.json", object(), tmp_path, tmp_path, "cpu", "none", True)  # type: ignore[arg-type]
     assert "photometric: worse (+0.000041, noise 0.000014)" in capsys.readouterr().out
     assert "+0.000041 | 0.000014 | worse" in (tmp_path / "compare.md").read_text()
+
+
+def test_the_maps_carry_their_legends(tiny_ckpt: Path, tmp_path: Path) -> None:
+    """OUT/maps/<frame>_disp.png and _error.png: the picture, then the legend strip of its colours (viz)."""
+    from pvm_labeler.common.io import read_image  # lazy: only this test reads pictures back
+    from pvm_labeler.common.viz import KITTI_ERROR_BINS, LEGEND_HEIGHT
+
+    root = make_folder(tmp_path / "f", n=1, size=SIZE)
+    assert _eval(tiny_ckpt, root, tmp_path / "eval").exit_code == 0
+    disp, error = (read_image(tmp_path / "eval" / "maps" / f"000_{kind}.png") for kind in ("disp", "error"))
+    assert disp.shape == error.shape == (SIZE[0] + LEGEND_HEIGHT, SIZE[1], 3)
+    assert tuple(error[SIZE[0], 1]) == KITTI_ERROR_BINS[0][2]  # the first bin's colour opens the strip
