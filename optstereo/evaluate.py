@@ -167,6 +167,7 @@ def evaluate_frames(
     rows: list[dict[str, Any]] = []
     skipped: list[dict[str, str]] = []
     warnings: list[dict[str, str]] = []
+    without_gt: list[str] = []
     if out_dir is not None:  # an earlier evaluation's summaries would pass for this one's if it stops midway
         for name in ("summary.json", "summary.md", FAILURES_FILE):
             (Path(out_dir) / name).unlink(missing_ok=True)
@@ -182,7 +183,8 @@ def evaluate_frames(
                         _save_maps(Path(out_dir), frame)
                 continue
             if frame.gt is None or not np.isfinite(frame.gt).any():
-                logger.warning("frame %s has no ground truth; skipped", frame.frame_id)
+                logger.warning("frame %s has no ground truth; not scored", frame.frame_id)
+                without_gt.append(frame.frame_id)
                 continue
             warnings += check_gt(frame)
             rows.append(_frame_row(frame, acc_all, acc_noc))
@@ -202,7 +204,8 @@ def evaluate_frames(
                          f"{skipped[0]['frame_id']}: {skipped[0]['error']}{where}")
     if not rows:
         raise ValueError("no frame with ground truth to evaluate (is this a testing split or a dataset without GT?)")
-    summary = {**summarise(acc_all, acc_noc), **(meta or {}), "gt_warnings": warnings, "skipped": skipped}
+    summary = {**summarise(acc_all, acc_noc), **(meta or {}), "gt_warnings": warnings, "skipped": skipped,
+               "without_gt": without_gt}
     result = EvalResult(rows=rows, summary=summary)
     if out_dir is not None:
         result.files = write_reports(result, Path(out_dir), title, write_csv=False)  # streamed above
@@ -213,6 +216,12 @@ def _fmt(value: Any) -> str:
     if isinstance(value, float):
         return "n/a" if math.isnan(value) else f"{value:.3f}"
     return str(value)
+
+
+def without_gt_line(frame_ids: list[str]) -> str:
+    """"2 frames without GT, not scored: a, b" (the first five named)."""
+    more = f" and {len(frame_ids) - 5} more" if len(frame_ids) > 5 else ""
+    return f"{counted(len(frame_ids), 'frame')} without GT, not scored: {', '.join(frame_ids[:5])}{more}"
 
 
 def skipped_line(skipped: list[dict[str, str]]) -> str:
@@ -227,6 +236,8 @@ def _problem_lines(summary: dict[str, Any]) -> list[str]:
     lines = []
     if summary.get("skipped"):
         lines += [f"**{skipped_line(summary['skipped'])}** (not scored; the list: {FAILURES_FILE})", ""]
+    if summary.get("without_gt"):
+        lines += [without_gt_line(summary["without_gt"]), ""]
     if summary.get("gt_warnings"):
         lines += ["## GT warnings", "", "The GT of these frames looks wrong; their numbers are likely meaningless.",
                   "", *(f"- {w['frame_id']} ({w['gt']}): {w['problem']}" for w in summary["gt_warnings"]), ""]
@@ -279,6 +290,9 @@ def model_frames(
     (a Skipped for a pair that cannot be read or whose maps do not fit its images)."""
     config = model_inference_config(model, iters, scale, refine)
     for ref in discover(dataset, root, split=split, **(reader_options or {}))[:limit]:
+        if ref.gt is None and ref.gt_noc is None and not ref.meta.get("synthetic"):
+            yield Frame(ref.frame_id, np.empty((0, 0), np.float32), None)  # nothing to score: no network pass
+            continue
         try:
             sample = load_pair(ref)
         except PVMError as exc:

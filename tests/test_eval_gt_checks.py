@@ -216,3 +216,24 @@ def test_the_maps_carry_their_legends(tiny_ckpt: Path, tmp_path: Path) -> None:
     disp, error = (read_image(tmp_path / "eval" / "maps" / f"000_{kind}.png") for kind in ("disp", "error"))
     assert disp.shape == error.shape == (SIZE[0] + LEGEND_HEIGHT, SIZE[1], 3)
     assert tuple(error[SIZE[0], 1]) == KITTI_ERROR_BINS[0][2]  # the first bin's colour opens the strip
+
+
+def test_frames_without_gt_are_not_run_and_are_named(tiny_ckpt: Path, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three pairs, GT for one: the network runs once (it ran three times, then skipped two with a log line), and
+    the summary, its report and the console name the two frames that were not scored."""
+    import optstereo.evaluate as evaluate  # lazy: the module whose `run` this test counts
+
+    root = make_folder(tmp_path / "f", n=3, size=SIZE)
+    for name in ("000", "002"):
+        (root / "gt" / f"{name}.png").unlink()
+    calls: list[int] = []
+    real_run = evaluate.run
+    monkeypatch.setattr(evaluate, "run", lambda *a, **k: calls.append(1) or real_run(*a, **k))
+    res = _eval(tiny_ckpt, root, tmp_path / "eval")
+    assert res.exit_code == 0, res.output
+    assert len(calls) == 1
+    summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert summary["n_frames"] == 1 and summary["without_gt"] == ["000", "002"]
+    assert "2 frames without GT, not scored: 000, 002" in res.output
+    assert "2 frames without GT, not scored: 000, 002" in (tmp_path / "eval" / "summary.md").read_text()

@@ -111,6 +111,8 @@ def problem_lines(s: dict[str, Any], out: Path) -> list[str]:
     lines = []
     if s.get("skipped"):
         lines.append(f"{evaluate.skipped_line(s['skipped'])} (the list: {out / FAILURES_FILE})")
+    if s.get("without_gt"):
+        lines.append(evaluate.without_gt_line(s["without_gt"]))
     warnings = s.get("gt_warnings", [])
     if warnings:
         frames = counted(len({w["frame_id"] for w in warnings}), "frame")
