@@ -40,9 +40,9 @@ from torch import nn
 from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.outputs import colorize
 from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text, json_safe
-from pvm_labeler.common.datasets import discover, load_pair, safe_stem
+from pvm_labeler.common.datasets import discover, gt_divisor, load_pair, safe_stem
 from pvm_labeler.common.errors import InputError, PVMError, counted
-from pvm_labeler.common.io import KITTI_SCALE, write_image
+from pvm_labeler.common.io import write_image
 from pvm_labeler.common.metrics import MetricAccumulator, gt_problems
 from pvm_labeler.common.viz import disparity_legend, error_legend, error_map, with_legend
 from pvm_labeler.shards import open_shard, read_index, read_sample
@@ -273,11 +273,6 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
     # crash midway leaves the streamed metrics.csv and no summary.json)
     atomic_write_text(files["json"], json.dumps(clean, indent=2, default=str))
     return files
-
-
-def gt_divisor(meta: dict[str, Any]) -> float | None:
-    """An integer PNG GT's divisor (disparity = value / divisor) from a pair's metadata; None for float GT."""
-    return {"kitti": KITTI_SCALE, "scaled": meta.get("gt_scale")}.get(meta.get("gt_format", ""))
 
 
 # -- sources of frames ---------------------------------------------------------------------------------------------

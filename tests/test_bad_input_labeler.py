@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -96,6 +97,7 @@ def test_disk_full_stops_the_job_naming_disk_and_shard_and_resume_finishes(tmp_p
 
 WRITE_PAST_LIMIT = """
 import resource, sys
+import cv2
 import numpy as np
 from pvm_labeler.common.errors import DiskFullError
 from pvm_labeler.shards import ShardRecord, ShardWriter, writer
@@ -169,3 +171,21 @@ def test_ctrl_c_says_how_to_resume_and_exits_130(tmp_path: Path, monkeypatch: py
     assert result.exit_code == 130, result.output
     assert f"the complete shards in {tmp_path / 'o'} are kept; run the same command again" in result.output
     assert "Aborted!" not in result.output
+
+
+def test_gt_that_looks_wrong_is_warned_about_in_the_summary(tmp_path: Path) -> None:
+    """GT of disparity 4 stored x4 in an 8-bit PNG, read at the folder reader's default x256: every value is below
+    1 px and the "vs GT" line would read as a labeler failure. The job's summary warns, naming the first pair's GT
+    file and the fix; the same data stored x256 gets no warning."""
+    data = make_folder(tmp_path / "d", n=2)
+    ok = invoke("--dataset", "folder", "--root", data, "--out", tmp_path / "ok", *SMALL)
+    assert ok.exit_code == 0 and "WARNING" not in ok.output
+    for name in ("000", "001"):
+        gt = np.full((64, 128), 16, np.uint8)  # 4 px x 4
+        gt[:, :4] = 0
+        cv2.imwrite(str(data / "gt" / f"{name}.png"), gt)
+    bad = invoke("--dataset", "folder", "--root", data, "--out", tmp_path / "bad", *SMALL)
+    assert bad.exit_code == 0, bad.output
+    assert "WARNING: the GT looks wrong" in bad.output and f"000 ({data / 'gt' / '000.png'}):" in bad.output
+    assert "an 8-bit PNG needs --gt-scale" in bad.output
+    assert read_index(tmp_path / "bad").raw["summary"]["gt_warnings"][0].startswith("000 (")

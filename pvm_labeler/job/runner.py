@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import time
 
-from pvm_labeler.common.datasets import discover
+from pvm_labeler.common.datasets import discover, first_gt_problems
 from pvm_labeler.common.errors import counted
 from pvm_labeler.job.outdir import complete_shard, job_doc, plan_shards, prepare_out
 from pvm_labeler.job.progress import PairProgress, progress_bar
@@ -44,6 +44,9 @@ def run(spec: JobSpec) -> JobSummary:
     if spec.label_fn == PACK_GT_LABELER:
         require_gt(refs)
     work = preflight(refs, spec.config, matcher=spec.label_fn != PACK_GT_LABELER)
+    gt_warnings = first_gt_problems(refs)  # a wrong --gt-scale or byte order is every file's: one pair tells
+    for warning in gt_warnings:
+        logger.warning("GT looks wrong: %s", warning)
     plan = plan_shards(refs, spec.shard_size)
     doc = job_doc(spec, plan)
     prepare_out(spec, doc)
@@ -75,7 +78,7 @@ def run(spec: JobSpec) -> JobSummary:
     logger.info("%d pairs in %d shards: %d complete, %d to label (%s, %d jobs, %d numba threads each)",
                 len(refs), len(plan), len(outcomes), len(pending), spec.backend, spec.jobs, threads)
     _label_pending(spec, pending, outcomes, len(refs), len(plan))
-    return finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0)
+    return finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0, gt_warnings)
 
 
 def _label_pending(spec: JobSpec, pending: list[ShardTask], outcomes: dict[int, ShardOutcome], pairs: int,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,7 @@ class JobSummary:
     failures: list[dict[str, Any]]
     gt_only: bool = False  # a GT pack (pvm-label pack-gt): images + GT, no labels
     gt_fraction: float = math.nan  # % of all image pixels with valid GT
+    gt_warnings: list[str] = field(default_factory=list)  # the GT check of the first pair with GT: its problems
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -65,6 +66,9 @@ class JobSummary:
             lines += [f"vs {name}: density {m['density']:.1f} % of GT-valid pixels, bad-1 {m['bad1']:.2f} %, "
                       f"bad-3 {m['bad3']:.2f} %, AEPE {m['epe']:.3f} px, D1 {m['d1']:.2f} %"
                       for name, m in (("GT", self.metrics), ("GT noc", self.metrics_noc)) if m and m.get("n_valid")]
+        if self.gt_warnings:
+            lines.append("WARNING: the GT looks wrong, so the numbers against it are likely meaningless:")
+            lines += [f"  {warning}" for warning in self.gt_warnings]
         if self.failures:
             lines.append(f"{counted(len(self.failures), 'pair')} FAILED (see {Path(self.out) / FAILURES_FILE}; a "
                          "re-run retries them):")
@@ -85,8 +89,9 @@ def _pooled(outcomes: list[ShardOutcome]) -> tuple[MetricAccumulator, MetricAccu
 
 
 def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcomes: dict[int, ShardOutcome],
-           threads: int, seconds: float) -> JobSummary:
-    """Summarise the run, write (or remove) failures.json, and write index.json last."""
+           threads: int, seconds: float, gt_warnings: list[str] | None = None) -> JobSummary:
+    """Summarise the run, write (or remove) failures.json, and write index.json last. ``gt_warnings``: the GT
+    check's lines (``datasets.first_gt_problems``), repeated in the summary."""
     ordered = [outcomes[index] for index in range(len(plan))]
     failures = [failure for outcome in ordered for failure in outcome.failures]
     shards = [(o.file, o.sample_ids) for o in ordered if o.sample_ids]
@@ -113,6 +118,7 @@ def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcom
         failures=failures,
         gt_only=spec.label_fn == PACK_GT_LABELER,
         gt_fraction=100.0 * acc.n_valid / total_px if total_px else math.nan,
+        gt_warnings=list(gt_warnings or []),
     )
     if failures:
         atomic_write_text(spec.out / FAILURES_FILE, json.dumps(failures, indent=2))

@@ -63,6 +63,7 @@ from pvm_labeler.common.datasets.refs import (
 )
 from pvm_labeler.common.datasets.synthetic import SYNTHETIC_SCENES, _discover_sample, make_layered_scene
 from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.metrics import gt_problems
 
 __all__ = ["DATASETS", "DEFAULT_MAX_DISP", "IMAGE_SUFFIXES", "SPLITS", "SYNTHETIC_SCENES", "PairRef", "StereoSample",
            "check_pair_sizes", "discover", "load_pair", "make_layered_scene", "read_middlebury_calib", "safe_stem"]
@@ -153,6 +154,26 @@ def check_pair_sizes(ref: PairRef) -> tuple[int, int]:
                 raise InputError(f"{role} size {hw} differs from image size {left_hw} (H, W) for pair "
                                  f"{ref.frame_id}: {path}")
     return left_hw
+
+
+def gt_divisor(meta: dict[str, Any]) -> float | None:
+    """An integer PNG GT's divisor (disparity = value / divisor) from a pair's metadata; None for float GT."""
+    return {"kitti": io.KITTI_SCALE, "scaled": meta.get("gt_scale")}.get(meta.get("gt_format", ""))
+
+
+def first_gt_problems(refs: list[PairRef]) -> list[str]:
+    """The GT check (:func:`pvm_labeler.common.metrics.gt_problems`) of the first pair that has a GT file, as
+    "<frame> (<file>): <problem>" lines ([] when none has GT or it looks plausible): a wrong --gt-scale, byte order
+    or sign is the same for every file of a dataset, so one pair tells.
+
+    Raises:
+        InputError: that pair cannot be read (as the job itself would report it).
+    """
+    ref = next((r for r in refs if r.gt is not None), None)
+    if ref is None:
+        return []
+    gt = _read_gt(ref.gt, ref.meta)
+    return [f"{ref.frame_id} ({ref.gt}): {problem}" for problem in gt_problems(gt, gt_divisor(ref.meta))]
 
 
 def _read_gt(path: Path, meta: dict[str, Any]) -> np.ndarray:
