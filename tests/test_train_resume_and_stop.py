@@ -264,3 +264,40 @@ def test_under_torchrun_only_rank_0_prints_the_summary(tmp_path: Path, monkeypat
     assert "trained 0 -> 4 steps" in CliRunner(env={"RANK": "0"}).invoke(train_main, args).output
     other = CliRunner(env={"RANK": "1"}).invoke(train_main, args)
     assert other.exit_code == 0 and "trained" not in other.output, other.output
+
+
+def test_a_resumed_runs_tensorboard_curves_hold_each_step_once(tmp_path: Path) -> None:
+    """A run killed at step 5 after its checkpoint at 3, resumed: TensorBoard's reader shows steps 1..6 once each
+    (it showed 1, 2, 3, 4, 5, 4, 5, 6: the killed run's events past the checkpoint stayed), as metrics.jsonl does."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # lazy: optional package
+
+    from optstereo.training.log import RunLogger  # lazy: only this test logs by hand
+
+    first = RunLogger(tmp_path, enabled=True, tensorboard=True)
+    for step in range(1, 6):
+        first.scalars(step, {"loss": float(step)})
+    first.close()
+    resumed = RunLogger(tmp_path, enabled=True, tensorboard=True, resume_step=3)
+    for step in range(4, 7):
+        resumed.scalars(step, {"loss": 10.0 + step})
+    resumed.close()
+    events = EventAccumulator(str(tmp_path / "tb"))
+    events.Reload()
+    tag = next(t for t in events.Tags()["scalars"] if t.endswith("loss"))
+    seen = [(e.step, e.value) for e in events.Scalars(tag)]
+    assert seen == [(1, 1.0), (2, 2.0), (3, 3.0), (4, 14.0), (5, 15.0), (6, 16.0)]
+    assert [json.loads(line)["step"] for line in (tmp_path / "metrics.jsonl").read_text().splitlines()] == \
+        [1, 2, 3, 4, 5, 6]
+
+
+def test_resume_with_another_out_is_refused(tmp_path: Path) -> None:
+    """--resume RUN --out OTHER used to continue RUN in place without a word (OTHER never made, RUN's checkpoints
+    rotated): a usage error naming both and the --init way to branch a run; nothing is written."""
+    run = tmp_path / "run"
+    run.mkdir()
+    result = CliRunner().invoke(train_main, ["--resume", str(run), "--out", str(tmp_path / "other"), "--steps", "9"])
+    assert result.exit_code == 2, result.output
+    assert f"--resume {run} continues that run in its own folder" in result.output
+    assert f"--init {run / 'last.pt'} --out {tmp_path / 'other'}" in result.output
+    assert not (tmp_path / "other").exists() and list(run.iterdir()) == []

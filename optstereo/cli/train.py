@@ -206,4 +206,9 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
         return TrainConfig.from_layers(base, init_layer, overrides, strict_last=True)
     if config_file is not None:
         raise click.UsageError("--resume uses the run's saved config; do not combine it with --config")
+    out = overrides.get("out")
+    if out is not None and Path(out).resolve() != Path(resume).resolve():
+        raise click.UsageError(f"--resume {resume} continues that run in its own folder; --out {out} would be "
+                               f"ignored: leave --out out, or start a new run from its weights with --init "
+                               f"{Path(resume) / 'last.pt'} --out {out}")
     return config_for_resume(resume, overrides)

@@ -29,7 +29,7 @@ class RunLogger:
     """JSONL metrics + optional TensorBoard, active on rank 0 only.
 
     ``resume_step``: a resumed run first drops the records logged after its checkpoint (a killed run logs up to
-    ``ckpt_every - 1`` steps past it), so the resumed steps are not in the file twice.
+    ``ckpt_every - 1`` steps past it), so the resumed steps are not in the file, nor in TensorBoard's curves, twice.
     """
 
     def __init__(self, run_dir: Path, enabled: bool, tensorboard: bool, resume_step: int | None = None) -> None:
@@ -44,7 +44,9 @@ class RunLogger:
             except ImportError:
                 logger.warning("tensorboard is not installed; logging to %s only", self.path)
             else:
-                self.tb = SummaryWriter(log_dir=str(Path(run_dir) / "tb"))
+                # purge_step: TensorBoard drops the killed run's events after the checkpoint, as trim_metrics does
+                purge = None if resume_step is None else resume_step + 1
+                self.tb = SummaryWriter(log_dir=str(Path(run_dir) / "tb"), purge_step=purge)
 
     def scalars(self, step: int, values: dict[str, float]) -> None:
         if not self.enabled:
