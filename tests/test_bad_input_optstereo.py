@@ -354,6 +354,20 @@ class TestTrain:
                         "--val-dataset", "folder", "--val-root", empty, *TRAIN)
         assert result.exit_code == 1 and "has ground truth" in result.output and not (tmp_path / "r").exists()
 
+    def test_a_shard_of_another_labeler_config_is_named_before_training(self, tmp_path: Path,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+        """A shard copied in from a run with other kappas: `pvm-label verify` calls the folder broken; the trainer
+        trained on it without a word. Now it warns naming the shard (and trains: merged folders are legitimate)."""
+        shards = make_shards(tmp_path / "s", n=4)
+        with h5py.File(shards / "shard-00001.h5", "r+") as h5:
+            config = json.loads(h5.attrs["config"])
+            h5.attrs["config"] = json.dumps({**config, "kappa1": 99.0})
+        with caplog.at_level("WARNING"):
+            result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "1", *TRAIN)
+        assert result.exit_code == 0, result.output
+        assert "shard-00001.h5: labeler config differs from the index config (pvm-label verify" in caplog.text
+        assert "shard-00000.h5" not in caplog.text
+
     def test_corrupt_shard_in_the_middle_stops_the_run_naming_it(self, tmp_path: Path) -> None:
         shards = make_shards(tmp_path / "s", n=6)
         bad = shards / "shard-00002.h5"

@@ -51,10 +51,10 @@ from pvm_labeler.shards.schema import (
     hdf5plugin,
     shard_name,
 )
-from pvm_labeler.shards.verify import verify, verify_shard
+from pvm_labeler.shards.verify import header_problems, verify, verify_shard
 from pvm_labeler.shards.writer import ShardWriter, write_index, write_shard_dir
 
 __all__ = ["BLOSC_HINT", "COMPRESSIONS", "DEFAULT_COMPRESSION", "INDEX_NAME", "OPTIONAL", "REQUIRED", "SCHEMA_NAME",
            "SCHEMA_VERSION", "SHARD_PATTERN", "TMP_SUFFIX", "ShardIndex", "ShardRecord", "ShardSample", "ShardWriter",
            "convert", "hdf5plugin", "open_shard", "read_index", "read_sample", "rewrite", "shard_name",
-           "shard_sample_ids", "verify", "verify_shard", "write_index", "write_shard_dir"]
+           "shard_sample_ids", "header_problems", "verify", "verify_shard", "write_index", "write_shard_dir"]

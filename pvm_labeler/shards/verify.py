@@ -42,6 +42,29 @@ def verify_shard(path: Path, expected_ids: Sequence[str] | None, config: dict[st
     return problems
 
 
+def header_problems(shard_dir: Path | str) -> list[str]:
+    """The cheap part of :func:`verify` (no array is read): shards whose labeler config or sample list differ from
+    the index's. A trainer warns with them before its first step.
+
+    Raises:
+        ShardError: the index or a shard cannot be opened (naming the file: a truncated shard fails here, before
+            training, not in a data-loader worker).
+    """
+    index = read_index(Path(shard_dir))
+    expected = None if index.config is None else json.loads(json.dumps(index.config, default=jsonable))
+    problems = []
+    for path, ids in index.shards:
+        with open_shard(path) as h5:
+            try:
+                if list(ids) != shard_sample_ids(h5):
+                    problems.append(f"shard {path}: holds other samples than the index lists")
+                if expected is not None and json.loads(h5.attrs["config"]) != expected:
+                    problems.append(f"shard {path}: labeler config differs from the index config")
+            except (KeyError, ValueError) as exc:
+                problems.append(f"shard {path}: unreadable root attributes ({exc})")
+    return problems
+
+
 def _check_sample(path: Path, sample: ShardSample) -> list[str]:
     shape = sample.left.shape[:2]
     out = []
