@@ -19,7 +19,7 @@ import torch
 import yaml
 from click.testing import CliRunner, Result
 from conftest import TINY as TINY_BASE
-from conftest import make_shards
+from conftest import make_shards, make_valset
 
 from optstereo import memory
 from optstereo.checkpoint import save_checkpoint
@@ -353,6 +353,23 @@ class TestTrain:
         result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "2",
                         "--val-dataset", "folder", "--val-root", empty, *TRAIN)
         assert result.exit_code == 1 and "has ground truth" in result.output and not (tmp_path / "r").exists()
+
+    def test_a_val_set_that_is_not_one_is_a_usage_error_before_anything_is_written(self, tmp_path: Path) -> None:
+        shards = make_shards(tmp_path / "s", n=2)
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "1", "--val-set", shards,
+                        *TRAIN)
+        assert result.exit_code == 2 and "--val-set:" in result.output and "is not a validation set" in result.output
+        assert not (tmp_path / "r").exists()
+
+    def test_validation_pairs_among_the_training_pairs_are_warned_about(self, tmp_path: Path,
+                                                                        caplog: pytest.LogCaptureFixture) -> None:
+        """The GT-free set's frames trained on: its scores are in-sample, said before the first step."""
+        shards, valset = make_shards(tmp_path / "s", n=4), make_valset(tmp_path / "v", "digest")
+        with caplog.at_level("WARNING"):
+            result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "1", "--val-set",
+                            valset, "--set", "val.limit=1", *TRAIN)
+        assert "3 of the 3 validation pairs of" in caplog.text and "frame-000, frame-001, frame-002" in caplog.text
+        assert result.exit_code == 0, result.output
 
     def test_a_shard_of_another_labeler_config_is_named_before_training(self, tmp_path: Path,
                                                                          caplog: pytest.LogCaptureFixture) -> None:

@@ -21,6 +21,8 @@ from optstereo.training.config import TrainConfig
 from optstereo.training.log import RunLogger
 from optstereo.validation import ValScore, compare, load_report, open_valset, score
 from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.errors import ConfigError
+from pvm_labeler.shards import read_index
 
 logger = logging.getLogger(__name__)
 
@@ -32,15 +34,29 @@ BEST_KEY = "pvm_epe"
 
 
 def check_val_dataset(cfg: TrainConfig) -> None:
-    """The end-of-run GT evaluation's dataset (``val.dataset`` / ``val.root``) read before the first step: a folder
-    that is not there, or a dataset without GT, used to fail only after the whole training run.
+    """The validation data read before anything is written: the end-of-run GT evaluation's dataset (``val.dataset``
+    / ``val.root``: a folder that is not there, or a dataset without GT, used to fail only after the whole run) and
+    the GT-free set (``val.valset``; a warning when its frame ids are among the training shards').
 
     Raises:
         PVMError: the dataset cannot be read (naming the folder).
         ValueError: none of its pairs has GT.
+        ConfigError: ``val.valset`` is not a validation set.
     """
     if cfg.val.dataset:
         require_gt(cfg.val.dataset, cfg.val.root, "training", cfg.val.limit or None, None)
+    if cfg.val.valset is not None:
+        try:
+            valset = open_valset(cfg.val.valset)
+        except ValueError as exc:
+            raise ConfigError(f"--val-set: {exc}") from exc
+        pairs = {i for _, ids in read_index(valset.labels).shards for i in ids}
+        if cfg.data.labels is not None:
+            trained = {i for _, ids in read_index(Path(cfg.data.labels)).shards for i in ids}
+            if shared := sorted(pairs & trained):
+                logger.warning("%d of the %d validation pairs of %s are training pairs too (by frame id: %s): their "
+                               "scores are in-sample; hold them back from --labels", len(shared), len(pairs),
+                               cfg.val.valset, ", ".join(shared[:5]) + (" ..." if len(shared) > 5 else ""))
 
 
 def gtfree_hook(cfg: TrainConfig, run_dir: Path, run_logger: RunLogger, device: Any) -> Callable[[Any], None] | None:
