@@ -354,6 +354,18 @@ class TestTrain:
                         "--val-dataset", "folder", "--val-root", empty, *TRAIN)
         assert result.exit_code == 1 and "has ground truth" in result.output and not (tmp_path / "r").exists()
 
+    def test_usage_mistakes_found_late_are_usage_errors_now(self, tmp_path: Path) -> None:
+        """A crop narrower than the cost-volume pyramid takes (it failed inside the model: exit 1, "ValueError:",
+        a run folder left behind) and an --out that holds a finished run: exit 2, nothing written."""
+        shards = make_shards(tmp_path / "s", n=2)
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "1", *TRAIN,
+                        "--crop", "16x16")
+        assert result.exit_code == 2 and "--crop width must be >= 64 px" in result.output
+        assert not (tmp_path / "r").exists()
+        assert invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "1", *TRAIN).exit_code == 0
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "1", *TRAIN)
+        assert result.exit_code == 2 and "already holds a training run" in result.output
+
     def test_a_val_set_that_is_not_one_is_a_usage_error_before_anything_is_written(self, tmp_path: Path) -> None:
         shards = make_shards(tmp_path / "s", n=2)
         result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "1", "--val-set", shards,

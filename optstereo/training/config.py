@@ -111,7 +111,11 @@ class TrainConfig:
             self.model.validate()
         except ValueError as exc:
             raise ConfigError(f"model: {exc}") from exc
+        levels = getattr(self.model, "corr_levels", None)  # OptStereo's cost-volume pyramid (not every model has one)
+        min_width = 8 * 2 ** (levels - 1) if isinstance(levels, int) and levels >= 1 else 8
         checks = [
+            (self.data.crop[1] >= min_width, f"--crop width must be >= {min_width} px for the model's {levels} "
+             f"cost-volume levels (each keeps a column at 1/8), got {self.data.crop[0]}x{self.data.crop[1]}"),
             (self.amp in AMP_MODES, f"--amp must be one of {AMP_MODES}, got {self.amp!r}"),
             (self.device in DEVICES, f"--device must be one of {DEVICES}, got {self.device!r}"),
             (self.log_every >= 1 and self.ckpt_every >= 1, "log_every and ckpt_every must be >= 1"),

@@ -53,6 +53,7 @@ from optstereo.training.losses import PVStereoLoss
 from optstereo.training.runpaths import absolute_paths
 from optstereo.training.stopping import nothing_to_do, stop_on_signal
 from optstereo.training.validate import check_val_dataset, gtfree_hook
+from pvm_labeler.common.errors import ConfigError
 from pvm_labeler.shards import header_problems
 
 logger = logging.getLogger(__name__)
@@ -343,7 +344,7 @@ def main(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         logger.warning("--amp fp16 is ignored on %s (fp16 needs CUDA; use --amp bf16 on CPU)", device)
     warn_if_emulated_bf16(cfg.amp, device)
     if not resume and (run_dir / LAST).exists():
-        raise ValueError(f"{run_dir} already holds a training run ({LAST}); use --resume {run_dir} or another --out")
+        raise ConfigError(f"{run_dir} already holds a training run ({LAST}); use --resume {run_dir} or another --out")
     check_val_dataset(cfg)  # before anything is written or trained
     for problem in header_problems(cfg.data.labels)[:3]:  # what `pvm-label verify` calls broken, named up front
         logger.warning("%s (pvm-label verify %s calls this broken; training on it all the same)", problem,
