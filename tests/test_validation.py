@@ -347,3 +347,30 @@ def test_load_report_names_the_file(tmp_path: Path) -> None:
     text = (tmp_path / "own" / "gtfree.json").read_text()
     assert "NaN" not in text and json.loads(text)["summary"]["teacher_epe"] is None
     assert math.isnan(validation.load_report(tmp_path / "own").summary["teacher_epe"])
+
+
+def test_a_two_pair_set_says_why_a_step_is_not_compared(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """With 2 pairs no score has a noise estimate: the step's line said "against the start: " and nothing more;
+    it now says why."""
+    from types import SimpleNamespace
+
+    from conftest import tiny_config
+
+    from optstereo.training.log import RunLogger
+    from optstereo.training.validate import gtfree_hook
+
+    root = make_valset(tmp_path / "val", "someone-else")
+    index = json.loads((root / "labels" / "index.json").read_text())
+    index["shards"] = index["shards"][:1]  # the first shard's 2 pairs
+    index["num_samples"] = sum(entry["count"] for entry in index["shards"])
+    (root / "labels" / "index.json").write_text(json.dumps(index))
+    run = tmp_path / "run"
+    run.mkdir()
+    hook = gtfree_hook(tiny_config(tmp_path, run, val_set=root), run, RunLogger(run, True, False), "cpu")
+    torch.manual_seed(0)
+    model = build_model("optstereo", **TINY, iters=2)
+    with caplog.at_level("INFO", logger="optstereo.training.validate"):
+        hook(SimpleNamespace(model=model, step=0))
+        hook(SimpleNamespace(model=model, step=2))
+    assert index["num_samples"] == 2
+    assert "step 2 against the start: not scored (fewer than 3 pairs: no noise estimate)" in caplog.text

@@ -107,9 +107,11 @@ def _against_start(run_dir: Path, step: int, result: ValScore) -> dict[str, str]
     except ValueError as exc:  # e.g. a resumed run given another --val-limit: a comparison is lost, not the run
         logger.warning("step %d not compared with the start: %s", step, exc)
         return {}
+    scored = [r for r in rows if r["verdict"] != "not scored"]
+    why = next((r["why"] for r in rows if r.get("why")), "no score both have")
     logger.info("step %d against the start: %s", step, ", ".join(
-        f"{r['score']} {r['change']:+.4f} ({r['verdict']}, noise {r['noise']:.4f})" for r in rows
-        if r["verdict"] != "not scored"))
+        f"{r['score']} {r['change']:+.4f} ({r['verdict']}, noise {r['noise']:.4f})" for r in scored)
+        if scored else f"not scored ({why})")
     return {r["score"]: r["verdict"] for r in rows}
 
 
