@@ -10,6 +10,7 @@ from __future__ import annotations
 import codecs
 import json
 import logging
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -125,7 +126,7 @@ def label_rig(dataset: str, root: Path | None, out: Path, reader_options: dict[s
             (a corrupt or mismatched image: its ``failures.json`` or its preflight's "unusable" pairs).
     """
     cmd = label_command(dataset, root, out, reader_options, limit, max_disp, quiet, compression)
-    logger.info("labeling: %s", " ".join(cmd))
+    logger.info("labeling: %s", shlex.join(str(c) for c in cmd))
     started = time.time() - 1.0  # the file system's clock may round down
     code, printed, said = run_labeler(cmd)
     if code == 0:

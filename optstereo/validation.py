@@ -26,6 +26,7 @@ import hashlib
 import json
 import logging
 import math
+import shlex
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -161,7 +162,7 @@ def pvm_label(dataset: str, root: Path | None, out: Path, reader_options: dict[s
     """``pvm-label run`` into ``out`` in a subprocess (the trainer never imports the labeler); resumes a half-done
     job. RuntimeError with the job's last output when it fails."""
     cmd = label_command(dataset, root, out, reader_options, limit, max_disp, quiet)
-    logger.info("labeling: %s", " ".join(cmd))
+    logger.info("labeling: %s", shlex.join(str(c) for c in cmd))
     done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
     if done.returncode != 0:
         raise RuntimeError(f"pvm-label run failed (exit {done.returncode}) for {dataset} {root}: "

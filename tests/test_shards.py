@@ -190,6 +190,14 @@ class TestErrors:
         assert any("shard-00000.h5: holds samples ['f0', 'f1'], index lists ['f0', 'f9']" in p for p in problems)
         assert any("stale temporary file" in p and "shard-00003.h5.tmp" in p for p in problems)
 
+    def test_verify_an_index_of_no_samples(self, shard_dir: tuple[Path, list[ShardRecord]]) -> None:
+        """An index listing nothing (every pair failed) read "ok: 0 samples" while the trainer refuses it."""
+        out, _ = shard_dir
+        doc = json.loads((out / INDEX_NAME).read_text())
+        doc.update(shards=[], num_samples=0)
+        (out / INDEX_NAME).write_text(json.dumps(doc))
+        assert verify(out) == [f"{out / INDEX_NAME}: lists no samples (nothing to train on; every pair failed?)"]
+
     def test_corrupt_dataset_named(self, shard_dir: tuple[Path, list[ShardRecord]]) -> None:
         out, _ = shard_dir
         with h5py.File(out / "shard-00001.h5", "a") as h5:

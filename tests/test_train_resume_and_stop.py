@@ -301,3 +301,18 @@ def test_resume_with_another_out_is_refused(tmp_path: Path) -> None:
     assert f"--resume {run} continues that run in its own folder" in result.output
     assert f"--init {run / 'last.pt'} --out {tmp_path / 'other'}" in result.output
     assert not (tmp_path / "other").exists() and list(run.iterdir()) == []
+
+
+def test_a_continued_run_drops_its_earlier_finish(finished_run: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A finished run (step 2) continued to 4 and stopped midway: its summary.json and model.safetensors of step 2
+    used to stay beside last.pt of a later step and pass for the run's result; they go when it continues."""
+    assert (finished_run / "summary.json").is_file() and (finished_run / "model.safetensors").is_file()
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("stopped midway")
+
+    monkeypatch.setattr(loop, "train_steps", broken)
+    with pytest.raises(RuntimeError, match="stopped midway"):
+        loop.main(config_for_resume(finished_run, {"steps": 4}), resume=True, progress=False)
+    assert not (finished_run / "summary.json").exists() and not (finished_run / "model.safetensors").exists()
+    assert load_checkpoint(finished_run).step == 2  # the weights are still there

@@ -374,3 +374,19 @@ def test_a_two_pair_set_says_why_a_step_is_not_compared(tmp_path: Path, caplog: 
         hook(SimpleNamespace(model=model, step=2))
     assert index["num_samples"] == 2
     assert "step 2 against the start: not scored (fewer than 3 pairs: no noise estimate)" in caplog.text
+
+
+def test_the_logged_labeling_command_can_be_pasted(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    """Paths with spaces are quoted in the logged `pvm-label run` line (it printed `--root data/val pairs`)."""
+    import shlex
+    import subprocess
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **_: SimpleNamespace(returncode=0, stdout=""))
+    with caplog.at_level("INFO", logger="optstereo.validation"):
+        validation.pvm_label("folder", tmp_path / "val pairs", tmp_path / "my val" / "labels")
+    line = caplog.text.split("labeling: ", 1)[1].splitlines()[0]
+    args = shlex.split(line)
+    assert args[args.index("--root") + 1] == str(tmp_path / "val pairs")
+    assert args[args.index("--out") + 1] == str(tmp_path / "my val" / "labels")

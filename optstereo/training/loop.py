@@ -365,6 +365,10 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
         cfg.save(run_dir)
         if resume:
             remove_stale_temps(run_dir)
+            for name in ("summary.json", "model.safetensors"):  # an earlier finish's: this run's end writes them anew
+                if (run_dir / name).is_file():
+                    logger.info("the run continues from step %d: its earlier %s is removed", ckpt.step, name)
+                    (run_dir / name).unlink()
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
     if ckpt is None and cfg.init is not None:

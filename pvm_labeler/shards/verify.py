@@ -93,6 +93,8 @@ def verify(shard_dir: Path | str) -> list[str]:
         return [str(exc)]
     problems = []
     total = sum(len(ids) for _, ids in index.shards)
+    if index.num_samples == 0 and total == 0:
+        problems.append(f"{shard_dir / INDEX_NAME}: lists no samples (nothing to train on; every pair failed?)")
     if total != index.num_samples:
         problems.append(f"{shard_dir / INDEX_NAME}: num_samples {index.num_samples} != sum of shard counts {total}")
     for entry in index.raw.get("shards", []):
