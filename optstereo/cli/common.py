@@ -111,7 +111,9 @@ def device_option(fn):
 
 
 def setup_logging(quiet: bool) -> None:
-    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    """INFO (WARNING with ``quiet``) to stderr; each line names its level, so a warning stands out among the info."""
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
 class GuardedCommand(click.Command):
