@@ -169,7 +169,7 @@ def first_gt_problems(refs: list[PairRef]) -> list[str]:
     Raises:
         InputError: that pair cannot be read (as the job itself would report it).
     """
-    ref = next((r for r in refs if r.gt is not None), None)
+    ref = next((r for r in refs if r.gt is not None and not r.meta.get("synthetic")), None)  # a scene's GT is exact
     if ref is None:
         return []
     gt = _read_gt(ref.gt, ref.meta)
