@@ -8,7 +8,6 @@ and raised as :class:`LabelingError`, so the command prints one error, not the l
 from __future__ import annotations
 
 import codecs
-import json
 import logging
 import shlex
 import subprocess
@@ -19,8 +18,8 @@ from pathlib import Path
 from typing import IO, Any, cast
 
 from optstereo.validation import label_command
-from pvm_labeler.common.atomic import FAILURES_FILE
-from pvm_labeler.common.errors import counted
+from pvm_labeler.common.atomic import FAILURES_FILE, read_failures
+from pvm_labeler.common.errors import ShardError, counted
 
 logger = logging.getLogger(__name__)
 
@@ -106,9 +105,8 @@ def failed_pairs_text(out: Path, since: float = 0.0) -> str:
     try:
         if (out / FAILURES).stat().st_mtime < since:
             return ""
-        failures = json.loads((out / FAILURES).read_text())
-        lines = [f"  {f['frame_id']}: {f.get('error', '?')}" for f in failures]
-    except (OSError, ValueError, TypeError, KeyError):
+        lines = [f"  {f['frame_id']}: {f.get('error', '?')}" for f in read_failures(out)]
+    except (OSError, ShardError):
         return ""
     if not lines:
         return ""

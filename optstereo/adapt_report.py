@@ -18,7 +18,7 @@ REPORT_SCORES = {"held_bad3": "pvm_bad3", "held_epe": "pvm_epe", "photometric_ho
                  "gt_bad3": "pvm_bad3", "gt_epe": "pvm_epe"}
 
 
-def _decimals_for(value: float, figures: int) -> int:
+def decimals_for(value: float, figures: int) -> int:
     """Decimals that show ``figures`` significant digits of ``value`` (0 for 0 or a non-finite one)."""
     if not math.isfinite(value) or value == 0:
         return 0
@@ -32,7 +32,7 @@ def score_text(key: str, value: float) -> str:
         return str(value)
     digits = SCORE_DIGITS.get(key, 3)
     if key == "photometric":
-        digits = max(digits, _decimals_for(value, PHOTOMETRIC_FIGURES))
+        digits = max(digits, decimals_for(value, PHOTOMETRIC_FIGURES))
     return f"{value:.{min(digits, MAX_DECIMALS)}f}"
 
 
@@ -44,7 +44,7 @@ def change_text(key: str, mean: float, margin: float) -> str:
         return f"{key} {mean:+} (noise {margin})"
     if mean == 0 and margin == 0:
         return f"{key} unchanged"
-    digits = max(SCORE_DIGITS.get(key, 3), _decimals_for(margin if margin else mean, 2))
+    digits = max(SCORE_DIGITS.get(key, 3), decimals_for(margin if margin else mean, 2))
     digits = min(digits, MAX_DECIMALS)
     change = f"{mean:+.{digits}f}"
     if float(change) == 0:

@@ -225,10 +225,12 @@ def without_gt_line(frame_ids: list[str]) -> str:
 
 
 def skipped_line(skipped: list[dict[str, str]]) -> str:
-    """"N frame(s) skipped: ID: ERROR; ..." ("" when none was)."""
+    """"N frame(s) skipped: ID: ERROR; ..." (the first five; "" when none was; failures.json holds them all)."""
     if not skipped:
         return ""
-    return f"{counted(len(skipped), 'frame')} skipped: " + "; ".join(f"{s['frame_id']}: {s['error']}" for s in skipped)
+    more = f"; and {len(skipped) - 5} more" if len(skipped) > 5 else ""
+    return (f"{counted(len(skipped), 'frame')} skipped: " + "; ".join(f"{s['frame_id']}: {s['error']}"
+                                                                      for s in skipped[:5]) + more)
 
 
 def _problem_lines(summary: dict[str, Any]) -> list[str]:
@@ -331,7 +333,7 @@ def evaluate_model(
     frame's final scale in its row).
     """
     config = model_inference_config(model, iters, scale, refine)
-    _require_gt(dataset, root, split, limit, reader_options)
+    require_gt(dataset, root, split, limit, reader_options)
     refs = {"scale_ref_disp": config.adaptive_ref_disp, "scale_ref_pixels": config.adaptive_ref_pixels} \
         if config.adaptive else None
     run_iters = config.iters if config.iters is not None else getattr(model, "iters", None)
@@ -345,7 +347,7 @@ def evaluate_model(
         total = 0.0
         for frame in model_frames(model, dataset, root, split=split, iters=iters, device=device, limit=limit, amp=amp,
                                   reader_options=reader_options, scale=scale, refine=refine):
-            if isinstance(frame, Skipped):
+            if isinstance(frame, Skipped) or frame.gt is None:  # not run: nothing to time
                 yield frame
                 continue
             count += 1
@@ -356,7 +358,7 @@ def evaluate_model(
     return evaluate_frames(timed(), out_dir, save_maps=save_maps, meta=meta, title=f"OptStereo on {dataset}")
 
 
-def _require_gt(dataset: str, root: Path | None, split: str, limit: int | None,
+def require_gt(dataset: str, root: Path | None, split: str, limit: int | None,
                 reader_options: dict[str, Any] | None) -> None:
     """ValueError before any network pass when no pair of the dataset (its first ``limit``) has a GT file (the
     embedded ``sample`` keeps its GT in memory: not checked here)."""

@@ -235,5 +235,15 @@ def test_frames_without_gt_are_not_run_and_are_named(tiny_ckpt: Path, tmp_path: 
     assert len(calls) == 1
     summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
     assert summary["n_frames"] == 1 and summary["without_gt"] == ["000", "002"]
+    assert summary["seconds_per_frame"] > 0  # the frames not run are not timed (NaN came into the mean)
     assert "2 frames without GT, not scored: 000, 002" in res.output
     assert "2 frames without GT, not scored: 000, 002" in (tmp_path / "eval" / "summary.md").read_text()
+
+
+def test_the_skipped_line_names_five_and_counts_the_rest() -> None:
+    from optstereo.evaluate import skipped_line  # lazy: only this test formats it alone
+
+    skipped = [{"frame_id": f"{i:03d}", "error": "bad"} for i in range(7)]
+    assert skipped_line(skipped) == ("7 frames skipped: 000: bad; 001: bad; 002: bad; 003: bad; 004: bad; "
+                                     "and 2 more")
+    assert skipped_line([]) == ""

@@ -13,6 +13,7 @@ from typing import Any
 import click
 
 from optstereo import evaluate, validation
+from optstereo.adapt_report import MAX_DECIMALS, decimals_for
 from optstereo.checkpoint import CheckpointError
 from optstereo.cli import common
 from optstereo.pretrained import resolve_checkpoint_spec
@@ -181,17 +182,12 @@ def _compare(result: validation.ValScore, name: str, against: str, base: validat
     click.echo(f"comparison: {out / 'compare.md'}")
 
 
-#: Past this many decimals :func:`change_and_noise` writes scientific notation.
-MAX_DECIMALS = 8
-
-
 def change_and_noise(change: float, noise: float, digits: int) -> tuple[str, str]:
     """A score's change (signed) and noise, both at ``digits`` decimals or as many more as show the noise (or, without
-    one, the change) to 2 significant digits: a photometric change of 4.1e-05 against a noise of 1.4e-05 reads
-    "+0.000041", "0.000014", not "+0.0000", "0.0000"; scientific past MAX_DECIMALS; "-" when not finite."""
-    scale = noise if math.isfinite(noise) and noise != 0 else change
-    if math.isfinite(scale) and scale != 0:
-        digits = max(digits, 1 - math.floor(math.log10(abs(scale))))
+    one, the change) to 2 significant digits, as optstereo-adapt's report does (``adapt_report.decimals_for``): a
+    photometric change of 4.1e-05 against a noise of 1.4e-05 reads "+0.000041", "0.000014", not "+0.0000", "0.0000";
+    scientific past ``adapt_report.MAX_DECIMALS``; "-" when not finite."""
+    digits = max(digits, decimals_for(noise if math.isfinite(noise) and noise != 0 else change, 2))
     form = ".1e" if digits > MAX_DECIMALS else f".{digits}f"
 
     def text(value: float, sign: str = "") -> str:

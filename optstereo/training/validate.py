@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from optstereo.checkpoint import export_safetensors, unwrap
-from optstereo.evaluate import _require_gt as require_gt
+from optstereo.evaluate import require_gt
 from optstereo.training.config import TrainConfig
 from optstereo.training.log import RunLogger
 from optstereo.validation import ValScore, compare, load_report, open_valset, score

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.errors import InputError, ShardError
 
 
 @contextlib.contextmanager
@@ -70,6 +70,25 @@ def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
     first = next(iter(failed))
     raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
                      f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")
+
+
+def read_failures(out: Path) -> list[dict[str, Any]]:
+    """The failed pairs recorded in ``out/failures.json`` by any program (each {frame_id, error}; the labeling job's
+    add type and files); [] without one.
+
+    Raises:
+        ShardError: the file is unreadable or not a JSON list of records with a ``frame_id`` (names the file).
+    """
+    path = Path(out) / FAILURES_FILE
+    if not path.is_file():
+        return []
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ShardError(f"{path}: unreadable ({exc}); re-run the job to rewrite it") from exc
+    if not isinstance(doc, list) or not all(isinstance(f, dict) and "frame_id" in f for f in doc):
+        raise ShardError(f"{path}: expected a JSON list of {{frame_id, error}} records; re-run the job to rewrite it")
+    return doc
 
 
 def json_safe(value: Any) -> Any:

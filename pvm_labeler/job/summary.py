@@ -8,9 +8,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pvm_labeler.common.atomic import atomic_write_text, json_safe
+from pvm_labeler.common.atomic import atomic_write_text, json_safe, read_failures
 from pvm_labeler.common.datasets import PairRef
-from pvm_labeler.common.errors import ShardError, counted
+from pvm_labeler.common.errors import counted
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.job.outdir import FAILURES_FILE
 from pvm_labeler.job.spec import JobSpec
@@ -127,24 +127,6 @@ def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcom
     write_index(spec.out, shards, json.loads(spec.config.to_json()), spec.dataset_info(),
                 extra={"summary": json_safe(summary.to_dict()), "compression": spec.compression})
     return summary
-
-
-def read_failures(out: Path) -> list[dict[str, Any]]:
-    """The failed pairs recorded in ``out/failures.json`` (each {frame_id, error, type, files}); [] without one.
-
-    Raises:
-        ShardError: the file is unreadable or not a JSON list of records with a ``frame_id`` (names the file).
-    """
-    path = Path(out) / FAILURES_FILE
-    if not path.is_file():
-        return []
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ShardError(f"{path}: unreadable ({exc}); re-run the job to rewrite it") from exc
-    if not isinstance(doc, list) or not all(isinstance(f, dict) and "frame_id" in f for f in doc):
-        raise ShardError(f"{path}: expected a JSON list of {{frame_id, error}} records; re-run the job to rewrite it")
-    return doc
 
 
 def failures_lines(out: Path, labelled: int, limit: int = 5) -> list[str]:

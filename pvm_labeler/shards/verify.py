@@ -26,10 +26,7 @@ def verify_shard(path: Path, expected_ids: Sequence[str] | None, config: dict[st
             ids = shard_sample_ids(h5)
         except (KeyError, ValueError, OSError) as exc:
             return [f"shard {path}: no readable sample list in root attrs ({exc})"]
-        if expected_ids is not None and list(expected_ids) != ids:
-            problems.append(f"shard {path}: holds samples {ids}, index lists {list(expected_ids)}")
-        if config is not None and json.loads(h5.attrs["config"]) != json.loads(json.dumps(config, default=jsonable)):
-            problems.append(f"shard {path}: labeler config differs from the index config")
+        problems += _header_checks(h5, path, ids, expected_ids, config)
         if sorted(ids) != sorted(h5.keys()):
             problems.append(f"shard {path}: groups {sorted(h5.keys())} differ from sample list {sorted(ids)}")
         for frame_id in ids:
@@ -42,6 +39,18 @@ def verify_shard(path: Path, expected_ids: Sequence[str] | None, config: dict[st
     return problems
 
 
+def _header_checks(h5: Any, path: Path, ids: list[str], expected_ids: Sequence[str] | None,
+                   config: dict[str, Any] | None) -> list[str]:
+    """A shard's sample list ``ids`` against the index's ``expected_ids`` and its root ``config`` attribute against
+    the index's ``config`` (None: not checked)."""
+    problems = []
+    if expected_ids is not None and list(expected_ids) != ids:
+        problems.append(f"shard {path}: holds samples {ids}, index lists {list(expected_ids)}")
+    if config is not None and json.loads(h5.attrs["config"]) != json.loads(json.dumps(config, default=jsonable)):
+        problems.append(f"shard {path}: labeler config differs from the index config")
+    return problems
+
+
 def header_problems(shard_dir: Path | str) -> list[str]:
     """The cheap part of :func:`verify` (no array is read): shards whose labeler config or sample list differ from
     the index's. A trainer warns with them before its first step.
@@ -51,15 +60,11 @@ def header_problems(shard_dir: Path | str) -> list[str]:
             training, not in a data-loader worker).
     """
     index = read_index(Path(shard_dir))
-    expected = None if index.config is None else json.loads(json.dumps(index.config, default=jsonable))
     problems = []
     for path, ids in index.shards:
         with open_shard(path) as h5:
             try:
-                if list(ids) != shard_sample_ids(h5):
-                    problems.append(f"shard {path}: holds other samples than the index lists")
-                if expected is not None and json.loads(h5.attrs["config"]) != expected:
-                    problems.append(f"shard {path}: labeler config differs from the index config")
+                problems += _header_checks(h5, path, shard_sample_ids(h5), ids, index.config)
             except (KeyError, ValueError) as exc:
                 problems.append(f"shard {path}: unreadable root attributes ({exc})")
     return problems

@@ -249,16 +249,7 @@ def _keyed_views(left: str | Path, right: str | Path, root: Path | None
                     for files, is_glob in ((left_files, left_glob), (right_files, right_glob)))
 
     def keyed(files: list[Path], spec: Path, is_glob: bool) -> dict[str, Path]:
-        if not (by_folder and is_glob):
-            return by_stem(files, str(spec))
-        out: dict[str, Path] = {}
-        for path in files:
-            key = glob_key(path, spec)
-            if key in out:
-                raise InputError(f"{spec}: images share a name, so which is the view cannot be told: {out[key]} and "
-                                 f"{path}; keep one image per name")
-            out[key] = path
-        return out
+        return by_stem(files, str(spec), (lambda path: glob_key(path, spec)) if by_folder and is_glob else None)
 
     return (keyed(left_files, left_spec, left_glob), keyed(right_files, right_spec, right_glob), str(left_spec),
             str(right_spec))

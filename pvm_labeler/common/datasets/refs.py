@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -95,15 +96,16 @@ def _images_in(folder: Path) -> dict[str, Path]:
                    str(folder))
 
 
-def by_stem(files: list[Path], where: str) -> dict[str, Path]:
-    """stem -> path of ``files``; InputError naming the files when two share a stem (0000.png and 0000.jpg, or the
-    same name in two folders a glob spans): which of them is the view would be a guess."""
+def by_stem(files: list[Path], where: str, key: Callable[[Path], str] | None = None) -> dict[str, Path]:
+    """stem (or ``key(path)``) -> path of ``files``; InputError naming the files when two share one (0000.png and
+    0000.jpg, or the same name in two folders a glob spans): which of them is the view would be a guess."""
     out: dict[str, Path] = {}
     clashes: list[str] = []
     for path in files:
-        if path.stem in out:
-            clashes.append(f"{out[path.stem]} and {path}")
-        out.setdefault(path.stem, path)
+        name = path.stem if key is None else key(path)
+        if name in out:
+            clashes.append(f"{out[name]} and {path}")
+        out.setdefault(name, path)
     if clashes:
         more = f" (and {len(clashes) - 3} more)" if len(clashes) > 3 else ""
         raise InputError(f"{where}: images share a name, so which is the view cannot be told: "
