@@ -93,6 +93,31 @@ def test_maps_skips_and_lists_unreadable_pairs(tmp_path: Path) -> None:
     assert "1 new teacher map (" in again.output and not (out / distill.FAILURES).exists()
 
 
+def test_two_runs_into_one_folder_keep_each_others_failures(tmp_path: Path) -> None:
+    """G4's split: two runs over different pairs write one MAPS folder; each run's list keeps the other's records,
+    and a mended pair leaves the list while the other run's failure stays."""
+    first, second = _pairs(tmp_path / "p1", ["a", "b"]), _pairs(tmp_path / "p2", ["c", "d"])
+    good = (first / "left" / "b.png").read_bytes()
+    (first / "left" / "b.png").write_bytes(b"not a png")
+    (second / "left" / "d.png").write_bytes(b"not a png")
+    teacher, out = _teacher(tmp_path / "t.safetensors", 0), tmp_path / "maps"
+    assert _maps(first, teacher, out, "--quiet").exit_code == 1
+    assert _maps(second, teacher, out, "--quiet").exit_code == 1
+    assert sorted(f["frame_id"] for f in json.loads((out / distill.FAILURES).read_text())) == ["b", "d"]
+    (first / "left" / "b.png").write_bytes(good)
+    assert _maps(first, teacher, out, "--quiet").exit_code == 0
+    assert [f["frame_id"] for f in json.loads((out / distill.FAILURES).read_text())] == ["d"]
+
+
+def test_a_corrupt_failures_list_is_replaced(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    root = _pairs(tmp_path / "pairs", ["a"])
+    out = tmp_path / "maps"
+    out.mkdir()
+    (out / distill.FAILURES).write_text("{not json")
+    assert _maps(root, _teacher(tmp_path / "t.safetensors", 0), out, "--quiet").exit_code == 0
+    assert not (out / distill.FAILURES).exists() and "failures.json: unreadable" in caplog.text
+
+
 def _constant_maps(shards: Path, out: Path, skip: str | None = None) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     for _, ids in read_index(shards).shards:

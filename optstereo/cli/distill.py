@@ -55,7 +55,7 @@ def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str
         raise click.BadParameter(str(exc), param_hint="--out") from exc
     failures: list[dict[str, Any]] = []
     written = distill.write_teacher_maps(model, refs, out, device, amp, progress=not quiet, failures=failures)
-    listed = distill.write_failures(out, failures)
+    listed = distill.write_failures(out, failures, [ref.frame_id for ref in refs])
     click.echo(f"{counted(written, 'new teacher map')} ({counted(len(refs), 'pair')}) in {out}")
     if failures:
         shown = [f"  {f['frame_id']}: {f['error']}" for f in failures[:MAX_LISTED]]

@@ -22,9 +22,12 @@ No GT is read: the maps are made from the images alone, and ``fill`` refuses a s
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import sys
+from collections.abc import Collection, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -37,9 +40,9 @@ from optstereo.checkpoint import model_inference
 from optstereo.inference.engine import infer
 from optstereo.inference.int8 import file_sha256
 from optstereo.training.augment import right_view
-from pvm_labeler.common.atomic import FAILURES_FILE, atomic_path, atomic_write_text, json_safe
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_path, atomic_write_text, json_safe, read_failures
 from pvm_labeler.common.datasets import load_pair, safe_stem
-from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.errors import InputError, ShardError
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, rewrite
 from pvm_labeler.shards.fills import add_fills, right_confidence
 
@@ -132,14 +135,41 @@ def write_teacher_maps(model: nn.Module, refs: list[Any], maps_dir: Path, device
     return written
 
 
-def write_failures(maps_dir: Path, failures: list[dict[str, Any]]) -> Path:
-    """Write ``MAPS/failures.json`` (atomically), or remove a stale one when ``failures`` is empty; its path."""
+def write_failures(maps_dir: Path, failures: list[dict[str, Any]], attempted: Collection[str] = ()) -> Path:
+    """Record this run's ``failures`` in ``MAPS/failures.json`` (atomically, under an advisory lock) and return its
+    path. Records of pairs outside ``attempted`` (the frame ids this run was given) are kept, so two runs into one
+    folder over different pairs (G4's split) keep each other's lists; this run's pairs take its outcome (a mended
+    pair leaves the list). The file is removed when no record remains."""
     path = Path(maps_dir) / FAILURES
-    if failures:
-        atomic_write_text(path, json.dumps(failures, indent=2) + "\n")
-    else:
-        path.unlink(missing_ok=True)
+    mine = set(attempted) | {f["frame_id"] for f in failures}
+    with _locked(Path(maps_dir) / ".failures.lock"):
+        kept = [f for f in _earlier_failures(maps_dir) if f["frame_id"] not in mine]
+        records = kept + failures
+        if records:
+            atomic_write_text(path, json.dumps(records, indent=2) + "\n")
+        else:
+            path.unlink(missing_ok=True)
     return path
+
+
+def _earlier_failures(maps_dir: Path) -> list[dict[str, Any]]:
+    """The records of ``MAPS/failures.json``; [] without one, or (warned) when it is corrupt: it is rewritten."""
+    try:
+        return read_failures(maps_dir)
+    except ShardError as exc:
+        logger.warning("%s; it is replaced by this run's list", exc)
+        return []
+
+
+@contextmanager
+def _locked(lock: Path) -> Iterator[None]:
+    """Hold an exclusive ``fcntl.flock`` on ``lock`` (created; left in place) for the block."""
+    with open(lock, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def teacher_record(model: nn.Module, spec: str | Path, path: Path, digest: str, amp: str = "none") -> dict[str, Any]:
