@@ -354,6 +354,28 @@ class TestTrain:
                         "--val-dataset", "folder", "--val-root", empty, *TRAIN)
         assert result.exit_code == 1 and "has ground truth" in result.output and not (tmp_path / "r").exists()
 
+    def test_a_rigs_own_folder_names_validate_a_run(self, tmp_path: Path) -> None:
+        """--val-left / --val-right / --val-gt name a folder dataset's images as optstereo-eval's --left / --right /
+        --gt do (ROOT/left, ROOT/right, ROOT/gt were the only layout); given with another dataset: a usage error."""
+        shards, rig = make_shards(tmp_path / "s", n=2), tmp_path / "rig"
+        for side in ("cam_left", "cam_right"):
+            (rig / side).mkdir(parents=True)
+            cv2.imwrite(str(rig / side / "0000.png"), np.full((32, 64, 3), 90, np.uint8))
+        (rig / "disp").mkdir()
+        cv2.imwrite(str(rig / "disp" / "0000.png"), np.full((32, 64), 4 * 256, np.uint16))
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "2", "--val-dataset",
+                        "folder", "--val-root", rig, "--val-left", "cam_left", "--val-right", "cam_right",
+                        "--val-gt", "disp", *TRAIN)
+        assert result.exit_code == 0, result.output
+        text = (tmp_path / "r" / "summary.json").read_text()
+        summary = json.loads(text)
+        assert summary["val"]["n_frames"] == 1 and summary["val"]["epe"] == pytest.approx(4, abs=4)
+        assert "NaN" not in text and summary["val"]["epe_noc"] is None  # strict JSON: no noc GT is null, not NaN
+        result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r2", "--steps", "2", "--val-dataset",
+                        "sample", "--val-left", "cam_left", *TRAIN)
+        assert result.exit_code == 2 and "--val-left name the folder dataset's images" in result.output
+        assert not (tmp_path / "r2").exists()
+
     def test_usage_mistakes_found_late_are_usage_errors_now(self, tmp_path: Path) -> None:
         """A crop narrower than the cost-volume pyramid takes (it failed inside the model: exit 1, "ValueError:",
         a run folder left behind) and an --out that holds a finished run: exit 2, nothing written."""

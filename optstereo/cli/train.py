@@ -112,8 +112,11 @@ _D = TrainConfig()
 @click.option("--ckpt-every", type=int, help=f"Steps between checkpoints. [default: {_D.ckpt_every}]")
 @click.option("--max-minutes", type=float, help="Stop (and checkpoint) after this many minutes; 0 = no limit.")
 @click.option("--val-dataset", help="Dataset evaluated on GT at the end (e.g. sample, kitti15; folder: ROOT/left, "
-              "ROOT/right, ROOT/gt). Read before the first step.")
+              "ROOT/right, ROOT/gt, or --val-left/--val-right/--val-gt). Read before the first step.")
 @click.option("--val-root", type=EXISTING, help="Root folder of --val-dataset.")
+@click.option("--val-left", help="folder --val-dataset: left images (folder or glob, relative to --val-root).")
+@click.option("--val-right", help="folder --val-dataset: right images (folder or glob).")
+@click.option("--val-gt", help="folder --val-dataset: GT folder (KITTI-style PNG, .pfm or .npy).")
 @click.option("--val-limit", type=int, help="Evaluate only the first N validation frames (0 = all).")
 @click.option("--val-set", type=EXISTING, help="GT-free validation set (optstereo-distill valset) scored at every "
               "checkpoint; the best weights by it go to RUN_DIR/best.safetensors.")

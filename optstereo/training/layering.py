@@ -32,7 +32,7 @@ FLAT_KEYS: dict[str, str] = {
     "steps": "optim.steps", "lr": "optim.lr", "weight_decay": "optim.weight_decay", "schedule": "optim.schedule",
     "pct_start": "optim.pct_start", "clip_grad": "optim.clip_grad",
     "val_dataset": "val.dataset", "val_root": "val.root", "val_limit": "val.limit",
-    "val_set": "val.valset",
+    "val_set": "val.valset", "val_left": "val.left", "val_right": "val.right", "val_gt": "val.gt",
 }
 SECTIONS = ("model", "inference", "loss", "data", "optim", "val")
 #: Section keys renamed since (issue 43): section -> {old key: field}. YAML files, saved run configs and

@@ -53,6 +53,7 @@ from optstereo.training.losses import PVStereoLoss
 from optstereo.training.runpaths import absolute_paths
 from optstereo.training.stopping import nothing_to_do, stop_on_signal
 from optstereo.training.validate import check_val_dataset, gtfree_hook
+from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.errors import ConfigError
 from pvm_labeler.shards import header_problems
 
@@ -315,7 +316,7 @@ def evaluate(model: nn.Module, cfg: TrainConfig, device: torch.device, out_dir: 
     if not cfg.val.dataset:
         return {}
     result = evaluate_model(unwrap(model), cfg.val.dataset, cfg.val.root, iters=None, device=device,
-                            out_dir=out_dir, limit=cfg.val.limit or None)
+                            out_dir=out_dir, limit=cfg.val.limit or None, reader_options=cfg.val.reader_options())
     return result.summary
 
 
@@ -410,7 +411,7 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
             if val:
                 summary["val"] = val
                 run_logger.scalars(state.step, {f"val_{k}": v for k, v in val.items() if isinstance(v, float)})
-            (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+            atomic_write_text(run_dir / "summary.json", json.dumps(json_safe(summary), indent=2, default=float))
         ddp.barrier()
         return summary
     finally:

@@ -322,6 +322,8 @@ class ValConfig(_Section):
         limit: evaluate only the first N frames / validation pairs (0 = all).
         valset: a GT-free validation set (``optstereo-distill valset``) scored at every checkpoint
             (``optstereo.training.validate``: metrics.jsonl, best.safetensors); None = none.
+        left, right, gt: the ``folder`` dataset's left / right images and GT (a folder or glob relative to
+            ``root``, as optstereo-eval's --left / --right / --gt); None = ROOT/left, ROOT/right, ROOT/gt.
     """
 
     NAME: ClassVar[str] = "val"
@@ -331,6 +333,16 @@ class ValConfig(_Section):
     root: Path | None = None
     limit: int = 0
     valset: Path | None = None
+    left: str | None = None
+    right: str | None = None
+    gt: str | None = None
 
     def __post_init__(self) -> None:
-        _require([(self.limit >= 0, f"--val-limit must be >= 0, got {self.limit}")])
+        given = [f"--val-{key}" for key in self.reader_options()]
+        _require([(self.limit >= 0, f"--val-limit must be >= 0, got {self.limit}"),
+                  (not given or self.dataset == "folder",
+                   f"{' / '.join(given)} name the folder dataset's images; --val-dataset is {self.dataset}")])
+
+    def reader_options(self) -> dict[str, str]:
+        """The ``folder`` reader's keyword arguments that are set (``pvm_labeler.common.datasets``)."""
+        return {k: v for k, v in {"left": self.left, "right": self.right, "gt": self.gt}.items() if v is not None}

@@ -44,7 +44,7 @@ def check_val_dataset(cfg: TrainConfig) -> None:
         ConfigError: ``val.valset`` is not a validation set.
     """
     if cfg.val.dataset:
-        require_gt(cfg.val.dataset, cfg.val.root, "training", cfg.val.limit or None, None)
+        require_gt(cfg.val.dataset, cfg.val.root, "training", cfg.val.limit or None, cfg.val.reader_options())
     if cfg.val.valset is not None:
         try:
             valset = open_valset(cfg.val.valset)
