@@ -100,9 +100,10 @@ def save_checkpoint(
     scaler: Any | None = None,
     train_config: dict[str, Any] | None = None,
     inference: InferenceConfig | None = None,
+    world_size: int = 1,
 ) -> Path:
     """Atomically write a full training checkpoint to ``path`` (suffix .pt/.pth/.ckpt) and return it; ``inference``
-    None = the model's own (:func:`model_inference`)."""
+    None = the model's own (:func:`model_inference`); ``world_size``: the processes that trained it (DDP)."""
     path = Path(path)
     if path.suffix not in CHECKPOINT_SUFFIXES[:3]:
         raise CheckpointError(f"checkpoint name must end in .pt, .pth or .ckpt, got {path.name}")
@@ -120,6 +121,7 @@ def save_checkpoint(
         "train_config": train_config or {},
         "code_version": code_version(),
         "rng": {"torch": torch.get_rng_state()},
+        "world_size": int(world_size),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     _atomic_torch_save(state, path)
@@ -169,6 +171,7 @@ class LoadedCheckpoint:
     train_config: dict[str, Any] | None = None
     code_version: dict[str, str] | None = None
     rng: dict[str, Any] | None = None
+    world_size: int | None = None  # the training processes; None in weights files and older checkpoints
 
 
 def resolve_checkpoint(path: Path) -> Path:
@@ -226,6 +229,7 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Loa
         train_config=state.get("train_config"),
         code_version=state.get("code_version"),
         rng=state.get("rng"),
+        world_size=state.get("world_size"),
     )
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -222,6 +223,24 @@ class TestRun:
         for key in a.model_state:
             torch.testing.assert_close(b.model_state[key], a.model_state[key], rtol=1e-5, atol=1e-6)
         assert resumed["param_checksum"] == pytest.approx(full["param_checksum"], rel=1e-6)
+
+    def test_resume_on_another_number_of_processes_is_warned_about(self, tiny_shards: Path, tmp_path: Path,
+                                                                   caplog: pytest.LogCaptureFixture) -> None:
+        """last.pt records the processes that wrote it; a resume on another number says what changes (it was
+        silent); one on the same number says nothing."""
+        _run_until(tiny_config(tiny_shards, tmp_path / "part"), stop_at=2)
+        last = tmp_path / "part" / "last.pt"
+        assert load_checkpoint(last).world_size == 1
+        state = torch.load(last, weights_only=True)
+        torch.save({**state, "world_size": 2}, last)
+        with caplog.at_level(logging.WARNING):
+            loop.main(config_for_resume(tmp_path / "part"), resume=True)
+        assert "written by 2 training process(es), this run has 1" in caplog.text
+        caplog.clear()
+        _run_until(tiny_config(tiny_shards, tmp_path / "same"), stop_at=2)
+        with caplog.at_level(logging.WARNING):
+            loop.main(config_for_resume(tmp_path / "same"), resume=True)
+        assert "training process(es)" not in caplog.text
 
     def test_resume_drops_records_logged_after_the_checkpoint(self, tiny_shards: Path, tmp_path: Path) -> None:
         first = tiny_config(tiny_shards, tmp_path / "part")

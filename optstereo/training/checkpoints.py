@@ -60,7 +60,8 @@ def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Cal
             return
         numbered = numbered_checkpoint(run_dir, state.step)
         save_checkpoint(numbered, model=state.model, step=state.step, optimizer=state.optimizer,
-                        scheduler=state.scheduler, scaler=state.scaler, train_config=cfg.to_dict())
+                        scheduler=state.scheduler, scaler=state.scaler, train_config=cfg.to_dict(),
+                        world_size=info.world_size)
         with atomic_path(run_dir / LAST) as tmp:
             shutil.copyfile(numbered, tmp)
         old = sorted(run_dir.glob("ckpt-*.pt"))[: -cfg.keep_ckpts] if cfg.keep_ckpts > 0 else []
@@ -74,6 +75,23 @@ def checkpoint_saver(run_dir: Path, cfg: TrainConfig, info: ddp.DistInfo) -> Cal
 def numbered_checkpoint(run_dir: Path, step: int) -> Path:
     """RUN_DIR/ckpt-<step>.pt, the numbered checkpoint :func:`checkpoint_saver` writes at ``step``."""
     return Path(run_dir) / f"ckpt-{step:07d}.pt"
+
+
+def prepare_resume(run_dir: Path, ckpt: LoadedCheckpoint, world_size: int) -> None:
+    """Rank 0 of a resumed run: remove the temp files of an interrupted write (:func:`remove_stale_temps`) and an
+    earlier finish's summary.json / model.safetensors (the run's end writes them anew), and warn when the run
+    continues on another number of processes than wrote ``ckpt`` (the batch per step and the data order change;
+    the schedule goes on by steps)."""
+    remove_stale_temps(run_dir)
+    for name in ("summary.json", "model.safetensors"):
+        if (run_dir / name).is_file():
+            logger.info("the run continues from step %d: its earlier %s is removed", ckpt.step, name)
+            (run_dir / name).unlink()
+    if ckpt.world_size is not None and ckpt.world_size != world_size:
+        logger.warning("%s was written by %d training process(es), this run has %d: each step's batch changes from "
+                       "%d to %d x the per-process batch and the data order differs from the original run's (the "
+                       "learning-rate schedule goes on by steps)", ckpt.path, ckpt.world_size, world_size,
+                       ckpt.world_size, world_size)
 
 
 def remove_stale_temps(run_dir: Path) -> list[Path]:

@@ -38,8 +38,8 @@ from optstereo.training.checkpoints import (
     and_then,
     checkpoint_saver,
     init_weights,
+    prepare_resume,
     redraw_curves,
-    remove_stale_temps,
     restore,
 )
 from optstereo.training.config import TrainConfig
@@ -364,12 +364,8 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg.save(run_dir)
-        if resume:
-            remove_stale_temps(run_dir)
-            for name in ("summary.json", "model.safetensors"):  # an earlier finish's: this run's end writes them anew
-                if (run_dir / name).is_file():
-                    logger.info("the run continues from step %d: its earlier %s is removed", ckpt.step, name)
-                    (run_dir / name).unlink()
+        if ckpt is not None:
+            prepare_resume(run_dir, ckpt, info.world_size)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
     if ckpt is None and cfg.init is not None:
