@@ -13,6 +13,7 @@ Calibration files (:func:`read_calibration` detects the kind):
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,11 +22,16 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
+from pvm_labeler.common.atomic import atomic_write_bytes
 from pvm_labeler.common.datasets import read_middlebury_calib
 from pvm_labeler.common.errors import InputError
 from pvm_labeler.common.io import write_image
 
-DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNG in millimetres (0 = invalid), as KITTI depth and most RGB-D tools
+logger = logging.getLogger(__name__)
+
+DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNG in millimetres (0 = invalid), as most RGB-D tools (KITTI's
+#: depth benchmark stores metres x 256 instead)
+DEPTH_PNG_MAX = 65535  # its largest value: 65.535 m
 
 
 @dataclass(frozen=True)
@@ -125,13 +131,19 @@ def depth_to_points(
 
 
 def write_depth_png(path: Path | str, depth: npt.NDArray[np.floating]) -> None:
-    """16-bit PNG in millimetres (0 = invalid; depths beyond 65.535 m are clipped to it)."""
-    mm = np.clip(np.round(np.nan_to_num(depth, nan=0.0) * DEPTH_PNG_SCALE), 0, 65535).astype(np.uint16)
-    write_image(Path(path), mm)
+    """16-bit PNG in millimetres, 0 = invalid: no depth, or one beyond the format's 65.535 m (such pixels were
+    written as 65.535 m, a plausible-looking wall; their count is logged); depth-pfm / depth-npy keep them."""
+    mm = np.round(np.nan_to_num(np.asarray(depth, np.float64), nan=0.0) * DEPTH_PNG_SCALE)
+    far = mm > DEPTH_PNG_MAX
+    if far.any():
+        logger.warning("%s: %d pixels (%.1f %%) lie beyond the 16-bit PNG's %.3f m and are written as 0 (invalid); "
+                       "depth-pfm or depth-npy keep them", path, far.sum(), 100 * far.mean(),
+                       DEPTH_PNG_MAX / DEPTH_PNG_SCALE)
+    write_image(Path(path), np.where(far, 0, np.clip(mm, 0, DEPTH_PNG_MAX)).astype(np.uint16))
 
 
 def write_ply(path: Path | str, xyz: npt.NDArray[np.float32], colours: npt.NDArray[np.uint8] | None = None) -> None:
-    """Binary little-endian PLY with float x, y, z (m) and, when given, uchar red, green, blue."""
+    """Binary little-endian PLY with float x, y, z (m) and, when given, uchar red, green, blue; written atomically."""
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if colours is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
@@ -141,9 +153,7 @@ def write_ply(path: Path | str, xyz: npt.NDArray[np.float32], colours: npt.NDArr
         data["red"], data["green"], data["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(xyz)}",
               *(f"property {'float' if t == '<f4' else 'uchar'} {name}" for name, t in fields), "end_header"]
-    with open(path, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(data.tobytes())
+    atomic_write_bytes(Path(path), ("\n".join(header) + "\n").encode("ascii") + data.tobytes())
 
 
 def read_ply(path: Path | str) -> np.ndarray:

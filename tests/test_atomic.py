@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 from pathlib import Path
@@ -38,3 +39,20 @@ def test_the_temp_sits_beside_the_target_and_files_get_umask_permissions(tmp_pat
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE(target.stat().st_mode) == 0o666 & ~umask
+
+
+def test_a_write_error_that_names_no_file_is_raised_naming_the_target(tmp_path: Path) -> None:
+    """numpy's or OpenCV's error on a full disk ("2048 requested and 1468 written", errno 27 without a filename)
+    named no file: atomic_path raises it again naming the target, keeping the errno; one that names a file passes."""
+    target = tmp_path / "x.npy"
+    with pytest.raises(OSError, match=rf"cannot write {target}: File too large \(disk full\?\)") as info:
+        with atomic_path(target):
+            raise OSError(errno.EFBIG, "File too large")
+    assert info.value.errno == errno.EFBIG and not list(tmp_path.iterdir())
+    with pytest.raises(OSError, match=rf"cannot write {target}: 10 requested and 3 written \(disk full\?\)"):
+        with atomic_path(target):
+            raise OSError("10 requested and 3 written")
+    with pytest.raises(FileNotFoundError) as named:
+        with atomic_path(target):
+            raise FileNotFoundError(errno.ENOENT, "No such file", "/elsewhere")
+    assert named.value.filename == "/elsewhere"

@@ -308,6 +308,55 @@ class TestOutputs:
         result = invoke(export_main, "--checkpoint", ckpt, "--out", tmp_path)
         assert result.exit_code == 2 and "--out" in result.output and "is a directory; give a file" in result.output
 
+    def test_predict_into_the_images_folder_refuses_to_overwrite_an_input(self, ckpt: Path,
+                                                                           pair: tuple[Path, Path]) -> None:
+        """--out = the images' folder: the png output is named <left stem>.png, and l.png was replaced by a disparity
+        map (exit 0). Refused now, for one pair and for a folder dataset, the inputs untouched."""
+        left, right = pair
+        before = left.read_bytes()
+        result = invoke(predict_main, "--checkpoint", ckpt, left, right, "--out", left.parent, "--format", "png",
+                        "--quiet")
+        assert result.exit_code == 2 and f"would overwrite the input image {left}" in result.output
+        assert left.read_bytes() == before
+        root = left.parent / "ds"
+        for side in ("left", "right"):
+            (root / side).mkdir(parents=True)
+            (root / side / "a.png").write_bytes(before)
+        for extra in ((), ("--format", "conf-png")):  # the plain path and the confidence loop
+            result = invoke(predict_main, "--checkpoint", ckpt, "--dataset", "folder", "--root", root, "--out",
+                            root / "left", "--format", "png", *extra, "--quiet")
+            assert result.exit_code == 2 and "would overwrite the input image" in result.output, result.output
+            assert (root / "left" / "a.png").read_bytes() == before
+
+    def test_a_failed_frame_leaves_no_confidence_file_of_an_earlier_run(self, ckpt: Path, tmp_path: Path) -> None:
+        root, out = tmp_path / "ds", tmp_path / "o"
+        rng = np.random.default_rng(0)
+        for name in ("a", "b"):
+            for side in ("left", "right"):
+                write_image(root / side / f"{name}.png", rng.integers(0, 256, (32, 64, 3), dtype=np.uint8))
+        args = ("--checkpoint", ckpt, "--dataset", "folder", "--root", root, "--out", out, "--format", "png",
+                "--format", "conf-png", "--format", "conf-npy", "--quiet")
+        assert invoke(predict_main, *args).exit_code == 0
+        assert {p.name for p in out.iterdir()} >= {"b.png", "b_conf.png", "b_conf.npy"}
+        (root / "left" / "b.png").write_bytes(b"not a png")
+        assert invoke(predict_main, *args).exit_code == 1
+        assert not {"b.png", "b_conf.png", "b_conf.npy"} & {p.name for p in out.iterdir()}
+
+    def test_point_cloud_and_confidence_on_a_full_disk_leave_no_file(self, ckpt: Path, pair: tuple[Path, Path],
+                                                                      tmp_path: Path) -> None:
+        """The PLY and conf-npy writers wrote in place: a full disk left a truncated file whose header promised
+        every point. Both are atomic now, and the error names the file."""
+        calib = tmp_path / "calib.yaml"
+        calib.write_text("fx: 50\ncx: 32\ncy: 16\nbaseline: 0.5\n")
+        for formats, name in ((("--format", "ply"), "l.ply"), (("--format", "conf-npy"), "l_conf.npy")):
+            out = tmp_path / name.replace(".", "_")
+            extra = ("--calib", str(calib)) if name.endswith(".ply") else ()
+            proc = with_file_limit(3000, "-m", "optstereo.cli", "predict", "--checkpoint", str(ckpt),
+                                   *map(str, pair), "--out", str(out), *formats, *extra, "--quiet")
+            assert proc.returncode == 1, proc.stderr
+            assert f"cannot write {out / name}" in proc.stderr
+            assert not out.exists() or list(out.iterdir()) == []
+
     def test_predict_disk_full_leaves_no_output(self, ckpt: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
         # 32 x 64 float32 .npy = 8320 bytes; the colour PNG (first) fits under 6000, the .npy does not
         out = tmp_path / "o"

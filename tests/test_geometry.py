@@ -116,8 +116,10 @@ def test_predict_cli_depth_and_ply(tmp_path: Path, shared_data: Path) -> None:
     rig = read_calibration(calib)
     expected = disparity_to_depth(disp, rig, 80.0)
     ok = np.isfinite(expected)
-    np.testing.assert_allclose(depth_mm[ok], np.round(np.clip(expected[ok] * 1000, 0, 65535)), atol=1)
-    assert (depth_mm[~ok] == 0).all()
+    fits = ok & (np.round(np.nan_to_num(expected) * 1000) <= 65535)  # beyond 65.535 m: 0 (it was clipped to it)
+    assert (ok & ~fits).any()  # this frame has such depths (up to --max-depth 80)
+    np.testing.assert_allclose(depth_mm[fits], np.round(expected[fits] * 1000), atol=1)
+    assert (depth_mm[~fits] == 0).all()
     assert len(read_ply(tmp_path / "o/000000_10.ply")) == int(ok.sum())
     missing = CliRunner().invoke(predict_main, [*args, "--format", "ply"])
     assert missing.exit_code == 2 and "--calib" in missing.output

@@ -39,9 +39,9 @@ logger = logging.getLogger(__name__)
               help="GRU iterations (default: the checkpoint's settings; `pretrained` 3).")
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
               type=click.Choice(PREDICT_FORMATS),
-              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm), "
-                   "depth-pfm / depth-npy (m), ply (coloured point cloud); conf-png (16-bit, confidence x 65535) / "
-                   "conf-npy (float32 in [0, 1]) (repeatable).")
+              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm; 0 = "
+                   "none or beyond 65.5 m), depth-pfm / depth-npy (m), ply (coloured point cloud); conf-png (16-bit, "
+                   "confidence x 65535) / conf-npy (float32 in [0, 1]) (repeatable).")
 @click.option("--calib", type=common.EXISTING,
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
                    "(fx, cx, cy, baseline [m], doffs).")

@@ -30,7 +30,7 @@ from optstereo.inference.engine import model_inference_config, pass_at_scale, ru
 from optstereo.inference.padding import InputPadder, divisor_of
 from optstereo.training.augment import right_view
 from pvm_labeler.common.datasets import safe_stem
-from pvm_labeler.common.io import write_image
+from pvm_labeler.common.io import write_image, write_npy
 
 Image = npt.NDArray[np.uint8]
 Map = npt.NDArray[np.float32]
@@ -159,20 +159,28 @@ def curve_area(curve: npt.NDArray[np.float64], densities: Iterable[float] = DENS
     return float(np.sum((curve[1:] + curve[:-1]) / 2 * np.diff(x)))
 
 
+#: The file of each confidence format, by frame name.
+CONF_NAMES = {"conf-png": "{name}_conf.png", "conf-npy": "{name}_conf.npy"}
+
+
+def confidence_paths(out_dir: Path, name: str, formats: Iterable[str]) -> dict[str, Path]:
+    """format -> the file :func:`write_confidence` writes for frame ``name`` (other formats left out)."""
+    name = safe_stem(name)
+    return {fmt: Path(out_dir) / CONF_NAMES[fmt].format(name=name) for fmt in formats if fmt in CONF_NAMES}
+
+
 def write_confidence(out_dir: Path, name: str, conf: Map, formats: Iterable[str]) -> dict[str, Path]:
     """Write ``conf`` as ``conf-png`` (``<name>_conf.png``, uint16 = round(conf x 65535)) and/or ``conf-npy``
-    (``<name>_conf.npy``, float32); format -> path. ``name`` as ``optstereo.inference.outputs.write_disparity``'s."""
-    name = safe_stem(name)
-    out_dir = Path(out_dir)
-    paths: dict[str, Path] = {}
-    for fmt in formats:
-        out_dir.mkdir(parents=True, exist_ok=True)
+    (``<name>_conf.npy``, float32), each atomically; format -> path. ``name`` as
+    ``optstereo.inference.outputs.write_disparity``'s."""
+    formats = tuple(formats)
+    if unknown := [f for f in formats if f not in CONF_NAMES]:
+        raise ValueError(f"unknown confidence format {unknown[0]!r}; choose from {', '.join(CONF_NAMES)}")
+    paths = confidence_paths(out_dir, name, formats)
+    for fmt, path in paths.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
         if fmt == "conf-png":
-            paths[fmt] = out_dir / f"{name}_conf.png"
-            write_image(paths[fmt], np.round(np.clip(np.nan_to_num(conf), 0, 1) * 65535).astype(np.uint16))
-        elif fmt == "conf-npy":
-            paths[fmt] = out_dir / f"{name}_conf.npy"
-            np.save(paths[fmt], conf.astype(np.float32))
+            write_image(path, np.round(np.clip(np.nan_to_num(conf), 0, 1) * 65535).astype(np.uint16))
         else:
-            raise ValueError(f"unknown confidence format {fmt!r}; choose from conf-png, conf-npy")
+            write_npy(path, conf.astype(np.float32))
     return paths

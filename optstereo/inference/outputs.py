@@ -20,15 +20,16 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from optstereo.choices import DISPARITY_FORMATS, GEOMETRY_FORMATS
+from optstereo.choices import CONF_FORMATS, DISPARITY_FORMATS, GEOMETRY_FORMATS
 from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
+from optstereo.inference.confidence import confidence_paths
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import first_scale, infer, model_inference_config
 from optstereo.memory import check_fits
 from optstereo.submission import write_submission
 from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
-from pvm_labeler.common.errors import PVMError
+from pvm_labeler.common.errors import ConfigError, InputError, PVMError
 from pvm_labeler.common.io import image_size, read_image, write_disparity_file, write_image, write_npy, write_pfm
 from pvm_labeler.common.viz import colorize_disparity
 
@@ -75,10 +76,39 @@ def disparity_paths(out_dir: Path, name: str, formats: Iterable[str] = DEFAULT_F
             for fmt in formats}
 
 
+#: The file of each geometry format, by frame name (in ``out_dir`` itself).
+GEOMETRY_NAMES = {"depth-png": "{name}_depth.png", "depth-pfm": "{name}_depth.pfm", "depth-npy": "{name}_depth.npy",
+                  "ply": "{name}.ply"}
+
+
+def output_paths(out_dir: Path, name: str, formats: Iterable[str], kitti_layout: bool = False) -> dict[str, Path]:
+    """format -> the file optstereo-predict writes for frame ``name``, every kind (disparity, confidence: in
+    ``conf/`` in the KITTI layout, geometry)."""
+    formats = tuple(formats)
+    out_dir = Path(out_dir)
+    return {**disparity_paths(out_dir, name, [f for f in formats if f not in CONF_FORMATS], kitti_layout=kitti_layout),
+            **confidence_paths(out_dir / ("conf" if kitti_layout else ""), name, formats),
+            **{f: out_dir / GEOMETRY_NAMES[f].format(name=safe_stem(name)) for f in formats if f in GEOMETRY_NAMES}}
+
+
+def refuse_overwriting_inputs(out_dir: Path, frames: Iterable[tuple[str, Path, Path]], formats: Iterable[str],
+                              kitti_layout: bool = False) -> None:
+    """ConfigError naming the first input image that an output of (name, left, right) ``frames`` would replace
+    (``--out`` the images' own folder: ``<left stem>.png`` is the left image), before anything is run or written."""
+    frames = list(frames)
+    inputs = {Path(p).resolve() for _, left, right in frames for p in (left, right)}
+    formats = tuple(formats)
+    for name, _, _ in frames:
+        for fmt, path in output_paths(out_dir, name, formats, kitti_layout).items():
+            if path.resolve() in inputs:
+                raise ConfigError(f"the {fmt} output of {name} would overwrite the input image {path}: give an --out "
+                                 "folder other than the images' own")
+
+
 def forget_frame(out_dir: Path, name: str, formats: Iterable[str], kitti_layout: bool = False) -> None:
-    """Remove an earlier run's files of frame ``name`` in ``out_dir``: a frame that failed now must not leave an
-    old answer beside this run's (failures.json lists it)."""
-    for path in disparity_paths(out_dir, name, formats, kitti_layout=kitti_layout).values():
+    """Remove an earlier run's files of frame ``name`` in ``out_dir`` (every kind: :func:`output_paths`): a frame
+    that failed now must not leave an old answer beside this run's (failures.json lists it)."""
+    for path in output_paths(out_dir, name, formats, kitti_layout).values():
         path.unlink(missing_ok=True)
 
 
@@ -96,20 +126,16 @@ def write_geometry(
     name = safe_stem(name)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-    for fmt in wanted:
+    paths = {fmt: out_dir / GEOMETRY_NAMES[fmt].format(name=name) for fmt in wanted}
+    for fmt, path in paths.items():
         if fmt == "depth-png":
-            paths[fmt] = out_dir / f"{name}_depth.png"
-            write_depth_png(paths[fmt], depth)
+            write_depth_png(path, depth)
         elif fmt == "depth-pfm":
-            paths[fmt] = out_dir / f"{name}_depth.pfm"
-            write_pfm(paths[fmt], depth)
+            write_pfm(path, depth)
         elif fmt == "depth-npy":
-            paths[fmt] = out_dir / f"{name}_depth.npy"
-            write_npy(paths[fmt], depth)
+            write_npy(path, depth)
         else:
-            paths[fmt] = out_dir / f"{name}.ply"
-            write_ply(paths[fmt], *depth_to_points(depth, calib, image))
+            write_ply(path, *depth_to_points(depth, calib, image))
     return paths
 
 
@@ -119,6 +145,7 @@ def predict_pair(
     calib: Any = None, max_depth: float = float("inf"), scale: float | None = None, refine: str | None = None,
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
+    refuse_overwriting_inputs(out_dir, [(Path(left_path).stem, left_path, right_path)], formats)
     left, right = read_image(left_path), read_image(right_path)
     if left.shape != right.shape:
         raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")
@@ -134,9 +161,13 @@ def check_pairs_fit(config: InferenceConfig, lefts: Iterable[Path], cuda: bool =
                     available: float | None = None) -> None:
     """Raise MemoryError naming the first left image whose pair would not fit in the free memory (``available``
     bytes, None = ask the system) at the first scale ``config`` gives it (``engine.first_scale``); from the image
-    headers alone, before any pair is decoded or any output written."""
+    headers alone, before any pair is decoded or any output written. A file whose header cannot be read is passed
+    over: the loop that reads it skips and lists it (it stopped the whole run here)."""
     for left in lefts:
-        size = image_size(left)
+        try:
+            size = image_size(left)
+        except InputError:
+            continue
         check_fits(str(left), *size, scale=first_scale(config, size), cuda=cuda, available=available)
 
 
@@ -161,6 +192,8 @@ def predict_dataset(
         raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
                     torch.device(device).type == "cuda")
+    refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats,
+                              dataset.startswith("kitti"))
     written, failed = [], {}
     for ref in tqdm(refs, desc="predict", unit="pair", disable=not progress):
         try:

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from optstereo.choices import CONF_FORMATS
 from optstereo.inference.confidence import confidence_of, write_confidence
 from optstereo.inference.engine import model_inference_config, run
-from optstereo.inference.outputs import check_pairs_fit, forget_frame, write_disparity
+from optstereo.inference.outputs import check_pairs_fit, forget_frame, refuse_overwriting_inputs, write_disparity
 from optstereo.inference.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next, natural_key
 from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover
@@ -80,6 +80,7 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     state, folder = SequenceState(), None
     config = model_inference_config(model, iters, scale, refine)  # the same for every frame
     check_pairs_fit(config, [Path(frame[1]) for frame in frames], torch.device(device).type == "cuda")
+    refuse_overwriting_inputs(out_dir, frames, formats, kitti_layout)
     written, failed = [], {}
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):
         if Path(left_path).parent != folder:
@@ -94,7 +95,7 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
                 raise
             logger.warning("skipped %s: %s", name, exc)
             failed[name] = str(exc)
-            forget_frame(Path(out_dir), name, [f for f in formats if f not in CONF_FORMATS], kitti_layout)
+            forget_frame(Path(out_dir), name, formats, kitti_layout)
             state = SequenceState()
             continue
         t0 = time.perf_counter()

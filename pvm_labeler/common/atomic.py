@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
@@ -21,7 +22,8 @@ def atomic_path(path: Path | str, fsync: bool = False) -> Iterator[Path]:
     The temp file is ``<dir>/<name>.<random>.tmp`` (same directory, so ``os.replace`` is atomic on POSIX); it is not
     created here, so the writer creates it with the usual permissions (umask), as a plain ``open`` would. If the
     block raises, the temp file is removed and ``path`` is untouched. ``fsync`` flushes the data to disk before
-    the rename (checkpoints: a power cut must not leave a renamed but empty file).
+    the rename (checkpoints: a power cut must not leave a renamed but empty file). An OSError that names no file
+    (a full disk inside numpy or OpenCV) is raised again naming ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -32,8 +34,21 @@ def atomic_path(path: Path | str, fsync: bool = False) -> Iterator[Path]:
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.filename is None:  # a writer library's error names no file ("2048 requested and 1468 written")
+            raise _naming(exc, path) from exc
+        raise
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _naming(exc: OSError, path: Path) -> OSError:
+    """``exc`` as an OSError of the same errno whose message names ``path`` (a full disk is then findable)."""
+    reason = exc.strerror or str(exc)
+    hint = " (disk full?)" if exc.errno in (None, errno.ENOSPC, errno.EFBIG, errno.EDQUOT) else ""
+    if exc.errno is None:
+        return OSError(f"cannot write {path}: {reason}{hint}")
+    return OSError(exc.errno, f"cannot write {path}: {reason}{hint}")
 
 
 def atomic_write_bytes(path: Path | str, data: bytes) -> None:

@@ -143,11 +143,8 @@ def read_pfm(path: Path | str) -> npt.NDArray[np.float32]:
 
 def write_npy(path: Path | str, array: np.ndarray) -> None:
     """Write ``array`` as a NumPy ``.npy`` file, atomically (a full disk leaves no truncated file under ``path``)."""
-    try:
-        with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:
-            np.save(fh, array)
-    except OSError as exc:  # numpy's own message ("2048 requested and 1468 written") names no file
-        raise OSError(f"cannot write {path}: {exc} (disk full?)") from exc
+    with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:  # an error names the file (atomic_path)
+        np.save(fh, array)
 
 
 def write_pfm(path: Path | str, array: np.ndarray) -> None:
