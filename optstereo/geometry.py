@@ -9,10 +9,15 @@ Calibration files (:func:`read_calibration` detects the kind):
   baseline (P_rect_02[0, 3] - P_rect_03[0, 3]) / fx (image_2 is the left camera, image_3 the right);
 - Middlebury ``calib.txt``: ``cam0``, ``cam1`` matrices, ``doffs``, ``baseline`` in millimetres;
 - YAML: ``fx``, ``cx``, ``cy``, ``baseline`` (metres), optional ``fy`` (= fx) and ``doffs`` (= 0).
+
+The image size a file records (KITTI ``S_rect_02``, Middlebury ``width`` / ``height``, YAML ``width`` / ``height``)
+must be the pair's (:meth:`Calibration.check_fits`): a resized pair with the original calibration gave depths off by
+the ratio, silently.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 from dataclasses import dataclass
@@ -44,6 +49,19 @@ class Calibration:
     cy: float
     baseline: float
     doffs: float = 0.0
+    size: tuple[int, int] | None = None  # (H, W) of the images it describes, where the file says (None: unknown)
+    source: str = dataclasses.field(default="", compare=False)  # the file it was read from
+
+    def check_fits(self, height: int, width: int) -> None:
+        """InputError when the calibration describes images of another size than (``height``, ``width``) (its
+        recorded size, else a principal point outside the image): the depth would be off by the size ratio."""
+        if self.size is not None and self.size != (height, width):
+            raise InputError(f"{self.source or 'the calibration'} describes {self.size[1]}x{self.size[0]} images and "
+                             f"the pair is {width}x{height}: its depth would be off by the ratio; give the "
+                             "calibration of the images as they are (a resized pair: scale fx, fy, cx, cy alike)")
+        if not (0 <= self.cx <= width and 0 <= self.cy <= height):
+            raise InputError(f"{self.source or 'the calibration'}: principal point ({self.cx:g}, {self.cy:g}) lies "
+                             f"outside the {width}x{height} pair: it describes images of another size")
 
 
 def _numbers(text: str) -> list[float]:
@@ -57,8 +75,10 @@ def _read_kitti(lines: dict[str, str], path: Path, left: str = "02", right: str 
     except (KeyError, ValueError) as exc:
         raise InputError(f"{path}: KITTI calibration needs P_rect_{left} and P_rect_{right} (3x4 each): {exc}") from exc
     fx = p_left[0, 0]
+    size = _numbers(lines.get(f"S_rect_{left}", ""))
     return Calibration(fx=fx, fy=p_left[1, 1], cx=p_left[0, 2], cy=p_left[1, 2],
-                       baseline=(p_left[0, 3] - p_right[0, 3]) / fx, doffs=p_right[0, 2] - p_left[0, 2])
+                       baseline=(p_left[0, 3] - p_right[0, 3]) / fx, doffs=p_right[0, 2] - p_left[0, 2],
+                       size=(round(size[1]), round(size[0])) if len(size) == 2 else None)
 
 
 def _read_middlebury(lines: dict[str, str], path: Path) -> Calibration:
@@ -68,8 +88,11 @@ def _read_middlebury(lines: dict[str, str], path: Path) -> Calibration:
         doffs = float(lines.get("doffs", "0"))
     except (KeyError, ValueError) as exc:
         raise InputError(f"{path}: Middlebury calibration needs cam0=[...], baseline= and doffs=: {exc}") from exc
+    size = None
+    if lines.get("width", "").isdigit() and lines.get("height", "").isdigit():
+        size = (int(lines["height"]), int(lines["width"]))
     return Calibration(fx=cam0[0, 0], fy=cam0[1, 1], cx=cam0[0, 2], cy=cam0[1, 2], baseline=baseline_mm / 1000.0,
-                       doffs=doffs)
+                       doffs=doffs, size=size)
 
 
 def _read_yaml(path: Path) -> Calibration:
@@ -77,8 +100,10 @@ def _read_yaml(path: Path) -> Calibration:
     missing = [k for k in ("fx", "cx", "cy", "baseline") if k not in doc]
     if missing:
         raise InputError(f"{path}: YAML calibration lacks {missing} (fx, cx, cy in px, baseline in m)")
+    size = (int(doc["height"]), int(doc["width"])) if "width" in doc and "height" in doc else None
     return Calibration(fx=float(doc["fx"]), fy=float(doc.get("fy", doc["fx"])), cx=float(doc["cx"]),
-                       cy=float(doc["cy"]), baseline=float(doc["baseline"]), doffs=float(doc.get("doffs", 0.0)))
+                       cy=float(doc["cy"]), baseline=float(doc["baseline"]), doffs=float(doc.get("doffs", 0.0)),
+                       size=size)
 
 
 def _key_values(path: Path) -> dict[str, str]:
@@ -107,7 +132,7 @@ def read_calibration(path: Path | str) -> Calibration:
                              "or YAML (fx, cx, cy, baseline) calibration")
     if calib.fx <= 0 or calib.baseline <= 0:
         raise InputError(f"{path}: focal length and baseline must be > 0, got fx={calib.fx}, baseline={calib.baseline}")
-    return calib
+    return dataclasses.replace(calib, source=str(path))
 
 
 def disparity_to_depth(disp: npt.ArrayLike, calib: Calibration, max_depth: float = np.inf) -> npt.NDArray[np.float32]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +165,38 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
     with pytest.raises(ValueError, match="000002_10 missing"):
         write_submission(tmp_path / "pred", tmp_path / "again.zip", discover("kitti15", tmp_path / "kitti", "testing"))
     assert not (tmp_path / "again.zip").exists()
+
+
+def test_a_calibration_of_another_image_size_is_refused(tmp_path: Path, shared_data: Path,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """A half-size KITTI pair with the full-size calib_cam_to_cam.txt gave depths twice too large, silently: its
+    S_rect_02 (1242 x 375) is checked before the network runs; a YAML's width / height and a principal point outside
+    the image alike. --calib without a depth format is warned about (it was ignored silently)."""
+    import cv2
+    from conftest import TINY
+
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.cli import predict_main
+    from optstereo.models import build_model
+
+    ckpt = export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", iters=2, **TINY))
+    calib = shared_data / "kitti15/training/calib_cam_to_cam/000000.txt"
+    assert read_calibration(calib).size == (375, 1242)
+    half = []
+    for side in ("image_2", "image_3"):
+        image = cv2.imread(str(shared_data / f"kitti15/training/{side}/000000_10.png"))
+        half.append(tmp_path / f"{side}.png")
+        cv2.imwrite(str(half[-1]), cv2.resize(image, (621, 188), interpolation=cv2.INTER_AREA))
+    args = ["--checkpoint", str(ckpt), *map(str, half), "--out", str(tmp_path / "o"), "--format", "depth-npy"]
+    result = CliRunner().invoke(predict_main, [*args, "--calib", str(calib)])
+    assert result.exit_code == 1 and "describes 1242x375 images and the pair is 621x188" in result.output
+    assert not (tmp_path / "o").exists()
+    yaml_calib = tmp_path / "rig.yaml"
+    yaml_calib.write_text("fx: 360\ncx: 900\ncy: 90\nbaseline: 0.54\n")
+    result = CliRunner().invoke(predict_main, [*args, "--calib", str(yaml_calib)])
+    assert result.exit_code == 1 and "principal point (900, 90) lies outside the 621x188 pair" in result.output
+    yaml_calib.write_text("fx: 360\ncx: 310\ncy: 94\nbaseline: 0.54\nwidth: 621\nheight: 188\n")
+    assert CliRunner().invoke(predict_main, [*args, "--calib", str(yaml_calib)]).exit_code == 0
+    with caplog.at_level(logging.WARNING):
+        done = CliRunner().invoke(predict_main, [*args[:-2], "--format", "npy", "--calib", str(yaml_calib)])
+    assert done.exit_code == 0 and "--calib read by the depth and point-cloud formats only" in caplog.text

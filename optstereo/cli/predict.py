@@ -84,8 +84,14 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     if geometry and (calib is None or dataset is not None):
         raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
     rig = None
-    if calib is not None:
+    if (calib is not None or max_depth is not None) and not geometry:
+        logger.warning("%s read by the depth and point-cloud formats only (--format depth-png, depth-pfm, "
+                       "depth-npy, ply): not used", " and ".join(n for n, v in (("--calib", calib),
+                                                                         ("--max-depth", max_depth)) if v is not None))
+    elif calib is not None:
         rig = read_calibration(calib)
+        if left is not None:
+            rig.check_fits(*image_size(left))  # before the network runs
     model, dev = common.load_model(checkpoint, device)
     if sequence:
         _check_sequence(model, checkpoint)

@@ -122,6 +122,7 @@ def write_geometry(
         return {}
     if calib is None:
         raise ValueError(f"formats {wanted} need a calibration: pass --calib FILE")
+    calib.check_fits(*disp.shape)
     depth = disparity_to_depth(disp, calib, max_depth)
     name = safe_stem(name)
     out_dir = Path(out_dir)
