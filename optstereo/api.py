@@ -80,10 +80,24 @@ def predict(
         return infer(model, lft, rgt, iters=iters, device=device, amp=amp, scale=scale)
 
     if right is None:
-        if isinstance(left, np.ndarray):
-            raise ValueError("predict(model, left, right): give the right image, or a list of (left, right) pairs")
-        if isinstance(left, tuple) and len(left) == 2 and all(isinstance(x, np.ndarray) and x.ndim == 3 for x in left):
-            raise ValueError("predict(model, (left, right)): one pair is predict(model, left, right) (or "
-                             "predict(model, *pair)); several are a list of (left, right) tuples")
-        return [one(lft, rgt) for lft, rgt in left]
+        return [one(np.asarray(lft), np.asarray(rgt)) for lft, rgt in _pairs_of(left)]
     return one(np.asarray(left), np.asarray(right))
+
+
+def _pairs_of(pairs: Any) -> list[tuple[Any, Any]]:
+    """``predict``'s list of (left, right) pairs, checked: ValueError naming what was given instead (an image, one
+    pair as a tuple or list, an item that is no pair)."""
+    if hasattr(pairs, "ndim"):
+        raise ValueError("predict(model, left, right): give the right image, or a list of (left, right) pairs")
+    if isinstance(pairs, tuple | list) and len(pairs) == 2 and all(getattr(x, "ndim", 0) == 3 for x in pairs):
+        raise ValueError(f"predict(model, {'(left, right)' if isinstance(pairs, tuple) else '[left, right]'}): one "
+                         "pair is predict(model, left, right) (or predict(model, *pair)); several are a list of "
+                         "(left, right) tuples")
+    if not isinstance(pairs, Sequence) or isinstance(pairs, str):
+        raise ValueError(f"predict(model, pairs): pairs must be a list of (left, right) tuples, got "
+                         f"{type(pairs).__name__}")
+    for i, item in enumerate(pairs):
+        if not isinstance(item, tuple | list) or len(item) != 2:
+            got = f"a {type(item).__name__}" + (f" of {len(item)} items" if isinstance(item, tuple | list) else "")
+            raise ValueError(f"predict(model, pairs): item {i} must be a (left, right) tuple, got {got}")
+    return list(pairs)

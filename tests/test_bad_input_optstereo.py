@@ -531,7 +531,7 @@ class TestApiImages:
     @pytest.mark.parametrize("make, message", [
         (lambda im: im / 255.0, r"must be uint8 \(0-255\) RGB, got float64: values in \[0, 1\]\?"),
         (lambda im: im.astype(np.float32), r"got float32: values 0-255\? image.round\(\).clip"),
-        (lambda im: im.astype(np.uint16) * 257, r"got uint16: 16-bit\? \(image // 257\)"),
+        (lambda im: im.astype(np.uint16) * 257, r"got uint16: 16-bit\? \(\(image.astype\(np.uint32\) \+ 128\) // 257"),
         (lambda im: im[..., 0], r"got shape \(32, 64\) \(a grey image"),
         (lambda im: im[..., :1], r"got shape \(32, 64, 1\) \(a grey image"),
         (lambda im: np.concatenate([im, im[..., :1]], axis=2), r"got shape \(32, 64, 4\) \(RGBA"),
@@ -548,8 +548,40 @@ class TestApiImages:
         from optstereo import predict
 
         image = np.zeros((32, 64, 3), np.uint8)
-        with pytest.raises(ValueError, match=r"one pair is predict\(model, left, right\)"):
-            predict(model, (image, image))
+        tensor = torch.from_numpy(image)
+        for one in ((image, image), [image, image], (tensor, tensor)):  # [l, r] and tensors: "too many values"
+            with pytest.raises(ValueError, match=r"one pair is predict\(model, left, right\)"):
+                predict(model, one)
+        with pytest.raises(ValueError, match=r"item 1 must be a \(left, right\) tuple, got a tuple of 1 items"):
+            predict(model, [(image, image), (image,)])
+        with pytest.raises(ValueError, match="must be a list of \\(left, right\\) tuples, got dict"):
+            predict(model, {"left": image})
+
+    def test_too_small_or_empty_pairs_are_named_in_their_own_pixels(self) -> None:
+        """An 8x8 pair failed inside the model naming its padded, enlarged width ("W must be >= 64 ..., got W = 32");
+        an empty one with a ZeroDivisionError."""
+        from optstereo import predict
+        from optstereo.inference.config import InferenceConfig
+
+        model = build_model("optstereo", **TINY_BASE, iters=1).eval()
+        model.inference_config = InferenceConfig(scale=0.5)
+        image = np.zeros((40, 70, 3), np.uint8)
+        with pytest.raises(ValueError, match=r"the pair is 70x40 px: at input scale 0.5 the network sees it 40 px "
+                                             r"wide \(padded\), and its cost-volume pyramid needs >= 64: give a pair "
+                                             r"at least 128 px wide"):
+            predict(model, image, image)
+        with pytest.raises(ValueError, match=r"left image is empty: shape \(0, 70, 3\)"):
+            predict(model, image[:0], image[:0])
+
+    def test_a_list_of_tensor_pairs_runs_as_one_pair_does(self) -> None:
+        from optstereo import predict
+
+        model = build_model("optstereo", **TINY_BASE, iters=1).eval()
+        rng = np.random.default_rng(0)
+        left = rng.integers(0, 256, (32, 64, 3), dtype=np.uint8)
+        right = np.roll(left, -2, axis=1)
+        [listed] = predict(model, [(torch.from_numpy(left), torch.from_numpy(right))])  # "Cannot interpret ..."
+        np.testing.assert_allclose(listed, predict(model, left, right), atol=1e-5)
 
 
 @pytest.mark.parametrize("setting, message", [

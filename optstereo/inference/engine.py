@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -36,6 +37,7 @@ from optstereo.inference.rescale import (
     budget_factor,
     disparity_to_size,
     rescaled_pair,
+    scaled_size,
     shrink_factor,
 )
 from pvm_labeler.common.version import cpuinfo_flags
@@ -73,11 +75,14 @@ def check_image(image: Any, which: str) -> None:
         hint = ""
     if hint:
         raise ValueError(f"{which} image must be (H, W, 3) uint8 RGB, got shape {tuple(shape)} ({hint})")
+    if 0 in shape[:2]:
+        raise ValueError(f"{which} image is empty: shape {tuple(shape)}")
     if dtype != np.uint8:
         floats = np.dtype(dtype).kind == "f"
         how = ("values in [0, 1]? (image * 255).round().astype(np.uint8)" if floats and np.nanmax(image) <= 1.0 else
                "values 0-255? image.round().clip(0, 255).astype(np.uint8)" if floats else
-               "16-bit? (image // 257).astype(np.uint8)" if np.dtype(dtype) == np.uint16 else
+               "16-bit? ((image.astype(np.uint32) + 128) // 257).astype(np.uint8), as read_image rounds"
+               if np.dtype(dtype) == np.uint16 else
                "image.astype(np.uint8) if its values are 0-255")
         raise ValueError(f"{which} image must be uint8 (0-255) RGB, got {dtype}: {how}; "
                          "pvm_labeler.common.io.read_image reads any image file as such")
@@ -228,6 +233,7 @@ def run(model: nn.Module, left: Image, right: Image, config: InferenceConfig | N
         raise ValueError(f"left/right shapes differ: {left.shape} vs {right.shape}")
     device = torch.device(device)
     scale = first_scale(config, left.shape)
+    check_width(model, left.shape, scale)
     if scale != config.scale:
         logger.info("%dx%d pair run at input scale %.3f (the model's %.3f, %s toward a training-size pair's "
                     "pixels)", left.shape[1], left.shape[0], scale, config.scale,
@@ -278,6 +284,21 @@ def final_scale(config: InferenceConfig, zero: Disparity | None, shape: tuple[in
         raise ValueError("the adaptive scale needs the zero-start pass's disparity")
     return first * adaptive_factor(zero, config.adaptive_ref_disp, config.adaptive_ref_pixels,
                                    prior=first / config.scale)
+
+
+def check_width(model: nn.Module, shape: tuple[int, ...], scale: float) -> None:
+    """ValueError, in the pair's own pixels, when an (H, W, ...) pair at input ``scale`` is narrower (padded) than
+    the model's cost-volume pyramid takes (``model.min_width``; the model's own error named the padded width)."""
+    need = getattr(model, "min_width", None)
+    if need is None:
+        return
+    width = scaled_size(shape, scale)[1] if scale != 1.0 else shape[1]
+    divisor = divisor_of(model)
+    padded = -(-width // divisor) * divisor
+    if padded < need:
+        raise ValueError(f"the pair is {shape[1]}x{shape[0]} px: at input scale {scale:.3g} the network sees it "
+                         f"{padded} px wide (padded), and its cost-volume pyramid needs >= {need}: give a pair at "
+                         f"least {math.ceil(need / scale)} px wide, or a larger scale")
 
 
 @torch.inference_mode()
