@@ -245,6 +245,13 @@ def _check_torch_container(path: Path) -> None:
         size = path.stat().st_size
         what = "truncated (its zip directory is missing)" if head == b"PK\x03\x04" else "not a torch checkpoint"
         raise CheckpointError(f"cannot load checkpoint {path} ({size} bytes): {what}; torch.save writes zip archives")
+    if head[:1] != b"\x80":
+        with zipfile.ZipFile(path) as archive:
+            scripted = any(name.endswith("/constants.pkl") or "/code/" in name for name in archive.namelist())
+        if scripted:  # torch.load's own refusal suggests weights_only=False, i.e. running the file's code
+            raise CheckpointError(f"{path} is an exported TorchScript graph (optstereo-export --format torchscript), "
+                                  "not a checkpoint: load it with torch.jit.load (its settings: the extra file "
+                                  "inference_config.json), or give the .pt/.safetensors it was exported from")
 
 
 def _load_safetensors(path: Path, map_location: str | torch.device) -> LoadedCheckpoint:

@@ -15,10 +15,12 @@ file's metadata records the model's InferenceConfig (key ``inference_config``, J
 the graph through ``optstereo.inference.engine.run`` with it, the same sequence as the torch model's (resize, pad,
 passes,
 unpad, resize back, post-filter); files written before that key read the old per-key metadata (``input_scale``,
-``refine``, ``scale_ref_disp``/``scale_ref_pixels``, ``cascade_select``/``cascade_select_jump``). A TorchScript file
-carries none of it: its caller runs the model's settings itself. A model with ``InferenceConfig.coarse_start``
-exports a graph with a third input, ``start`` (1, 1, H, W): a full-resolution disparity of the padded pair, zeros
-for the zero start, which the graph averages onto the 1/8 grid (``optstereo.inference.cascade.grid_start``).
+``refine``, ``scale_ref_disp``/``scale_ref_pixels``, ``cascade_select``/``cascade_select_jump``). A TorchScript
+file records it as the extra file ``inference_config.json`` (``torch.jit.load(f, _extra_files=
+{"inference_config.json": ""})``); its caller runs those settings itself (the graph is one pass on a padded
+pair). A model with ``InferenceConfig.coarse_start`` exports a graph with a third input, ``start`` (1, 1, H, W): a
+full-resolution disparity of the padded pair, zeros for the zero start, which the graph averages onto the 1/8 grid
+(``optstereo.inference.cascade.grid_start``).
 
 Speed (`make bench`, section "export": onnxruntime / eager torch on a KITTI frame, 2 threads, alternating):
 0.75-0.85x over the runs so far on an AVX-512 Xeon (three back-to-back runs on 2026-11-24: 0.85, 0.83, 0.81;
@@ -70,6 +72,8 @@ from pvm_labeler.common.atomic import atomic_path
 logger = logging.getLogger(__name__)
 
 OPSET = 18
+#: The extra file of a TorchScript export that holds the model's InferenceConfig (JSON).
+TORCHSCRIPT_CONFIG = "inference_config.json"
 
 
 class InferenceGraph(nn.Module):
@@ -135,7 +139,10 @@ def _export(graph: nn.Module, out: Path, fmt: str, example_hw: tuple[int, int], 
             program.save(str(tmp), external_data=False)  # one self-contained file (weights ~10 MB, far below 2 GB)
         else:
             buffer = io.BytesIO()  # torch's file writer aborts the process on a full disk; Python's raises OSError
-            torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), buffer)
+            # the InferenceConfig travels as an extra file: torch.jit.load(f, _extra_files={"inference_config.json":
+            # ""}) reads it back (scale, iterations, the small-pair enlargement the graph itself does not do)
+            torch.jit.save(torch.jit.trace(graph, inputs, check_trace=False), buffer,
+                           _extra_files={TORCHSCRIPT_CONFIG: recorded["inference_config"]})
             tmp.write_bytes(buffer.getvalue())
     return out
 

@@ -12,7 +12,10 @@ import numpy as np
 from pvm_labeler.common.atomic import atomic_path
 from pvm_labeler.common.io import image_size
 
-__all__ = ["write_submission"]
+__all__ = ["BENCHMARK_FRAMES", "submission_problems", "write_submission"]
+
+#: The reference frames of each KITTI benchmark's testing split, which its server scores.
+BENCHMARK_FRAMES = {"kitti15": 200, "kitti12": 195}
 
 
 def write_submission(pred_dir: Path, zip_path: Path, refs: list[Any]) -> Path:
@@ -52,3 +55,17 @@ def _write_checked_zip(tmp: Path, zip_path: Path, frames: list, pred_dir: Path) 
             if raw is None or raw.dtype != np.uint16 or raw.shape != want:
                 got = None if raw is None else (raw.shape, raw.dtype)
                 raise ValueError(f"submission: frame {ref.frame_id} is {got}, expected uint16 of size {want}")
+
+
+def submission_problems(dataset: str, split: str, frames: int) -> list[str]:
+    """Why KITTI's server would refuse a submission of ``frames`` reference frames of ``dataset``'s ``split`` that
+    is well formed (:func:`write_submission` checks the files): not the testing split, another frame count."""
+    problems = []
+    if split != "testing":
+        problems.append(f"it holds the {split!r} split's frames; the server scores the testing split's "
+                        "(--split testing)")
+    want = BENCHMARK_FRAMES.get(dataset)
+    if want is not None and frames != want:
+        problems.append(f"it holds {frames} frames; {dataset}'s testing split has {want} (a --limit, or another "
+                        "folder)")
+    return problems

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from optstereo.cli import export_main, predict_main
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import infer
 from optstereo.models import build_model
-from pvm_labeler.common.io import read_image
+from pvm_labeler.common.io import read_image, write_image
 
 pytest.importorskip("onnxruntime")
 
@@ -139,6 +140,16 @@ def test_torchscript_export(exported: tuple[Path, Path], tmp_path: Path, shared_
         with torch.no_grad():
             got = scripted(to_t(left), to_t(right))[0, 0].numpy()
         np.testing.assert_allclose(got, infer(model, left, right), atol=1e-3)
+    extra = {"inference_config.json": ""}
+    torch.jit.load(str(tmp_path / "tiny.pt"), _extra_files=extra)  # the settings travel with the graph
+    assert json.loads(extra["inference_config.json"]) == model.inference_config.to_dict()
+    for name, image in (("l.png", left), ("r.png", right)):
+        write_image(tmp_path / name, image)
+    refused = CliRunner().invoke(predict_main, ["--checkpoint", str(tmp_path / "tiny.pt"), str(tmp_path / "l.png"),
+                                                str(tmp_path / "r.png"), "--out", str(tmp_path / "o")])
+    # it was torch.load's advice to unpickle with weights_only=False
+    assert refused.exit_code == 1 and "is an exported TorchScript graph" in refused.output, refused.output
+    assert "weights_only" not in refused.output
 
 
 @pytest.mark.slow

@@ -126,7 +126,7 @@ def test_predict_cli_depth_and_ply(tmp_path: Path, shared_data: Path) -> None:
     assert missing.exit_code == 2 and "--calib" in missing.output
 
 
-def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
+def test_kitti_submission_zip(tmp_path: Path, shared_data: Path, caplog: pytest.LogCaptureFixture) -> None:
     """--submission: only _10 frames, disp_0/<frame>_10.png, each 16-bit at its own image's size; checked."""
     import zipfile
 
@@ -137,6 +137,7 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
     from optstereo.checkpoint import export_safetensors
     from optstereo.cli import predict_main
     from optstereo.models import build_model
+    from optstereo.submission import submission_problems
 
     src = shared_data / "kitti_unlabelled/kitti15_testing"
     root = tmp_path / "kitti" / "testing"
@@ -149,10 +150,18 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path) -> None:
     torch.manual_seed(0)
     ckpt = export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", iters=1, **TINY))
     zip_path = tmp_path / "submit.zip"
-    result = CliRunner().invoke(predict_main, [
-        "--checkpoint", str(ckpt), "--dataset", "kitti15", "--root", str(tmp_path / "kitti"), "--split", "testing",
-        "--out", str(tmp_path / "pred"), "--format", "color", "--submission", str(zip_path), "--device", "cpu"])
+    with caplog.at_level(logging.WARNING):
+        result = CliRunner().invoke(predict_main, [
+            "--checkpoint", str(ckpt), "--dataset", "kitti15", "--root", str(tmp_path / "kitti"), "--split",
+            "testing", "--out", str(tmp_path / "pred"), "--format", "color", "--submission", str(zip_path),
+            "--device", "cpu"])
     assert result.exit_code == 0, result.output
+    # well formed, but 2 frames: the server's count is said (the line said "(checked)" only); the split is right
+    assert "would refuse" in caplog.text and "it holds 2 frames; kitti15's testing split has 200" in caplog.text
+    assert "split's frames" not in caplog.text
+    assert submission_problems("kitti15", "training", 200) == [
+        "it holds the 'training' split's frames; the server scores the testing split's (--split testing)"]
+    assert submission_problems("kitti12", "testing", 195) == []
     with zipfile.ZipFile(zip_path) as zf:
         assert sorted(zf.namelist()) == ["disp_0/000001_10.png", "disp_0/000002_10.png"]
         sizes = [cv2.imdecode(np.frombuffer(zf.read(n), np.uint8), cv2.IMREAD_UNCHANGED).shape for n in

@@ -18,6 +18,7 @@ from optstereo.inference import engine as inference
 from optstereo.inference import outputs
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.predict_more import MoreOptions, frames_of, more_options, predict_frames
+from optstereo.submission import submission_problems
 from pvm_labeler.common.io import image_size, read_image
 
 logger = logging.getLogger(__name__)
@@ -126,7 +127,11 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {_frames(len(written))} into {out}"
-                   + (f"; submission {submission} (checked)" if submission is not None else ""))
+                   + (f"; submission {submission} (its files checked)" if submission is not None else ""))
+        if submission is not None:
+            refs = sum(1 for frame in written if Path(frame["png"]).stem.endswith("_10"))
+            for problem in submission_problems(dataset, split, refs):
+                logger.warning("KITTI's server would refuse %s: %s", submission, problem)
 
 
 def _refuse_for_onnx(*, iters: int | None, amp: str, device: str, sequence: bool, min_confidence: float,
