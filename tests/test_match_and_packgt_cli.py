@@ -72,7 +72,7 @@ class TestMatchSkipsUnreadablePairs:
         assert result.exit_code == 1
         listed = out / "failures.json"
         assert ("3 of 4 pairs could not be read, e.g. 000: " in result.output
-                and f"the other 1 were written; the list: {listed}" in result.output), result.output
+                and f"the other 1 was written; the list: {listed}" in result.output), result.output
         assert sorted(p.name for p in out.iterdir()) == ["003.npy", "failures.json"]
         failures = {f["frame_id"]: f["error"] for f in json.loads(listed.read_text())}  # the job's record form
         assert list(failures) == ["000", "001", "002"]

@@ -82,9 +82,9 @@ def record_failures(out_dir: Path, failed: dict[str, str], total: int) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     records = [{"frame_id": frame_id, "error": reason} for frame_id, reason in failed.items()]
     atomic_write_text(path, json.dumps(records, indent=2) + "\n")
-    first = next(iter(failed))
+    first, rest = next(iter(failed)), total - len(failed)
     raise InputError(f"{len(failed)} of {total} pair{'' if total == 1 else 's'} could not be read, e.g. {first}: "
-                     f"{failed[first]}; the other {total - len(failed)} were written; the list: {path}")
+                     f"{failed[first]}; the other {rest} {'was' if rest == 1 else 'were'} written; the list: {path}")
 
 
 def read_failures(out: Path) -> list[dict[str, Any]]:
