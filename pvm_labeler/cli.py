@@ -304,7 +304,8 @@ def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fi
 @click.option("--out", type=click.Path(path_type=Path), required=True,
               help="Output folder: OUT/<left stem or frame id>.<format>.")
 @click.option("--format", "formats", type=click.Choice(MATCH_FORMATS), multiple=True, default=("png",),
-              show_default=True, help="png: KITTI 16-bit (x256, 0 = none); pfm / npy: float32, NaN = none. Repeatable.")
+              show_default=True, help="png: KITTI 16-bit (x256, 0 = none); pfm: float32, inf = none (Middlebury's); "
+                                      "npy: float32, NaN = none. Repeatable.")
 @click.option("--dataset", type=click.Choice(DATASETS), default=None,
               help="Match every pair of a dataset (with --root) instead of LEFT RIGHT.")
 @click.option("--root", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
@@ -315,7 +316,8 @@ def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fi
               help="Search range [0, max-disp), px.  [default: the pair's calib ndisp, else the dataset's, else "
                    f"{_DEFAULTS.max_disp}]")
 @click.option("--fill/--no-fill", default=True, show_default=True,
-              help="Fill SGM's holes with the nearest value on the row; --no-fill keeps them (NaN, PNG 0).")
+              help="Fill SGM's holes with the nearest value on its row; --no-fill keeps them (PNG 0, PFM inf, "
+                   "NPY NaN).")
 @click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
               help="Pairs matched at once (numba threads per pair = cores // jobs).")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar (also off when stderr is not a TTY).")

@@ -51,7 +51,8 @@ logger = logging.getLogger(__name__)
               help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats, "
                    "--scale/--refine/--threads; the other options are refused).")
 @click.option("--submission", type=click.Path(path_type=Path),
-              help="With --dataset kitti15|kitti12: also write OUT.zip for the KITTI benchmark (checked).")
+              help="With --dataset kitti15|kitti12: also write this .zip for the KITTI benchmark (its _10 frames "
+                   "only; the files checked, and a warning when the server would refuse it).")
 @common.device_option
 @common.infer_options
 @more_options
