@@ -44,3 +44,29 @@ def test_user_documents_stay_short(pattern: str) -> None:
     assert paths, pattern
     too_long = {str(p.relative_to(ROOT)): p.stat().st_size for p in paths if p.stat().st_size > DOC_LIMITS[pattern]}
     assert not too_long, f"over {DOC_LIMITS[pattern]} bytes: {too_long}"
+
+
+#: Documents whose paths name files as they were (the registrations' candidates live in git history).
+_HISTORICAL = {"docs/registrations.md"}
+_PATH = re.compile(r"`((?:pipelines|optstereo|pvm_labeler|tests|docs|results|bench|data)/[A-Za-z0-9_./-]+"
+                   r"\.(?:py|yaml|yml|md|sh|json|txt|png|jpg|safetensors|csv))")
+_MODULE = re.compile(r"python -m ((?:pipelines|optstereo|pvm_labeler)(?:\.[a-z0-9_]+)+)")
+
+
+def test_the_files_and_modules_the_docs_name_exist() -> None:
+    """A doc that names a moved file (`pipelines/recipes/cpu_main.yaml`, `python -m pipelines.vote_table`) sent its
+    reader to nothing; every repository path and ``python -m`` module in the user docs must exist."""
+    docs = [*ROOT.glob("docs/*.md"), ROOT / "README.md", ROOT / "RESULTS.md", ROOT / "data/README.md",
+            *ROOT.glob("optstereo/weights/*.md")]
+    missing = []
+    for doc in docs:
+        name = doc.relative_to(ROOT).as_posix()
+        if name in _HISTORICAL:
+            continue
+        text = doc.read_text()
+        missing += [f"{name}: {p}" for p in _PATH.findall(text) if not (ROOT / p).exists()]
+        for module in _MODULE.findall(text):
+            path = ROOT / module.replace(".", "/")
+            if not (path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()):
+                missing.append(f"{name}: python -m {module}")
+    assert not missing, missing
