@@ -52,7 +52,7 @@ def evaluate_dir(shard_dir: Path, pictures: int = 0, picture_dir: Path | None = 
     accs = {region: MetricAccumulator() for region in REGIONS}
     frames: dict[str, dict[str, Any]] = {}
     written: list[str] = []
-    labelled = total = 0
+    labelled = total = drawn = 0
     stages: dict[str, list[int]] = {}
     for path, ids in index.shards:
         with open_shard(path) as h5:
@@ -63,8 +63,9 @@ def evaluate_dir(shard_dir: Path, pictures: int = 0, picture_dir: Path | None = 
                 frames[frame_id] = _frame_metrics(sample, accs)
                 if "stages" in sample.attrs:
                     stages = add_counts(stages, sample.attrs["stages"])
-                if picture_dir is not None and len(written) < 2 * pictures:
+                if picture_dir is not None and drawn < pictures:  # frames, not files (1 or 2 each)
                     written += _pictures(sample, picture_dir)
+                    drawn += 1
     pooled = {region: acc.compute() for region, acc in accs.items() if acc.n_frames}
     return {
         "name": run_name(shard_dir, index.config),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from pathlib import Path
 
 import cv2
@@ -214,6 +215,16 @@ class TestVerifyReport:
         assert len(doc["runs"]) == 2 and doc["runs"][0]["pooled"]["all"]["n_valid"] == 2 * 64 * 124
         assert (tmp_path / "rep/density_vs_error.png").stat().st_size > 1000
         assert sorted(p.name for p in (tmp_path / "rep/run00-k0.5").iterdir()) == ["000_error.png", "000_label.png"]
+
+    def test_report_pictures_count_frames_without_gt_too(self, tmp_path: Path) -> None:
+        """--pictures N: N frames per run; without GT each frame is one picture, and 2N frames were drawn."""
+        data = make_folder(tmp_path / "d", n=3)
+        shutil.rmtree(data / "gt")
+        out = tmp_path / "k"
+        assert invoke("--dataset", "folder", "--root", data, "--out", out, *SMALL).exit_code == 0
+        result = invoke("report", out, "--out", tmp_path / "rep", "--pictures", "1")
+        assert result.exit_code == 0, result.output
+        assert [p.name for p in (tmp_path / "rep/run00-k").iterdir()] == ["000_label.png"]
 
 
 def test_real_kitti_cli(tmp_path: Path, shared_data: Path) -> None:
