@@ -162,7 +162,8 @@ def test_kitti_submission_zip(tmp_path: Path, shared_data: Path, caplog: pytest.
     assert submission_problems("kitti15", "training", 200) == [
         "it holds the 'training' split's frames; the server scores the testing split's (--split testing)"]
     assert submission_problems("kitti12", "testing", 195) == []
-    with zipfile.ZipFile(zip_path) as zf:
+    assert sorted(p.name for p in (tmp_path / "pred/disp_0").iterdir()) == ["000001_10.png", "000002_10.png"]
+    with zipfile.ZipFile(zip_path) as zf:  # the _11 pair was run and written beside them, then left out
         assert sorted(zf.namelist()) == ["disp_0/000001_10.png", "disp_0/000002_10.png"]
         sizes = [cv2.imdecode(np.frombuffer(zf.read(n), np.uint8), cv2.IMREAD_UNCHANGED).shape for n in
                  sorted(zf.namelist())]

@@ -182,15 +182,19 @@ def predict_dataset(
     """Predict every pair of a dataset (``progress``: a progress bar); KITTI datasets get the submission layout
     ``disp_0/<frame>_10.png``.
 
-    With ``submission`` the ``_10`` frames are also zipped (and checked) for the KITTI benchmark server. Every pair's
+    With ``submission`` only the ``_10`` frames are run (``limit`` counts them) and zipped (and checked) for the
+    KITTI benchmark server. Every pair's
     memory need is checked from its image headers before the first is run (:func:`check_pairs_fit`). A pair that
     cannot be read (a corrupt or truncated image) is skipped and the others are written; then ``OUT/failures.json``
     lists each with its reason and an InputError names the first (no submission is written then).
     """
-    refs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
+    refs = discover(dataset, root, split=split, **(reader_options or {}))
     formats = tuple(formats)
     if submission is not None and not dataset.startswith("kitti"):
-        raise ValueError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
+        raise ConfigError(f"--submission writes the KITTI benchmark layout; dataset {dataset!r} is not KITTI")
+    if submission is not None:  # the benchmark scores the reference frames: the _11 pairs are not run (nor counted)
+        refs = [ref for ref in refs if ref.frame_id.endswith("_10")]
+    refs = refs[:limit]
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
                     torch.device(device).type == "cuda")
     refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats,
