@@ -203,7 +203,7 @@ def evaluate_frames(
         raise InputError(f"no frame could be evaluated: {counted(len(skipped), 'frame')} skipped, e.g. "
                          f"{skipped[0]['frame_id']}: {skipped[0]['error']}{where}")
     if not rows:
-        raise ValueError("no frame with ground truth to evaluate (is this a testing split or a dataset without GT?)")
+        raise InputError("no frame with ground truth to evaluate (is this a testing split or a dataset without GT?)")
     summary = {**summarise(acc_all, acc_noc), **(meta or {}), "gt_warnings": warnings, "skipped": skipped,
                "without_gt": without_gt}
     result = EvalResult(rows=rows, summary=summary)
@@ -366,7 +366,7 @@ def require_gt(dataset: str, root: Path | None, split: str, limit: int | None,
         return
     pairs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if pairs and all(ref.gt is None and ref.gt_noc is None for ref in pairs):
-        raise ValueError(f"none of the {len(pairs)} pairs of {dataset} under {root} has ground truth (split {split!r}"
+        raise InputError(f"none of the {len(pairs)} pairs of {dataset} under {root} has ground truth (split {split!r}"
                          f"; a folder's GT: --gt DIR or ROOT/gt): optstereo-eval measures against GT; without it, "
                          f"score a model on a GT-free validation set (--valset) or just predict")
 

@@ -68,6 +68,7 @@ from optstereo.inference.cascade import grid_start
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import check_refine, run
 from pvm_labeler.common.atomic import atomic_path
+from pvm_labeler.common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
 
@@ -102,7 +103,7 @@ def export(model: nn.Module, out: Path, fmt: str = "onnx", iters: int | None = N
         raise ValueError(f"export format must be one of {FORMATS}, got {fmt!r}")
     reason = getattr(model, "not_exportable", None)
     if reason:
-        raise ValueError(f"{type(model).__name__} cannot be exported: {reason}")
+        raise ConfigError(f"{type(model).__name__} cannot be exported: {reason}")
     model = model.cpu().eval()
     saved_chunk = getattr(model, "image_chunk", None)
     if hasattr(model, "image_chunk"):

@@ -40,7 +40,7 @@ def resolve_checkpoint_spec(spec: str | Path) -> Path:
             raise CheckpointError(f"the shipped weights {spec!r} are missing from this installation: {path}")
         return path
     if str(spec) in NOT_SHIPPED:
-        raise CheckpointError(f"{spec!r} is not shipped: {NOT_SHIPPED[str(spec)]}")
+        raise CheckpointError(f"'{spec}' is not shipped: {NOT_SHIPPED[str(spec)]}")
     path = Path(spec)
     if not path.exists():
         raise CheckpointError(f"checkpoint {path} does not exist (give a file, a run directory or one of "

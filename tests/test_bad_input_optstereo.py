@@ -518,6 +518,24 @@ class TestTrain:
         assert json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["step"] == 1  # nothing trained
 
 
+
+def test_usage_mistakes_exit_2_in_the_projects_words(tmp_path: Path) -> None:
+    """A dataset without --root, an unknown dataset, --submission of a non-KITTI dataset: usage errors (exit 2, as
+    pvm-label's), without "ValueError:" (they exited 1 with a Python type name)."""
+    from optstereo.cli.distill import distill_main
+
+    image = tmp_path / "l.png"
+    write_image(image, np.zeros((32, 64, 3), np.uint8))
+    runs = [invoke(eval_main, "--checkpoint", "pretrained", "--dataset", "kitti15", "--out", tmp_path / "e"),
+            invoke(predict_main, "--checkpoint", "pretrained", "--dataset", "sample", "--out", tmp_path / "p",
+                   "--submission", tmp_path / "p.zip"),
+            invoke(distill_main, "maps", "--checkpoint", "pretrained", "--dataset", "kitti16", "--root", tmp_path,
+                   "--out", tmp_path / "m")]
+    for result, words in zip(runs, ("needs --root", "is not KITTI", "unknown dataset 'kitti16'"), strict=True):
+        assert result.exit_code == 2 and words in result.output and "Error: " in result.output, result.output
+        assert "ValueError" not in result.output and "InputError" not in result.output
+    assert not (tmp_path / "p.zip").exists()
+
 class TestApiImages:
     """The Python API names a wrong image before any network pass, with the conversion that fixes it: a float image
     in [0, 1] used to run as a nearly black one and return a wrong map without a word."""

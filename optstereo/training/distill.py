@@ -42,7 +42,7 @@ from optstereo.inference.int8 import file_sha256
 from optstereo.training.augment import right_view
 from pvm_labeler.common.atomic import FAILURES_FILE, atomic_path, atomic_write_text, json_safe, read_failures
 from pvm_labeler.common.datasets import load_pair, safe_stem
-from pvm_labeler.common.errors import InputError, ShardError
+from pvm_labeler.common.errors import ConfigError, InputError, ShardError
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, rewrite
 from pvm_labeler.shards.fills import add_fills, right_confidence
 
@@ -190,9 +190,9 @@ def read_teacher_record(maps_dir: Path) -> dict[str, Any] | None:
     try:
         record = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is corrupt ({exc}): remove it to record the teacher anew") from exc
+        raise InputError(f"{path} is corrupt ({exc}): remove it to record the teacher anew") from exc
     if not isinstance(record, dict) or not isinstance(record.get("digest"), str):
-        raise ValueError(f"{path} is corrupt: no teacher digest; remove it to record the teacher anew")
+        raise InputError(f"{path} is corrupt: no teacher digest; remove it to record the teacher anew")
     return record
 
 
@@ -239,18 +239,18 @@ def read_teacher_maps(maps_dir: Path, frame_id: str,
     is not ``shape``."""
     path = map_path(maps_dir, frame_id)
     if not path.is_file():
-        raise ValueError(f"teacher map {path} is missing: run `optstereo-distill maps` over the same pairs first")
+        raise InputError(f"teacher map {path} is missing: run `optstereo-distill maps` over the same pairs first")
     with np.load(path) as data:
         left, right = data["left"].astype(np.float32), data["right"].astype(np.float32)
     if left.shape != shape or right.shape != shape:
-        raise ValueError(f"teacher map {path} is {left.shape}, its pair is {shape}: maps of other images?")
+        raise InputError(f"teacher map {path} is {left.shape}, its pair is {shape}: maps of other images?")
     return left, right
 
 
 def _refuse_gt(sample: Any) -> None:
     """ValueError naming a shard sample that carries GT: a GT frame must never enter a self-supervised set."""
     if sample.gt is not None or sample.gt_noc is not None:
-        raise ValueError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
+        raise InputError(f"sample {sample.frame_id} carries GT: a GT frame must not enter a self-supervised set")
 
 
 def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float, max_lr_diff: float,
@@ -262,7 +262,7 @@ def fill_sample(sample: Any, maps_dir: Path, fill_confidence: float, max_lr_diff
         logger.warning("no teacher map for %s: its PVM labels stay as they are", sample.frame_id)
         return {}, {"distill_missing": 1}
     if not map_path(maps_dir, sample.frame_id).is_file():
-        raise ValueError(missing_maps_message(maps_dir, [sample.frame_id], 1))
+        raise InputError(missing_maps_message(maps_dir, [sample.frame_id], 1))
     teacher_left, teacher_right = consistent_views(*read_teacher_maps(maps_dir, sample.frame_id,
                                                                       sample.label.shape), max_lr_diff)
     label, conf, n_left = add_fills(sample.label, sample.confidence, teacher_left, fill_confidence)
@@ -288,7 +288,7 @@ def missing_maps_message(maps_dir: Path, missing: list[str], total: int, allow_h
     """Why ``fill`` stops: which pairs have no map in ``maps_dir`` and the ways on (``--allow-missing`` with
     ``allow_hint``)."""
     first = f"pair {missing[0]} ({map_path(maps_dir, missing[0])})"
-    some = first if len(missing) == 1 else f"{len(missing)} of {total} pairs, first {first},"
+    some = first if len(missing) == 1 else f"{len(missing)} of {total} pairs, first {first}"
     hint = ", or pass --allow-missing to keep PVM's labels of the pairs without one" if allow_hint else ""
     return f"no teacher map for {some}: run `optstereo-distill maps` over the same pairs first{hint}"
 
@@ -320,13 +320,13 @@ def fill(src: Path, maps_dir: Path, out: Path, fill_confidence: float = FILL_CON
             unless ``allow_missing``) or mis-sized map, GT in a sample.
     """
     if not 0 < fill_confidence <= 1 or not max_lr_diff >= 0:
-        raise ValueError(f"distill fill: need 0 < fill_confidence <= 1 and max_lr_diff >= 0, got {fill_confidence} "
+        raise ConfigError(f"distill fill: need 0 < fill_confidence <= 1 and max_lr_diff >= 0, got {fill_confidence} "
                          f"and {max_lr_diff}")
     maps_dir = Path(maps_dir)
     ids = [frame_id for _, shard_ids in read_index(src).shards for frame_id in shard_ids]
     missing = [frame_id for frame_id in ids if not map_path(maps_dir, frame_id).is_file()]
     if missing and (teacher_only or not allow_missing):
-        raise ValueError(missing_maps_message(maps_dir, missing, len(ids), allow_hint=not teacher_only))
+        raise InputError(missing_maps_message(maps_dir, missing, len(ids), allow_hint=not teacher_only))
     teacher = read_teacher_record(maps_dir)
     if teacher is None:
         logger.info("%s has no %s (maps of an earlier version): the teacher goes unrecorded", maps_dir, RECORD)

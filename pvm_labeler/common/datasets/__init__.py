@@ -62,7 +62,7 @@ from pvm_labeler.common.datasets.refs import (
     safe_stem,
 )
 from pvm_labeler.common.datasets.synthetic import SYNTHETIC_SCENES, _discover_sample, make_layered_scene
-from pvm_labeler.common.errors import InputError
+from pvm_labeler.common.errors import ConfigError, InputError
 from pvm_labeler.common.metrics import gt_problems
 
 __all__ = ["DATASETS", "DEFAULT_MAX_DISP", "IMAGE_SUFFIXES", "SPLITS", "SYNTHETIC_SCENES", "PairRef", "StereoSample",
@@ -101,15 +101,16 @@ def discover(name: str, root: Path | str | None, split: str = "training", **kwar
         PairRefs sorted by frame id (ids unique).
 
     Raises:
-        InputError: unknown name/split, missing root, no pairs found, left/right count mismatch, duplicate ids.
+        ConfigError: unknown name or split, missing root (usage errors: exit 2 in the CLIs).
+        InputError: no pairs found, left/right count mismatch, duplicate ids.
     """
     if name not in _DISCOVER:
-        raise InputError(f"unknown dataset '{name}'; expected one of {', '.join(DATASETS)}")
+        raise ConfigError(f"unknown dataset '{name}'; expected one of {', '.join(DATASETS)}")
     if split not in SPLITS:
-        raise InputError(f"unknown split '{split}'; expected one of {', '.join(SPLITS)}")
+        raise ConfigError(f"unknown split '{split}'; expected one of {', '.join(SPLITS)}")
     if name not in ("sample", "folder"):
         if root is None:
-            raise InputError(f"dataset '{name}' needs --root (the folder holding its official layout)")
+            raise ConfigError(f"dataset '{name}' needs --root (the folder holding its official layout)")
         root = Path(root)
         _require_dir(root, f"{name} root")
     elif root is not None:
