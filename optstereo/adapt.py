@@ -45,6 +45,7 @@ from tqdm import tqdm
 
 from optstereo.adapt_label import label_rig
 from optstereo.adapt_record import (
+    finished_report,
     forget_start,
     record_options,
     report_config,
@@ -273,7 +274,8 @@ def budget_steps(cfg: AdaptConfig, train_labels: Path, run_dir: Path) -> int:
     steps = int(min(MAX_STEPS, max(PROBE_STEPS, cfg.minutes * 60.0 / s_per_step)))
     atomic_write_text(record, json.dumps({"minutes": cfg.minutes, "probe_steps": PROBE_STEPS,
                                           "s_per_step": s_per_step, "steps": steps}, indent=2))
-    logger.info("budget: %s fit %g minutes at %.2f s per step", counted(steps, "step"), cfg.minutes, s_per_step)
+    over = f" (the timing steps alone: over {cfg.minutes:g})" if steps * s_per_step > cfg.minutes * 60.0 else ""
+    logger.info("budget: %s in %g minutes at %.2f s per step%s", counted(steps, "step"), cfg.minutes, s_per_step, over)
     return steps
 
 
@@ -363,7 +365,9 @@ def run(cfg: AdaptConfig) -> dict[str, Any]:
     it found it."""
     cfg.check()
     created = not cfg.out.exists()
-    wrote_record = record_options(cfg)
+    wrote_record = record_options(cfg)  # a re-run with other options stops here
+    if (done := finished_report(cfg.out)) is not None:
+        return done
     try:
         return _run(cfg)
     except BaseException:

@@ -150,6 +150,19 @@ def write_weights(out: Path, source: Path) -> Path:
     return target
 
 
+def finished_report(out: Path) -> dict[str, Any] | None:
+    """``out/report.json`` of a finished adaptation (its weights still there), or None: a re-run of the same command
+    has nothing to do (it relabelled nothing but scored and copied everything again). A corrupt report: None."""
+    try:
+        report = json.loads((out / REPORT).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(report, dict) or not Path(str(report.get("checkpoint", ""))).is_file():
+        return None
+    logger.info("%s holds a finished adaptation (%s): nothing to do; a fresh --out runs another", out, REPORT)
+    return report
+
+
 def write_report(out: Path, report: dict[str, Any], markdown: str) -> None:
     """``out/report.md``, then ``out/report.json`` (last: it marks a finished adaptation), each written whole."""
     atomic_write_text(out / REPORT_MD, markdown)

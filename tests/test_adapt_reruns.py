@@ -96,7 +96,13 @@ def test_a_rerun_with_other_options_is_refused_before_anything(fake: dict[str, A
     assert {p.name: p.read_bytes() for p in cfg.out.iterdir() if p.is_file()} == before  # split.json as it was
     with pytest.raises(ConfigError, match="--holdout 0.3 -> 0.5"):
         adapt.run(AdaptConfig(**{**vars(cfg), "holdout": 0.5}))
-    # the same options resume, whatever the device, the output's noise or the threads
+    # the same options on a finished adaptation: nothing to do (it scored and copied everything again), its answer
+    res = CliRunner().invoke(adapt_main, _args(cfg, "--steps", "2", "--device", "cpu", "--threads", "1"))
+    assert res.exit_code == 0, res.output
+    assert f"{first['decision']}; checkpoint {first['checkpoint']}" in res.output
+    assert fake["label"] == 1 and len(fake["train"]) == 1
+    # an unfinished one (no report.json) resumes, whatever the device, the output's noise or the threads
+    (cfg.out / adapt_record.REPORT).unlink()
     res = CliRunner().invoke(adapt_main, _args(cfg, "--steps", "2", "--device", "cpu", "--threads", "1"))
     assert res.exit_code == 0, res.output
     assert fake["label"] == 2 and fake["train"][-1] == (2, 1e-5)
@@ -118,6 +124,7 @@ def test_a_failed_copy_leaves_no_adapted_file_and_no_report(fake: dict[str, Any]
     cfg: AdaptConfig = fake["cfg"]
     adapt.run(cfg)
     assert (cfg.out / "report.json").is_file() and (cfg.out / "adapted.pt").is_file()
+    (cfg.out / "report.json").unlink()  # killed before its report: the re-run decides again, over the old adapted.pt
 
     def disk_full(src: Path, dst: Path) -> None:
         Path(dst).write_bytes(Path(src).read_bytes()[:3])
@@ -240,3 +247,23 @@ def test_the_report_records_the_rate_and_budget_the_run_used(tmp_path: Path) -> 
     teacher = adapt_record.report_config(AdaptConfig(dataset="folder", root=tmp_path, out=tmp_path, teacher="t"))
     assert teacher["lr"] == adapt.DEFAULT_TEACHER_LR and teacher["minutes"] == adapt.DEFAULT_MINUTES
     assert json.loads(json.dumps(config)) == config  # JSON-ready
+
+
+@pytest.mark.parametrize("seconds, words", [(52.0, "budget: 10 steps in 0.5 minutes at 5.20 s per step (the timing "
+                                                    "steps alone: over 0.5)"),
+                                             (2.0, "budget: 150 steps in 0.5 minutes at 0.20 s per step")])
+def test_the_budget_line_says_when_the_timing_steps_alone_overran(seconds: float, words: str, tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch,
+                                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """It said "10 steps fit 0.5 minutes at 5.20 s per step" (52 s)."""
+    def timed(cfg, labels, run_dir, steps):
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "summary.json").write_text(json.dumps({"seconds": seconds, "step": 10, "start_step": 0}))
+        return run_dir / "last.pt"
+
+    monkeypatch.setattr(adapt, "train_to", timed)
+    cfg = AdaptConfig(dataset="folder", root=tmp_path, out=tmp_path / "out", minutes=0.5, quiet=True)
+    (tmp_path / "out").mkdir()
+    with caplog.at_level("INFO"):
+        adapt.budget_steps(cfg, tmp_path, tmp_path / "out" / "run")
+    assert words in caplog.text
