@@ -55,7 +55,7 @@ from optstereo.adapt_record import (
 )
 from optstereo.adapt_report import changes_text, report_markdown
 from optstereo.api import load_model
-from optstereo.checkpoint import load_checkpoint, model_inference
+from optstereo.checkpoint import load_checkpoint, model_inference, weights_digest
 from optstereo.data.transforms import rescale_sample
 from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import final_scale, first_scale, infer, pass_at_scale
@@ -181,17 +181,15 @@ def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
     """Step 2b (``cfg.teacher``): the teacher's two views of every training frame (``OUT/teacher_maps``, resumable)
     and ``OUT/train_filled``: the training shards with them in PVM's holes where they agree (weight 0.5)."""
     maps = cfg.out / "teacher_maps"
-    maps.mkdir(parents=True, exist_ok=True)
-    teacher = None  # loaded at the first frame without maps (a resumed run may need none)
+    teacher = load_model(cfg.teacher, cfg.device)
+    device = str(next(teacher.parameters()).device)  # recorded in MAPS/teacher.json as optstereo-distill maps does
+    distill.claim_maps_dir(maps, distill.teacher_record(teacher, cfg.teacher, resolve_checkpoint_spec(cfg.teacher),
+                                                        weights_digest(teacher)))
     for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples, desc="teacher",
                   unit="pair", disable=cfg.quiet):
         target = distill.map_path(maps, s.frame_id)
-        if target.is_file():
-            continue
-        if teacher is None:
-            teacher = load_model(cfg.teacher, cfg.device)
-            device = str(next(teacher.parameters()).device)
-        distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right, device))
+        if not target.is_file():
+            distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right, device))
     return distill.fill(train_labels, maps, cfg.out / ("train_teacher" if cfg.teacher_only else "train_filled"),
                         compression=SHARD_COMPRESSION, progress=not cfg.quiet, teacher_only=cfg.teacher_only)
 

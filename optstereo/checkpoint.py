@@ -20,6 +20,7 @@ leaves a half-written file under the final name (TIMM ``checkpoint_saver.py`` do
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import pickle
@@ -366,3 +367,13 @@ def _check_same_model(a: LoadedCheckpoint, b: LoadedCheckpoint) -> None:
     shapes = [k for k in a.model_state if a.model_state[k].shape != b.model_state[k].shape]
     if shapes:
         raise CheckpointError(f"{a.path} and {b.path} differ in the shapes of {shapes[:5]}")
+
+
+def weights_digest(model: nn.Module) -> str:
+    """sha256 (16 hex digits) of the model's parameters and buffers, in name order: equal weights, equal digest,
+    whatever file or inference settings they came with."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().to("cpu").contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]

@@ -22,7 +22,6 @@ of a difference between two models (:func:`paired_difference`), which ``optstere
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -40,7 +39,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from optstereo.checkpoint import build_model_from_checkpoint
+from optstereo.checkpoint import build_model_from_checkpoint, weights_digest  # noqa: F401 (API)
 from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import infer
 from optstereo.inference.fastpath import engineer
@@ -105,16 +104,6 @@ class ValScore:
     def to_dict(self) -> dict[str, Any]:
         """JSON-able: the summary and one row per pair."""
         return {"summary": self.summary, "pairs": [asdict(p) for p in self.pairs]}
-
-
-def weights_digest(model: nn.Module) -> str:
-    """sha256 (16 hex digits) of the model's parameters and buffers, in name order: equal weights, equal digest,
-    whatever file or inference settings they came with."""
-    digest = hashlib.sha256()
-    for name, tensor in sorted(model.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().to("cpu").contiguous().numpy().tobytes())
-    return digest.hexdigest()[:16]
 
 
 def open_valset(root: Path | str) -> ValSet:

@@ -182,7 +182,10 @@ def test_teacher_fills_only_the_training_frames_holes(tmp_path: Path, monkeypatc
     cfg = AdaptConfig(dataset="folder", root=None, out=tmp_path / "out", teacher=str(ckpt), device="cpu", quiet=True)
     filled = adapt.distill_train_labels(cfg, train)
     originals = {s.frame_id: s for s in shard_samples(train)}
-    assert sorted(p.stem for p in (cfg.out / "teacher_maps").iterdir()) == sorted(originals) and len(calls) == 2
+    assert sorted(p.stem for p in (cfg.out / "teacher_maps").glob("*.npz")) == sorted(originals) and len(calls) == 2
+    # the teacher is recorded as optstereo-distill maps records it (a fresh run said "no teacher.json ... unrecorded")
+    assert json.loads((cfg.out / "teacher_maps" / "teacher.json").read_text())["spec"] == str(ckpt)
+    assert json.loads((filled / "index.json").read_text())["distill"]["teacher"]["spec"] == str(ckpt)
     for s in shard_samples(filled):
         o = originals[s.frame_id]
         assert map_path(cfg.out / "teacher_maps", s.frame_id).is_file()
