@@ -192,6 +192,10 @@ def test_an_interrupted_densify_resumes_only_the_same_settings(tmp_path: Path, m
     _interrupted(monkeypatch, src, out, fail_at=1, region_size=8, max_rms=0.3)
     with pytest.raises(ShardError):
         read_index(out)
+    # ... and its re-run redoes every shard: the finished rewrite's (max_rms 0.1) passed for this one's and were kept
+    calls = _count_calls(monkeypatch)
+    densify(src, out, region_size=8, max_rms=0.3)
+    assert len(calls) == 6 and verify(out) == []
     # Interrupted again, then re-run with another setting: everything is redone.
     _interrupted(monkeypatch, src, tmp_path / "dense2", fail_at=5, **settings)
     calls = _count_calls(monkeypatch)
@@ -306,3 +310,20 @@ def test_densify_refuses_an_unknown_method(tmp_path: Path) -> None:
         densify(tmp_path, tmp_path / "out", method="poisson")
     with pytest.raises(ValueError, match="views must be one of"):
         densify(tmp_path, tmp_path / "out", method="sgm", views="right")
+
+
+def test_a_rewrite_into_another_jobs_folder_is_refused(tmp_path: Path) -> None:
+    """densify / convert into a labeling run's folder replaced some of its shards and left the rest unindexed."""
+    from pvm_labeler.common.errors import ShardError
+    from pvm_labeler.shards import convert
+
+    hole = (slice(10, 14), slice(20, 26))
+    src = write_shard_dir(tmp_path / "src", [_record("f0", hole)[0]], {"k": 6})
+    other = write_shard_dir(tmp_path / "other", [_record("g0", hole)[0], _record("g1", hole)[0]], {"k": 6})
+    before = {p.name: p.read_bytes() for p in other.iterdir()}
+    for run in (lambda: convert(src, other), lambda: densify(src, other, region_size=8, max_rms=0.1)):
+        with pytest.raises(ShardError, match="holds shards that are no rewrite of"):
+            run()
+    assert {p.name: p.read_bytes() for p in other.iterdir()} == before
+    out = convert(src, tmp_path / "copy")  # a rewrite of the same source may be redone there, e.g. with lzf
+    assert convert(src, out, compression="gzip") == out and read_index(out).raw["compression"] == "gzip"

@@ -57,13 +57,18 @@ def rewrite(src: Path | str, out: Path | str, compression: str = DEFAULT_COMPRES
     from tqdm import tqdm
 
     src, out = Path(src), Path(out)
+    extra = {k: str(Path(v).resolve()) if k in SOURCE_KEYS else v for k, v in (extra or {}).items()}  # any cwd
     if src.resolve() == out.resolve():
         raise ShardError(f"rewrite: the output {out} must differ from the input {src}")
     index = read_index(src)
+    _require_own_out(out, src)
     out.mkdir(parents=True, exist_ok=True)
     resuming = _claim(out, {"src": str(src.resolve()), "compression": compression, "extra": extra or {}})
     # An index left by an earlier complete rewrite into OUT must not make this unfinished one look complete.
     (out / INDEX_NAME).unlink(missing_ok=True)
+    if not resuming:  # shards of an earlier rewrite with other settings must not pass for this one's
+        for stale in out.glob("*.h5"):
+            stale.unlink()
     bar = tqdm(total=index.num_samples, unit="pair", desc=f"rewrite {src.name}", file=sys.stderr,
                disable=not (progress and sys.stderr.isatty()), dynamic_ncols=True)
     for path, ids in index.shards:
@@ -77,6 +82,25 @@ def rewrite(src: Path | str, out: Path | str, compression: str = DEFAULT_COMPRES
                 {**kept, **(extra or {})})
     (out / MARKER).unlink()
     return out
+
+
+#: The index keys in which each rewrite records its source (convert, densify, optstereo-distill fill).
+SOURCE_KEYS = ("converted_from", "densified_from", "distilled_from")
+
+
+def _require_own_out(out: Path, src: Path) -> None:
+    """ShardError unless ``out`` is new, empty, an interrupted rewrite (its marker) or an earlier rewrite of ``src``:
+    shards of another job (a labeling run's) were replaced in part and the rest left unindexed."""
+    if not out.is_dir() or (out / MARKER).exists() or (not any(out.glob("*.h5")) and not (out / INDEX_NAME).exists()):
+        return
+    try:
+        raw = json.loads((out / INDEX_NAME).read_text())
+        sources = [Path(str(raw[key])) for key in SOURCE_KEYS if key in raw]
+    except (OSError, ValueError):
+        sources = []
+    if not any(source.resolve() == src.resolve() for source in sources):
+        raise ShardError(f"{out} holds shards that are no rewrite of {src} (another job's, e.g. a labeling run's): "
+                         "give another output folder, or delete it first")
 
 
 def _claim(out: Path, settings: dict[str, Any]) -> bool:
