@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -108,10 +109,15 @@ class LabelerConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ConfigError(f"{name} must be a number, got {value!r}")
+            if not math.isfinite(value):  # NaN passed every range check below and labelled nothing, silently
+                raise ConfigError(f"{name} must be a finite number, got {value!r}")
         if self.k < 1:
             raise ConfigError(f"--k must be >= 1 (K = 1 is plain SGM + LR check), got {self.k}")
-        if self.kappa1 < 0 or self.kappa2 < 0:
-            raise ConfigError(f"--kappa1/--kappa2 must be >= 0, got kappa1={self.kappa1}, kappa2={self.kappa2}")
+        if not 0 <= self.seed < 2**63:
+            raise ConfigError(f"--seed must be in [0, 2^63), got {self.seed}")
+        if not (self.kappa1 > 0 and self.kappa2 > 0):
+            raise ConfigError(f"--kappa1/--kappa2 must be > 0 (a pixel is kept where C1 < kappa1 and C2 < kappa2: 0 "
+                              f"keeps none), got kappa1={self.kappa1}, kappa2={self.kappa2}")
         if not 2 <= self.max_disp <= MAX_DISP_LIMIT:
             raise ConfigError(f"--max-disp must be in [2, {MAX_DISP_LIMIT}], got {self.max_disp}")
         if self.lr_threshold < 0:

@@ -18,6 +18,13 @@ class TestLabelerConfig:
             ({"k": 0}, "--k"),
             ({"kappa1": -1.0}, "kappa1=-1.0"),
             ({"kappa2": -0.1}, "kappa2=-0.1"),
+            # 0 and NaN labelled nothing (density 0 %, exit 0); a huge seed failed in h5py after config.yaml was written
+            ({"kappa1": 0.0}, r"must be > 0 \(a pixel is kept where C1 < kappa1"),
+            ({"kappa2": 0}, "kappa2=0"),
+            ({"kappa1": float("nan")}, "kappa1 must be a finite number, got nan"),
+            ({"lr_threshold": float("nan")}, "lr_threshold must be a finite number"),
+            ({"seed": 10**20}, r"--seed must be in \[0, 2\^63\)"),
+            ({"seed": -1}, "--seed"),
             ({"max_disp": 1}, "--max-disp"),
             ({"lr_threshold": -1}, "--lr-threshold"),
             ({"census_window": 4}, "census_window"),
