@@ -330,3 +330,17 @@ class TestErrors:
     def test_names(self) -> None:
         assert DATASETS == ("kitti15", "kitti12", "middlebury", "eth3d", "sceneflow", "folder", "kitti_unlabelled",
                             "sample")
+
+
+def test_folder_ids_keep_any_script_and_hidden_files_are_no_pairs(tmp_path: Path) -> None:
+    """日本.png and 東京.png both became the id "frame" (a duplicate that stopped the run); .x.png and macOS's ._x.png
+    resource forks were read as pairs (a corrupt header that stopped the run)."""
+    image = np.zeros((8, 16, 3), np.uint8)
+    for side in ("left", "right"):
+        for name in ("日本.png", "東京.png", "ünï café#1.png", "plain.png"):
+            io.write_image(tmp_path / side / name, image)
+        (tmp_path / side / "._plain.png").write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+        (tmp_path / side / ".hidden.png").write_bytes(b"not an image")
+    ids = [ref.frame_id for ref in discover("folder", tmp_path)]
+    assert ids == sorted(["日本", "東京", "ünï-café-1", "plain"])
+    assert [load_pair(ref).left.shape for ref in discover("folder", tmp_path)] == [(8, 16, 3)] * 4

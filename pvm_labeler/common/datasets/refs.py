@@ -91,9 +91,10 @@ def _require_dir(path: Path, what: str) -> Path:
 
 
 def _images_in(folder: Path) -> dict[str, Path]:
-    """stem -> image path for every image file directly inside ``folder``."""
-    return by_stem([p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES],
-                   str(folder))
+    """stem -> image path for every image file directly inside ``folder``; hidden files (``.x.png``, macOS's ``._x.png``
+    resource forks) are no images of the dataset, as a glob's ``*`` leaves them out too."""
+    return by_stem([p for p in sorted(folder.iterdir())
+                    if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")], str(folder))
 
 
 def by_stem(files: list[Path], where: str, key: Callable[[Path], str] | None = None) -> dict[str, Path]:
@@ -132,8 +133,9 @@ def _first_existing(*candidates: Path) -> Path | None:
 
 
 def _safe_id(text: str) -> str:
-    """Make a string usable as an HDF5 group name and file-system friendly ("/" separates HDF5 groups)."""
-    text = re.sub(r"[^A-Za-z0-9_.+-]+", "-", text).strip("-.")
+    """Make a string usable as an HDF5 group name and file-system friendly ("/" separates HDF5 groups); letters and
+    digits of any script stay (日本 and 東京 both became "frame", a clash that stopped the run)."""
+    text = re.sub(r"[^\w.+-]+", "-", text).strip("-.")
     return text or "frame"
 
 
