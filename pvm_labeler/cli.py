@@ -41,7 +41,7 @@ _LABELER_FLAGS = {"k": "k", "kappa1": "kappa1", "kappa2": "kappa2", "max_disp": 
 #: Job options that may come from --config YAML (same names as the flags, with underscores).
 _JOB_KEYS = ("recipe", "labels", "dataset", "root", "out", "split", "limit", "jobs", "backend", "scheduler",
              "shard_size", "resume", "overwrite", "quiet", "compression", "numba_threads", "left", "right", "gt",
-             "sceneflow_pass")
+             "gt_scale", "sceneflow_pass")
 
 
 class _DefaultRunGroup(click.Group):
@@ -109,7 +109,8 @@ def _yaml_value(ctx: click.Context, name: str, value: Any) -> Any:
 
 
 #: The reader options and the one dataset that reads each (``--left`` given to ``kitti15`` would be ignored).
-_READER_OWNERS = {"left": "folder", "right": "folder", "gt": "folder", "sceneflow_pass": "sceneflow"}
+_READER_OWNERS = {"left": "folder", "right": "folder", "gt": "folder", "gt_scale": "folder",
+                  "sceneflow_pass": "sceneflow"}
 
 
 def check_dataset_options(values: dict[str, Any]) -> None:

@@ -19,7 +19,7 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 _DEFAULTS = LabelerConfig()
 #: Reader option name -> ``discover`` keyword (``folder``: left/right/gt; ``sceneflow``: pass_).
-READER_KEYS = {"left": "left", "right": "right", "gt": "gt", "sceneflow_pass": "pass_"}
+READER_KEYS = {"left": "left", "right": "right", "gt": "gt", "gt_scale": "gt_scale", "sceneflow_pass": "pass_"}
 
 
 def _apply(options: list[Callable[[F], F]]) -> Callable[[F], F]:
@@ -34,7 +34,8 @@ def _apply(options: list[Callable[[F], F]]) -> Callable[[F], F]:
 
 
 def reader_options(fn: F) -> F:
-    """The dataset readers' own options (``folder``: ``--left/--right/--gt``; ``sceneflow``: ``--sceneflow-pass``)."""
+    """The dataset readers' own options (``folder``: ``--left/--right/--gt/--gt-scale``; ``sceneflow``:
+    ``--sceneflow-pass``)."""
     return _apply([
         click.option("--left", default=None, help="folder dataset: left images (folder or glob, relative to "
                      "--root), paired with --right by file name.  [default: left, i.e. ROOT/left]"),
@@ -42,6 +43,8 @@ def reader_options(fn: F) -> F:
                      "--root).  [default: right, i.e. ROOT/right]"),
         click.option("--gt", default=None, help="folder dataset: optional GT folder (KITTI-style PNG x256, .pfm or "
                      ".npy).  [default: ROOT/gt when it exists]"),
+        click.option("--gt-scale", type=click.FloatRange(min=0, min_open=True), default=None,
+                     help="folder dataset: integer GT PNGs hold disparity x this.  [default: 256, KITTI's]"),
         click.option("--sceneflow-pass", type=click.Choice(["clean", "final"]), default=None,
                      help="sceneflow dataset: render pass.  [default: clean]"),
     ])(fn)
@@ -49,7 +52,8 @@ def reader_options(fn: F) -> F:
 
 def reader_option_values(values: dict[str, Any]) -> dict[str, str]:
     """``discover`` keywords from the given reader options (those left unset are left out)."""
-    return {key: str(values[name]) for name, key in READER_KEYS.items() if values.get(name) is not None}
+    return {key: value if isinstance(value := values[name], float) else str(value)
+            for name, key in READER_KEYS.items() if values.get(name) is not None}
 
 
 def job_options(pack_gt: bool = False) -> Callable[[F], F]:

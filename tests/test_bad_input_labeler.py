@@ -189,3 +189,10 @@ def test_gt_that_looks_wrong_is_warned_about_in_the_summary(tmp_path: Path) -> N
     assert "WARNING: the GT looks wrong" in bad.output and f"000 ({data / 'gt' / '000.png'}):" in bad.output
     assert "an 8-bit PNG needs --gt-scale" in bad.output
     assert read_index(tmp_path / "bad").raw["summary"]["gt_warnings"][0].startswith("000 (")
+    # the fix it names is pvm-label's too (only optstereo's CLIs had --gt-scale): the same GT at x4 is right
+    fixed = invoke("--dataset", "folder", "--root", data, "--out", tmp_path / "fixed", *SMALL, "--gt-scale", "4")
+    assert fixed.exit_code == 0 and "WARNING" not in fixed.output, fixed.output
+    summary = read_index(tmp_path / "fixed").raw["summary"]
+    assert summary["gt_warnings"] == [] and summary["metrics"]["bad3"] < 50
+    refused = invoke("--dataset", "sample", "--out", tmp_path / "s", *SMALL, "--gt-scale", "4")
+    assert refused.exit_code == 2 and "--gt-scale is read by the folder dataset only" in refused.output
