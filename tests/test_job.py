@@ -8,6 +8,7 @@ real-data run use the real PVM core on small inputs (synthetic pairs, small K / 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import signal
@@ -109,16 +110,18 @@ class TestJobMechanics:
         assert not (out / "shard-00001.h5.tmp").exists() and verify(out) == []
         _assert_same_shards(out, ref_out)
 
-    def test_limit_grows_and_shrinks(self, tmp_path: Path) -> None:
+    def test_limit_grows_and_shrinks(self, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
         out = tmp_path / "a"
         first = run(_spec(out, limit=2))
         assert first.shards_written == 1
         grown = run(_spec(out))  # the full dataset continues after the quick --limit 2 run
         assert grown.shards_resumed == 1 and grown.shards_written == 1 and read_index(out).num_samples == 4
         _assert_same_shards(out, self._reference(tmp_path))
-        shrunk = run(_spec(out, limit=2))
+        with caplog.at_level(logging.WARNING):
+            shrunk = run(_spec(out, limit=2))
         assert shrunk.shards_resumed == 1 and read_index(out).num_samples == 2
         assert sorted(p.name for p in out.glob("shard-*")) == ["shard-00000.h5"] and verify(out) == []
+        assert "removing 1 labelled shard(s)" in caplog.text and "shard-00001.h5" in caplog.text  # it was silent
 
     def _reference(self, tmp_path: Path) -> Path:
         run(_spec(tmp_path / "ref"))

@@ -126,11 +126,16 @@ def prepare_out(spec: JobSpec, doc: dict[str, Any]) -> None:
     elif owned:
         _check_same_job(out, doc)
     out.mkdir(parents=True, exist_ok=True)
-    # Shards past the end of the plan (an earlier run with a larger --limit) would linger unindexed: remove them.
-    for path in out.glob("shard-*.h5"):
-        stem = path.name[len("shard-") : -len(".h5")]
-        if stem.isdigit() and int(stem) >= len(doc["plan"]):
-            path.unlink()
+    # Shards past the end of the plan (an earlier run with a larger --limit) would linger unindexed: remove them,
+    # saying so (they went silently, under a "nothing to do").
+    beyond = [path for path in sorted(out.glob("shard-*.h5")) if (stem := path.name[len("shard-"): -len(".h5")])
+              .isdigit() and int(stem) >= len(doc["plan"])]
+    if beyond:
+        logger.warning("removing %d labelled shard(s) of %s beyond this run's %d (an earlier run labelled more "
+                       "pairs, e.g. with a larger --limit): %s", len(beyond), out, len(doc["plan"]),
+                       ", ".join(path.name for path in beyond[:5]) + (" ..." if len(beyond) > 5 else ""))
+    for path in beyond:
+        path.unlink()
     atomic_write_text(out / JOB_FILE, json.dumps(doc, indent=2))
     atomic_write_text(out / CONFIG_FILE, yaml.safe_dump(spec.resolved(), sort_keys=False))
 
