@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from contextlib import chdir
 from pathlib import Path
 
 import cv2
@@ -56,16 +57,21 @@ class TestRun:
     def test_yaml_config_and_overrides(self, tmp_path: Path) -> None:
         data, out = make_folder(tmp_path / "d", n=1), tmp_path / "out"
         cfg = tmp_path / "labels.yaml"
-        cfg.write_text(yaml.safe_dump({"dataset": "folder", "root": str(data), "k": 3, "kappa1": 0.7,
+        cfg.write_text(yaml.safe_dump({"dataset": "folder", "root": data.name, "k": 3, "kappa1": 0.7,
                                        "max_disp": 16, "labeler": {"census_window": 7}}))
-        result = invoke("run", "--config", cfg, "--k", "2", "--out", out, "--quiet")
+        with chdir(tmp_path):  # paths as a user types them: relative
+            result = invoke("run", "--config", cfg, "--k", "2", "--out", out.name, "--quiet")
         assert result.exit_code == 0, result.output
         resolved = yaml.safe_load((out / "config.yaml").read_text())
         assert resolved["labeler"]["k"] == 2  # flag beats YAML
         assert resolved["labeler"]["kappa1"] == 0.7 and resolved["labeler"]["census_window"] == 7
         assert read_index(out).config["census_window"] == 7
-        # The resolved file is itself a valid --config: re-running from it resumes the same job.
-        again = invoke("run", "--config", out / "config.yaml", "--quiet")
+        # The resolved file is itself a valid --config: re-running from it resumes the same job, from any directory
+        # (its paths are absolute: as typed, relative ones named nothing elsewhere).
+        assert Path(resolved["root"]).is_absolute() and Path(resolved["out"]).is_absolute()
+        (tmp_path / "elsewhere").mkdir()
+        with chdir(tmp_path / "elsewhere"):
+            again = invoke("run", "--config", out / "config.yaml", "--quiet")
         assert again.exit_code == 0 and "nothing to do: all 1 pair " in again.output
         assert "(1 shard resumed" in again.output
 

@@ -94,11 +94,12 @@ class JobSpec:
         }
 
     def resolved(self) -> dict[str, Any]:
-        """The resolved run configuration written to ``config.yaml`` (loadable again with ``--config``)."""
+        """The resolved run configuration written to ``config.yaml`` (loadable again with ``--config``, from any
+        directory: its paths are absolute; as typed, they named nothing from another working directory)."""
         return {
             "dataset": self.dataset,
-            "root": None if self.root is None else str(self.root),
-            "out": str(self.out),
+            "root": None if self.root is None else str(Path(self.root).resolve()),
+            "out": str(Path(self.out).resolve()),
             "split": self.split,
             "dataset_options": {k: str(v) for k, v in self.dataset_options.items()},
             "limit": self.limit,
