@@ -217,6 +217,8 @@ def _run_dask(fn: Callable[[T], R], tasks: list[T], jobs: int, scheduler: str | 
         from distributed import Client, LocalCluster, as_completed
     except ImportError as exc:
         raise ConfigError("--backend dask needs dask[distributed]: pip install 'pvstereo[dask]'") from exc
+    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:  # dask's INFO lines (~35 a run) only with -vv
+        logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = None
     if scheduler is None:
         cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None)

@@ -438,3 +438,24 @@ def test_dask_workers_in_another_working_directory(tmp_path: Path, monkeypatch: 
     assert summary.pairs_labeled == 2 and not summary.failures
     assert verify(work / "labels") == [] and read_index(work / "labels").num_samples == 2
     assert not (elsewhere / "labels").exists()
+
+
+@pytest.mark.parametrize("root_level, expected", [(logging.WARNING, logging.WARNING), (logging.INFO, logging.WARNING),
+                                                  (logging.DEBUG, logging.NOTSET)])
+def test_dasks_info_lines_only_with_debug_logging(root_level: int, expected: int,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """--backend dask printed ~35 INFO lines of the scheduler and nannies even with --quiet: its loggers are held
+    at WARNING unless the run logs at debug level (-vv)."""
+    distributed = pytest.importorskip("distributed")
+    from pvm_labeler import parallel
+
+    class Refused:  # stands in for the cluster: the loggers are set before it starts
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            raise OSError("no cluster in this test")
+
+    monkeypatch.setattr(distributed, "LocalCluster", Refused)
+    monkeypatch.setattr(logging.getLogger(), "level", root_level)
+    monkeypatch.setattr(logging.getLogger("distributed"), "level", logging.NOTSET)
+    with pytest.raises(OSError, match="no cluster"):
+        list(parallel._run_dask(str, ["a"], 1, None))
+    assert logging.getLogger("distributed").level == expected

@@ -116,8 +116,8 @@ def error_legend(width: int, tau: tuple[float, float] = (3.0, 0.05)) -> npt.NDAr
     for i, (low, _, rgb) in enumerate(KITTI_ERROR_BINS):
         strip[:12, int(i * step):int((i + 1) * step)] = rgb
         _text(strip, f"{low * tau[0]:.2g}", int(i * step) + 2, 24)
-    _text(strip, f"error from px (or {tau[1]:.0%} of the disparity); grey: no prediction, black: no GT", 2, 37,
-          (160, 160, 160))
+    _text(strip, f"error in px, each bin from its lower bound (or {tau[1]:.0%} of the disparity if larger); grey: "
+          "no prediction, black: no GT", 2, 37, (160, 160, 160))
     return strip
 
 
