@@ -65,3 +65,16 @@ def test_pack_gt_of_pairs_narrower_than_the_search_range(tmp_path: Path) -> None
     labelled = CliRunner().invoke(pvm_main, ["run", "--dataset", "folder", "--root", str(root), "--out",
                                              str(tmp_path / "labels"), "--quiet"])
     assert labelled.exit_code != 0 and "must be smaller than the image width 64" in labelled.output
+
+
+def test_the_labelers_options_change_nothing_in_a_pack(tmp_path: Path) -> None:
+    """pack-gt takes the labeler's options "as they change nothing", yet `pack-gt --k 3 --kappa1 1` made a folder
+    that the same pack without them refused ("different config ... config.k: 3 -> 6")."""
+    out = tmp_path / "gt"
+    first = CliRunner().invoke(pvm_main, ["pack-gt", "--dataset", "sample", "--k", "3", "--kappa1", "1", "--out",
+                                          str(out), "--limit", "2", "--quiet"])
+    assert first.exit_code == 0, first.output
+    again = CliRunner().invoke(pvm_main, ["run", "--labels", "none", "--dataset", "sample", "--out", str(out),
+                                          "--limit", "2"])
+    assert again.exit_code == 0 and "nothing to do" in again.output, again.output
+    assert read_index(out).config["k"] == 6 and read_index(out).config["extra"] == {"labels": "none"}

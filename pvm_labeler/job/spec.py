@@ -11,6 +11,7 @@ from pvm_labeler import multiscale
 from pvm_labeler.common.datasets import DATASETS, PairRef, check_pair_sizes
 from pvm_labeler.common.errors import ConfigError, InputError
 from pvm_labeler.config import LabelerConfig
+from pvm_labeler.packgt import PACK_GT_LABELER
 from pvm_labeler.parallel import BACKENDS
 from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
 
@@ -59,6 +60,11 @@ class JobSpec:
     compression: str = DEFAULT_COMPRESSION
     numba_threads: int | None = None
     label_fn: str = DEFAULT_LABELER
+
+    def __post_init__(self) -> None:
+        if self.label_fn == PACK_GT_LABELER:  # no labeler runs: its options change nothing (pack-gt --k 3's shards
+            object.__setattr__(self, "config", LabelerConfig(extra=dict(self.config.extra)))  # were refused by the
+            # same run without --k)
 
     def validate(self) -> JobSpec:
         """Raise ConfigError naming the option for out-of-range values; returns self."""
