@@ -70,3 +70,18 @@ def test_the_files_and_modules_the_docs_name_exist() -> None:
             if not (path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()):
                 missing.append(f"{name}: python -m {module}")
     assert not missing, missing
+
+
+def test_every_command_takes_h_and_version() -> None:
+    """-h and --version worked for pvm-label only (optstereo-train -h: exit 2)."""
+    from click.testing import CliRunner
+
+    from optstereo.cli import adapt_main, eval_main, export_main, predict_main, train_main
+    from optstereo.cli.distill import distill_main
+    from pvm_labeler.cli import main as pvm_main
+
+    for command in (adapt_main, eval_main, export_main, predict_main, train_main, distill_main, pvm_main):
+        helped = CliRunner().invoke(command, ["-h"])
+        assert helped.exit_code == 0 and helped.output.startswith("Usage:"), (command.name, helped.output)
+        version = CliRunner().invoke(command, ["--version"])
+        assert version.exit_code == 0 and "version" in version.output, (command.name, version.output)

@@ -120,7 +120,13 @@ class GuardedCommand(click.Command):
     """A click command whose library errors become click's exits, the one error handler of every optstereo command:
     a ConfigError (a bad option or config value) exits 2 as a usage error, the project's other errors (PVMError,
     CheckpointError, a non-finite loss) exit 1 with their message, which names the file and the problem, as
-    pvm-label's do; errors from elsewhere (ValueError, RuntimeError, OSError) with their type too."""
+    pvm-label's do; errors from elsewhere (ValueError, RuntimeError, OSError) with their type too. Like pvm-label,
+    each takes ``-h`` for ``--help`` and ``--version``."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs["context_settings"] = {"help_option_names": ["-h", "--help"], **(kwargs.get("context_settings") or {})}
+        super().__init__(*args, **kwargs)
+        click.version_option(package_name="pvstereo")(self)
 
     def invoke(self, ctx: click.Context) -> Any:
         try:

@@ -24,7 +24,9 @@ from pvm_labeler.shards import read_index
 MAX_LISTED = 20
 
 
-@click.group(help="Distillation targets: a teacher's dense views where PVM has no label (optstereo.training.distill).")
+@click.group(help="Distillation targets: a teacher's dense views where PVM has no label (optstereo.training.distill).",
+             context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="pvstereo")
 def distill_main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
