@@ -117,7 +117,17 @@ class TestReadImage:
             img = io.read_image(tmp_path / "w.png")
         assert img.dtype == np.uint8
         np.testing.assert_array_equal(img[0, :, 0], [0, 1, 255, 128])
-        assert "16-bit image scaled" in caplog.text
+        assert "16-bit image scaled" in caplog.text and "12-bit" not in caplog.text
+
+    def test_16bit_image_of_12_bit_data_is_warned_about(self, tmp_path: Path,
+                                                        caplog: pytest.LogCaptureFixture) -> None:
+        """12-bit sensor data in a 16-bit PNG (values x 16 at most 4095) became an image of at most 16 grey levels,
+        and label density fell from 75 to 45 %, with an INFO line only."""
+        data = np.array([[0, 1000, 4095]], dtype=np.uint16)
+        cv2.imwrite(str(tmp_path / "d.png"), np.dstack([data] * 3))
+        with caplog.at_level(logging.WARNING, logger="pvm_labeler.common.io"):
+            io.read_image(tmp_path / "d.png")
+        assert "d.png: a 16-bit image whose values stop at 4095 (10- or 12-bit data?)" in caplog.text
 
     def test_rgba_alpha_dropped(self, shared_data: Path, caplog: pytest.LogCaptureFixture) -> None:
         path = shared_data / "sceneflow/flyingthings3d/RGB_cleanpass/left/A-0032-0006.png"

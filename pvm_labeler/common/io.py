@@ -46,6 +46,10 @@ def _decode(path: Path) -> np.ndarray:
     return img
 
 
+#: A 16-bit image whose values all lie below this holds data of 12 bits or fewer (see :func:`read_image`).
+LOW_BIT_DEPTH = 4096
+
+
 def read_image(path: Path | str) -> npt.NDArray[np.uint8]:
     """Read an image as RGB uint8, converting common variants.
 
@@ -66,6 +70,10 @@ def read_image(path: Path | str) -> npt.NDArray[np.uint8]:
     img = _decode(path)
     if img.dtype == np.uint16:
         logger.info("%s: 16-bit image scaled to 8 bit (value / 257)", path)
+        if 0 < (top := int(img.max())) < LOW_BIT_DEPTH:  # 10- or 12-bit sensor data stored in 16 bits
+            logger.warning("%s: a 16-bit image whose values stop at %d (10- or 12-bit data?) becomes nearly black "
+                           "at value / 257 (max %d of 255), and matching suffers; convert the images to 8 bit at "
+                           "their own depth first", path, top, (top + 128) // 257)
         img = ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise InputError(f"{path}: unsupported image dtype {img.dtype}, expected 8- or 16-bit integer")
