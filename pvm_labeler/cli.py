@@ -281,14 +281,18 @@ def convert_cmd(shard_dir: Path, out: Path, compression: str) -> None:
 @click.option("--method", type=click.Choice(("planes", "sgm")), default="planes", show_default=True,
               help="planes: one plane per superpixel, both views; sgm: the left view's holes from dense SGM through "
                    "the colour-weighted median.")
-@click.option("--views", type=click.Choice(("left", "both")), default="left", show_default=True,
+@click.option("--views", type=click.Choice(("left", "both")), default=None,
               help="--method sgm: fill the left view's holes only, or the right view's too (writes "
-                   "confidence_right, the weight of the trainer's flip-swapped samples).")
+                   "confidence_right, the weight of the trainer's flip-swapped samples).  [default: left]")
 def densify_cmd(shard_dir: Path, out: Path, region_size: int, max_rms: float, fill_confidence: float,
-                method: str, views: str) -> None:
+                method: str, views: str | None) -> None:
     """Rewrite SHARD_DIR into OUT with label holes filled (one plane per superpixel, or filtered dense SGM)."""
     from pvm_labeler.densify import densify
     from pvm_labeler.shards import read_index
+
+    if views is not None and method == "planes":  # it was ignored: planes fill both views
+        raise click.UsageError(f"--views {views} is an option of --method sgm; --method planes fills both views")
+    views = views or "left"
 
     try:
         densify(shard_dir, out, region_size, max_rms, fill_confidence, progress=True, method=method, views=views)

@@ -136,6 +136,9 @@ def test_densify_checks_its_arguments(tmp_path: Path) -> None:
         densify(tmp_path, tmp_path / "out", fill_confidence=0)
     bad = CliRunner().invoke(pvm_main, ["densify", str(tmp_path), str(tmp_path / "o"), "--max-rms", "0"])
     assert bad.exit_code == 2 and "max-rms" in bad.output
+    ignored = CliRunner().invoke(pvm_main, ["densify", str(tmp_path), str(tmp_path / "o"), "--views", "left"])
+    assert ignored.exit_code == 2 and "--method planes fills both views" in ignored.output  # it was ignored
+    assert not (tmp_path / "o").exists()
 
 
 def _interrupted(monkeypatch: pytest.MonkeyPatch, src: Path, out: Path, fail_at: int, **kwargs: float) -> None:
