@@ -170,3 +170,13 @@ def test_nothing_to_do_summary(tmp_path: Path) -> None:
     again = run(_spec(data, out)).format()
     assert again.startswith(f"nothing to do: all 3 pairs in {out} were already labelled (2 shards resumed")
     assert "pairs/s" not in again and "0 MiB" not in again
+
+
+def test_throughput_counts_labelled_pairs_only(tmp_path: Path) -> None:
+    """Every pair failing printed "labelled 0/3 pairs ... (3.55 pairs/s ...)": failed pairs are no throughput."""
+    data, out = make_folder(tmp_path / "d", n=3), tmp_path / "out"
+    for name in ("000", "001", "002"):
+        _corrupt(data / f"left/{name}.png")
+    summary = run(_spec(data, out))
+    assert summary.pairs_labeled == 0 and summary.pairs_failed == 3
+    assert summary.pairs_per_s == 0 and "pairs/s" not in summary.format()

@@ -97,7 +97,7 @@ def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcom
     shards = [(o.file, o.sample_ids) for o in ordered if o.sample_ids]
     acc, acc_noc, labelled_px, total_px = _pooled(ordered)
     written = [o for o in outcomes.values() if not o.resumed]
-    work_pairs = sum(len(o.planned) for o in written)
+    work_pairs = sum(len(o.sample_ids) for o in written)  # labelled now: a failed pair is no throughput
     summary = JobSummary(
         out=str(spec.out),
         pairs_total=len(refs),
