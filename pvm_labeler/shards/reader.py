@@ -112,9 +112,7 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
         arrays = {name: group[name][()] for name in (*REQUIRED, *OPTIONAL) if name in group}
         arrays.update({name: arrays[name].astype(np.float32) for name in HALF_ON_DISK if name in arrays})
     except (OSError, KeyError) as exc:
-        text = str(exc).lower()
-        hint = f"; {BLOSC_HINT}" if blosc_plugin() is None or "filter" in text or "plugin" in text else ""
-        raise ShardError(f"shard {h5.filename}: sample '{frame_id}' is unreadable ({exc}){hint}") from exc
+        raise ShardError(f"shard {h5.filename}: sample '{frame_id}' is unreadable ({exc}){_read_hint(exc)}") from exc
     missing = [name for name in REQUIRED if name not in arrays]
     if missing:
         raise ShardError(f"shard {h5.filename}: sample '{frame_id}' lacks {missing}")
@@ -136,3 +134,15 @@ def read_sample(h5: h5py.File, frame_id: str) -> ShardSample:
         attrs={key: decode_attr(value) for key, value in group.attrs.items()},
         confidence_right=arrays.get("confidence_right"),
     )
+
+
+def _read_hint(exc: Exception) -> str:
+    """Why a sample's arrays failed to read: no Blosc plugin (its hint), or, with the plugin there, a damaged file
+    (a checksum or decompression failure: it named the missing plugin)."""
+    text = str(exc).lower()
+    if blosc_plugin() is None or "not registered" in text or "plugin" in text or "can't open" in text:
+        return f"; {BLOSC_HINT}"
+    if "filter" in text or "checksum" in text:
+        return ("; the file is damaged (its data fails its checksum or decompression): re-run the job that wrote it "
+                "(a labeling run rewrites broken shards) or restore the file")
+    return ""

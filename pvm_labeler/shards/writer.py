@@ -107,7 +107,8 @@ class ShardWriter:
         arrays = _record_arrays(record)
         group = self._file.create_group(record.frame_id)
         for name, array in arrays.items():
-            group.create_dataset(name, data=array, chunks=_chunks(array.shape), **self._kwargs)
+            # fletcher32: a chunk damaged on disk fails to read (verify, resume) instead of reading as other values
+            group.create_dataset(name, data=array, chunks=_chunks(array.shape), fletcher32=True, **self._kwargs)
         for key, value in record.attrs.items():
             if isinstance(value, np.ndarray):
                 group.attrs[key] = value
