@@ -101,8 +101,8 @@ def refuse_overwriting_inputs(out_dir: Path, frames: Iterable[tuple[str, Path, P
     for name, _, _ in frames:
         for fmt, path in output_paths(out_dir, name, formats, kitti_layout).items():
             if path.resolve() in inputs:
-                raise ConfigError(f"the {fmt} output of {name} would overwrite the input image {path}: give an --out "
-                                 "folder other than the images' own")
+                raise ConfigError(f"the {fmt} output of {name} would overwrite the input image {path}: give an "
+                                  "--out folder other than the images' own")
 
 
 def forget_frame(out_dir: Path, name: str, formats: Iterable[str], kitti_layout: bool = False) -> None:
@@ -183,10 +183,10 @@ def predict_dataset(
     ``disp_0/<frame>_10.png``.
 
     With ``submission`` only the ``_10`` frames are run (``limit`` counts them) and zipped (and checked) for the
-    KITTI benchmark server. Every pair's
-    memory need is checked from its image headers before the first is run (:func:`check_pairs_fit`). A pair that
-    cannot be read (a corrupt or truncated image) is skipped and the others are written; then ``OUT/failures.json``
-    lists each with its reason and an InputError names the first (no submission is written then).
+    KITTI benchmark server. Every pair's memory need is checked from its image headers before the first is run
+    (:func:`check_pairs_fit`), and that no output would replace an input image. A pair that cannot be read (a corrupt
+    or truncated image) is skipped and the others are written; then ``OUT/failures.json`` lists each with its reason
+    and an InputError names the first (no submission is written then).
     """
     refs = discover(dataset, root, split=split, **(reader_options or {}))
     formats = tuple(formats)
