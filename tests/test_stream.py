@@ -79,6 +79,24 @@ class TestOrder:
         assert s1.epoch_order(0, 0, 1) != s1.epoch_order(1, 0, 1)
         assert ids_of(stream(shards, seed=4, shuffle_size=4)) != ids_of(s1)
 
+    def test_an_infinite_stream_draws_every_sample_alike_over_unequal_workers(self, tmp_path: Path) -> None:
+        """5 samples in shards of 2 + 2 + 1 over 2 workers: each worker held its shards and the DataLoader takes
+        the workers in turn, so the two frames of the 2-sample worker came round 1.5x as often (50 vs 33 in 100
+        batches). Each worker now yields ceil(5 / 2) samples of one seeded order per epoch."""
+        shards = make_shards(tmp_path / "s", n=5, shard_size=2)
+        s = ShardStream(shards, infinite=True, shuffle_size=1)
+        counts: dict[str, int] = {}
+        for epoch in range(600):
+            for worker in range(2):
+                block = s.epoch_order(epoch, worker, 2)
+                assert len(block) == 3 and len({k[0] for k in block}) <= 3  # whole shards, in order
+                for _, fid in block:
+                    counts[fid] = counts.get(fid, 0) + 1
+        assert len(counts) == 5 and sum(counts.values()) == 3600
+        assert max(counts.values()) / min(counts.values()) < 1.1, counts  # was 1.5
+        one_epoch = [ids_of(stream(shards, rank=0, world_size=1, seed=s.seed))]  # not infinite: each sample once
+        assert sorted(one_epoch[0]) == sorted(counts)
+
     @pytest.mark.parametrize("workers", [0, 2])
     def test_skip_batches_resumes_the_same_stream(self, shards: Path, workers: int) -> None:
         def batches(skip: int, count: int) -> list:

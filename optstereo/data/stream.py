@@ -146,10 +146,30 @@ class ShardStream(IterableDataset):
             return "samples", keys[global_worker::num_global]
         return "samples", [keys[global_worker % len(keys)]]
 
+    def balanced_block(self, epoch: int, global_worker: int, num_global: int) -> list[SampleKey]:
+        """An infinite stream's share of ``epoch``: the shards in an order seeded by (seed, epoch) alone (the same in
+        every worker), their samples laid end to end as a ring and cut, from a seeded start, into ``num_global``
+        runs of ceil(total / num_global). Every worker yields as many samples (the DataLoader takes
+        them in turn), so no sample comes round more often because its worker holds fewer: a 2+2+1-sample split
+        over 2 workers gave 1.5x to two of five frames. The padding repeats fewer than ``num_global`` samples per
+        epoch, other ones each epoch; a run reads whole shards in order, as before."""
+        rng = np.random.default_rng([self.seed, epoch, 1])
+        order = rng.permutation(len(self.shards))
+        keys = [(self.shards[int(k)][0], fid) for k in order for fid in self.shards[int(k)][1]]
+        if not keys:
+            return []
+        length = -(-len(keys) // num_global)
+        start = int(rng.integers(len(keys))) + global_worker * length  # a seeded start: any sample may be repeated
+        return [keys[i % len(keys)] for i in range(start, start + length)]
+
     def epoch_order(self, epoch: int, global_worker: int, num_global: int) -> list[SampleKey]:
-        """The keys one global worker visits in ``epoch``: seeded shard order, then the shuffle buffer."""
-        mode, keys = self.assignment(global_worker, num_global)
+        """The keys one global worker visits in ``epoch``: an infinite stream's balanced share
+        (:meth:`balanced_block`), one epoch's its own shards (each sample once across workers) in a seeded shard
+        order; then the shuffle buffer."""
         rng = np.random.default_rng([self.seed, epoch, global_worker, 0])
+        if self.infinite:
+            return list(shuffle_buffer(self.balanced_block(epoch, global_worker, num_global), self.shuffle_size, rng))
+        mode, keys = self.assignment(global_worker, num_global)
         if mode == "shards":
             by_shard: dict[str, list[SampleKey]] = {}
             for key in keys:
