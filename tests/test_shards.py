@@ -229,3 +229,21 @@ def test_convert_to_lzf_round_trips_every_array(tmp_path: Path) -> None:
                 assert sa.attrs == sb.attrs
     same = CliRunner().invoke(pvm_main, ["convert", str(src), str(src)])
     assert same.exit_code == 1 and "must differ" in same.output
+
+
+def test_frame_ids_and_confidences_a_shard_cannot_hold_are_refused(tmp_path: Path, rng: np.random.Generator) -> None:
+    """'seq1/000' became a nested HDF5 group that verify then called broken; '' a bare h5py error; a confidence x3
+    and one frame in two shards passed verify."""
+    for fid in ("seq1/000", "", ".."):
+        with pytest.raises(ShardError, match="cannot name a sample"):
+            write_shard_dir(tmp_path / f"s{len(fid)}", [make_record(rng, fid, (8, 16))], config={})
+    tripled = make_record(rng, "a", (8, 16))
+    tripled.confidence[:] = 3.0
+    with pytest.raises(ShardError, match=r"'confidence' must lie in \[0, 1\], got 3"):
+        write_shard_dir(tmp_path / "c", [tripled], config={})
+    out = write_shard_dir(tmp_path / "d", [make_record(rng, "a", (8, 16)), make_record(rng, "b", (8, 16))],
+                          config={}, shard_size=1)
+    index = json.loads((out / "index.json").read_text())
+    index["shards"][1]["samples"] = ["a"]  # shard 1 holds b; index says a: and a twice
+    (out / "index.json").write_text(json.dumps(index))
+    assert any("frame 'a' is in shard-00000.h5 and shard-00001.h5" in p for p in verify(out))

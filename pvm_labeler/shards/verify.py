@@ -106,6 +106,12 @@ def verify(shard_dir: Path | str) -> list[str]:
         if entry.get("count") != len(entry.get("samples", [])):
             problems.append(f"{shard_dir / INDEX_NAME}: shard {entry.get('file')} count {entry.get('count')} != "
                             f"{len(entry.get('samples', []))} listed samples")
+    seen: dict[str, str] = {}
+    for path, ids in index.shards:  # one frame in two shards: the trainer would draw it twice as often
+        for fid in ids:
+            if fid in seen and seen[fid] != path.name:
+                problems.append(f"{shard_dir / INDEX_NAME}: frame '{fid}' is in {seen[fid]} and {path.name}")
+            seen.setdefault(fid, path.name)
     for path, ids in index.shards:
         problems += verify_shard(path, ids, index.config)
     for stale in sorted(shard_dir.glob(f"*{TMP_SUFFIX}")):

@@ -213,6 +213,10 @@ def expected_shard_bytes(pixels: int, with_gt: bool, compression: str) -> int:
 
 
 def _record_arrays(record: ShardRecord) -> dict[str, np.ndarray]:
+    fid = record.frame_id
+    if not isinstance(fid, str) or not fid or "/" in fid or fid in (".", ".."):  # "/" made a nested HDF5 group
+        raise ShardError(f"frame id {fid!r} cannot name a sample: a non-empty string without '/' (e.g. seq1-000); "
+                         "pvm_labeler.common.datasets.safe_stem makes one")
     left = np.ascontiguousarray(record.left)
     if left.ndim != 3 or left.shape[2] != 3 or left.dtype != np.uint8:
         raise ShardError(f"sample {record.frame_id}: left must be (H, W, 3) uint8, got {left.shape} {left.dtype}")
@@ -233,6 +237,10 @@ def _record_arrays(record: ShardRecord) -> dict[str, np.ndarray]:
                 f"got {array.dtype} {array.shape}"
             )
         arrays[name] = array
+    for name in ("confidence", "confidence_right"):  # the trainer's L_P weights: a value outside [0, 1] is a bug
+        conf = arrays.get(name)
+        if conf is not None and conf.size and not (np.nanmin(conf) >= 0 and np.nanmax(conf) <= 1):
+            raise ShardError(f"sample {fid}: '{name}' must lie in [0, 1], got {np.nanmin(conf):g}..{np.nanmax(conf):g}")
     return arrays
 
 
