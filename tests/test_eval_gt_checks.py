@@ -76,6 +76,18 @@ class TestGtCheck:
         assert "an 8-bit PNG needs --gt-scale (its disparity multiplier, e.g. 4)" in problem
         assert _checked(root, gt_scale=4) == {"000": []}
 
+    def test_kitti_gt_never_divided_by_256(self, shared_data: Path) -> None:
+        """A KITTI GT PNG loaded raw (value, not value / 256): disparities up to 16406 px on a 1242-px-wide image
+        passed the check."""
+        from pvm_labeler.common.metrics import gt_problems
+
+        raw = cv2.imread(str(shared_data / "kitti15/training/disp_occ_0/000000_10.png"), cv2.IMREAD_UNCHANGED)
+        gt = raw.astype(np.float32)
+        gt[raw == 0] = np.nan
+        (problem,) = gt_problems(gt)
+        assert "as wide as the image (1242 px) or wider" in problem and "never divided" in problem
+        assert gt_problems(gt / 256) == []
+
     def test_pfm_with_the_wrong_byte_order(self, tmp_path: Path) -> None:
         """Little-endian data under a big-endian header: whole pixels read as denormals (~1e-41), fractions as
         anything."""

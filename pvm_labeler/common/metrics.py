@@ -175,6 +175,13 @@ def gt_problems(gt: npt.ArrayLike, scale: float | None = None) -> list[str]:
                "e.g. 4)" if scale is not None else
                "a map in another unit (normalised by the image width?) or no disparity map")
         problems.append(f"{share} {nonzero.size:,} valid disparities are below 1 px (max {nonzero.max():.3g}): {fix}")
+    width = gt.shape[-1] if gt.ndim == 2 else 0
+    beyond = d >= width if width else np.zeros(d.shape, bool)
+    if beyond.mean() > IMPLAUSIBLE_SHARE:  # no pixel matches beyond the image: raw integer values, another unit
+        fix = (f"the integer PNG is read as value / {scale:g}: is that its multiplier (--gt-scale)?" if scale is not
+               None else "raw 16-bit values never divided (KITTI's disparity is value / 256), or another unit")
+        problems.append(f"{_pct(beyond.mean())} of the valid disparities are as wide as the image ({width} px) or "
+                        f"wider (max {d.max():.4g}), which no pixel of the pair can match: {fix}")
     zero = float((gt == 0).mean())
     if zero > ZERO_SHARE:
         problems.append(f"{_pct(zero)} of the pixels are exactly 0: PFM unknowns should be inf (0 counts as a "
