@@ -5,22 +5,23 @@
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 from optstereo.version import __version__
 
 __all__ = ["__version__", "load_model", "predict"]
 
-
-def load_model(*args: Any, **kwargs: Any) -> Any:
-    """See :func:`optstereo.api.load_model` (imported lazily: ``import optstereo`` stays cheap)."""
-    from optstereo.api import load_model as _load_model  # lazy: keeps `import optstereo` torch-free
-
-    return _load_model(*args, **kwargs)
+#: Loaded on first use (PEP 562), so that ``import optstereo`` stays torch-free; ``optstereo.predict`` is then
+#: ``optstereo.api.predict`` itself, whose ``help()`` gives its arguments, shapes and units.
+_LAZY = {"load_model": "optstereo.api", "predict": "optstereo.api"}
 
 
-def predict(*args: Any, **kwargs: Any) -> Any:
-    """See :func:`optstereo.api.predict`."""
-    from optstereo.api import predict as _predict  # lazy: keeps `import optstereo` torch-free
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'optstereo' has no attribute {name!r}")
 
-    return _predict(*args, **kwargs)
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})

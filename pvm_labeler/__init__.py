@@ -24,3 +24,8 @@ def __getattr__(name: str) -> Any:
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'pvm_labeler' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The lazy names too (tab completion, ``dir(pvm_labeler)``)."""
+    return sorted({*globals(), *_LAZY})

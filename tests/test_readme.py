@@ -85,3 +85,15 @@ def test_every_command_takes_h_and_version() -> None:
         assert helped.exit_code == 0 and helped.output.startswith("Usage:"), (command.name, helped.output)
         version = CliRunner().invoke(command, ["--version"])
         assert version.exit_code == 0 and "version" in version.output, (command.name, version.output)
+
+
+def test_the_api_names_are_the_functions_themselves() -> None:
+    """optstereo.predict was a wrapper whose help() said (*args, **kwargs) and "See optstereo.api.predict"; the
+    labeler's lazy names were missing from dir() (tab completion)."""
+    import optstereo
+    import pvm_labeler
+    from optstereo import api
+
+    assert optstereo.predict is api.predict and optstereo.load_model is api.load_model
+    assert "left(x) matches right(x - d)" in optstereo.predict.__doc__
+    assert {"label_pair", "LabelerConfig"} <= set(dir(pvm_labeler)) and "predict" in dir(optstereo)
