@@ -73,6 +73,7 @@ def predict(
         (disparity, confidence) tuple in place of each map.
     """
     device = _device_of(model)
+    iters, scale = (v.item() if isinstance(v, np.generic) else v for v in (iters, scale))  # np.int64(2) was refused
 
     def one(lft: Image, rgt: Image) -> Any:
         if confidence:

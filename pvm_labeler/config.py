@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -98,6 +99,18 @@ class LabelerConfig:
     min_confidence: float = 0.15
     c2_scale: float = 0.6
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """NumPy scalars (``np.int64(64)`` from a computed max_disp) as the plain Python numbers they equal: they
+        were refused ("max_disp must be an integer, got np.int64(64)") and would not serialise to JSON."""
+        for name in _INT_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, numbers.Integral) and not isinstance(value, bool | int):
+                object.__setattr__(self, name, int(value))
+        for name in _FLOAT_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, numbers.Real) and not isinstance(value, bool | int | float):
+                object.__setattr__(self, name, float(value))
 
     def validate(self) -> LabelerConfig:
         """Raise ConfigError naming the option if any value is out of range or beyond a kernel's limits; return self."""

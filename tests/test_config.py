@@ -64,3 +64,22 @@ class TestLabelerConfig:
     def test_unknown_key(self) -> None:
         with pytest.raises(ConfigError, match="bogus"):
             LabelerConfig.from_dict({"bogus": 1})
+
+
+def test_numpy_scalars_are_the_numbers_they_equal() -> None:
+    """np.int64(64) from a computed max_disp was refused ("max_disp must be an integer, got np.int64(64)"), as
+    build_model(iters=np.int64(4)) was; they become plain numbers, which serialise."""
+    import json
+
+    import numpy as np
+
+    from optstereo.models import build_model
+
+    cfg = LabelerConfig(max_disp=np.int64(64), kappa1=np.float32(2.0), seed=np.uint8(3)).validate()
+    assert (type(cfg.max_disp), type(cfg.kappa1), type(cfg.seed)) == (int, float, int)
+    assert json.loads(cfg.to_json())["max_disp"] == 64
+    model = build_model("optstereo", iters=np.int64(2), feature_dim=np.int64(32), hidden_dim=32, head_dim=32,
+                        upsample_dim=16)
+    assert type(model.config.iters) is int and type(model.config.feature_dim) is int
+    with pytest.raises(ConfigError, match="max_disp must be an integer"):
+        LabelerConfig(max_disp=np.float64(64.5)).validate()
