@@ -358,6 +358,10 @@ def label_pair(
         ConfigError: invalid config values.
     """
     t0 = time.perf_counter()
+    if not isinstance(frame_id, str):  # None seeded the jitter as the string "None", like every other None
+        raise InputError(f"frame_id must be the pair's name (a str: it seeds the jitter), got {frame_id!r}")
+    if 0 in np.shape(left)[:2] or 0 in np.shape(right)[:2]:  # an OpenCV assertion from deep inside otherwise
+        raise InputError(f"empty image: left {np.shape(left)}, right {np.shape(right)}")
     stack = compute_scales(left, right, cfg, frame_id)
     result = label_from_scales(stack, cfg, return_intermediates, with_stages)
     result.timings["total"] = time.perf_counter() - t0

@@ -92,3 +92,23 @@ class TestFlipSwap:
             flip_swap(np.zeros((1, 4, 5, 3)), np.zeros((1, 4, 5, 3)), None, None)
         with pytest.raises(TypeError, match="got list"):
             flip_swap([[1]], [[1]], None, None)
+
+
+def test_flip_swap_refuses_the_other_layout_of_each_kind() -> None:
+    """A torch (H, W, 3) image had its colours mirrored (RGB -> BGR) and a NumPy (3, H, W) one its rows, silently."""
+    hwc = np.random.default_rng(0).integers(0, 255, (16, 24, 3), dtype=np.uint8)
+    with pytest.raises(ValueError, match=r"torch inputs must be \(\.\.\., H, W\).*x.permute\(2, 0, 1\)"):
+        flip_swap(torch.from_numpy(hwc), torch.from_numpy(hwc), None, None)
+    chw = np.ascontiguousarray(hwc.transpose(2, 0, 1))
+    with pytest.raises(ValueError, match=r"numpy inputs must be \(H, W\) or \(H, W, C\)"):
+        flip_swap(chw, chw, None, None)
+    new_left, _, _, _ = flip_swap(torch.from_numpy(chw), torch.from_numpy(chw), None, None)  # (3, H, W): columns
+    assert torch.equal(new_left, torch.from_numpy(chw).flip(-1))
+    assert np.array_equal(flip_swap(hwc, hwc, None, None)[0], hwc[:, ::-1])
+
+
+def test_a_flip_swap_probability_above_1_is_refused() -> None:
+    from optstereo.data.transforms import TrainTransform  # lazy: one test's
+
+    with pytest.raises(ValueError, match=r"flip_swap_p is a probability in \[0, 1\], got 2.0"):
+        TrainTransform(flip_swap_p=2.0)

@@ -190,3 +190,14 @@ class TestPyramid:
         assert (h, w) == (150, 497) and f == pytest.approx(1242 / 497) and d == int(np.ceil(192 / (1242 / 497)))
         h, w, f, d = geo[2]
         assert (h, w) == (136, 452) and d == 70  # 192 * 452 / 1242 = 69.87 -> 70
+
+
+def test_an_empty_pair_or_no_frame_id_is_named() -> None:
+    """An empty image failed in OpenCV's cvtColor ("!_src.empty()"); frame_id None seeded the jitter as "None"."""
+    image = np.zeros((0, 64, 3), np.uint8)
+    with pytest.raises(InputError, match=r"empty image: left \(0, 64, 3\)"):
+        label_pair(image, image, LabelerConfig(k=2, max_disp=16), "a")
+    full = np.zeros((32, 64, 3), np.uint8)
+    with pytest.raises(InputError, match="frame_id must be the pair's name"):
+        label_pair(full, full, LabelerConfig(k=2, max_disp=16), None)  # type: ignore[arg-type]
+

@@ -103,6 +103,8 @@ class TrainTransform:
     def __post_init__(self) -> None:
         # The config's own parser: a list [1, 1] from YAML is "off" too, and a bad range fails the same way.
         object.__setattr__(self, "scale_range", parse_scale_range(self.scale_range))
+        if not 0 <= self.flip_swap_p <= 1:  # 2.0 was taken as "always"
+            raise ValueError(f"flip_swap_p is a probability in [0, 1], got {self.flip_swap_p}")
 
     def __call__(
         self, left: Image, right: Image, label: Disp, label_right: Disp | None, rng: np.random.Generator,

@@ -22,9 +22,12 @@ def _flip(x: ArrayT | None) -> ArrayT | None:
     if x is None:
         return None
     if isinstance(x, torch.Tensor):
+        if x.ndim >= 3 and x.shape[-1] in (3, 4) and x.shape[-3] not in (1, 3, 4):  # flipping colours, not columns
+            raise ValueError(f"torch inputs must be (..., H, W) (channels first), got shape {tuple(x.shape)}: an "
+                             "(H, W, C) image? x.permute(2, 0, 1)")
         return torch.flip(x, dims=(-1,))  # (..., H, W)
     if isinstance(x, np.ndarray):
-        if x.ndim not in (2, 3):
+        if x.ndim not in (2, 3) or (x.ndim == 3 and x.shape[2] not in (1, 3, 4)):  # (C, H, W) flipped rows
             raise ValueError(f"numpy inputs must be (H, W) or (H, W, C), got shape {x.shape}")
         return np.ascontiguousarray(x[:, ::-1])  # W is axis 1 for both (H, W) and (H, W, C)
     raise TypeError(f"flip_swap expects numpy arrays or torch tensors, got {type(x).__name__}")
