@@ -316,3 +316,9 @@ def test_confidence_weighted_sequence_loss_hand_computed() -> None:
     unweighted = (1.5 + 0.125) / 2
     assert float(sequence_huber_loss([pred], label)) == pytest.approx(unweighted)
     assert float(sequence_huber_loss([pred], label, weight=torch.ones_like(weight))) == pytest.approx(unweighted)
+
+
+def test_smoothness_of_mismatched_sizes_is_named() -> None:
+    """disp (1, 1, 8, 8) with an image (1, 3, 8, 9) failed inside torch: "The size of tensor a (7) must match"."""
+    with pytest.raises(ValueError, match=r"disp \(B, 1, H, W\) and image \(B, 3, H, W\) of one size, got \(1, 1, 8"):
+        smoothness_loss(torch.zeros(1, 1, 8, 8), torch.zeros(1, 3, 8, 9))

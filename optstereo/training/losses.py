@@ -201,6 +201,9 @@ def smoothness_loss(disp: torch.Tensor, image: torch.Tensor, normalize: str = "n
         raise ValueError(f"normalize must be one of {SMOOTHNESS_NORMS}, got {normalize!r}")
     if order not in SMOOTHNESS_ORDERS:
         raise ValueError(f"order must be one of {SMOOTHNESS_ORDERS}, got {order!r}")
+    if disp.ndim != 4 or disp.shape[1] != 1 or image.ndim != 4 or disp.shape[-2:] != image.shape[-2:]:
+        raise ValueError(f"smoothness_loss needs disp (B, 1, H, W) and image (B, 3, H, W) of one size, got "
+                         f"{tuple(disp.shape)} and {tuple(image.shape)}")
     with torch.autocast(device_type=disp.device.type, enabled=False):
         d = disp.float()
         if normalize == "mean":
