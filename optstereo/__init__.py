@@ -5,10 +5,8 @@
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
 from optstereo.version import __version__
+from pvm_labeler.common.lazy import lazy_exports
 
 __all__ = ["__version__", "load_model", "predict"]
 
@@ -16,12 +14,4 @@ __all__ = ["__version__", "load_model", "predict"]
 #: ``optstereo.api.predict`` itself, whose ``help()`` gives its arguments, shapes and units.
 _LAZY = {"load_model": "optstereo.api", "predict": "optstereo.api"}
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'optstereo' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_LAZY})
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

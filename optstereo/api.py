@@ -24,6 +24,7 @@ from optstereo.inference.confidence import infer_with_confidence
 from optstereo.inference.engine import infer
 from optstereo.inference.fastpath import engineer
 from optstereo.pretrained import resolve_checkpoint_spec
+from pvm_labeler.common.configtools import plain_scalar
 
 Image = npt.NDArray[np.uint8]
 
@@ -73,7 +74,7 @@ def predict(
         (disparity, confidence) tuple in place of each map.
     """
     device = _device_of(model)
-    iters, scale = (v.item() if isinstance(v, np.generic) else v for v in (iters, scale))  # np.int64(2) was refused
+    iters, scale = plain_scalar(iters), plain_scalar(scale)  # np.int64(2) was refused
 
     def one(lft: Image, rgt: Image) -> Any:
         if confidence:

@@ -7,10 +7,8 @@ The names below load lazily, so importing ``pvm_labeler.common`` does not pull i
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
 from pvm_labeler.common.errors import ConfigError, InputError, PVMError, ShardError
+from pvm_labeler.common.lazy import lazy_exports
 from pvm_labeler.common.version import __version__
 
 _LAZY = {"LabelerConfig": "pvm_labeler.config", "LabelResult": "pvm_labeler.multiscale",
@@ -20,12 +18,4 @@ __all__ = ["LabelerConfig", "PVMError", "InputError", "ConfigError", "ShardError
            "draw_eps", "__version__"]
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'pvm_labeler' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    """The lazy names too (tab completion, ``dir(pvm_labeler)``)."""
-    return sorted({*globals(), *_LAZY})
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

@@ -8,11 +8,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
-from pvm_labeler.common.configtools import reject_unknown_keys
+from pvm_labeler.common.configtools import plain_scalar, reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
 #: How the label of a kept pixel is formed from its K scale disparities (see pvm_labeler.multiscale.vote).
@@ -103,14 +102,8 @@ class LabelerConfig:
     def __post_init__(self) -> None:
         """NumPy scalars (``np.int64(64)`` from a computed max_disp) as the plain Python numbers they equal: they
         were refused ("max_disp must be an integer, got np.int64(64)") and would not serialise to JSON."""
-        for name in _INT_FIELDS:
-            value = getattr(self, name)
-            if isinstance(value, numbers.Integral) and not isinstance(value, bool | int):
-                object.__setattr__(self, name, int(value))
-        for name in _FLOAT_FIELDS:
-            value = getattr(self, name)
-            if isinstance(value, numbers.Real) and not isinstance(value, bool | int | float):
-                object.__setattr__(self, name, float(value))
+        for name in (*_INT_FIELDS, *_FLOAT_FIELDS):
+            object.__setattr__(self, name, plain_scalar(getattr(self, name)))
 
     def validate(self) -> LabelerConfig:
         """Raise ConfigError naming the option if any value is out of range or beyond a kernel's limits; return self."""

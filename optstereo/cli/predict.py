@@ -92,8 +92,6 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                                                                          ("--max-depth", max_depth)) if v is not None))
     elif calib is not None:
         rig = read_calibration(calib)
-        if left is not None:
-            rig.check_fits(*image_size(left))  # before the network runs
     model, dev = common.load_model(checkpoint, device)
     if sequence:
         _check_sequence(model, checkpoint)
@@ -129,9 +127,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
             raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {_frames(len(written))} into {out}"
                    + (f"; submission {submission} (its files checked)" if submission is not None else ""))
-        if submission is not None:
-            refs = sum(1 for frame in written if Path(frame["png"]).stem.endswith("_10"))
-            for problem in submission_problems(dataset, split, refs):
+        if submission is not None:  # predict_dataset ran the _10 frames only
+            for problem in submission_problems(dataset, split, len(written)):
                 logger.warning("KITTI's server would refuse %s: %s", submission, problem)
 
 

@@ -147,6 +147,8 @@ def predict_pair(
 ) -> dict[str, Path]:
     """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
     refuse_overwriting_inputs(out_dir, [(Path(left_path).stem, left_path, right_path)], formats)
+    if calib is not None and any(f in GEOMETRY_FORMATS for f in formats):
+        calib.check_fits(*image_size(left_path))  # before the network runs, not after
     left, right = read_image(left_path), read_image(right_path)
     if left.shape != right.shape:
         raise ValueError(f"left/right sizes differ: {left.shape[:2]} vs {right.shape[:2]}: {left_path}, {right_path}")

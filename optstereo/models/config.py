@@ -15,10 +15,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
-import numpy as np
-
 from optstereo.choices import NORMS, STAGES, UPSAMPLERS, Norm, Stage, Upsampler
-from pvm_labeler.common.configtools import reject_unknown_keys
+from pvm_labeler.common.configtools import plain_scalar, reject_unknown_keys
 from pvm_labeler.common.errors import ConfigError
 
 #: Inference settings that files and YAML written before ``InferenceConfig`` kept among the model's: old model key ->
@@ -69,7 +67,7 @@ class NetworkConfig:
     def from_dict(cls, values: dict[str, Any]) -> Self:
         """Build from a dict, rejecting unknown keys with a clear message; old keys are upgraded quietly; NumPy
         scalars become the Python numbers they equal (``iters=np.int64(4)`` was refused, and would not serialise)."""
-        values = {k: v.item() if isinstance(v, np.generic) else v for k, v in cls.upgrade_keys(values).items()}
+        values = {k: plain_scalar(v) for k, v in cls.upgrade_keys(values).items()}
         legacy = sorted(set(values) & LEGACY_INFERENCE_KEYS.keys())
         if legacy:
             moved = ", ".join(f"{k} -> inference.{LEGACY_INFERENCE_KEYS[k]}" for k in legacy)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import numpy as np
+
 from pvm_labeler.common.errors import ConfigError
 
 
@@ -14,3 +16,9 @@ def reject_unknown_keys(cls: type, values: dict[str, Any], what: str) -> None:
     unknown = sorted(set(values) - names)
     if unknown:
         raise ConfigError(f"unknown {what} keys {unknown}; known: {sorted(names)}")
+
+
+def plain_scalar(value: Any) -> Any:
+    """A NumPy scalar (``np.int64(64)``, ``np.float32(2.0)``) as the Python number it equals, anything else as it is:
+    settings computed with NumPy pass the configs' type checks and serialise to JSON."""
+    return value.item() if isinstance(value, np.generic) else value
