@@ -186,7 +186,7 @@ def distill_train_labels(cfg: AdaptConfig, train_labels: Path) -> Path:
     distill.claim_maps_dir(maps, distill.teacher_record(teacher, cfg.teacher, resolve_checkpoint_spec(cfg.teacher),
                                                         weights_digest(teacher)))
     for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples, desc="teacher",
-                  unit="pair", disable=cfg.quiet):
+                  unit="pair", disable=True if cfg.quiet else None):
         target = distill.map_path(maps, s.frame_id)
         if not target.is_file():
             distill.save_teacher_map(target, *distill.teacher_views(teacher, s.left, s.right, device))
@@ -206,7 +206,7 @@ def inference_scales(cfg: AdaptConfig, train_labels: Path) -> dict[str, float]:
     config = model_inference(start).validate()
     scales = {}
     for s in tqdm(shard_samples(train_labels), total=read_index(train_labels).num_samples, desc="inference scales",
-                  unit="pair", disable=cfg.quiet):
+                  unit="pair", disable=True if cfg.quiet else None):
         # only the adaptive enlargement needs a pass: the zero-start one at the file's scale, as run() makes it
         zero = (pass_at_scale(start, s.left, s.right, first_scale(config, s.left.shape), None, config.iters, device)
                 if config.adaptive else None)
@@ -303,7 +303,7 @@ def score_frames(checkpoint: str | Path, labels: Path, ids: list[str], device: s
     dev = next(model.parameters()).device
     scores = []
     for s in tqdm(shard_samples(labels, set(ids)), total=len(ids), desc=f"score {what}".strip(), unit="pair",
-                  disable=quiet):
+                  disable=True if quiet else None):
         disp = infer(model, s.left, s.right, device=dev)
         cost = photometric_costs(s.left, s.right, [disp], window=1)[0]
         scores.append(score_pair(s.frame_id, disp, s.label, None, cost[~np.isfinite(s.label)]))
@@ -348,7 +348,7 @@ def gt_scores(checkpoint: str | Path, labels: Path, ids: list[str], device: str 
     dev = next(model.parameters()).device
     pooled_acc, frames = MetricAccumulator(), {}
     for s in tqdm(shard_samples(labels, set(ids)), total=len(ids), desc=f"GT {what}".strip(), unit="pair",
-                  disable=quiet):
+                  disable=True if quiet else None):
         disp = infer(model, s.left, s.right, device=dev)
         frames[s.frame_id] = pooled_acc.update(disp, s.gt)["bad3"]
     gt = pooled_acc.compute()

@@ -249,8 +249,9 @@ def score(model: nn.Module, valset: ValSet, device: torch.device | str = "cpu", 
         logger.info("the model has the teacher's weights: teacher_* scores are left out (its own maps)")
     total = len(only) if only is not None else read_index(valset.labels).num_samples
     pairs = []
+    # disable=None: tqdm's bar is off on a stream that is no terminal (a piped log)
     for sample, teacher in tqdm(valset_pairs(valset, only), total=total, desc=f"gt-free {what}".strip(), unit="pair",
-                                disable=not progress):
+                                disable=None if progress else True):
         disp = (predict(sample.left, sample.right) if predict is not None
                 else infer(model, sample.left, sample.right, device=device, amp=amp))
         cost = photometric_costs(sample.left, sample.right, [disp], window=1)[0]

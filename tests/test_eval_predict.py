@@ -239,6 +239,16 @@ class TestPredict:
         with pytest.raises(ValueError, match="unknown output formats"):
             write_disparity(tmp_path, "x", disp, ("jpg",))
 
+    def test_png_keeps_a_prediction_at_zero(self, tmp_path: Path) -> None:
+        """A dense prediction at or just below 0 px (sky) stays a value in the KITTI PNG (1/256 px, where 0 would
+        read as "no value"); NaN stays invalid; the .npy keeps what was predicted."""
+        disp = np.array([[-0.02, 0.0, 0.001, 5.0, np.nan]], dtype=np.float32)
+        paths = write_disparity(tmp_path, "f", disp, ("png", "npy"))
+        back = read_kitti_disp(paths["png"])
+        np.testing.assert_array_equal(back[0, :4], np.array([1, 1, 1, 1280], dtype=np.float32) / 256)
+        assert np.isnan(back[0, 4])
+        np.testing.assert_array_equal(np.load(paths["npy"]), disp)
+
 
 @pytest.fixture(scope="module")
 def tiny_ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -268,11 +278,12 @@ class TestCli:
         ref = disparity_metrics(raw, gt)
         assert float(row["epe"]) == pytest.approx(ref["epe"], rel=1e-5)
         assert int(row["n_valid"]) == ref["n_valid"]
-        # The KITTI PNG holds the same map quantised to 1/256 px; <= 0 px is its "invalid" code.
+        # The KITTI PNG holds the same map quantised to 1/256 px, every pixel a value: <= 0 px is written as its
+        # smallest value (0 is the format's "invalid" code, and the network's map is dense)
         png = read_kitti_disp(tmp_path / "pred" / "disp_0" / "000000_10.png")
         positive = raw >= 1 / 256
         np.testing.assert_allclose(png[positive], raw[positive], atol=0.5 / 256 + 1e-4)
-        assert np.isnan(png[raw <= 0]).all()
+        assert (png[raw <= 0] == 1 / 256).all() and not np.isnan(png).any()
 
     def test_predict_pair_form(self, tiny_ckpt: Path, tmp_path: Path, rng: np.random.Generator) -> None:
         left = rng.integers(0, 256, (30, 70, 3), dtype=np.uint8)
@@ -328,6 +339,18 @@ class TestCli:
         res = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti99", "--out",
                                         str(tmp_path)])
         assert res.exit_code == 2 and "kitti99" in res.output and "kitti_unlabelled" in res.output
+
+    def test_no_progress_bar_in_a_piped_log(self, tiny_ckpt: Path, tmp_path: Path) -> None:
+        """Without --quiet, a stream that is no terminal (CliRunner's, a log file) gets no tqdm bar from either
+        predict loop (whole pairs, and per frame with a confidence format); the summary line is still there."""
+        from conftest import make_folder
+
+        root = make_folder(tmp_path / "pairs", n=2)
+        for fmt in ("npy", "conf-npy"):
+            res = CliRunner().invoke(predict_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "folder", "--root",
+                                                    str(root), "--out", str(tmp_path / fmt), "--format", fmt])
+            assert res.exit_code == 0, res.output
+            assert "wrote 2 frames" in res.output and "predict:" not in res.output and "2/2" not in res.output
 
     def test_predict_dataset_skips_a_corrupt_pair_and_lists_it(self, tiny_ckpt: Path, tmp_path: Path) -> None:
         """One truncated image among three pairs: the other two are written, OUT/failures.json names the bad one and

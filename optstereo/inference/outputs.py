@@ -30,7 +30,8 @@ from optstereo.submission import write_submission
 from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
 from pvm_labeler.common.errors import ConfigError, InputError, PVMError
-from pvm_labeler.common.io import image_size, read_image, write_disparity_file, write_image, write_npy, write_pfm
+from pvm_labeler.common.io import (KITTI_SCALE, image_size, read_image, write_disparity_file, write_image, write_npy,
+                                   write_pfm)
 from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)
@@ -52,15 +53,25 @@ def write_disparity(
     With ``kitti_layout`` the 16-bit PNG goes to ``out_dir/disp_0/<name>.png`` (the KITTI submission layout;
     ``name`` is then the frame's file stem such as ``000000_10``) and the others into sibling folders. A ``name`` that
     is no plain file name (``../x``: a shard's frame id) is made one (``pvm_labeler.common.datasets.safe_stem``).
+    The network's map is dense: in the 16-bit PNG, where 0 means "no value", a prediction at or just below 0 px
+    (sky, -0.02 px) is written as the smallest value, 1/256 px (PFM and ``.npy`` keep it as predicted).
     """
     paths = disparity_paths(out_dir, name, formats, kitti_layout=kitti_layout)
     for fmt, path in paths.items():
         path.parent.mkdir(parents=True, exist_ok=True)
         if fmt == "color":
             write_image(path, colorize(disp, max_disp))
+        elif fmt == "png":
+            write_disparity_file(path, dense_for_png(disp))
         else:
             write_disparity_file(path, disp)
     return paths
+
+
+def dense_for_png(disp: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """(H, W) float32: finite values floored at 1/256 px (the KITTI PNG's smallest valid code); NaN stays NaN."""
+    disp = np.asarray(disp, dtype=np.float32)
+    return np.where(np.isfinite(disp), np.maximum(disp, np.float32(1 / KITTI_SCALE)), disp).astype(np.float32)
 
 
 def disparity_paths(out_dir: Path, name: str, formats: Iterable[str] = DEFAULT_FORMATS, *,
@@ -202,7 +213,8 @@ def predict_dataset(
     refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats,
                               dataset.startswith("kitti"))
     written, failed = [], {}
-    for ref in tqdm(refs, desc="predict", unit="pair", disable=not progress):
+    # disable=None: tqdm's bar is off on a stream that is no terminal (a piped log)
+    for ref in tqdm(refs, desc="predict", unit="pair", disable=None if progress else True):
         try:
             sample = load_pair(ref)
         except PVMError as exc:

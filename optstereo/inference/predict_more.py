@@ -82,7 +82,8 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     check_pairs_fit(config, [Path(frame[1]) for frame in frames], torch.device(device).type == "cuda")
     refuse_overwriting_inputs(out_dir, frames, formats, kitti_layout)
     written, failed = [], {}
-    for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=not progress):
+    # disable=None: tqdm's bar is off on a stream that is no terminal (a piped log)
+    for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=None if progress else True):
         if Path(left_path).parent != folder:
             state, folder = SequenceState(), Path(left_path).parent
         try:
