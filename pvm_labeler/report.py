@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from pvm_labeler.common.atomic import atomic_write_text
 from pvm_labeler.common.datasets import safe_stem
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.common.io import write_image
@@ -180,8 +181,8 @@ def build_report(shard_dirs: list[Path], out: Path, pictures: int = 4) -> dict[s
     if not any(run["pooled"] for run in runs):
         logger.warning("no GT in %s: the report has densities only", [str(d) for d in shard_dirs])
     text = markdown(runs)
-    (out / "report.md").write_text("# PVM label quality\n\n" + text + "\n")
-    (out / "report.json").write_text(json.dumps({"runs": runs}, indent=2, default=float))
+    atomic_write_text(out / "report.md", "# PVM label quality\n\n" + text + "\n")
+    atomic_write_text(out / "report.json", json.dumps({"runs": runs}, indent=2, default=float))
     if not runs:
         raise ShardError("no shard directories given")
     return {"runs": runs, "markdown": text, "pictures": pics}

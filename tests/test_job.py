@@ -23,12 +23,13 @@ import pytest
 
 from pvm_labeler.common.datasets import discover, load_pair
 from pvm_labeler.common.errors import ConfigError, InputError
-from pvm_labeler.common.io import write_image
+from pvm_labeler.common.io import read_image, write_image
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.job import FAILURES_FILE, JOB_FILE, JobSpec, ShardTask, longest_first, predicted_work, run
 from pvm_labeler.multiscale import draw_eps, scale_geometry
 from pvm_labeler.parallel import numba_threads_per_worker, thread_budget
+from pvm_labeler.report import build_report
 from pvm_labeler.shards import INDEX_NAME, open_shard, read_index, read_sample, verify
 
 REPO = Path(__file__).resolve().parents[1]
@@ -110,6 +111,28 @@ class TestJobMechanics:
         assert not (out / "shard-00001.h5.tmp").exists() and verify(out) == []
         _assert_same_shards(out, ref_out)
 
+    def test_resume_relabels_a_shard_whose_image_changed(self, tmp_path: Path,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
+        """An image replaced under the same name (re-exported, re-rectified) is seen by a resume: its shard is
+        relabelled from the new bytes, the other shard is kept as it was."""
+        from conftest import make_folder
+
+        root, out = make_folder(tmp_path / "pairs", n=4), tmp_path / "a"
+        spec = {"dataset": "folder", "root": root}
+        run(_spec(out, **spec))
+        stamp = (out / "shard-00000.h5").stat().st_mtime_ns
+        before = _all_samples(out)["002"].label
+        image = root / "left" / "002.png"
+        write_image(image, np.full_like(read_image(image), 200))
+        with caplog.at_level(logging.WARNING):
+            summary = run(_spec(out, **spec))
+        assert summary.shards_written == 1 and summary.shards_resumed == 1
+        assert "the files of 1 pair changed since it was labelled (002)" in caplog.text
+        assert (out / "shard-00000.h5").stat().st_mtime_ns == stamp and verify(out) == []
+        after = _all_samples(out)["002"].label
+        expected = 200 / 8.0 + LabelerConfig().kappa1  # fake_label's value from the new image
+        assert np.nanmax(np.abs(after - expected)) < 1e-4 and np.nanmax(np.abs(before - expected)) > 1
+
     def test_limit_grows_and_shrinks(self, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
         out = tmp_path / "a"
         first = run(_spec(out, limit=2))
@@ -145,8 +168,12 @@ class TestJobMechanics:
         with pytest.raises(InputError, match=match):
             run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=new_kappa1)))
         assert sorted(p.name for p in out.iterdir()) == before
+        build_report([out], out / "report", pictures=1)  # `pvm-label report DIR`'s default folder
+        (out / "report" / "notes.txt").write_text("the user's own file")
         summary = run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=new_kappa1), overwrite=True))
         assert summary.shards_written == 2 and read_index(out).config["kappa1"] == new_kappa1
+        # the earlier labels' report went with them (it would describe the new labels wrongly); nothing else did
+        assert [p.name for p in (out / "report").rglob("*")] == ["notes.txt"]
 
     def test_a_job_from_before_a_new_config_field_still_resumes(self, tmp_path: Path) -> None:
         """job.json written before c2_scale existed: the field's default reproduces those labels, so no error."""
@@ -166,6 +193,17 @@ class TestJobMechanics:
         with pytest.raises(InputError, match=match):
             run(_spec(out))
         assert run(_spec(out, compression="lzf")).shards_resumed == 2
+
+    def test_a_plan_without_shards_is_no_conflict(self, tmp_path: Path) -> None:
+        """A run that stopped after writing job.json/config.yaml but before any shard (an unreachable Dask
+        scheduler) leaves nothing to protect: a run with other settings starts without --overwrite."""
+        out = tmp_path / "a"
+        run(_spec(out))
+        for path in out.glob("shard-*"):
+            path.unlink()
+        (out / INDEX_NAME).unlink()
+        summary = run(_spec(out, config=LabelerConfig(k=2, max_disp=64, kappa1=3.0)))
+        assert summary.shards_written == 2 and json.loads((out / JOB_FILE).read_text())["config"]["kappa1"] == 3.0
 
     def test_unknown_shards_need_overwrite(self, tmp_path: Path) -> None:
         out = tmp_path / "a"

@@ -16,7 +16,7 @@ import yaml
 
 from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text
 from pvm_labeler.common.datasets import PairRef
-from pvm_labeler.common.errors import InputError, ShardError
+from pvm_labeler.common.errors import InputError, ShardError, counted
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.job.spec import JobSpec
 from pvm_labeler.job.worker import ShardOutcome
@@ -30,6 +30,10 @@ CONFIG_FILE = "config.yaml"
 OWNED_GLOBS: tuple[str, ...] = ("shard-*.h5", f"shard-*.h5{TMP_SUFFIX}", INDEX_NAME, JOB_FILE, CONFIG_FILE,
                                 FAILURES_FILE) + tuple(f"{name}.*.tmp" for name in (INDEX_NAME, JOB_FILE, CONFIG_FILE,
                                                                                     FAILURES_FILE))
+#: ``pvm-label report DIR``'s default folder (DIR/report): its files describe the labels of the run they read, so
+#: ``--overwrite`` deletes them too (a stale report.md must not describe the new run's labels).
+REPORT_GLOBS: tuple[str, ...] = ("report/report.md", "report/report.json", "report/density_vs_error.png",
+                                 "report/run[0-9][0-9]-*/*.png")
 
 
 def check_writable(out: Path) -> None:
@@ -92,6 +96,18 @@ def _owned_files(out: Path) -> list[Path]:
     return sorted({p for pattern in OWNED_GLOBS for p in out.glob(pattern)})
 
 
+def _delete_default_report(out: Path) -> None:
+    """Delete the files ``pvm-label report`` wrote into ``out/report`` and the folders that held only them."""
+    files = sorted({p for pattern in REPORT_GLOBS for p in out.glob(pattern)})
+    if files:
+        logger.info("--overwrite: deleting the earlier run's report (%d files in %s)", len(files), out / "report")
+    for path in files:
+        path.unlink()
+    for folder in sorted({p.parent for p in files}, key=lambda p: len(p.parts), reverse=True):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+
+
 def _check_same_job(out: Path, doc: dict[str, Any]) -> None:
     """Raise InputError unless ``out/job.json`` describes the same job as ``doc`` (see :func:`_identity`)."""
     job_path = out / JOB_FILE
@@ -123,8 +139,11 @@ def prepare_out(spec: JobSpec, doc: dict[str, Any]) -> None:
         logger.info("--overwrite: deleting %d files of a previous run in %s", len(owned), out)
         for path in owned:
             path.unlink()
-    elif owned:
+        _delete_default_report(out)
+    elif any(path.name.startswith("shard-") for path in owned):
         _check_same_job(out, doc)
+    # else: an earlier run wrote its plan but no shard (it stopped before labelling, e.g. at an unreachable
+    # --scheduler): nothing to keep, its job.json and config.yaml are replaced below
     out.mkdir(parents=True, exist_ok=True)
     # Shards past the end of the plan (an earlier run with a larger --limit) would linger unindexed: remove them,
     # saying so (they went silently, under a "nothing to do").
@@ -140,20 +159,30 @@ def prepare_out(spec: JobSpec, doc: dict[str, Any]) -> None:
     atomic_write_text(out / CONFIG_FILE, yaml.safe_dump(spec.resolved(), sort_keys=False))
 
 
-def complete_shard(path: Path, planned: list[str], config: dict[str, Any]) -> ShardOutcome | None:
-    """The outcome of an already complete shard (same plan and config, every array readable), else None."""
+def complete_shard(path: Path, refs: list[PairRef], config: dict[str, Any]) -> ShardOutcome | None:
+    """The outcome of an already complete shard (same plan and config, the same image files, every array
+    readable), else None. Shards written before files were recorded (no ``source_digests`` attr) are not checked for
+    changed images."""
     if not path.is_file():
         return None
+    planned = [ref.frame_id for ref in refs]
     try:
         with open_shard(path) as h5:
             ids = shard_sample_ids(h5)
             old_planned = json.loads(h5.attrs["planned"])
             stats = json.loads(h5.attrs["stats"])
+            sources = json.loads(h5.attrs["source_digests"]) if "source_digests" in h5.attrs else None
     except (ShardError, KeyError, ValueError, OSError) as exc:
         logger.warning("shard %s is not reusable (%s); relabelling it", path, exc)
         return None
     if old_planned != planned:
         logger.warning("shard %s holds another plan; relabelling it", path)
+        return None
+    changed = [ref.frame_id for ref in refs if sources is not None and sources.get(ref.frame_id)
+               != ref.source_digest()]
+    if changed:
+        logger.warning("shard %s: the files of %s changed since it was labelled (%s); relabelling it", path,
+                       counted(len(changed), "pair"), ", ".join(changed[:5]))
         return None
     problems = verify_shard(path, ids, config)
     if problems:

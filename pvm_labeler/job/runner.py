@@ -56,7 +56,7 @@ def run(spec: JobSpec) -> JobSummary:
     threads = spec.numba_threads or numba_threads_per_worker(spec.jobs)
     for index, shard_refs in enumerate(plan):
         path = spec.out / shard_name(index)
-        done = complete_shard(path, [ref.frame_id for ref in shard_refs], config) if spec.resume else None
+        done = complete_shard(path, shard_refs, config) if spec.resume else None
         if done is not None and done.failures:
             # Pairs that failed before are retried (a fixed image gets its label): the shard is relabelled whole
             # into shard.tmp; the old file stays valid until the new one replaces it.

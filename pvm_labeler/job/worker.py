@@ -173,7 +173,10 @@ def label_shard(task: ShardTask) -> ShardOutcome:
     path = Path(task.path)
     planned = [ref.frame_id for ref in task.refs]
     with thread_budget(task.numba_threads):
-        writer = ShardWriter(path, task.config, compression=task.compression, extra_attrs={"planned": planned},
+        # what each planned pair's files were when labelled: a resume relabels a shard whose images changed
+        sources = {ref.frame_id: ref.source_digest() for ref in task.refs}
+        writer = ShardWriter(path, task.config, compression=task.compression,
+                             extra_attrs={"planned": planned, "source_digests": sources},
                              expected_bytes=_expected_bytes(task))
         try:
             stats = _label_into(task, writer)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 from collections.abc import Callable
@@ -56,6 +57,21 @@ class PairRef:
                 out[name] = str(value)
         out["meta"] = dict(self.meta)
         return out
+
+    def source_digest(self) -> str:
+        """16 hex digits of BLAKE2b over the bytes of the pair's files (images and GT maps, by role; a role
+        without a file counts as such), so a resumed job sees an image replaced under the same name."""
+        digest = hashlib.blake2b(digest_size=8)
+        for role in ("left", "right", "gt", "gt_noc", "gt_right"):
+            path = getattr(self, role)
+            digest.update(role.encode())
+            if path is not None and Path(path).is_file():
+                with open(path, "rb") as fh:
+                    for block in iter(lambda: fh.read(1 << 20), b""):
+                        digest.update(block)
+            else:
+                digest.update(b"\0none")
+        return digest.hexdigest()
 
 
 @dataclass
