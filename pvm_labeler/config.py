@@ -156,6 +156,11 @@ class LabelerConfig:
         """Canonical JSON (sorted keys), used to compare the configs of existing shards."""
         return json.dumps(self.to_dict(), sort_keys=True)
 
+    def __hash__(self) -> int:
+        """Hash of the canonical JSON: a config can key a dict or a cache although ``extra`` is a dict (equal
+        configs hash alike, as the dataclass's ``==`` compares every field)."""
+        return hash(self.to_json())
+
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> LabelerConfig:
         """Build from a dict, rejecting unknown keys with a clear message."""

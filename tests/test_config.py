@@ -61,6 +61,12 @@ class TestLabelerConfig:
         again = LabelerConfig.from_dict(json.loads(cfg.to_json()))
         assert again == cfg
 
+    def test_hashable_like_its_equality(self) -> None:
+        """A config with its ``extra`` dict keys a dict: equal configs hash alike, a changed field or extra not."""
+        a, b = LabelerConfig(extra={"run": 1}), LabelerConfig(extra={"run": 1})
+        assert a == b and hash(a) == hash(b) and {a: "x"}[b] == "x"
+        assert len({a, LabelerConfig(extra={"run": 2}), LabelerConfig(k=3, extra={"run": 1})}) == 3
+
     def test_unknown_key(self) -> None:
         with pytest.raises(ConfigError, match="bogus"):
             LabelerConfig.from_dict({"bogus": 1})
