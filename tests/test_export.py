@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,14 +24,23 @@ pytest.importorskip("onnxruntime")
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def export_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, subprocess.CompletedProcess]:
+    """`optstereo-export` of a tiny model in a fresh process (the exporter warns once per process, so only a fresh
+    one shows its chatter): the checkpoint, the .onnx file and the finished process (each export takes ~20 s:
+    the tests share this one)."""
     root = tmp_path_factory.mktemp("export")
     torch.manual_seed(0)
     ckpt = export_safetensors(root / "tiny.safetensors", build_model("optstereo", iters=3, **TINY))
-    result = CliRunner().invoke(export_main, ["--checkpoint", str(ckpt), "--out", str(root / "tiny.onnx"), "--quiet"])
-    assert result.exit_code == 0, result.output
+    done = subprocess.run([sys.executable, "-m", "optstereo.cli", "export", "--checkpoint", str(ckpt), "--out",
+                           str(root / "tiny.onnx")], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
     assert sorted(p.name for p in root.iterdir() if "onnx" in p.name) == ["tiny.onnx"]  # weights inside, no side file
-    return ckpt, root / "tiny.onnx"
+    return ckpt, root / "tiny.onnx", done
+
+
+@pytest.fixture(scope="module")
+def exported(export_run: tuple[Path, Path, subprocess.CompletedProcess]) -> tuple[Path, Path]:
+    return export_run[0], export_run[1]
 
 
 def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_data: Path) -> None:
@@ -48,45 +59,31 @@ def test_onnxruntime_matches_torch_on_kitti(exported: tuple[Path, Path], shared_
         assert diff.mean() <= 0.01 and diff.max() <= 0.1, (h, w, diff.mean(), diff.max())
 
 
-@pytest.mark.parametrize(("setting", "plain"), [({"scale": 1.5}, {"scale": 1.0}), ({"iters": 2}, {"iters": 6})])
-def test_onnx_file_records_the_models_settings(tmp_path: Path, shared_data: Path, setting: dict,
-                                              plain: dict) -> None:
-    # A file's InferenceConfig travels into the export: an input scale (a model trained for enlarged inputs) in the
-    # metadata, by which infer_onnx resizes as infer does; GRU iterations (version 15 since T8: 3, its network's
-    # default 8) in the metadata and the unrolled graph. The two agree at the issue's tolerance.
-    from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
-
-    torch.manual_seed(0)
-    model = build_model("optstereo", iters=6, **TINY).eval()
-    model.inference_config = InferenceConfig(**setting)
-    session = onnx_session(export(model, tmp_path / "set.onnx"))
-    (key, value), = setting.items()
-    assert getattr(onnx_inference_config(session), key) == value
-    left, right = kitti_crop(shared_data, 96, 200)
-    ref, got = infer(model, left, right), infer_onnx(session, left, right)
-    assert got.shape == (96, 200)
-    assert not np.allclose(ref, infer(model, left, right, **plain), atol=1e-3)  # the setting changes the output
-    diff = np.abs(got - ref)
-    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
-    if key == "scale":  # scale= overrides the file's, as it overrides the model's in infer
-        diff = np.abs(infer_onnx(session, left, right, scale=1.0) - infer(model, left, right, scale=1.0))
-        assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
-
-
-def test_onnx_file_records_the_model_refine(tmp_path: Path, shared_data: Path) -> None:
-    # The post-filter travels in the metadata too: infer_onnx applies the file's, refine= overrides it.
+def test_onnx_file_records_the_models_settings(tmp_path: Path, shared_data: Path) -> None:
+    """A file's InferenceConfig travels into the export (one export of three settings: ~20 s each): an input
+    scale (a model trained for enlarged inputs), by which infer_onnx resizes as infer does; GRU iterations (version
+    15 since T8: 3, its network's default 6 here) in the metadata and the unrolled graph; the post-filter, which
+    infer_onnx applies and refine= overrides. The two agree at the issue's tolerance."""
     from optstereo.export import export, infer_onnx, onnx_inference_config, onnx_session
     from pvm_labeler.refine import weighted_median
 
     torch.manual_seed(0)
-    model = build_model("optstereo", iters=3, **TINY).eval()
-    model.inference_config = InferenceConfig(refine="wmedian")
-    session = onnx_session(export(model, tmp_path / "refined.onnx"))
-    assert onnx_inference_config(session).refine == "wmedian"
+    model = build_model("optstereo", iters=6, **TINY).eval()
+    model.inference_config = InferenceConfig(scale=1.5, iters=2, refine="wmedian")
+    session = onnx_session(export(model, tmp_path / "set.onnx"))
+    recorded = onnx_inference_config(session)
+    assert (recorded.scale, recorded.iters, recorded.refine) == (1.5, 2, "wmedian")
     left, right = kitti_crop(shared_data, 96, 200)
-    raw = infer_onnx(session, left, right, refine="none")
-    np.testing.assert_array_equal(infer_onnx(session, left, right), weighted_median(raw, left))
-    diff = np.abs(raw - infer(model, left, right, refine="none"))
+    ref, raw = infer(model, left, right, refine="none"), infer_onnx(session, left, right, refine="none")
+    assert raw.shape == (96, 200)
+    for plain in ({"scale": 1.0}, {"iters": 6}):  # each setting changes the output
+        assert not np.allclose(ref, infer(model, left, right, refine="none", **plain), atol=1e-3), plain
+    diff = np.abs(raw - ref)
+    assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
+    np.testing.assert_array_equal(infer_onnx(session, left, right), weighted_median(raw, left))  # the file's filter
+    # scale= overrides the file's, as it overrides the model's in infer
+    diff = np.abs(infer_onnx(session, left, right, scale=1.0, refine="none")
+                  - infer(model, left, right, scale=1.0, refine="none"))
     assert diff.mean() <= 0.01 and diff.max() <= 0.1, (diff.mean(), diff.max())
 
 
@@ -107,7 +104,7 @@ def test_predict_backend_onnxruntime(exported: tuple[Path, Path], shared_data: P
     assert not np.allclose(runs["torch", ()], runs["torch", ("--scale", "0.5")], atol=0.1)  # the scale did act
 
 
-def test_dynamic_batch_export(tmp_path: Path, shared_data: Path) -> None:
+def test_dynamic_batch_export(exported: tuple[Path, Path], tmp_path: Path, shared_data: Path) -> None:
     """--batch: a (2, 3, H, W) batch through onnxruntime equals torch per pair; the default graph takes batch 1."""
     from optstereo.export import export, onnx_session
 
@@ -121,8 +118,7 @@ def test_dynamic_batch_export(tmp_path: Path, shared_data: Path) -> None:
     out = session.run(["disparity"], {"left": left, "right": right})[0]
     for i, (lft, rgt) in enumerate(pairs):
         assert np.abs(out[i, 0] - infer(model, lft, rgt)).max() <= 0.1
-    single = onnx_session(export(model, tmp_path / "one.onnx"))
-    assert single.get_inputs()[0].shape[0] == 1
+    assert onnx_session(exported[1]).get_inputs()[0].shape[0] == 1  # the default export (no --batch)
 
 
 def test_torchscript_export(exported: tuple[Path, Path], tmp_path: Path, shared_data: Path) -> None:
@@ -184,16 +180,10 @@ def test_shipped_model_onnx_at_kitti_size(tmp_path: Path, shared_data: Path, nam
                                                                               (end_to_end > 0.1).sum())
 
 
-def test_export_prints_no_exporter_chatter(exported: tuple[Path, Path], tmp_path: Path) -> None:
+def test_export_prints_no_exporter_chatter(export_run: tuple[Path, Path, subprocess.CompletedProcess]) -> None:
     """A fresh process (the exporter warns once per process): torchvision's missing detection ops, torch's
     deprecations, onnx_ir's pass log and the shared-axis notes are not the user's concern; the one line is."""
-    import subprocess
-    import sys
-
-    ckpt, _ = exported
-    done = subprocess.run([sys.executable, "-m", "optstereo.cli", "export", "--checkpoint", str(ckpt), "--out",
-                           str(tmp_path / "t.onnx")], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
+    _, onnx_file, done = export_run
     for chatter in ("torchvision", "FutureWarning", "onnx_ir", "axis name"):
         assert chatter not in done.stderr + done.stdout, (chatter, done.stderr[-2000:])
-    assert f"wrote {tmp_path / 't.onnx'} (onnx" in done.stdout
+    assert f"wrote {onnx_file} (onnx" in done.stdout
