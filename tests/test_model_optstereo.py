@@ -201,6 +201,16 @@ class TestForward:
         with pytest.raises(ValueError, match=match):
             model(torch.zeros(left_shape), torch.zeros(right_shape))
 
+    @pytest.mark.parametrize("name", ["optstereo", "hitnet"])
+    def test_a_float64_pair_is_named(self, name: str) -> None:
+        """A float64 pair (NumPy's default, through torch.from_numpy) is named with its fix; uint8 runs."""
+        model = build_model(name, iters=1, **(TINY if name == "optstereo" else {})).eval()
+        pair = torch.rand(2, 1, 3, 32, 64, dtype=torch.float64) * 255
+        with pytest.raises(TypeError, match=r"float32 .* got torch.float64; pass .float\(\)"):
+            model(*pair)
+        with torch.no_grad():
+            model(*pair.to(torch.uint8))
+
     def test_exception_iters(self) -> None:
         model = build_model("optstereo", **TINY)
         with pytest.raises(ValueError, match="iters must be >= 1, got 0"):

@@ -32,7 +32,12 @@ def normalize_image(image: torch.Tensor) -> torch.Tensor:
 
 
 def check_stereo_pair(left: torch.Tensor, right: torch.Tensor, divisor: int) -> None:
-    """Raise ValueError (with the actual shapes) unless left, right are equal (B, 3, H, W) with H, W % divisor == 0."""
+    """Raise ValueError (with the actual shapes) unless left, right are equal (B, 3, H, W) with H, W % divisor == 0,
+    and TypeError for a dtype the network's float32 weights cannot take (float64, complex, bool)."""
+    for tensor in (left, right):
+        if tensor.dtype in (torch.float64, torch.bool) or tensor.dtype.is_complex:
+            raise TypeError(f"left/right must be float32 (or uint8, half) tensors of 0-255 values, got {tensor.dtype}"
+                            f"{'; pass .float()' if tensor.dtype == torch.float64 else ''}")
     if left.ndim != 4 or right.ndim != 4:
         raise ValueError(f"left/right must be 4-D (B, 3, H, W), got {tuple(left.shape)} and {tuple(right.shape)}")
     if left.shape != right.shape:
