@@ -44,7 +44,14 @@ from optstereo.inference.cascade import photometric_costs
 from optstereo.inference.engine import infer
 from optstereo.inference.fastpath import engineer
 from optstereo.pretrained import resolve_checkpoint_spec
-from optstereo.training.distill import consistent_views, read_teacher_maps, write_teacher_maps
+from optstereo.training.distill import (
+    TeacherMismatchError,
+    claim_maps_dir,
+    consistent_views,
+    read_teacher_maps,
+    teacher_record,
+    write_teacher_maps,
+)
 from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.datasets import discover
 from pvm_labeler.shards import open_shard, read_index, read_sample
@@ -174,12 +181,28 @@ def build(dataset: str, root: Path | None, out: Path, teacher: str | Path = "pre
     pvm_label(dataset, root, out / "labels", reader_options, max_disp=max_disp, quiet=quiet)
     teacher_path = resolve_checkpoint_spec(teacher)
     model = engineer(build_model_from_checkpoint(teacher_path, device=device))  # the faster CPU pass, same weights
+    digest = weights_digest(model)
+    _refuse_another_teacher(out, teacher, digest)
+    claim_maps_dir(out / "maps", teacher_record(model, teacher, teacher_path, digest))
     write_teacher_maps(model, refs, out / "maps", device, progress=not quiet)
     manifest = {"dataset": dataset, "root": None if root is None else str(root), "reader_options": reader_options or {},
                 "pairs": [ref.frame_id for ref in refs],
-                "teacher": {"spec": str(teacher), "file": teacher_path.name, "digest": weights_digest(model)}}
+                "teacher": {"spec": str(teacher), "file": teacher_path.name, "digest": digest}}
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     return open_valset(out)
+
+
+def _refuse_another_teacher(out: Path, teacher: str | Path, digest: str) -> None:
+    """TeacherMismatchError when ``out`` is a validation set built with another teacher's weights (its maps would
+    be kept and the manifest would name the new teacher: a model would be scored against maps it did not make, or
+    its own maps taken for another's)."""
+    if not (out / MANIFEST).is_file():
+        return
+    old = json.loads((out / MANIFEST).read_text()).get("teacher", {})
+    if old.get("digest") not in (None, digest):
+        raise TeacherMismatchError(
+            f"{out} is a validation set of teacher {old.get('spec')!r} (weights {old['digest']}); this run's teacher "
+            f"is {str(teacher)!r} (weights {digest}): give another --out (or remove the folder to rebuild it)")
 
 
 def score_pair(frame_id: str, disp: npt.NDArray[np.float32], label: npt.NDArray[np.float32],

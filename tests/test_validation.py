@@ -131,7 +131,16 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
                                               "--out", str(val), "--max-disp", "16", "--quiet"])
     assert built.exit_code == 0, built.output
     assert "validation set of 3 pairs" in built.output
-    assert sorted(p.name for p in (val / "maps").iterdir()) == ["000.npz", "001.npz", "002.npz"]
+    assert sorted(p.name for p in (val / "maps").iterdir()) == ["000.npz", "001.npz", "002.npz", "teacher.json"]
+    manifest = (val / "valset.json").read_text()
+    # another teacher is refused: by the manifest, and by the maps' record when a build stopped before the manifest
+    for _ in ("manifest", "maps"):
+        again = CliRunner().invoke(distill_main, ["valset", "--root", str(pairs), "--teacher", str(other), "--out",
+                                                  str(val), "--max-disp", "16", "--quiet"])
+        assert again.exit_code == 2 and "this run's teacher is" in again.output, again.output
+        assert sorted(p.name for p in (val / "maps").iterdir())[-1] == "teacher.json"
+        (val / "valset.json").unlink(missing_ok=True)
+    (val / "valset.json").write_text(manifest)
     for path, ids in read_index(val / "labels").shards:
         with open_shard(path) as h5:
             assert all(read_sample(h5, i).gt is None for i in ids)

@@ -108,5 +108,8 @@ def _percent(value: float | None) -> str:
 def valset_command(dataset: str, root: Path | None, left: str, right: str, teacher: str, out: Path, device: str,
                    max_disp: int | None, quiet: bool) -> None:
     options = {"left": left, "right": right} if dataset == "folder" else {}
-    built = validation.build(dataset, root, out, teacher, options, device, quiet, max_disp)
+    try:
+        built = validation.build(dataset, root, out, teacher, options, device, quiet, max_disp)
+    except distill.TeacherMismatchError as exc:
+        raise click.BadParameter(str(exc), param_hint="--out") from exc
     click.echo(f"validation set of {len(built.manifest['pairs'])} pairs in {out} (teacher {teacher})")
