@@ -78,3 +78,18 @@ def test_the_labelers_options_change_nothing_in_a_pack(tmp_path: Path) -> None:
                                           "--limit", "2"])
     assert again.exit_code == 0 and "nothing to do" in again.output, again.output
     assert read_index(out).config["k"] == 6 and read_index(out).config["extra"] == {"labels": "none"}
+
+
+def test_training_a_gt_pack_on_pvm_labels_is_refused(tmp_path: Path) -> None:
+    """A GT pack given to `optstereo-train --labels` without `--supervision gt` trained on nothing but the
+    photometric terms (L_P 0.000, exit 0): it is now a usage error naming the pack and the option, before any run
+    folder is made."""
+    from optstereo.cli import train_main
+
+    out = tmp_path / "gt"
+    assert CliRunner().invoke(pvm_main, ["pack-gt", "--dataset", "sample", "--out", str(out), "--quiet"]).exit_code == 0
+    run = tmp_path / "run"
+    result = CliRunner().invoke(train_main, ["--labels", str(out), "--out", str(run), "--steps", "1", "--workers", "0"])
+    assert result.exit_code == 2, result.output
+    assert f"{out} is a GT pack" in " ".join(result.output.split()) and "--supervision gt" in result.output
+    assert not run.exists()

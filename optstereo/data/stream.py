@@ -31,8 +31,8 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from optstereo.choices import SUPERVISIONS, Supervision
 from optstereo.data.transforms import TrainTransform, to_tensors
-from pvm_labeler.common.errors import ShardError
-from pvm_labeler.shards import open_shard, read_index, read_sample
+from pvm_labeler.common.errors import ConfigError, ShardError
+from pvm_labeler.shards import ShardIndex, open_shard, read_index, read_sample
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +63,15 @@ def skip_count(skip_batches: int, batch_size: int, worker_id: int, num_workers: 
     num_workers = max(num_workers, 1)
     batches = skip_batches // num_workers + (1 if worker_id < skip_batches % num_workers else 0)
     return batches * batch_size
+
+
+def check_supervision(labels_dir: Path | str, supervision: str, index: ShardIndex | None = None) -> None:
+    """ConfigError when ``supervision`` "pvm" meets a GT pack (``pvm-label pack-gt``: no PVM label; L_P would be 0
+    and only the photometric terms would train). ``index``: the folder's, when already read."""
+    index = index if index is not None else read_index(Path(labels_dir))
+    if supervision == "pvm" and (index.raw.get("summary") or {}).get("gt_only"):
+        raise ConfigError(f"{labels_dir} is a GT pack (pvm-label pack-gt: images and GT, no PVM labels): train on it "
+                          "with --supervision gt, or label its pairs with pvm-label run")
 
 
 class ShardStream(IterableDataset):
@@ -114,6 +123,7 @@ class ShardStream(IterableDataset):
         self.num_samples = sum(len(ids) for _, ids in self.shards)
         if self.num_samples == 0:
             raise ShardError(f"shard directory {self.labels_dir} holds no samples (index.json lists none)")
+        check_supervision(self.labels_dir, supervision, index)
         self.supervision = supervision
         self.transform = transform
         self.seed = int(seed)

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from optstereo import distributed as ddp
 from optstereo.checkpoint import LAST, LoadedCheckpoint, export_safetensors, load_checkpoint, unwrap
-from optstereo.data.stream import ShardStream
+from optstereo.data.stream import ShardStream, check_supervision
 from optstereo.data.transforms import TrainTransform, collate_min_size
 from optstereo.evaluate import evaluate_model
 from optstereo.inference.cascade import coarse_start
@@ -347,6 +347,7 @@ def main(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     if not resume and (run_dir / LAST).exists():
         raise ConfigError(f"{run_dir} already holds a training run ({LAST}); use --resume {run_dir} or another --out")
     check_val_dataset(cfg)  # before anything is written or trained
+    check_supervision(cfg.data.labels, cfg.data.supervision)  # a GT pack has no PVM label to train on
     for problem in header_problems(cfg.data.labels)[:3]:  # what `pvm-label verify` calls broken, named up front
         logger.warning("%s (pvm-label verify %s calls this broken; training on it all the same)", problem,
                        cfg.data.labels)
