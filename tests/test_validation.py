@@ -182,6 +182,19 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
                                           str(tmp_path / "eval_other"), "--quiet"])
     assert same.exit_code == 0, same.output
     assert "pvm_epe: within noise (+0.0000, noise 0.0000)" in same.output
+    # a later run into a folder drops the earlier one's files it does not write (its comparison, its maps), and
+    # reads an --against report in that folder before
+    again = CliRunner().invoke(eval_main, ["--checkpoint", str(teacher), "--valset", str(val), "--out",
+                                           str(tmp_path / "c"), "--no-save-maps", "--quiet"])
+    assert again.exit_code == 0, again.output
+    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["gtfree.json", "gtfree.md"]
+    (tmp_path / "eval_other" / "notes.txt").write_text("mine")
+    itself = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
+                                            str(tmp_path / "eval_other"), "--no-save-maps", "--against",
+                                            str(tmp_path / "eval_other"), "--quiet"])
+    assert itself.exit_code == 0 and "pvm_epe: within noise" in itself.output, itself.output
+    assert sorted(p.name for p in (tmp_path / "eval_other").iterdir()) == ["compare.json", "compare.md",
+                                                                           "gtfree.json", "gtfree.md", "notes.txt"]
     (tmp_path / "broken.json").write_text("{")
     broken = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
                                             str(tmp_path / "b"), "--against", str(tmp_path / "broken.json"), "--quiet"])

@@ -61,6 +61,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
                                    "--refine)")
         common.check_out(out)
         base = _against_report(against) if against is not None else None  # checked before any pair is scored
+        clear_earlier_run(out)  # after --against read its report: it may be this folder's
         result = _eval_valset(checkpoint, valset, out, device, amp, quiet, save_maps)
         if against is not None:
             _compare(result, str(checkpoint), against, base, valset, out, device, amp, quiet)
@@ -70,6 +71,7 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     common.check_out(out)
+    clear_earlier_run(out)
     if labels is not None:
         if scale is not None or refine is not None:
             raise click.UsageError("--scale and --refine act on a network's prediction; --labels evaluates stored "
@@ -89,6 +91,26 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
     click.echo(f"reports: {result.files['md']}, {result.files['csv']}, {result.files['json']}")
     if result.summary.get("skipped"):
         sys.exit(1)  # as optstereo-predict and pvm-label do when pairs failed: the scores lack those frames
+
+
+#: What an evaluation writes into OUT (GT: summary, metrics, failures; --valset: gtfree, and with --against the
+#: comparison and the other model's report), and the maps of both: globs relative to OUT.
+EVAL_OUTPUTS = ("summary.json", "summary.md", "metrics.csv", FAILURES_FILE, "gtfree.json", "gtfree.md", "compare.md",
+                "compare.json", "against/gtfree.json", "against/gtfree.md", "maps/*_disp.png", "maps/*_error.png",
+                "against/maps/*_disp.png", "against/maps/*_error.png")
+
+
+def clear_earlier_run(out: Path) -> None:
+    """Delete an earlier evaluation's files in ``out`` (:data:`EVAL_OUTPUTS`; nothing else), so that the folder
+    describes this run only: a comparison, or maps of frames this run does not draw, would pass for its own."""
+    earlier = sorted({path for pattern in EVAL_OUTPUTS for path in out.glob(pattern)})
+    if earlier:
+        logger.info("%s: removing %d files of an earlier evaluation", out, len(earlier))
+    for path in earlier:
+        path.unlink()
+    for folder in (out / "against" / "maps", out / "maps", out / "against"):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
 
 
 def _unit(value: float, digits: int, unit: str) -> str:
