@@ -225,6 +225,28 @@ class TestInterrupt:
         assert "the run never saved one" in result.output and f"--config {run / 'config.yaml'}" in result.output
 
 
+    def test_ctrl_c_outside_the_steps_exits_130_saying_what_is_left(self, tiny_shards: Path, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+        """Ctrl-C while the start is scored (before the steps' handler) or at the end: exit 130 naming the
+        checkpoint to resume, or that none was written, not click's bare "Aborted!" with exit 1."""
+        def interrupted(*_: object, **__: object) -> None:
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr("optstereo.cli.train.main", interrupted)
+        run = tmp_path / "run"
+        args = ["--labels", str(tiny_shards), "--out", str(run), "--steps", "2", "--workers", "0",
+                *(f"--set=model.{k}={v}" for k, v in TINY.items())]
+        first = CliRunner().invoke(train_main, args)
+        assert first.exit_code == 130 and "Aborted!" not in first.output, first.output
+        assert f"SIGINT before the first step: no checkpoint in {run}" in first.output
+        monkeypatch.undo()
+        loop.main(tiny_config(tiny_shards, run, steps=2), progress=False)
+        monkeypatch.setattr("optstereo.cli.train.main", interrupted)
+        later = CliRunner().invoke(train_main, ["--resume", str(run), "--steps", "4"])
+        assert later.exit_code == 130 and f"{run / 'last.pt'} (step 2)" in later.output, later.output
+        assert f"continue with: optstereo-train --resume {run}" in later.output
+
+
 class TestNits:
     def test_init_without_a_step_logs_none(self, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
         model = build_model("optstereo", **TINY)

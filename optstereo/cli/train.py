@@ -6,13 +6,14 @@ import json
 import logging
 import math
 import os
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
 
 import click
 
-from optstereo.checkpoint import LoadedCheckpoint, load_checkpoint
+from optstereo.checkpoint import LAST, LoadedCheckpoint, load_checkpoint
 from optstereo.choices import (
     AMP_MODES,
     COLOR_NORMS,
@@ -148,6 +149,9 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
     except TrainingInterrupted as exc:  # Ctrl-C / SIGTERM: its checkpoint is saved; exit as the signal would
         click.echo(str(exc), err=True)
         sys.exit(exc.exit_code)  # not ctx.exit: click's Exit is a RuntimeError, which GuardedCommand reports
+    except KeyboardInterrupt:  # Ctrl-C outside the steps (the start's GT-free score, the data's setup, the end)
+        click.echo(interrupted_outside_steps(Path(cfg.out)), err=True)
+        sys.exit(130)
     if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 speaks for the run
         return
     if "nothing_to_do" in summary:
@@ -215,3 +219,12 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
                                f"ignored: leave --out out, or start a new run from its weights with --init "
                                f"{Path(resume) / 'last.pt'} --out {out}")
     return config_for_resume(resume, overrides)
+
+
+def interrupted_outside_steps(run_dir: Path) -> str:
+    """What a Ctrl-C outside the training steps leaves: the run's last checkpoint to resume, or none (start again)."""
+    if (run_dir / LAST).is_file():
+        step = load_checkpoint(run_dir).step
+        return (f"SIGINT outside the training steps; checkpoint {run_dir / LAST} (step {step}); continue with: "
+                f"optstereo-train --resume {shlex.quote(str(run_dir))}")
+    return f"SIGINT before the first step: no checkpoint in {run_dir}; run the same command again to start"

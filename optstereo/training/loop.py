@@ -52,7 +52,7 @@ from optstereo.training.log import (  # noqa: F401  (METRICS_FILE: API)
 from optstereo.training.losses import PVStereoLoss
 from optstereo.training.runpaths import absolute_paths
 from optstereo.training.stopping import nothing_to_do, stop_on_signal
-from optstereo.training.validate import check_val_dataset, gtfree_hook
+from optstereo.training.validate import check_val_dataset, gtfree_hook, report_path
 from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.errors import ConfigError
 from pvm_labeler.shards import header_problems
@@ -383,8 +383,9 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     run_logger = RunLogger(run_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
                            resume_step=state.step if ckpt is not None else None)
     validate = gtfree_hook(cfg, run_dir, run_logger, device) if info.is_main else None
-    if validate is not None and ckpt is None and cfg.init is not None:
-        validate(state)  # the start, as step 0: the best until a checkpoint beats it, and what each is compared with
+    if validate is not None and (ckpt is None and cfg.init is not None
+                                 or ckpt is not None and not report_path(run_dir, state.step).is_file()):
+        validate(state)  # the start as step 0 (the best until a checkpoint beats it), or a checkpoint Ctrl-C saved
     save = and_then(and_then(checkpoint_saver(run_dir, cfg, info), validate),
                     redraw_curves(run_dir) if info.is_main else None)
     start_step, t0 = state.step, time.perf_counter()
