@@ -191,8 +191,9 @@ def resolve_checkpoint(path: Path) -> Path:
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     if path.suffix == ".onnx":
-        raise CheckpointError(f"checkpoint {path} is an exported ONNX graph, which the torch backend cannot load: "
-                              "run it with --backend onnxruntime, or give the .pt/.safetensors it was exported from")
+        raise CheckpointError(f"checkpoint {path} is an exported ONNX graph, not a checkpoint: give the "
+                              ".pt/.safetensors it was exported from (optstereo-predict --backend onnxruntime runs "
+                              "the graph itself)")
     if path.suffix not in CHECKPOINT_SUFFIXES:
         raise CheckpointError(f"checkpoint {path} must end in one of {CHECKPOINT_SUFFIXES}")
     return path

@@ -234,7 +234,8 @@ class TestCheckpoints:
         graph.write_bytes(b"\x08\x07")
         result = invoke(export_main, "--checkpoint", graph, "--out", tmp_path / "x.onnx")
         assert result.exit_code == 1 and "model.onnx is an exported ONNX graph" in result.output
-        assert "--backend onnxruntime" in result.output and not (tmp_path / "x.onnx").exists()
+        assert "optstereo-predict --backend onnxruntime" in result.output and not (tmp_path / "x.onnx").exists()
+        assert "give the .pt/.safetensors it was exported from" in result.output  # eval and train have no --backend
 
 
 class TestOnnxBackend:
