@@ -267,6 +267,7 @@ class TestCli:
         assert res.exit_code == 0, res.output
         assert "EPE" in res.output and (tmp_path / "eval" / "maps" / "000000_10_error.png").is_file()
         row = next(csv.DictReader(open(tmp_path / "eval" / "metrics.csv")))
+        assert json.loads((tmp_path / "eval" / "summary.json").read_text())["file"] == str(tiny_ckpt)  # the file read
         again = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti15", "--root", str(root),
                                           "--limit", "1", "--out", str(tmp_path / "eval"), "--no-save-maps"])
         assert again.exit_code == 0 and not (tmp_path / "eval" / "maps").exists()  # the earlier run's maps went

@@ -14,7 +14,7 @@ import click
 
 from optstereo import evaluate, validation
 from optstereo.adapt_report import MAX_DECIMALS, decimals_for
-from optstereo.checkpoint import CheckpointError
+from optstereo.checkpoint import CheckpointError, resolve_checkpoint
 from optstereo.cli import common
 from optstereo.pretrained import resolve_checkpoint_spec
 from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text
@@ -81,8 +81,10 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
         if dataset is None:
             raise click.UsageError("--checkpoint needs --dataset NAME (and --root PATH)")
         model, dev = common.load_model(checkpoint, device)
+        # the file read: a run folder's last.pt, a shipped name's weights
+        meta = {"checkpoint": str(checkpoint), "file": str(resolve_checkpoint(resolve_checkpoint_spec(checkpoint)))}
         result = evaluate.evaluate_model(model, dataset, root, split=split, iters=iters, device=dev, out_dir=out,
-                                         limit=limit, save_maps=save_maps, meta={"checkpoint": str(checkpoint)},
+                                         limit=limit, save_maps=save_maps, meta=meta,
                                          amp=amp, reader_options=common.collect_reader_options(**reader),
                                          scale=scale, refine=refine)
     click.echo(summary_line(result.summary))
