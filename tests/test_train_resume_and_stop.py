@@ -216,6 +216,34 @@ class TestInterrupt:
         assert more.exit_code == 0, more.output
         assert f"trained {step} -> {step + 1} steps" in more.output
 
+    def test_sigterm_to_the_process_group_saves_a_checkpoint(self, tiny_shards: Path, tmp_path: Path) -> None:
+        """SIGTERM to the whole process group (``timeout``, a session's end): with a data worker, the worker used to
+        die first and take the run with it ('DataLoader worker ... is killed by signal: Terminated', no checkpoint);
+        now the worker ignores it and the run saves, exiting 143."""
+        run = tmp_path / "run"
+        cmd = [sys.executable, "-m", "optstereo.cli", "train", "--labels", str(tiny_shards), "--out", str(run),
+               "--steps", "100000", "--batch-size", "2", "--crop", "32x64", "--iters", "2", "--workers", "1",
+               "--threads", "1", "--device", "cpu", "--log-every", "1", "--ckpt-every", "100000",
+               "--set", "tensorboard=false", *(f"--set=model.{k}={v}" for k, v in TINY.items())]
+        proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                start_new_session=True)  # its own process group, as a shell job's
+        try:
+            deadline = time.monotonic() + 300
+            while proc.poll() is None and time.monotonic() < deadline:
+                if (run / "metrics.jsonl").is_file() and (run / "metrics.jsonl").read_text().strip():
+                    break
+                time.sleep(0.05)
+            assert proc.poll() is None, f"the run ended before the signal: {proc.communicate()[1][-2000:]}"
+            os.killpg(proc.pid, signal.SIGTERM)
+            _, stderr = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.communicate()
+        assert proc.returncode == 143, stderr[-3000:]
+        step = load_checkpoint(run).step
+        assert step >= 1 and f"SIGTERM: stopped at step {step} of 100000" in stderr and "killed by signal" not in stderr
+
     def test_resume_without_a_checkpoint_says_to_start_again(self, tiny_shards: Path, tmp_path: Path) -> None:
         run = tmp_path / "run"
         run.mkdir()

@@ -51,7 +51,7 @@ from optstereo.training.log import (  # noqa: F401  (METRICS_FILE: API)
 )
 from optstereo.training.losses import PVStereoLoss
 from optstereo.training.runpaths import absolute_paths
-from optstereo.training.stopping import nothing_to_do, stop_on_signal
+from optstereo.training.stopping import ignore_stop_signals, nothing_to_do, stop_on_signal, workers_shut_down
 from optstereo.training.validate import check_val_dataset, gtfree_hook, report_path
 from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.errors import ConfigError
@@ -132,6 +132,7 @@ def build_loader(cfg: TrainConfig, info: ddp.DistInfo, start_step: int = 0) -> D
         batch_size=data.batch_size,
         num_workers=data.workers,
         collate_fn=collate_min_size,
+        worker_init_fn=ignore_stop_signals,  # a signal to the process group is the training process's to handle
         persistent_workers=False,
         prefetch_factor=2 if data.workers > 0 else None,
     )
@@ -391,9 +392,10 @@ def _run(cfg: TrainConfig, run_dir: Path, device: torch.device, info: ddp.DistIn
     start_step, t0 = state.step, time.perf_counter()
     try:
         if state.step < cfg.optim.steps:
-            loader = build_loader(cfg, info, start_step=state.step)
-            with stop_on_signal(state, cfg, info) as stop:  # Ctrl-C / SIGTERM: checkpoint, TrainingInterrupted
-                train_steps(state, stop.watch(iter(loader)), loss_fn, cfg, device, run_logger=run_logger,
+            batches = iter(build_loader(cfg, info, start_step=state.step))
+            # Ctrl-C / SIGTERM: the workers shut down, a checkpoint, TrainingInterrupted
+            with stop_on_signal(state, cfg, info) as stop, workers_shut_down(batches):
+                train_steps(state, stop.watch(batches), loss_fn, cfg, device, run_logger=run_logger,
                             on_checkpoint=save, show_progress=progress and info.is_main)
             if state.step % cfg.ckpt_every != 0:
                 save(state)

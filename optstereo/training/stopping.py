@@ -91,6 +91,28 @@ class SignalStop:
         raise _StopRequested
 
 
+def ignore_stop_signals(_worker_id: int = 0) -> None:
+    """DataLoader ``worker_init_fn``: the data workers ignore SIGINT and SIGTERM, which the training process handles.
+    A signal to the whole process group (``timeout``, a session's end, ``kill -- -PGID``) killed the workers first,
+    and the run with them, before its checkpoint. The workers still end with the training process (they exit when
+    it does: DataLoader's watchdog)."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def workers_shut_down(batches: Iterator[Any]) -> Iterator[None]:
+    """Around the loop over a DataLoader's iterator ``batches``: its worker processes are shut down when the loop
+    ends, however it ends. They ignore the stop signals (:func:`ignore_stop_signals`), so an iterator left to the
+    garbage collector kept them alive at exit, where multiprocessing's SIGTERM and join then waited forever."""
+    try:
+        yield
+    finally:
+        shutdown = getattr(batches, "_shutdown_workers", None)  # torch's multi-process iterator (none at 0 workers)
+        if shutdown is not None:
+            shutdown()
+
+
 @contextlib.contextmanager
 def stop_on_signal(state: TrainState, cfg: TrainConfig, info: ddp.DistInfo) -> Iterator[SignalStop]:
     """Around the loop (fed ``stop.watch(batches)``): on SIGINT/SIGTERM the step under way finishes, a checkpoint
