@@ -253,6 +253,14 @@ class TestInterrupt:
         assert "the run never saved one" in result.output and f"--config {run / 'config.yaml'}" in result.output
 
 
+    def test_resume_of_a_labels_folder_names_it(self, tiny_shards: Path) -> None:
+        """--resume given the shards' folder (its config.yaml is the labeler's): exit 2 saying what it is, not the
+        "never saved a checkpoint, start again with --config ..." advice that then failed on the labeler's keys."""
+        result = CliRunner().invoke(train_main, ["--resume", str(tiny_shards), "--steps", "5"])
+        assert result.exit_code == 2, result.output
+        assert "is a folder of shards (pvm-label's), not a training run: give it to --labels" in " ".join(
+            result.output.split())
+
     def test_ctrl_c_outside_the_steps_exits_130_saying_what_is_left(self, tiny_shards: Path, tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
         """Ctrl-C while the start is scored (before the steps' handler) or at the end: exit 130 naming the
