@@ -29,6 +29,7 @@ PY=${PY:-python3}
 mkdir -p "$OUTD" "$W"
 exec > >(tee -a "$OUTD/session.log") 2>&1
 elapsed() { echo "+$(( $(date +%s) - T0 )) s"; }
+failed=()  # the stages that failed: the call exits non-zero when any did
 echo "distill session start $(date -u +%FT%TZ), ends by +$TOTAL_S s"
 { git rev-parse --short HEAD 2>/dev/null; nproc; command -v nvidia-smi > /dev/null && nvidia-smi -L
   $PY -c "import torch, numba, h5py, cv2; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(),
@@ -39,12 +40,12 @@ echo "distill session start $(date -u +%FT%TZ), ends by +$TOTAL_S s"
 labeller=$!
 timeout "${TEACHER_S:-170}" $PY -m optstereo.cli distill maps --checkpoint pretrained-accurate --root "$PACK" --out "$W/maps" --device "$DEVICE" \
   > "$W/maps.log" 2>&1
-echo "teacher maps: exit $? at $(elapsed); $(tail -n 1 "$W/maps.log")"
+rc=$?; [ "$rc" = 0 ] || failed+=(maps); echo "teacher maps: exit $rc at $(elapsed); $(tail -n 1 "$W/maps.log")"
 wait "$labeller"
-echo "labels: exit $? at $(elapsed); $(tail -n 1 "$W/labels.log")"
+rc=$?; [ "$rc" = 0 ] || failed+=(labels); echo "labels: exit $rc at $(elapsed); $(tail -n 1 "$W/labels.log")"
 $PY -m optstereo.cli distill fill "$W/labels" "$W/maps" "$W/distill" --compression lzf --allow-missing > "$W/fill.log" 2>&1
-echo "fill: exit $? at $(elapsed); $(tail -n 1 "$W/fill.log")"
-$PY - "$W/distill/index.json" "$OUTD/distill.json" <<'EOF'
+rc=$?; [ "$rc" = 0 ] || failed+=(fill); echo "fill: exit $rc at $(elapsed); $(tail -n 1 "$W/fill.log")"
+[ -f "$W/distill/index.json" ] && $PY - "$W/distill/index.json" "$OUTD/distill.json" <<'EOF'
 import json, sys
 index = json.load(open(sys.argv[1]))
 keep = {k: index[k] for k in ("num_samples", "distill", "distilled_from", "dataset") if k in index}
@@ -66,8 +67,10 @@ student=$!
 $PY -m optstereo.cli train --model hitnet --out "$W/fast" --steps "$FAST_STEPS" --lr 4e-4 --seed 41 --photometric \
   "${common[@]}" > "$W/fast.log" 2>&1 &
 fast=$!
-wait "$student"; echo "student: exit $? at $(elapsed); $(tail -n 2 "$W/student.log" | tr '\n' ' ')"
-wait "$fast"; echo "fast: exit $? at $(elapsed); $(tail -n 2 "$W/fast.log" | tr '\n' ' ')"
+wait "$student"; rc=$?; [ "$rc" = 0 ] || failed+=(student)
+echo "student: exit $rc at $(elapsed); $(tail -n 2 "$W/student.log" | tr '\n' ' ')"
+wait "$fast"; rc=$?; [ "$rc" = 0 ] || failed+=(fast)
+echo "fast: exit $rc at $(elapsed); $(tail -n 2 "$W/fast.log" | tr '\n' ' ')"
 for name in student fast; do
   cp "$W/$name/model.safetensors" "$OUTD/$name.safetensors" 2>/dev/null || echo "no $name export"
   cp "$W/$name/metrics.jsonl" "$OUTD/${name}_metrics.jsonl" 2>/dev/null
@@ -76,6 +79,8 @@ tail -n 3 "$W/student/metrics.jsonl" "$W/fast/metrics.jsonl" 2>/dev/null
 if [ "$DEVICE" = cuda ]; then
   timeout 40 $PY -m pipelines.studies.gpu.cuda_timing --out "$OUTD/cuda_times.json" --repeats 10 --warmup 3 \
     --end-to-end student="$W/student/model.safetensors" fast="$W/fast/model.safetensors" > "$W/timing.log" 2>&1
-  echo "cuda timing: exit $? at $(elapsed)"; cat "$OUTD/cuda_times.json" 2>/dev/null
+  rc=$?; [ "$rc" = 0 ] || failed+=(timing); echo "cuda timing: exit $rc at $(elapsed)"
+  cat "$OUTD/cuda_times.json" 2>/dev/null
 fi
-echo "session end at $(elapsed)"
+echo "session end at $(elapsed)${failed[*]:+; FAILED: ${failed[*]}}"
+[ "${#failed[@]}" = 0 ]  # the exit status: non-zero when a stage failed (its log above says why)

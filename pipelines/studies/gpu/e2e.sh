@@ -30,10 +30,10 @@ echo "e2e start $(date -u +%FT%TZ), each run trains $END_S s"
 } 2>&1
 common=(--pack .carry/A --out "$OUTD" --device "$DEVICE" --amp "$AMP" --batch "$BATCH" --crop "$CROP"
         --end-s "$END_S" --threads "$THREADS")
-run() {  # name, then the run's own arguments
-  local name=$1; shift
+run() {  # name, then the run's own arguments; its exit status is the run's
+  local name=$1 rc; shift
   $PY -m pipelines.studies.e2e_distill train --name "$name" "${common[@]}" "$@" > "$OUTD/logs/$name.out" 2>&1
-  echo "$name: exit $? at $(date -u +%T)"
+  rc=$?; echo "$name: exit $rc at $(date -u +%T)"; return "$rc"
 }
 $PY -m pipelines.studies.cheap_layer1 export --state .carry/E/e4_stages.safetensors --out /tmp/e5.safetensors || exit 1
 pids=()
@@ -46,10 +46,14 @@ run E7a --student $e5 --teacher pretrained --lr 5e-5 --seed 70 --snaps 2 & pids+
 run E7b --student $e5 --teacher pretrained --lr 1.5e-5 --seed 71 --snaps 1 & pids+=($!)
 run G5a --student pretrained "${v14[@]}" --lr 2e-5 --seed 72 --snaps 2 & pids+=($!)
 run G5b --student pretrained "${v14[@]}" --lr 5e-5 --seed 73 --snaps 1 & pids+=($!)
-wait "${pids[@]}"  # not a bare wait: it would wait for the tee above, which ends only with this script
+failed=0  # how many runs failed: the call exits non-zero when any did
+for pid in "${pids[@]}"; do  # not a bare wait: it would wait for the tee above, which ends only with this script
+  wait "$pid" || failed=$((failed + 1))
+done
 [ -e "$OUTD/logs/gpu_tests.txt" ] && echo "gpu tests: $(tail -n 1 "$OUTD/logs/gpu_tests.txt")"
 mv "$OUTD"/*.jsonl "$OUTD/logs/" 2>/dev/null
 tar -cf "$OUTD/logs.tar" -C "$OUTD" logs && rm -r "$OUTD/logs"
 for f in "$OUTD"/*.jsonl "$OUTD"/logs.tar; do [ -e "$f" ] && echo "kept $f"; done
 ls -la "$OUTD"
-echo "e2e end $(date -u +%FT%TZ)"
+echo "e2e end $(date -u +%FT%TZ); $failed failed"
+[ "$failed" = 0 ]

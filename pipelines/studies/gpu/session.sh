@@ -18,19 +18,23 @@ PY=${PY:-python3}
 mkdir -p "$OUTD" "$W"
 exec > >(tee -a "$OUTD/session.log") 2>&1
 echo "session start $(date -u +%FT%TZ), training ends by +$TOTAL_S s"
+failed=()  # the stages that failed: the call exits non-zero when any did
 
 ( $PY -m pvm_labeler.cli run --dataset folder --root "${PACK:-.carry/unl}" --out "$W/labels" \
     --jobs "${LABEL_JOBS:-12}" --compression lzf --quiet > "$W/labels.log" 2>&1 && touch "$W/labels.ok" ) &
 labeller=$!
 
 timeout 200 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py tests/test_refine_torch.py > "$OUTD/gpu_tests.txt" 2>&1
-echo "gpu tests: exit $? ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
+rc=$?; [ "$rc" = 0 ] || failed+=(tests); echo "gpu tests: exit $rc ($(tail -n 1 "$OUTD/gpu_tests.txt"))"
 wait "$labeller"
-echo "labels: exit $? at +$(( $(date +%s) - T0 )) s; $(tail -n 1 "$W/labels.log")"
+rc=$?; [ "$rc" = 0 ] || failed+=(labels)
+echo "labels: exit $rc at +$(( $(date +%s) - T0 )) s; $(tail -n 1 "$W/labels.log")"
 
 timeout 120 $PY -m pipelines.studies.gpu.cuda_timing --out "$OUTD/cuda_timing.json" > "$W/timing.log" 2>&1
-echo "cuda timing: exit $? at +$(( $(date +%s) - T0 )) s; $(tail -n 1 "$W/timing.log")"
+rc=$?; [ "$rc" = 0 ] || failed+=(timing)
+echo "cuda timing: exit $rc at +$(( $(date +%s) - T0 )) s; $(tail -n 1 "$W/timing.log")"
 [ -f "$OUTD/cuda_timing.json" ] && cat "$OUTD/cuda_timing.json"
 
-END_AT=$((T0 + TOTAL_S)) WORK="$W" OUT="$OUTD" bash "$(dirname "$0")/continue.sh"
-echo "session end at +$(( $(date +%s) - T0 )) s"
+END_AT=$((T0 + TOTAL_S)) WORK="$W" OUT="$OUTD" bash "$(dirname "$0")/continue.sh" || failed+=(continue)
+echo "session end at +$(( $(date +%s) - T0 )) s${failed[*]:+; FAILED: ${failed[*]}}"
+[ "${#failed[@]}" = 0 ]  # the exit status: non-zero when a stage failed (its log above says why)
