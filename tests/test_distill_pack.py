@@ -86,3 +86,17 @@ def test_halve_pack_writes_half_size_area_averages(more: Path, tmp_path: Path) -
             half = read_image(got).astype(np.float64)
             assert half.shape == (12, 20, 3)
             assert np.abs(half - blocks).max() <= 0.5 + 1e-9
+
+
+def test_the_default_budget_fits_the_carry_beside_the_tree() -> None:
+    """The pack's default budget is the 64 MiB carry less the tracked tree and 2 MB (a fixed 44 MB made 69 MiB in
+    all once the tree had grown to 30 MB)."""
+    import subprocess
+
+    names = [n for n in subprocess.run(["git", "ls-files", "-z"], capture_output=True, check=True,
+                                       cwd=Path(__file__).resolve().parents[1]).stdout.decode().split("\0") if n]
+    tree = sum((Path(__file__).resolve().parents[1] / n).stat().st_size for n in names
+               if (Path(__file__).resolve().parents[1] / n).is_file())
+    budget = distill_pack.carry_budget_mb()
+    assert budget * 1e6 + tree + 2_000_000 == pytest.approx(64 * 2**20, abs=1)
+    assert 0 < budget < 64 * 2**20 / 1e6

@@ -9,7 +9,8 @@
 #        student  OptStereo from version 14's weights, ONE pass from zero at input scale 1, no filter (the default);
 #        fast     PVM-HITNet from scratch (the fast model);
 #   5. KITTI-size infer() times of both on CUDA (bf16 and float32, synchronised).
-# Here, once: python -m pipelines.studies.gpu.distill_pack .carry/distill   (144 unlabelled pairs as JPEG q92, ~43 MB)
+# Here, once: python -m pipelines.studies.gpu.distill_pack .carry/distill   (144 unlabelled pairs as JPEG, the quality
+#   that fits the 64 MiB carry beside the tracked tree: ~35 MB)
 # Device:     run(command="bash pipelines/studies/gpu/distill.sh", carry=[".carry/distill"], timeout_s=600)
 # $OUT: session.log, student.safetensors, fast.safetensors, their metrics (*.jsonl), distill.json (label/fill
 #       counts), cuda_times.json.

@@ -4,7 +4,8 @@ Part ``shared``: kitti_unlabelled (87 pairs) and each sub-folder of unlabelled_m
 ``more``: each sub-folder (``image_2`` / ``image_3``) of the folder ``fetch_unlabelled_more.sh`` fills (324 pairs),
 less the pairs whose left image is byte-identical to one of part ``shared`` (57 of them). Each pair goes to
 ``OUT/{left,right}/<set>_<id>.<format>``; the quality is the highest of ``QUALITIES`` whose pack stays under
-``--budget-mb`` (the lent GPU's carry is 64 MiB with the tracked tree's ~24 MB). No GT file is read or copied.
+``--budget-mb`` (default: what the lent GPU's 64 MiB carry leaves beside the tracked tree, less 2 MB:
+``carry_budget_mb``). No GT file is read or copied; a missing ``--shared`` / ``--more`` folder is named.
 
     python -m pipelines.studies.gpu.distill_pack .carry/A --part shared --format webp --budget-mb 37
     python -m pipelines.studies.gpu.distill_pack .carry/B --part more --more /work/unl_more --format webp --budget-mb 37
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import shutil
+import subprocess
 from pathlib import Path
 
 import cv2
@@ -135,6 +137,17 @@ def link_pack(refs: list[tuple[str, PairRef]], out: Path) -> int:
     return len(refs)
 
 
+#: The device tool's carry (64 MiB) and the room kept free beside the tracked tree and a pack.
+CARRY_BYTES, CARRY_MARGIN = 64 * 2**20, 2_000_000
+
+
+def carry_budget_mb() -> float:
+    """MB (1e6 bytes) a pack may take: the 64 MiB carry less the files git tracks here and a 2 MB margin."""
+    listed = subprocess.run(["git", "ls-files", "-z"], capture_output=True, check=True).stdout.split(b"\0")
+    tree = sum(Path(name.decode()).stat().st_size for name in listed if name and Path(name.decode()).is_file())
+    return (CARRY_BYTES - tree - CARRY_MARGIN) / 1e6
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
@@ -142,11 +155,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--shared", type=Path, default=SHARED)
     parser.add_argument("--more", type=Path, help="The folder fetch_unlabelled_more.sh filled (--part more).")
     parser.add_argument("--format", choices=(*PARAMS, "link"), default="jpg")
-    parser.add_argument("--budget-mb", type=float, default=44.0)
+    parser.add_argument("--budget-mb", type=float, default=None,
+                        help="Pack size in MB (default: the carry's 64 MiB less the tracked tree, less 2 MB).")
     parser.add_argument("--only", nargs="+", help="Keep only the sets of these folder names.")
     parser.add_argument("--skip", nargs="+", help="Drop the sets of these folder names.")
     parser.add_argument("--halve", action="store_true", help="Write every pair at half size (lossless PNG).")
     args = parser.parse_args(argv)
+    for folder in (args.shared, args.more):
+        if folder is not None and not folder.is_dir():
+            parser.error(f"{folder} is not a folder (--shared: ../shared/data seen from where you run this; --more: "
+                         "the folder fetch_unlabelled_more.sh filled)")
     if args.part == "shared":
         refs = pairs(select(shared_sets(args.shared), args.only, args.skip))
     else:
@@ -162,7 +180,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.format == "link":
         print(f"{link_pack(refs, args.out)} pairs -> {args.out} (links to the originals)")
         return
-    n, quality, size = write_pack(refs, args.out, args.format, args.budget_mb)
+    budget = args.budget_mb if args.budget_mb is not None else carry_budget_mb()
+    n, quality, size = write_pack(refs, args.out, args.format, budget)
     print(f"{n} pairs -> {args.out} ({args.format} q{quality}, {size / 1e6:.1f} MB)")
 
 
