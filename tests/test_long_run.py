@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import make_shards
 
 from pipelines.studies import long_run
@@ -56,7 +57,7 @@ def test_curve_adds_up_chapters(tmp_path: Path) -> None:
     assert [r["gtfree_pvm_epe"] for r in rows] == [0.519, 0.52, 0.51, 0.50, 0.49, 0.48]
     assert rows[-1]["hours"] == 2.5
     assert (tmp_path / "out" / "curve.png").stat().st_size > 0
-    assert "| ch02 | avx2 | 500 | 2.5 | 0.4800 |" in (tmp_path / "out" / "curve.md").read_text()
+    assert "| ch02 | avx2 | 500 | 2.5 |  | 0.4800 |" in (tmp_path / "out" / "curve.md").read_text()
 
 
 def _gtfree(errs: list[float], photo: list[float]) -> dict:
@@ -98,6 +99,50 @@ def test_record_appends_a_gpu_chapter_scored_here(tmp_path: Path) -> None:
     assert (chapter / "run" / "model.safetensors").read_bytes() == snaps[0].read_bytes()
     rows = long_run.curve(run, tmp_path / "curve")
     assert [(r["machine"], r["step"]) for r in rows] == [("NVIDIA H100", 2), ("NVIDIA H100", 4)]
+
+
+def test_record_checks_names_first_and_leaves_no_half_chapter(tmp_path: Path) -> None:
+    """A snapshot not named <name>-<step> is refused before anything is made; a snapshot the evaluation cannot read
+    leaves no chapter folder behind (it blocked every later record and chapter as "unfinished")."""
+    from conftest import make_valset
+
+    val, run = make_valset(tmp_path / "val", teacher_digest="none"), tmp_path / "run"
+    plain = tmp_path / "model.safetensors"
+    plain.write_bytes(b"x")
+    with pytest.raises(SystemExit, match="named <name>-<step>.safetensors"):
+        long_run.record(run, [plain], val, "NVIDIA H100", 0.1)
+    assert not run.exists()
+    broken = tmp_path / "G-2.safetensors"
+    broken.write_bytes(b"not weights")
+    with pytest.raises(SystemExit, match="record.log"):
+        long_run.record(run, [broken], val, "NVIDIA H100", 0.1)
+    assert sorted(p.name for p in run.iterdir()) == ["record.log"]  # no ch01: the next record or chapter can run
+
+
+def test_hours_count_a_cut_off_session_to_its_last_checkpoint(tmp_path: Path) -> None:
+    """A chapter's hours: a session cut off (no ledger line) counts up to its last.pt, the next one to its end."""
+    import os
+
+    current, out = tmp_path / "ch01", tmp_path / "ch01" / "run"
+    out.mkdir(parents=True)
+    long_run.session_hours(current, out)  # cut off: its total is never taken
+    start = json.loads((current / "sessions.json").read_text())[0][0]
+    (out / "last.pt").write_bytes(b"")
+    os.utime(out / "last.pt", (start + 3600, start + 3600))  # its last checkpoint an hour in
+    total = long_run.session_hours(current, out)
+    assert 1.0 <= total() < 1.01
+    spans = json.loads((current / "sessions.json").read_text())
+    assert spans[0] == [start, start + 3600] and len(spans) == 2
+
+
+def test_compare_refuses_reports_of_other_pairs(tmp_path: Path) -> None:
+    base, cand = _gtfree([0.5, 0.6, 0.7, 0.8], [0.1] * 4), _gtfree([0.5, 0.6], [0.1] * 2)
+    for name, doc in (("base.json", base), ("cand.json", cand)):
+        (tmp_path / name).write_text(json.dumps(doc))
+    with pytest.raises(SystemExit, match=r"scores 4 pairs, .*cand.json 2 \(2 shared\): compare reports of the same"):
+        long_run.main(["compare", str(tmp_path / "base.json"), str(tmp_path / "cand.json")])
+    with pytest.raises(SystemExit, match="missing.json: not a readable optstereo-eval --valset report"):
+        long_run.main(["compare", str(tmp_path / "missing.json"), str(tmp_path / "cand.json")])
 
 
 def test_a_chapter_end_to_end_then_the_next_from_its_weights(tmp_path: Path) -> None:

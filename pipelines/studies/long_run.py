@@ -43,6 +43,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -152,16 +153,45 @@ def chapter(args: argparse.Namespace) -> Path:
         train += ["--config", str(CPU_RECIPE), *RECIPE, "--labels", str(train_dir), "--val-set", str(args.valset),
                   "--val-limit", str(args.val_limit), "--steps", str(NO_STEP_CAP), "--ckpt-every", str(args.ckpt_every),
                   "--seed", str(int(current.name[2:]) - 1), "--init", init, "--out", str(out)]
-    t0 = time.time()
+    hours = session_hours(current, out)
     run_cmd(train, current / "train.log")
     summary = json.loads((out / "summary.json").read_text())
     line = {"chapter": current.name, "init": init, "resumed": resuming, "pairs": read_index(train_dir).num_samples,
-            "steps": summary["step"], "hours": round((time.time() - t0) / 3600, 3), "machine": machine(),
+            "steps": summary["step"], "hours": round(hours(), 3), "machine": machine(),
             "date": time.strftime("%Y-%m-%d"), "val": val_curve(out / "metrics.jsonl")}
     with (run / LEDGER).open("a") as handle:
         handle.write(json.dumps(line) + "\n")
     (current / "done.json").write_text(json.dumps(line))
     return current
+
+
+def session_hours(current: Path, out: Path) -> Callable[[], float]:
+    """Start a training session of chapter ``current`` (its run folder ``out``); returns a callable giving the hours
+    of all its sessions at the end. A session cut off (a killed job) wrote no ledger line: it counts up to its last
+    checkpoint (``last.pt``'s time: the steps after it are trained again), read when the next session starts."""
+    sessions = current / "sessions.json"
+    spans = json.loads(sessions.read_text()) if sessions.is_file() else []
+    if spans and spans[-1][1] is None:  # the previous session was cut off
+        last = out / "last.pt"
+        spans[-1][1] = max(spans[-1][0], last.stat().st_mtime) if last.is_file() else spans[-1][0]
+    spans.append([time.time(), None])
+    sessions.write_text(json.dumps(spans))
+
+    def total() -> float:
+        spans[-1][1] = time.time()
+        sessions.write_text(json.dumps(spans))
+        return sum(end - start for start, end in spans) / 3600
+
+    return total
+
+
+def _snapshot_step(snap: Path) -> int:
+    """The step of a snapshot named ``<name>-<step>.safetensors``; SystemExit naming the file otherwise."""
+    head, _, tail = snap.stem.rpartition("-")
+    if not head or not tail.isdigit() or not snap.is_file():
+        raise SystemExit(f"{snap}: a snapshot is an existing file named <name>-<step>.safetensors (the study's "
+                         "snapshots export)")
+    return int(tail)
 
 
 def record(run: Path, snapshots: list[Path], valset: Path, gpu: str, hours: float) -> Path:
@@ -170,17 +200,21 @@ def record(run: Path, snapshots: list[Path], valset: Path, gpu: str, hours: floa
     done = chapters(run)
     if done and not (done[-1] / "done.json").is_file():
         raise SystemExit(f"{done[-1]} is unfinished: run its chapter to the end before recording another")
+    snapshots = sorted(snapshots, key=_snapshot_step)  # every name checked before the chapter's folder is made
     current = run / f"ch{len(done) + 1:02d}"
     (current / "run").mkdir(parents=True)
-    snapshots = sorted(snapshots, key=lambda p: int(p.stem.rsplit("-", 1)[1]))
     val = []
-    for snap in snapshots:
-        out = current / "val" / snap.stem
-        run_cmd([sys.executable, "-m", "optstereo.cli", "eval", "--checkpoint", str(snap), "--valset", str(valset),
-                 "--out", str(out)], current / "eval.log")
-        summary = report_doc(out / "gtfree.json")["summary"]
-        val.append({"step": int(snap.stem.rsplit("-", 1)[1]),
-                    **{f"gtfree_{k}": v for k, v in summary.items() if k != "own_teacher"}})
+    try:
+        for snap in snapshots:
+            out = current / "val" / snap.stem
+            run_cmd([sys.executable, "-m", "optstereo.cli", "eval", "--checkpoint", str(snap), "--valset",
+                     str(valset), "--out", str(out)], run / "record.log")  # outside: a failed chapter goes
+            summary = report_doc(out / "gtfree.json")["summary"]
+            val.append({"step": _snapshot_step(snap),
+                        **{f"gtfree_{k}": v for k, v in summary.items() if k != "own_teacher"}})
+    except BaseException:  # a half-recorded chapter would block every later record and chapter
+        shutil.rmtree(current, ignore_errors=True)
+        raise
     shutil.copy2(snapshots[-1], current / "run" / "model.safetensors")
     init = str(done[-1] / "run" / "model.safetensors") if done else "pretrained"
     line = {"chapter": current.name, "init": init, "resumed": False, "pairs": None, "steps": val[-1]["step"],
@@ -193,8 +227,9 @@ def record(run: Path, snapshots: list[Path], valset: Path, gpu: str, hours: floa
 
 def curve(run: Path, out: Path, start: dict[str, float] | None = None) -> list[dict[str, Any]]:
     """The run's learning curve over all chapters: one row per validation, cumulative steps and hours; written to
-    ``out/curve.json``, ``out/curve.md`` and ``out/curve.png``. ``start``: the init's own score (step 0). Hours are
-    summed over a chapter's ledger lines (one per session that ran it) and shown at its last validation."""
+    ``out/curve.json``, ``out/curve.md`` and ``out/curve.png``. ``start``: the init's own score (step 0). A
+    chapter's hours (its ledger line: every session that ran it, :func:`session_hours`) are shown at its last
+    validation; ``pairs`` says how many validation pairs each row scored (a chapter's ``--val-limit``)."""
     rows: list[dict[str, Any]] = [{"chapter": "start", "step": 0, "hours": 0.0, **(start or {})}] if start else []
     by_chapter: dict[str, list[dict[str, Any]]] = {}
     for text in (run / LEDGER).read_text().splitlines():
@@ -214,10 +249,11 @@ def curve(run: Path, out: Path, start: dict[str, float] | None = None) -> list[d
     out.mkdir(parents=True, exist_ok=True)
     (out / "curve.json").write_text(json.dumps(rows, indent=1))
     keys = ("gtfree_pvm_epe", "gtfree_teacher_epe", "gtfree_photometric")
-    md = ["| chapter | machine | step | hours | " + " | ".join(k[7:] for k in keys) + " |",
-          "|---|---|---:|---:|" + "---:|" * len(keys)]
+    md = ["| chapter | machine | step | hours | pairs | " + " | ".join(k[7:] for k in keys) + " |",
+          "|---|---|---:|---:|---:|" + "---:|" * len(keys)]
     for row in rows:
-        md.append(f"| {row['chapter']} | {row.get('machine', '')} | {row['step']} | {row.get('hours', '')} | "
+        pairs = int(row["gtfree_pairs"]) if "gtfree_pairs" in row else ""
+        md.append(f"| {row['chapter']} | {row.get('machine', '')} | {row['step']} | {row.get('hours', '')} | {pairs} | "
                   + " | ".join(f"{row[k]:.4f}" if k in row else "" for k in keys) + " |")
     (out / "curve.md").write_text("\n".join(md) + "\n")
     _plot(rows, out / "curve.png")
@@ -350,6 +386,15 @@ def _plot(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def _read_report(path: Path) -> dict[str, Any]:
+    """A ``gtfree.json`` (or the folder holding one); SystemExit naming the file when it is missing or unreadable."""
+    path = path / "gtfree.json" if path.is_dir() else path
+    try:
+        return report_doc(path)
+    except (OSError, ValueError, KeyError) as exc:
+        raise SystemExit(f"{path}: not a readable optstereo-eval --valset report ({exc})") from exc
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -395,12 +440,17 @@ def main(argv: list[str] | None = None) -> None:
     elif args.cmd == "chapter":
         print(chapter(args))
     elif args.cmd == "compare":
-        base, cand = (report_doc(path) for path in (args.base, args.cand))
+        base, cand = (_read_report(path) for path in (args.base, args.cand))
+        ids = [{p["frame_id"] for p in doc["pairs"]} for doc in (base, cand)]
+        if ids[0] != ids[1]:  # pooled values of other pairs differ for that reason alone
+            shared = len(ids[0] & ids[1])
+            raise SystemExit(f"{args.base} scores {len(ids[0])} pairs, {args.cand} {len(ids[1])} ({shared} shared): "
+                             "compare reports of the same pairs (the same --val-limit)")
         print(non_inferior(base, cand)[1] if args.non_inferior else candidate(base, cand, guard=args.guard)[1])
     else:
         start = None
         if args.start:
-            summary = report_doc(args.start)["summary"]
+            summary = _read_report(args.start)["summary"]
             start = {f"gtfree_{k}": v for k, v in summary.items() if isinstance(v, float)}
         curve(args.run, args.out, start)
 
