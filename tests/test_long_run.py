@@ -47,7 +47,7 @@ def _ledger_line(chapter: str, steps: int, hours: float, val: list[tuple[int, fl
 def test_curve_adds_up_chapters(tmp_path: Path) -> None:
     run = tmp_path / "run"
     run.mkdir()
-    lines = [_ledger_line("ch01", 200, 1.0, [(100, 0.52), (200, 0.51)]),
+    lines = [_ledger_line("ch01", 200, 1.0, [(0, 0.519), (100, 0.52), (200, 0.51)]),  # step 0: its --init's score
              # ch02 cut off at step 100 of its own run, then resumed: the second line holds its whole metrics.jsonl
              _ledger_line("ch02", 100, 0.5, [(100, 0.50)]),
              _ledger_line("ch02", 300, 1.0, [(100, 0.50), (200, 0.49), (300, 0.48)], resumed=True)]

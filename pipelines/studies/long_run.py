@@ -240,6 +240,8 @@ def curve(run: Path, out: Path, start: dict[str, float] | None = None) -> list[d
     for name, lines in by_chapter.items():  # a resumed chapter's last line holds its whole run (metrics.jsonl)
         last = lines[-1]
         for row in last["val"]:
+            if int(row["step"]) == 0 and rows:  # a chapter's start: the weights of the row before, scored again
+                continue
             rows.append({"chapter": name, "machine": last["machine"]["gpu"] or last["machine"]["isa"],
                          "step": steps + int(row["step"]), **{k: v for k, v in row.items() if k != "step"}})
         steps += int(last["steps"])
