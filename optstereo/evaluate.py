@@ -168,9 +168,14 @@ def evaluate_frames(
     skipped: list[dict[str, str]] = []
     warnings: list[dict[str, str]] = []
     without_gt: list[str] = []
-    if out_dir is not None:  # an earlier evaluation's summaries would pass for this one's if it stops midway
-        for name in ("summary.json", "summary.md", FAILURES_FILE):
+    if out_dir is not None:  # an earlier evaluation's summaries would pass for this one's if it stops midway,
+        for name in ("summary.json", "summary.md", FAILURES_FILE):  # and its maps of frames not drawn now for its own
             (Path(out_dir) / name).unlink(missing_ok=True)
+        maps = Path(out_dir) / "maps"
+        for path in [*maps.glob("*_disp.png"), *maps.glob("*_error.png")]:
+            path.unlink()
+        if maps.is_dir() and not any(maps.iterdir()):
+            maps.rmdir()
     with contextlib.ExitStack() as stack:
         writer = None
         for frame in frames:

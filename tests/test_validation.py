@@ -182,12 +182,22 @@ def test_build_then_eval_valset_end_to_end(tmp_path: Path) -> None:
                                           str(tmp_path / "eval_other"), "--quiet"])
     assert same.exit_code == 0, same.output
     assert "pvm_epe: within noise (+0.0000, noise 0.0000)" in same.output
-    # a later run into a folder drops the earlier one's files it does not write (its comparison, its maps), and
-    # reads an --against report in that folder before
+    # a later run into a folder drops the earlier one's files it does not write (its comparison, its maps), once
+    # the model is read (a typo deletes nothing), and keeps an --against report in that folder
+    before = sorted(p.relative_to(tmp_path / "c") for p in (tmp_path / "c").rglob("*"))
+    typo = CliRunner().invoke(eval_main, ["--checkpoint", str(tmp_path / "typo.pt"), "--valset", str(val), "--out",
+                                          str(tmp_path / "c"), "--quiet"])
+    assert typo.exit_code != 0 and sorted(p.relative_to(tmp_path / "c") for p in (tmp_path / "c").rglob("*")) == before
+    inside = CliRunner().invoke(eval_main, ["--checkpoint", str(teacher), "--valset", str(val), "--out",
+                                            str(tmp_path / "c"), "--no-save-maps", "--against",
+                                            str(tmp_path / "c" / "against"), "--quiet"])
+    assert inside.exit_code == 0 and (tmp_path / "c" / "against" / "gtfree.json").is_file(), inside.output
+    (tmp_path / "c" / "summary.json").write_text("{}")
     again = CliRunner().invoke(eval_main, ["--checkpoint", str(teacher), "--valset", str(val), "--out",
                                            str(tmp_path / "c"), "--no-save-maps", "--quiet"])
     assert again.exit_code == 0, again.output
-    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["gtfree.json", "gtfree.md"]
+    # a training run's summary.json (OUT = the run folder) is no --valset output: it stays
+    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["gtfree.json", "gtfree.md", "summary.json"]
     (tmp_path / "eval_other" / "notes.txt").write_text("mine")
     itself = CliRunner().invoke(eval_main, ["--checkpoint", str(other), "--valset", str(val), "--out",
                                             str(tmp_path / "eval_other"), "--no-save-maps", "--against",

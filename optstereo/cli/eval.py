@@ -61,8 +61,10 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
                                    "--refine)")
         common.check_out(out)
         base = _against_report(against) if against is not None else None  # checked before any pair is scored
-        clear_earlier_run(out)  # after --against read its report: it may be this folder's
-        result = _eval_valset(checkpoint, valset, out, device, amp, quiet, save_maps)
+        # a report in OUT/against stays; one in OUT itself is read already and replaced by this run's
+        keep = _report_folder(Path(against)) if base is not None else None
+        keep = None if keep == out.resolve() else keep
+        result = _eval_valset(checkpoint, valset, out, device, amp, quiet, save_maps, keep)
         if against is not None:
             _compare(result, str(checkpoint), against, base, valset, out, device, amp, quiet)
         return
@@ -71,7 +73,6 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
     if (checkpoint is None) == (labels is None):
         raise click.UsageError("give exactly one of --checkpoint (with --dataset) or --labels SHARDS_DIR")
     common.check_out(out)
-    clear_earlier_run(out)
     if labels is not None:
         if scale is not None or refine is not None:
             raise click.UsageError("--scale and --refine act on a network's prediction; --labels evaluates stored "
@@ -95,22 +96,23 @@ def eval_main(checkpoint: Path | None, labels: Path | None, valset: Path | None,
         sys.exit(1)  # as optstereo-predict and pvm-label do when pairs failed: the scores lack those frames
 
 
-#: What an evaluation writes into OUT (GT: summary, metrics, failures; --valset: gtfree, and with --against the
-#: comparison and the other model's report), and the maps of both: globs relative to OUT.
-EVAL_OUTPUTS = ("summary.json", "summary.md", "metrics.csv", FAILURES_FILE, "gtfree.json", "gtfree.md", "compare.md",
-                "compare.json", "against/gtfree.json", "against/gtfree.md", "maps/*_disp.png", "maps/*_error.png",
-                "against/maps/*_disp.png", "against/maps/*_error.png")
+#: What a --valset evaluation writes into OUT: its report, its maps, with --against the comparison and the other
+#: model's report (globs relative to OUT; a GT evaluation clears its own: ``evaluate.evaluate_frames``).
+VALSET_OUTPUTS = ("gtfree.json", "gtfree.md", "maps/*_disp.png", "maps/*_error.png", "compare.md", "compare.json",
+                  "against/gtfree.json", "against/gtfree.md", "against/maps/*_disp.png", "against/maps/*_error.png")
 
 
-def clear_earlier_run(out: Path) -> None:
-    """Delete an earlier evaluation's files in ``out`` (:data:`EVAL_OUTPUTS`; nothing else), so that the folder
-    describes this run only: a comparison, or maps of frames this run does not draw, would pass for its own."""
-    earlier = sorted({path for pattern in EVAL_OUTPUTS for path in out.glob(pattern)})
+def clear_earlier_valset_run(out: Path, keep: Path | None = None) -> None:
+    """Delete an earlier --valset evaluation's files in ``out`` (:data:`VALSET_OUTPUTS`; nothing else, and nothing
+    in ``keep``, the folder of this run's --against report), so that the folder describes this run only: a
+    comparison, or maps of pairs this run does not draw, would pass for its own."""
+    earlier = sorted(path for pattern in VALSET_OUTPUTS for path in out.glob(pattern)
+                     if keep is None or keep not in path.resolve().parents)
     if earlier:
         logger.info("%s: removing %d files of an earlier evaluation", out, len(earlier))
     for path in earlier:
         path.unlink()
-    for folder in (out / "against" / "maps", out / "maps", out / "against"):
+    for folder in (out / "against" / "maps", out / "against", out / "maps"):
         if folder.is_dir() and not any(folder.iterdir()):
             folder.rmdir()
 
@@ -150,7 +152,7 @@ def problem_lines(s: dict[str, Any], out: Path) -> list[str]:
 
 
 def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp: str, quiet: bool,
-                 save_maps: bool) -> validation.ValScore:
+                 save_maps: bool, keep: Path | None = None) -> validation.ValScore:
     """``--valset``: OUT/gtfree.json (summary and per-pair sums), gtfree.md and one summary line; with
     ``save_maps`` each pair's disparity and its error against the pair's reference (PVM's labels, the teacher's
     consistent view in their holes) as OUT/maps/<pair>_disp.png and _error.png, KITTI's error colours."""
@@ -159,12 +161,18 @@ def _eval_valset(checkpoint: Path, valset_dir: Path, out: Path, device: str, amp
     except ValueError as exc:
         raise click.UsageError(str(exc)) from exc
     model, dev = common.load_model(checkpoint, device)
+    clear_earlier_valset_run(out, keep)  # once the set and the model are read: a typo deletes nothing
     result = validation.score(model, valset, dev, amp, progress=not quiet, what=str(checkpoint),
                               on_pair=evaluate.map_writer(out) if save_maps else None)
     report = validation.write_report(result, out, str(checkpoint), valset_dir)
     click.echo(validation.summary_line(result.summary))
     click.echo(f"report: {report}")
     return result
+
+
+def _report_folder(path: Path) -> Path:
+    """The folder of an --against report given as its folder or its gtfree.json (resolved)."""
+    return path.resolve() if path.is_dir() else path.resolve().parent
 
 
 def _against_report(against: str) -> validation.ValScore | None:
