@@ -260,6 +260,13 @@ class TestInterrupt:
         assert result.exit_code == 2, result.output
         assert "is a folder of shards (pvm-label's), not a training run: give it to --labels" in " ".join(
             result.output.split())
+        from optstereo.training.checkpoints import _resume_source
+
+        (tiny_shards / "last.pt").write_bytes(b"")  # a run whose --out was its --labels: it resumes
+        try:
+            assert _resume_source(tiny_shards) == tiny_shards
+        finally:
+            (tiny_shards / "last.pt").unlink()
 
     def test_ctrl_c_outside_the_steps_exits_130_saying_what_is_left(self, tiny_shards: Path, tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
@@ -274,12 +281,13 @@ class TestInterrupt:
                 *(f"--set=model.{k}={v}" for k, v in TINY.items())]
         first = CliRunner().invoke(train_main, args)
         assert first.exit_code == 130 and "Aborted!" not in first.output, first.output
-        assert f"SIGINT before the first step: no checkpoint in {run}" in first.output
+        assert f"interrupted before the first checkpoint: none in {run}" in first.output
         monkeypatch.undo()
         loop.main(tiny_config(tiny_shards, run, steps=2), progress=False)
         monkeypatch.setattr("optstereo.cli.train.main", interrupted)
         later = CliRunner().invoke(train_main, ["--resume", str(run), "--steps", "4"])
-        assert later.exit_code == 130 and f"{run / 'last.pt'} (step 2)" in later.output, later.output
+        assert later.exit_code == 130 and f"the last checkpoint is {run / 'last.pt'} (step 2)" in later.output, \
+            later.output
         assert f"continue with: optstereo-train --resume {run}" in later.output
 
 
@@ -374,3 +382,33 @@ def test_a_continued_run_drops_its_earlier_finish(finished_run: Path, monkeypatc
         loop.main(config_for_resume(finished_run, {"steps": 4}), resume=True, progress=False)
     assert not (finished_run / "summary.json").exists() and not (finished_run / "model.safetensors").exists()
     assert load_checkpoint(finished_run).step == 2  # the weights are still there
+
+
+def _wedged(ready: object) -> None:
+    """A data worker stuck in I/O that ignores SIGTERM, as the training's workers do."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    ready.set()  # type: ignore[attr-defined]
+    time.sleep(600)
+
+
+def test_a_wedged_worker_is_killed_when_the_loop_ends() -> None:
+    """torch's shutdown ends with SIGTERM, which the workers ignore (ignore_stop_signals): a worker still alive after
+    it is killed, so the trainer can exit (multiprocessing's exit would join it forever)."""
+    import multiprocessing
+
+    from optstereo.training.stopping import workers_shut_down
+
+    context = multiprocessing.get_context("fork")
+    ready = context.Event()
+    worker = context.Process(target=_wedged, args=(ready,), daemon=True)
+    worker.start()
+    assert ready.wait(timeout=30)
+    batches = type("Batches", (), {"_shutdown_workers": lambda self: worker.terminate(), "_workers": [worker]})()
+    try:
+        with workers_shut_down(batches):
+            pass
+        worker.join(timeout=10)
+        assert not worker.is_alive() and worker.exitcode == -signal.SIGKILL
+    finally:  # a regression fails here instead of hanging pytest's exit on the worker
+        if worker.is_alive():
+            worker.kill()

@@ -110,7 +110,11 @@ def workers_shut_down(batches: Iterator[Any]) -> Iterator[None]:
     finally:
         shutdown = getattr(batches, "_shutdown_workers", None)  # torch's multi-process iterator (none at 0 workers)
         if shutdown is not None:
-            shutdown()
+            shutdown()  # joins each worker, then sends SIGTERM, which they ignore: a wedged one is killed here
+            for worker in getattr(batches, "_workers", []):
+                if worker.is_alive():
+                    worker.kill()
+                    worker.join(timeout=5)
 
 
 @contextlib.contextmanager
