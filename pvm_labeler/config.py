@@ -51,6 +51,15 @@ def penalty_problem(census_window: int, paths: int, p1: int, p2: int) -> str | N
     return None
 
 
+def _frozen(value: Any) -> Any:
+    """``value`` with dicts and lists as (sorted) tuples: hashable, and equal where ``value`` is."""
+    if isinstance(value, dict):
+        return tuple(sorted((key, _frozen(item)) for key, item in value.items()))
+    if isinstance(value, (list, tuple)):
+        return tuple(_frozen(item) for item in value)
+    return value
+
+
 @dataclass(frozen=True)
 class LabelerConfig:
     """All knobs of one PVM labeling run.
@@ -157,9 +166,9 @@ class LabelerConfig:
         return json.dumps(self.to_dict(), sort_keys=True)
 
     def __hash__(self) -> int:
-        """Hash of the canonical JSON: a config can key a dict or a cache although ``extra`` is a dict (equal
-        configs hash alike, as the dataclass's ``==`` compares every field)."""
-        return hash(self.to_json())
+        """A config can key a dict or a cache although ``extra`` is a dict: the fields as nested tuples, so equal
+        configs hash alike as ``==`` (the dataclass's, field by field) has them: ``kappa1=2`` and ``2.0`` too."""
+        return hash(_frozen(self.to_dict()))
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> LabelerConfig:

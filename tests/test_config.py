@@ -66,6 +66,8 @@ class TestLabelerConfig:
         a, b = LabelerConfig(extra={"run": 1}), LabelerConfig(extra={"run": 1})
         assert a == b and hash(a) == hash(b) and {a: "x"}[b] == "x"
         assert len({a, LabelerConfig(extra={"run": 2}), LabelerConfig(k=3, extra={"run": 1})}) == 3
+        # equal as == has them: an int where the CLI gives a float (kappa1 2 vs 2.0), in extra too
+        assert {LabelerConfig(kappa1=2, extra={"w": [1]}): "x"}[LabelerConfig(kappa1=2.0, extra={"w": [1.0]})] == "x"
 
     def test_unknown_key(self) -> None:
         with pytest.raises(ConfigError, match="bogus"):
