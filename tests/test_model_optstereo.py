@@ -210,6 +210,8 @@ class TestForward:
             model(*pair)
         with torch.no_grad():
             model(*pair.to(torch.uint8))
+            if name == "optstereo":  # a float64 model takes float64 (gradcheck, numerical comparisons)
+                model.double()(*pair)
 
     def test_exception_iters(self) -> None:
         model = build_model("optstereo", **TINY)

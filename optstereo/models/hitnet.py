@@ -205,7 +205,7 @@ class HITNet(nn.Module):
     def forward(
         self, left: torch.Tensor, right: torch.Tensor, iters: int | None = None, test_mode: bool = False
     ) -> list[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:
-        check_stereo_pair(left, right, self.divisor)
+        check_stereo_pair(left, right, self.divisor, next(self.parameters()).dtype)
         iters = resolve_iters(iters, self.iters)
         size = (left.shape[-2], left.shape[-1])
         feats = self.features(torch.cat([normalize_image(left), normalize_image(right)], dim=0))

@@ -31,12 +31,16 @@ def normalize_image(image: torch.Tensor) -> torch.Tensor:
     return image * (2.0 / 255.0) - 1.0
 
 
-def check_stereo_pair(left: torch.Tensor, right: torch.Tensor, divisor: int) -> None:
+def check_stereo_pair(left: torch.Tensor, right: torch.Tensor, divisor: int,
+                      weights: torch.dtype = torch.float32) -> None:
     """Raise ValueError (with the actual shapes) unless left, right are equal (B, 3, H, W) with H, W % divisor == 0,
-    and TypeError for a dtype the network's float32 weights cannot take (float64, complex, bool)."""
+    and TypeError for a dtype the network's ``weights`` cannot take (float64 but for a ``.double()`` model, complex,
+    bool)."""
     for tensor in (left, right):
-        if tensor.dtype in (torch.float64, torch.bool) or tensor.dtype.is_complex:
-            raise TypeError(f"left/right must be float32 (or uint8, half) tensors of 0-255 values, got {tensor.dtype}"
+        if (tensor.dtype == torch.float64 and weights != torch.float64) or tensor.dtype == torch.bool \
+                or tensor.dtype.is_complex:
+            raise TypeError(f"left/right must be {str(weights)[6:]} (or uint8, half) tensors of 0-255 values for "
+                            f"this {str(weights)[6:]} network, got {tensor.dtype}"
                             f"{'; pass .float()' if tensor.dtype == torch.float64 else ''}")
     if left.ndim != 4 or right.ndim != 4:
         raise ValueError(f"left/right must be 4-D (B, 3, H, W), got {tuple(left.shape)} and {tuple(right.shape)}")
@@ -160,7 +164,7 @@ class OptStereo(nn.Module):
         return DIVISOR * self.corr_block.min_width
 
     def _check_inputs(self, left: torch.Tensor, right: torch.Tensor) -> None:
-        check_stereo_pair(left, right, self.divisor)
+        check_stereo_pair(left, right, self.divisor, next(self.parameters()).dtype)
         w = left.shape[-1]
         if w < self.min_width:
             raise ValueError(f"W must be >= {self.min_width} for {self.corr_block.num_levels} cost-volume levels, "
