@@ -149,7 +149,7 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
     except TrainingInterrupted as exc:  # Ctrl-C / SIGTERM: its checkpoint is saved; exit as the signal would
         click.echo(str(exc), err=True)
         sys.exit(exc.exit_code)  # not ctx.exit: click's Exit is a RuntimeError, which GuardedCommand reports
-    except KeyboardInterrupt:  # Ctrl-C outside the steps (the start's GT-free score, the data's setup, the end)
+    except KeyboardInterrupt:  # Ctrl-C outside the steps (the start's score, setup, the end), or a second signal
         click.echo(interrupted_outside_steps(Path(cfg.out)), err=True)
         sys.exit(130)
     if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 speaks for the run
@@ -222,9 +222,10 @@ def _train_config(config_file: Path | None, resume: Path | None, init_layer: dic
 
 
 def interrupted_outside_steps(run_dir: Path) -> str:
-    """What a Ctrl-C outside the training steps leaves: the run's last checkpoint to resume, or none (start again)."""
+    """What an interruption the steps did not handle leaves (Ctrl-C while the start is scored or the data set up,
+    a second Ctrl-C / SIGTERM, one under torchrun): the run's last checkpoint to resume, or none (start again)."""
     if (run_dir / LAST).is_file():
         step = load_checkpoint(run_dir).step
-        return (f"SIGINT outside the training steps; checkpoint {run_dir / LAST} (step {step}); continue with: "
+        return (f"interrupted; the last checkpoint is {run_dir / LAST} (step {step}); continue with: "
                 f"optstereo-train --resume {shlex.quote(str(run_dir))}")
-    return f"SIGINT before the first step: no checkpoint in {run_dir}; run the same command again to start"
+    return f"interrupted before the first checkpoint: none in {run_dir}; run the same command again to start"

@@ -223,10 +223,10 @@ def _flatten(nested: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 def _resume_source(run_dir: Path) -> Path:
     """RUN_DIR to load for --resume; a CheckpointError with what to do instead when it holds no training
     checkpoint (a run stopped before its first one: there is nothing to resume)."""
-    if (run_dir / INDEX_NAME).is_file() or (run_dir / "job.json").is_file():  # a labeling job's folder
-        raise ConfigError(f"--resume {run_dir}: that is a folder of shards (pvm-label's), not a training run: give it "
-                          f"to --labels, and --resume the run's --out folder")
     if run_dir.is_dir() and not any(p.is_file() and p.suffix in CHECKPOINT_SUFFIXES[:3] for p in run_dir.iterdir()):
+        if (run_dir / INDEX_NAME).is_file() or (run_dir / "job.json").is_file():  # a labeling job's folder
+            raise ConfigError(f"--resume {run_dir}: that is a folder of shards (pvm-label's), not a training run: "
+                              "give it to --labels, and --resume the run's --out folder")
         config = run_dir / CONFIG_FILE
         again = f"optstereo-train --config {config}" if config.is_file() else f"optstereo-train --out {run_dir} ..."
         raise CheckpointError(
