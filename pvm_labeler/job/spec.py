@@ -9,6 +9,7 @@ from typing import Any
 
 from pvm_labeler import multiscale
 from pvm_labeler.common.datasets import DATASETS, PairRef, check_pair_sizes
+from pvm_labeler.common.datasets.refs import META_FILES
 from pvm_labeler.common.errors import ConfigError, InputError
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.packgt import PACK_GT_LABELER
@@ -16,7 +17,6 @@ from pvm_labeler.parallel import BACKENDS
 from pvm_labeler.shards import COMPRESSIONS, DEFAULT_COMPRESSION
 
 DEFAULT_LABELER = "pvm_labeler.multiscale:label_pair"
-_META_PATHS = ("noc_mask", "occlusion", "calib")  # PairRef.meta entries that name files
 
 
 @dataclass(frozen=True)
@@ -169,5 +169,5 @@ def absolute_paths(ref: PairRef) -> PairRef:
         return ref
     files = {name: None if getattr(ref, name) is None else Path(getattr(ref, name)).resolve()
              for name in ("left", "right", "gt", "gt_noc", "gt_right")}
-    meta = {k: str(Path(v).resolve()) if k in _META_PATHS else v for k, v in ref.meta.items()}
+    meta = {k: str(Path(v).resolve()) if k in META_FILES else v for k, v in ref.meta.items()}
     return dataclasses.replace(ref, meta=meta, **files)

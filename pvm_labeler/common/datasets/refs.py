@@ -26,8 +26,11 @@ IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".webp", ".ppm", ".p
 DEFAULT_MAX_DISP: dict[str, int] = {"sample": 64}
 
 
-@dataclass
+#: PairRef.meta entries that name files (a noc mask, an occlusion map, a calibration with the search range).
+META_FILES: tuple[str, ...] = ("noc_mask", "occlusion", "calib")
 
+
+@dataclass
 class PairRef:
     """Where one stereo pair lives on disk (cheap to create, picklable, JSON-able through :meth:`to_dict`).
 
@@ -59,11 +62,12 @@ class PairRef:
         return out
 
     def source_digest(self) -> str:
-        """16 hex digits of BLAKE2b over the bytes of the pair's files (images and GT maps, by role; a role
-        without a file counts as such), so a resumed job sees an image replaced under the same name."""
+        """16 hex digits of BLAKE2b over the bytes of the pair's files (images, GT maps and the meta files that
+        shape a sample: noc mask, occlusion, calib; by role, a role without a file counting as such), so a resumed
+        job sees a file replaced under the same name."""
         digest = hashlib.blake2b(digest_size=8)
-        for role in ("left", "right", "gt", "gt_noc", "gt_right"):
-            path = getattr(self, role)
+        for role in ("left", "right", "gt", "gt_noc", "gt_right", *META_FILES):
+            path = self.meta.get(role) if role in META_FILES else getattr(self, role)
             digest.update(role.encode())
             if path is not None and Path(path).is_file():
                 with open(path, "rb") as fh:
