@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -93,3 +94,8 @@ def test_training_a_gt_pack_on_pvm_labels_is_refused(tmp_path: Path) -> None:
     assert result.exit_code == 2, result.output
     assert f"{out} is a GT pack" in " ".join(result.output.split()) and "--supervision gt" in result.output
     assert not run.exists()
+    index = json.loads((out / "index.json").read_text())  # a pack made before the summary said gt_only
+    del index["summary"]["gt_only"]
+    (out / "index.json").write_text(json.dumps(index))
+    result = CliRunner().invoke(train_main, ["--labels", str(out), "--out", str(run), "--steps", "1", "--workers", "0"])
+    assert result.exit_code == 2 and "is a GT pack" in result.output, result.output

@@ -69,7 +69,10 @@ def check_supervision(labels_dir: Path | str, supervision: str, index: ShardInde
     """ConfigError when ``supervision`` "pvm" meets a GT pack (``pvm-label pack-gt``: no PVM label; L_P would be 0
     and only the photometric terms would train). ``index``: the folder's, when already read."""
     index = index if index is not None else read_index(Path(labels_dir))
-    if supervision == "pvm" and (index.raw.get("summary") or {}).get("gt_only"):
+    # summary.gt_only, or (packs made before it was recorded) the pack's labeler config: labels none
+    gt_pack = ((index.raw.get("summary") or {}).get("gt_only")
+               or (index.config.get("extra") or {}).get("labels") == "none")
+    if supervision == "pvm" and gt_pack:
         raise ConfigError(f"{labels_dir} is a GT pack (pvm-label pack-gt: images and GT, no PVM labels): train on it "
                           "with --supervision gt, or label its pairs with pvm-label run")
 
