@@ -30,8 +30,15 @@ from optstereo.submission import write_submission
 from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
 from pvm_labeler.common.errors import ConfigError, InputError, PVMError
-from pvm_labeler.common.io import (KITTI_SCALE, image_size, read_image, write_disparity_file, write_image, write_npy,
-                                   write_pfm)
+from pvm_labeler.common.io import (
+    KITTI_SCALE,
+    image_size,
+    read_image,
+    write_disparity_file,
+    write_image,
+    write_npy,
+    write_pfm,
+)
 from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)

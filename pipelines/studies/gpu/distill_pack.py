@@ -38,6 +38,7 @@ from pvm_labeler.common.errors import InputError
 from pvm_labeler.common.io import read_image
 
 SHARED = Path("../shared/data")
+REPO = Path(__file__).resolve().parents[3]  # the checkout whose tracked files travel with a pack
 QUALITIES = (92, 90, 88, 85, 82, 80, 75)
 PARAMS = {"jpg": cv2.IMWRITE_JPEG_QUALITY, "webp": cv2.IMWRITE_WEBP_QUALITY}
 SetSpec = tuple[str, str, Path, dict[str, str]]
@@ -141,11 +142,11 @@ def link_pack(refs: list[tuple[str, PairRef]], out: Path) -> int:
 CARRY_BYTES, CARRY_MARGIN = 64 * 2**20, 2_000_000
 
 
-def carry_budget_mb() -> float:
-    """MB (1e6 bytes) a pack may take: the 64 MiB carry less the files git tracks here and a 2 MB margin."""
-    listed = subprocess.run(["git", "ls-files", "-z"], capture_output=True, check=True).stdout.split(b"\0")
-    tree = sum(Path(name.decode()).stat().st_size for name in listed if name and Path(name.decode()).is_file())
-    return (CARRY_BYTES - tree - CARRY_MARGIN) / 1e6
+def carry_budget_mb(repo: Path = REPO) -> float:
+    """MB (1e6 bytes) a pack may take: the 64 MiB carry less the files git tracks in ``repo`` and a 2 MB margin."""
+    listed = subprocess.run(["git", "-C", str(repo), "ls-files", "-z"], capture_output=True, check=True).stdout
+    files = [repo / name.decode() for name in listed.split(b"\0") if name]
+    return (CARRY_BYTES - sum(f.stat().st_size for f in files if f.is_file()) - CARRY_MARGIN) / 1e6
 
 
 def main(argv: list[str] | None = None) -> None:
