@@ -62,6 +62,10 @@ class Calibration:
         if not (0 <= self.cx <= width and 0 <= self.cy <= height):
             raise InputError(f"{self.source or 'the calibration'}: principal point ({self.cx:g}, {self.cy:g}) lies "
                              f"outside the {width}x{height} pair: it describes images of another size")
+        if abs(self.cx - width / 2) > width / 4 or abs(self.cy - height / 2) > height / 4:
+            logger.warning("%s: principal point (%g, %g) lies far from the centre of the %dx%d pair: a calibration "
+                           "of larger images? (its depths would be off by the size ratio; give width and height to "
+                           "have it checked)", self.source or "the calibration", self.cx, self.cy, width, height)
 
 
 def _numbers(text: str) -> list[float]:
@@ -96,14 +100,32 @@ def _read_middlebury(lines: dict[str, str], path: Path) -> Calibration:
 
 
 def _read_yaml(path: Path) -> Calibration:
-    doc = yaml.safe_load(path.read_text()) or {}
+    text = path.read_text()
+    if text.lstrip().startswith("%YAML:1.0"):
+        raise InputError(f"{path}: an OpenCV FileStorage file; write the rectified camera as plain YAML keys: fx, cx, "
+                         "cy in px (from P1 or the rectified K), baseline in m (|Tx| / fx of P2), optional fy, width, "
+                         "height")
+    try:
+        doc = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: not valid YAML ({str(exc).splitlines()[0]}, line "
+                         f"{getattr(getattr(exc, 'problem_mark', None), 'line', -1) + 1})") from exc
+    if not isinstance(doc, dict):
+        raise InputError(f"{path}: a YAML calibration is 'key: value' lines (fx: 700), got {type(doc).__name__}")
     missing = [k for k in ("fx", "cx", "cy", "baseline") if k not in doc]
     if missing:
         raise InputError(f"{path}: YAML calibration lacks {missing} (fx, cx, cy in px, baseline in m)")
-    size = (int(doc["height"]), int(doc["width"])) if "width" in doc and "height" in doc else None
-    return Calibration(fx=float(doc["fx"]), fy=float(doc.get("fy", doc["fx"])), cx=float(doc["cx"]),
-                       cy=float(doc["cy"]), baseline=float(doc["baseline"]), doffs=float(doc.get("doffs", 0.0)),
-                       size=size)
+
+    def number(key: str, kind: type = float, default: float | None = None) -> float:
+        value = doc.get(key, default)
+        try:
+            return kind(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: {key} must be a number, got {value!r}") from None
+
+    size = (number("height", int), number("width", int)) if "width" in doc and "height" in doc else None
+    return Calibration(fx=number("fx"), fy=number("fy", default=doc["fx"]), cx=number("cx"), cy=number("cy"),
+                       baseline=number("baseline"), doffs=number("doffs", default=0.0), size=size)
 
 
 def _key_values(path: Path) -> dict[str, str]:
@@ -128,8 +150,8 @@ def read_calibration(path: Path | str) -> Calibration:
         elif "cam0" in lines:
             calib = _read_middlebury(lines, path)
         else:
-            raise InputError(f"{path}: not a KITTI calib_cam_to_cam.txt (P_rect_02), Middlebury calib.txt (cam0) "
-                             "or YAML (fx, cx, cy, baseline) calibration")
+            raise InputError(f"{path}: not a KITTI calib_cam_to_cam.txt (P_rect_02) or Middlebury calib.txt (cam0); "
+                             "a YAML calibration (fx, cx, cy, baseline) is read from a file named .yaml or .yml")
     if calib.fx <= 0 or calib.baseline <= 0:
         raise InputError(f"{path}: focal length and baseline must be > 0, got fx={calib.fx}, baseline={calib.baseline}")
     return dataclasses.replace(calib, source=str(path))

@@ -49,6 +49,30 @@ def test_yaml_calibration(tmp_path: Path) -> None:
     other.write_text("hello=1\n")
     with pytest.raises(InputError, match="not a KITTI"):
         read_calibration(other)
+    # hand-written mistakes are named with the file (each was a traceback or a bare ValueError)
+    for text, named in (("fx: 700\ncx 320.0\ncy: 180\n", "not valid YAML (.*line 3)"),
+                        ("fx=700 cx=320 cy=180 baseline=0.12\n", "a YAML calibration is 'key: value' lines"),
+                        ("%YAML:1.0\n---\nK1: !!opencv-matrix\n", "an OpenCV FileStorage file"),
+                        ("fx: seven hundred\ncx: 1\ncy: 1\nbaseline: 0.1\n", "fx must be a number, got 'seven"),
+                        ("fx: 7\ncx: 1\ncy: 1\nbaseline: 0.1\nwidth: 640px\nheight: 2\n", "width must be a number")):
+        path.write_text(text)
+        with pytest.raises(InputError, match=f"{path.name}: {named}"):
+            read_calibration(path)
+    other.write_text("fx: 700\ncx: 320\ncy: 180\nbaseline: 0.12\n")
+    with pytest.raises(InputError, match="read from a file named .yaml or .yml"):
+        read_calibration(other)
+
+
+def test_a_principal_point_far_from_the_centre_is_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    """A 1280x720 calibration without its size on a 640x360 pair: the principal point at the corner is warned about
+    (the depth would be off by 2x); a centred one is not."""
+    with caplog.at_level("WARNING", logger="optstereo.geometry"):
+        Calibration(1400.0, 1400.0, 639.5, 359.5, 0.12, 0.0, source="c.yaml").check_fits(360, 640)
+    assert "principal point (639.5, 359.5) lies far from the centre of the 640x360 pair" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="optstereo.geometry"):
+        Calibration(700.0, 700.0, 320.0, 180.0, 0.12, 0.0).check_fits(360, 640)
+    assert not caplog.text
 
 
 def test_fronto_parallel_plane_is_exact() -> None:
@@ -210,3 +234,13 @@ def test_a_calibration_of_another_image_size_is_refused(tmp_path: Path, shared_d
     with caplog.at_level(logging.WARNING):
         done = CliRunner().invoke(predict_main, [*args[:-2], "--format", "npy", "--calib", str(yaml_calib)])
     assert done.exit_code == 0 and "--calib read by the depth and point-cloud formats only" in caplog.text
+
+
+def test_max_depth_must_be_positive(tmp_path: Path) -> None:
+    """--max-depth 0 (read as "off") or below wrote an empty PLY and an all-zero depth PNG with exit 0."""
+    from optstereo.cli import predict_main
+
+    for value in ("0", "-1"):
+        result = CliRunner().invoke(predict_main, ["--checkpoint", "pretrained", "l.png", "r.png", "--out",
+                                                   str(tmp_path / "o"), "--max-depth", value])
+        assert result.exit_code == 2 and "'--max-depth'" in result.output and "range x>0" in result.output, result.output

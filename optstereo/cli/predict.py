@@ -41,12 +41,14 @@ logger = logging.getLogger(__name__)
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
               type=click.Choice(PREDICT_FORMATS),
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm; 0 = "
-                   "none or beyond 65.5 m), depth-pfm / depth-npy (m), ply (coloured point cloud); conf-png (16-bit, "
-                   "confidence x 65535) / conf-npy (float32 in [0, 1]) (repeatable).")
+                   "none or beyond 65.5 m), depth-pfm / depth-npy (m), ply (coloured point cloud): one LEFT RIGHT "
+                   "pair, no conf-*; conf-png (16-bit, confidence x 65535) / conf-npy (float32 in [0, 1]) "
+                   "(repeatable).")
 @click.option("--calib", type=common.EXISTING,
-              help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or YAML "
-                   "(fx, cx, cy, baseline [m], doffs).")
-@click.option("--max-depth", type=float, default=None, help="Drop depths beyond this many metres (depth and PLY).")
+              help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or a .yaml/.yml "
+                   "file (fx, cx, cy, baseline [m], doffs; width, height to have its size checked).")
+@click.option("--max-depth", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Drop depths beyond this many metres (depth and PLY; > 0: leave it out for no limit).")
 @click.option("--backend", type=click.Choice(("torch", "onnxruntime")), default="torch",
               help="onnxruntime runs an exported .onnx given as --checkpoint (one LEFT RIGHT pair, disparity formats, "
                    "--scale/--refine/--threads; the other options are refused).")
