@@ -47,6 +47,7 @@ from optstereo.adapt_label import label_rig
 from optstereo.adapt_record import (
     finished_report,
     forget_start,
+    read_budget,
     record_options,
     report_config,
     write_report,
@@ -154,8 +155,8 @@ class Decision:
 def split_frames(ids: list[str], fraction: float, seed: int) -> tuple[list[str], list[str]]:
     """(training ids, held-back ids): ``round(fraction * n)`` whole frames held back, at least :data:`MIN_HELD`, at
     least one left to train on; none held back when the rig is too small for that (no decision possible)."""
-    held_n = max(MIN_HELD, round(fraction * len(ids)))
-    if held_n >= len(ids):
+    held_n = min(max(MIN_HELD, round(fraction * len(ids))), len(ids) - 1)  # one frame left to train on
+    if held_n < MIN_HELD:
         return list(ids), []
     order = np.random.default_rng(seed).permutation(len(ids))
     held = sorted(ids[i] for i in order[:held_n])
@@ -402,7 +403,7 @@ def _run(cfg: AdaptConfig) -> dict[str, Any]:
               "before": {**_summary(before), **gt_before}, "after": {**_summary(after), **gt_after},
               "lr": cfg.learning_rate(), "adapted": decision.adapted, "changes": decision.changes,
               "checkpoint": str(adapted), "int8_clips": None if clips is None else str(clips),
-              "trained": str(trained), "decision": decision.reason}
+              "trained": str(trained), "decision": decision.reason, "budget": read_budget(cfg.out)}
     write_report(cfg.out, report, report_markdown(report))  # report.json last: it marks a finished adaptation
     return report
 

@@ -15,6 +15,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from optstereo.checkpoint import CheckpointError
+from optstereo.pretrained import resolve_checkpoint_spec
 from pvm_labeler.common.atomic import atomic_path, atomic_write_text
 from pvm_labeler.common.errors import ConfigError
 
@@ -95,8 +97,14 @@ def record_options(cfg: Any) -> bool:
     the recorded ones. Returns whether this call wrote the record.
 
     Raises:
-        ConfigError: naming each option that differs (old -> new) from those ``cfg.out`` was started with.
+        ConfigError: naming each option that differs (old -> new) from those ``cfg.out`` was started with, or a
+            ``--teacher`` that names no checkpoint.
     """
+    if cfg.teacher is not None:  # a typo named before the rig is labelled (and before it is recorded)
+        try:
+            resolve_checkpoint_spec(cfg.teacher)
+        except CheckpointError as exc:
+            raise ConfigError(f"--teacher {cfg.teacher}: {exc}") from exc
     out, options = Path(cfg.out), defining_options(cfg)
     record = out / RECORD
     if record.is_file() and _started(out):
@@ -187,3 +195,10 @@ def _rmdir(folder: Path) -> None:
         os.rmdir(folder)  # only an empty one
     except OSError:
         pass
+
+
+def read_budget(out: Path) -> dict[str, Any] | None:
+    """``OUT/budget.json`` (the steps a --minutes budget gave, and the seconds per step they were timed at), or None
+    for a run given --steps."""
+    path = Path(out) / "budget.json"
+    return json.loads(path.read_text()) if path.is_file() else None

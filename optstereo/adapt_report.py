@@ -66,6 +66,14 @@ def _teacher_words(config: dict[str, Any]) -> str:
     return f"; the teacher `{config['teacher']}` in PVM's holes."
 
 
+def _budget_words(budget: dict[str, Any] | None, minutes: float) -> str:
+    """" (as many as fit 10 minutes)", or, when the timing steps alone took longer, what they took."""
+    words = f"{minutes:g} minute{'' if minutes == 1 else 's'}"
+    if budget and budget["steps"] * budget["s_per_step"] > minutes * 60.0:
+        return f" (the timing steps alone: {budget['steps'] * budget['s_per_step'] / 60:.1f} minutes, over {words})"
+    return f" (as many as fit {words})"
+
+
 def report_markdown(report: dict[str, Any]) -> str:
     """The report as a short Markdown table."""
     rows = [("held-back frames: PVM bad-3 (%)", "held_bad3"), ("held-back frames: PVM EPE (px)", "held_epe"),
@@ -76,8 +84,7 @@ def report_markdown(report: dict[str, Any]) -> str:
     lines = ["# optstereo-adapt report", "",
              f"{counted(report['pairs'], 'pair')} ({len(report['held_back_frames'])} held back); "
              f"start `{report['init']}`; " + (counted(steps, "step") if isinstance(steps, int) else f"{steps} steps")
-             + ("" if report["config"].get("steps") is not None
-                else f" (as many as fit {minutes:g} minute{'' if minutes == 1 else 's'})")
+             + ("" if report["config"].get("steps") is not None else _budget_words(report.get("budget"), minutes))
              + (f" at lr {report['lr']:g}" if "lr" in report else "")
              + _teacher_words(report["config"]), "", "| | before | after |",
              "| --- | --- | --- |"]

@@ -34,6 +34,7 @@ def test_split_frames_holds_back_whole_frames() -> None:
     assert len(split_frames(ids, 0.5, 0)[1]) == 5
     assert [len(x) for x in split_frames(ids[:4], 0.3, 0)] == [1, MIN_HELD]  # at least MIN_HELD, one to train
     assert split_frames(ids[:3], 0.3, 0) == (ids[:3], [])  # too small: nothing held back, no decision
+    assert [len(x) for x in split_frames(ids[:6], 0.99, 0)] == [1, 5]  # a large --holdout keeps one to train on
 
 
 def _scores(err: list[int], photo: list[float]) -> list[PairScore]:
@@ -234,6 +235,24 @@ def test_the_report_names_the_teacher() -> None:
     assert "the trained weights, not chosen (use them at your own risk): `run/model.safetensors`" in kept
     assert "not chosen" not in report_markdown({**base, "adapted": True, "trained": "run/model.safetensors",
                                                 "config": {"steps": 1}})
+    # a --minutes budget: the steps that fit, or what the timing steps alone took when they overran it
+    timed = {**base, "steps": 10, "config": {"steps": None, "minutes": 1}}
+    assert "10 steps (as many as fit 1 minute)" in report_markdown(
+        {**timed, "budget": {"steps": 10, "s_per_step": 3.0}})
+    assert "10 steps (the timing steps alone: 2.6 minutes, over 1 minute)" in report_markdown(
+        {**timed, "budget": {"steps": 10, "s_per_step": 15.33}})
+
+
+def test_a_teacher_typo_is_named_before_anything_is_done(tmp_path: Path) -> None:
+    """--teacher pretrained-acurate: exit 2 naming --teacher, nothing written (it was found after labelling, and the
+    options it left refused the corrected command)."""
+    from optstereo.cli import adapt_main
+
+    out = tmp_path / "adapt"
+    res = CliRunner().invoke(adapt_main, ["--root", str(tmp_path), "--out", str(out), "--teacher",
+                                          "pretrained-acurate", "--quiet"])
+    assert res.exit_code == 2 and "--teacher pretrained-acurate:" in res.output, res.output
+    assert not out.exists()
 
 
 def test_teacher_only_replaces_the_labels_and_drops_the_photometric_losses(
