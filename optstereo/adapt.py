@@ -70,7 +70,7 @@ from optstereo.training.config import TrainConfig
 from optstereo.training.loop import main
 from optstereo.validation import PairScore, paired_difference, pooled, score_pair, shard_samples, verdict
 from pvm_labeler.common.atomic import atomic_write_text
-from pvm_labeler.common.errors import counted
+from pvm_labeler.common.errors import ConfigError, counted
 from pvm_labeler.common.metrics import MetricAccumulator
 from pvm_labeler.shards import ShardRecord, open_shard, read_index, write_shard_dir
 
@@ -130,17 +130,17 @@ class AdaptConfig:
         return DEFAULT_TEACHER_LR if self.teacher is not None else DEFAULT_LR
 
     def check(self) -> None:
-        """Raise ValueError naming the option that is out of range."""
+        """Raise ConfigError (a usage error: exit 2) naming the option that is out of range."""
         if self.lr is not None and not self.lr > 0:
-            raise ValueError(f"--lr must be > 0, got {self.lr}")
+            raise ConfigError(f"--lr must be > 0, got {self.lr}")
         if not 0 < self.holdout < 1:
-            raise ValueError(f"--holdout must be in (0, 1), got {self.holdout}")
+            raise ConfigError(f"--holdout must be in (0, 1), got {self.holdout}")
         if self.steps is not None and self.steps < 1:  # the trainer takes no 0-step run
-            raise ValueError(f"--steps must be >= 1, got {self.steps}")
+            raise ConfigError(f"--steps must be >= 1, got {self.steps}")
         if not self.minutes > 0:
-            raise ValueError(f"--minutes must be > 0, got {self.minutes}")
+            raise ConfigError(f"--minutes must be > 0, got {self.minutes}")
         if self.teacher_only and self.teacher is None:
-            raise ValueError("--teacher-only needs --teacher (the model whose views replace PVM's labels)")
+            raise ConfigError("--teacher-only needs --teacher (the model whose views replace PVM's labels)")
 
 
 @dataclass(frozen=True)

@@ -253,6 +253,9 @@ def test_a_teacher_typo_is_named_before_anything_is_done(tmp_path: Path) -> None
                                           "pretrained-acurate", "--quiet"])
     assert res.exit_code == 2 and "--teacher pretrained-acurate:" in res.output, res.output
     assert not out.exists()
+    alone = CliRunner().invoke(adapt_main, ["--root", str(tmp_path), "--out", str(out), "--teacher-only"])
+    assert alone.exit_code == 2 and "--teacher-only needs --teacher" in alone.output
+    assert "ValueError" not in alone.output and not out.exists()  # a usage error, said as one
 
 
 def test_teacher_only_replaces_the_labels_and_drops_the_photometric_losses(
