@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -188,24 +189,7 @@ class TestInterrupt:
     def test_ctrl_c_of_the_cli_saves_a_checkpoint_and_exits_130(self, tiny_shards: Path, tmp_path: Path) -> None:
         """The real thing: SIGINT to a training subprocess once it logged a step."""
         run = tmp_path / "run"
-        cmd = [sys.executable, "-m", "optstereo.cli", "train", "--labels", str(tiny_shards), "--out", str(run),
-               "--steps", "100000", "--batch-size", "2", "--crop", "32x64", "--iters", "2", "--workers", "0",
-               "--threads", "1", "--device", "cpu", "--log-every", "1", "--ckpt-every", "100000",
-               "--set", "tensorboard=false", *(f"--set=model.{k}={v}" for k, v in TINY.items())]
-        proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            deadline = time.monotonic() + 300
-            while proc.poll() is None and time.monotonic() < deadline:
-                if (run / "metrics.jsonl").is_file() and (run / "metrics.jsonl").read_text().strip():
-                    break
-                time.sleep(0.05)
-            assert proc.poll() is None, f"the run ended before the signal: {proc.communicate()[1][-2000:]}"
-            proc.send_signal(signal.SIGINT)
-            _, stderr = proc.communicate(timeout=300)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        proc, stderr = _signal_after_first_step(tiny_shards, run, "0", lambda p: p.send_signal(signal.SIGINT))
         assert proc.returncode == 130, stderr[-3000:]
         step = load_checkpoint(run).step
         logged = [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()]
@@ -221,25 +205,7 @@ class TestInterrupt:
         die first and take the run with it ('DataLoader worker ... is killed by signal: Terminated', no checkpoint);
         now the worker ignores it and the run saves, exiting 143."""
         run = tmp_path / "run"
-        cmd = [sys.executable, "-m", "optstereo.cli", "train", "--labels", str(tiny_shards), "--out", str(run),
-               "--steps", "100000", "--batch-size", "2", "--crop", "32x64", "--iters", "2", "--workers", "1",
-               "--threads", "1", "--device", "cpu", "--log-every", "1", "--ckpt-every", "100000",
-               "--set", "tensorboard=false", *(f"--set=model.{k}={v}" for k, v in TINY.items())]
-        proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                start_new_session=True)  # its own process group, as a shell job's
-        try:
-            deadline = time.monotonic() + 300
-            while proc.poll() is None and time.monotonic() < deadline:
-                if (run / "metrics.jsonl").is_file() and (run / "metrics.jsonl").read_text().strip():
-                    break
-                time.sleep(0.05)
-            assert proc.poll() is None, f"the run ended before the signal: {proc.communicate()[1][-2000:]}"
-            os.killpg(proc.pid, signal.SIGTERM)
-            _, stderr = proc.communicate(timeout=300)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.communicate()
+        proc, stderr = _signal_after_first_step(tiny_shards, run, "1", lambda p: os.killpg(p.pid, signal.SIGTERM))
         assert proc.returncode == 143, stderr[-3000:]
         step = load_checkpoint(run).step
         assert step >= 1 and f"SIGTERM: stopped at step {step} of 100000" in stderr and "killed by signal" not in stderr
@@ -289,6 +255,32 @@ class TestInterrupt:
         assert later.exit_code == 130 and f"the last checkpoint is {run / 'last.pt'} (step 2)" in later.output, \
             later.output
         assert f"continue with: optstereo-train --resume {run}" in later.output
+
+
+def _signal_after_first_step(labels: Path, run: Path, workers: str,
+                             send: Callable[[subprocess.Popen], None]) -> tuple[subprocess.Popen, str]:
+    """Start `optstereo-train` (tiny model, endless steps, ``workers`` data workers) in a process group of its own,
+    ``send`` it a signal once it logged a step; (the finished process, its stderr)."""
+    cmd = [sys.executable, "-m", "optstereo.cli", "train", "--labels", str(labels), "--out", str(run),
+           "--steps", "100000", "--batch-size", "2", "--crop", "32x64", "--iters", "2", "--workers", workers,
+           "--threads", "1", "--device", "cpu", "--log-every", "1", "--ckpt-every", "100000",
+           "--set", "tensorboard=false", *(f"--set=model.{k}={v}" for k, v in TINY.items())]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its own process group, as a shell job's
+    try:
+        deadline = time.monotonic() + 300
+        while proc.poll() is None and time.monotonic() < deadline:
+            if (run / "metrics.jsonl").is_file() and (run / "metrics.jsonl").read_text().strip():
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, f"the run ended before the signal: {proc.communicate()[1][-2000:]}"
+        send(proc)
+        _, stderr = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    return proc, stderr
 
 
 class TestNits:
