@@ -39,7 +39,7 @@ from torch import nn
 
 from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.outputs import colorize
-from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text, json_safe
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text, json_safe, remove_outputs
 from pvm_labeler.common.datasets import discover, gt_divisor, load_pair, safe_stem
 from pvm_labeler.common.errors import InputError, PVMError, counted
 from pvm_labeler.common.io import write_image
@@ -100,6 +100,11 @@ def _frame_row(frame: Frame, acc_all: MetricAccumulator, acc_noc: MetricAccumula
     row["seconds"] = frame.seconds
     row["input_scale"] = frame.input_scale
     return row
+
+
+#: What a GT evaluation writes into its OUT before metrics.csv (which it streams afresh): the summaries, the list of
+#: skipped frames and the maps (globs relative to OUT).
+GT_OUTPUTS = ("summary.json", "summary.md", FAILURES_FILE, "maps/*_disp.png", "maps/*_error.png")
 
 
 def summarise(acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[str, Any]:
@@ -169,13 +174,7 @@ def evaluate_frames(
     warnings: list[dict[str, str]] = []
     without_gt: list[str] = []
     if out_dir is not None:  # an earlier evaluation's summaries would pass for this one's if it stops midway,
-        for name in ("summary.json", "summary.md", FAILURES_FILE):  # and its maps of frames not drawn now for its own
-            (Path(out_dir) / name).unlink(missing_ok=True)
-        maps = Path(out_dir) / "maps"
-        for path in [*maps.glob("*_disp.png"), *maps.glob("*_error.png")]:
-            path.unlink()
-        if maps.is_dir() and not any(maps.iterdir()):
-            maps.rmdir()
+        remove_outputs(out_dir, GT_OUTPUTS)  # and its maps of frames not drawn now for its own
     with contextlib.ExitStack() as stack:
         writer = None
         for frame in frames:

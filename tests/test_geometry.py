@@ -243,4 +243,5 @@ def test_max_depth_must_be_positive(tmp_path: Path) -> None:
     for value in ("0", "-1"):
         result = CliRunner().invoke(predict_main, ["--checkpoint", "pretrained", "l.png", "r.png", "--out",
                                                    str(tmp_path / "o"), "--max-depth", value])
-        assert result.exit_code == 2 and "'--max-depth'" in result.output and "range x>0" in result.output, result.output
+        assert result.exit_code == 2, result.output
+        assert "'--max-depth'" in result.output and "range x>0" in result.output

@@ -17,7 +17,7 @@ from optstereo.adapt_report import MAX_DECIMALS, decimals_for
 from optstereo.checkpoint import CheckpointError, resolve_checkpoint
 from optstereo.cli import common
 from optstereo.pretrained import resolve_checkpoint_spec
-from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text, remove_outputs
 from pvm_labeler.common.errors import counted
 
 logger = logging.getLogger(__name__)
@@ -106,15 +106,8 @@ def clear_earlier_valset_run(out: Path, keep: Path | None = None) -> None:
     """Delete an earlier --valset evaluation's files in ``out`` (:data:`VALSET_OUTPUTS`; nothing else, and nothing
     in ``keep``, the folder of this run's --against report), so that the folder describes this run only: a
     comparison, or maps of pairs this run does not draw, would pass for its own."""
-    earlier = sorted(path for pattern in VALSET_OUTPUTS for path in out.glob(pattern)
-                     if keep is None or keep not in path.resolve().parents)
-    if earlier:
-        logger.info("%s: removing %d files of an earlier evaluation", out, len(earlier))
-    for path in earlier:
-        path.unlink()
-    for folder in (out / "against" / "maps", out / "against", out / "maps"):
-        if folder.is_dir() and not any(folder.iterdir()):
-            folder.rmdir()
+    if earlier := remove_outputs(out, VALSET_OUTPUTS, keep):
+        logger.info("%s: removed %d files of an earlier evaluation", out, len(earlier))
 
 
 def _unit(value: float, digits: int, unit: str) -> str:

@@ -78,7 +78,7 @@ def write_disparity(
 def dense_for_png(disp: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     """(H, W) float32: finite values floored at 1/256 px (the KITTI PNG's smallest valid code); NaN stays NaN."""
     disp = np.asarray(disp, dtype=np.float32)
-    return np.where(np.isfinite(disp), np.maximum(disp, np.float32(1 / KITTI_SCALE)), disp).astype(np.float32)
+    return np.where(np.isfinite(disp), np.maximum(disp, np.float32(1 / KITTI_SCALE)), disp)
 
 
 def disparity_paths(out_dir: Path, name: str, formats: Iterable[str] = DEFAULT_FORMATS, *,

@@ -106,6 +106,22 @@ def read_failures(out: Path) -> list[dict[str, Any]]:
     return doc
 
 
+def remove_outputs(root: Path | str, patterns: tuple[str, ...], keep: Path | None = None) -> list[Path]:
+    """Delete the files under ``root`` that the globs ``patterns`` match (none inside the folder ``keep``), then the
+    folders between them and ``root`` that this left empty: an earlier run's outputs, which would pass for the next
+    run's. Returns the deleted files."""
+    root = Path(root)
+    files = sorted({path for pattern in patterns for path in root.glob(pattern) if path.is_file()
+                    and (keep is None or keep not in path.resolve().parents)})
+    for path in files:
+        path.unlink()
+    for folder in sorted({parent for path in files for parent in path.parents if root in parent.parents},
+                         key=lambda folder: len(folder.parts), reverse=True):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+    return files
+
+
 def json_safe(value: Any) -> Any:
     """``value`` with every non-finite float (NaN, inf) replaced by None, in dicts, lists and tuples (as lists): what
     strict JSON parsers read (NaN is not JSON)."""

@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text
+from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text, remove_outputs
 from pvm_labeler.common.datasets import PairRef
 from pvm_labeler.common.errors import InputError, ShardError, counted
 from pvm_labeler.config import LabelerConfig
@@ -98,14 +98,8 @@ def _owned_files(out: Path) -> list[Path]:
 
 def _delete_default_report(out: Path) -> None:
     """Delete the files ``pvm-label report`` wrote into ``out/report`` and the folders that held only them."""
-    files = sorted({p for pattern in REPORT_GLOBS for p in out.glob(pattern)})
-    if files:
-        logger.info("--overwrite: deleting the earlier run's report (%d files in %s)", len(files), out / "report")
-    for path in files:
-        path.unlink()
-    for folder in sorted({p.parent for p in files}, key=lambda p: len(p.parts), reverse=True):
-        if folder.is_dir() and not any(folder.iterdir()):
-            folder.rmdir()
+    if files := remove_outputs(out, REPORT_GLOBS):
+        logger.info("--overwrite: deleted the earlier run's report (%d files in %s)", len(files), out / "report")
 
 
 def _check_same_job(out: Path, doc: dict[str, Any]) -> None:
