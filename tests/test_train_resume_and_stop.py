@@ -404,3 +404,18 @@ def test_a_wedged_worker_is_killed_when_the_loop_ends() -> None:
     finally:  # a regression fails here instead of hanging pytest's exit on the worker
         if worker.is_alive():
             worker.kill()
+
+
+def test_metrics_jsonl_is_strict_json(tmp_path: Path) -> None:
+    """A non-finite value (a diverged loss) is written as null, as summary.json writes it: the file held a bare NaN,
+    which strict JSON readers (jq, JavaScript, pandas' engine) refuse."""
+    from optstereo.training.log import RunLogger  # lazy: only these tests log by hand
+
+    run_logger = RunLogger(tmp_path, enabled=True, tensorboard=False)
+    run_logger.scalars(1, {"total": float("nan"), "L_P": float("inf"), "L_R": 0.5})
+
+    def refuse(constant: str) -> None:
+        raise ValueError(f"not JSON: {constant}")
+
+    record = json.loads((tmp_path / "metrics.jsonl").read_text(), parse_constant=refuse)
+    assert record == {"step": 1, "total": None, "L_P": None, "L_R": 0.5}

@@ -1,6 +1,6 @@
-"""Training logs: ``RUN_DIR/metrics.jsonl`` (one JSON record per logged step), TensorBoard scalars and images, and
-``RUN_DIR/curves.png`` (the losses and GT-free validation scores against the step, :func:`plot_curves`; redrawn at
-every checkpoint and at the end, no TensorBoard needed).
+"""Training logs: ``RUN_DIR/metrics.jsonl`` (one strict-JSON record per logged step, a non-finite value as null),
+TensorBoard scalars and images, and ``RUN_DIR/curves.png`` (the losses and GT-free validation scores against the
+step, :func:`plot_curves`; redrawn at every checkpoint and at the end, no TensorBoard needed).
 
 Written by rank 0 only. A resumed run trims the records logged after its checkpoint (:func:`trim_metrics`).
 """
@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pvm_labeler.common.atomic import json_safe
 from pvm_labeler.common.viz import colorize_disparity
 
 logger = logging.getLogger(__name__)
@@ -52,7 +53,7 @@ class RunLogger:
         if not self.enabled:
             return
         with open(self.path, "a") as fh:
-            fh.write(json.dumps({"step": step, **values}) + "\n")
+            fh.write(json.dumps(json_safe({"step": step, **values})) + "\n")  # NaN / inf as null, as summary.json
         if self.tb is not None:
             for key, value in values.items():
                 self.tb.add_scalar(f"train/{key}", value, step)
