@@ -389,6 +389,21 @@ class TestTrain:
         result = invoke(train_main, "--labels", shards, "--out", tmp_path / "r", "--steps", "4", *TRAIN)
         assert result.exit_code == 1 and "shard-00001.h5: schema" in result.output and "version 99" in result.output
 
+    def test_a_folder_without_shards_is_a_usage_error(self, tmp_path: Path) -> None:
+        """--labels naming images (or a labeling job that did not finish) exited 1 from deep in the data stream: now
+        exit 2 naming the folder and what to give, with no run directory written."""
+        images, unfinished = tmp_path / "images", make_shards(tmp_path / "s", n=2)
+        images.mkdir()
+        cv2.imwrite(str(images / "0000.png"), np.zeros((32, 64, 3), np.uint8))
+        (unfinished / "index.json").unlink()
+        for labels, says in ((images, "give the folder `pvm-label run --out` wrote"),
+                             (unfinished, "a labeling job that did not finish"),
+                             (images / "0000.png", "is not a folder")):
+            result = invoke(train_main, "--labels", labels, "--out", tmp_path / "r", "--steps", "2", *TRAIN)
+            assert result.exit_code == 2 and f"--labels {labels}" in result.output and says in result.output, \
+                result.output
+            assert not (tmp_path / "r").exists()
+
     def test_a_bad_val_dataset_stops_the_run_before_its_first_step(self, tmp_path: Path) -> None:
         """--val-dataset is read at the start (it used to fail only after the whole run): a folder without
         left/right, and one without GT, exit 1 naming the folder, with no run directory written."""

@@ -144,6 +144,7 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
         return
     if cfg.data.labels is None or cfg.out is None:
         raise click.UsageError("--labels SHARDS_DIR and --out RUN_DIR are required (or --resume RUN_DIR)")
+    _check_labels_folder(Path(cfg.data.labels))
     try:
         summary = main(cfg, resume=resume is not None, progress=not quiet, init_ckpt=init_ckpt)
     except TrainingInterrupted as exc:  # Ctrl-C / SIGTERM: its checkpoint is saved; exit as the signal would
@@ -162,6 +163,20 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
                f"last L_P {last.get('L_P', math.nan):.3f}; checkpoint {summary['checkpoint']}")
     if "val" in summary:
         click.echo(f"validation: {json.dumps({k: summary['val'][k] for k in ('epe', 'bad3', 'd1_all')})}")
+
+
+def _check_labels_folder(labels: Path) -> None:
+    """UsageError (exit 2, before anything is written) when ``labels`` is no folder of PVM shards (no index.json):
+    it was an error of the run (exit 1) like a broken shard, though it is a wrong argument."""
+    if (labels / "index.json").is_file():
+        return
+    if not labels.is_dir():
+        raise click.UsageError(f"--labels {labels} is not a folder (give the folder `pvm-label run --out` wrote)")
+    unfinished = any(labels.glob("shard-*.h5"))
+    raise click.UsageError(
+        f"--labels {labels} holds no shard index (index.json): "
+        + ("a labeling job that did not finish (it writes the index last): run its command again to resume"
+           if unfinished else "give the folder `pvm-label run --out` wrote (index.json and shard-*.h5)"))
 
 
 #: The removed ``KEY=VALUE`` flags (issue 43: a setting is a flag, ``--set SECTION.KEY=VALUE`` or YAML) and the
