@@ -85,10 +85,16 @@ for t in "${teachers[@]}"; do wait "$t"; echo "teacher maps (pid $t): exit $? at
 echo "teacher maps: $(ls "$W/maps" | grep -c "\.npz$") pairs in $W/maps"
 wait "$labeller"; rc=$?; [ "$rc" = 0 ] || failed+=(labels)
 echo "labels: exit $rc at $(elapsed); $(tail -n 1 "$W/labels_$PART.log")"
-$PY -m optstereo.cli distill fill "$W/labels_$PART" "$W/maps" "$W/distill_$PART" --compression lzf --allow-missing \
-  > "$W/fill_$PART.log" 2>&1
-rc=$?; [ "$rc" = 0 ] || failed+=(fill)
-echo "fill: exit $rc at $(elapsed); $(tail -n 1 "$W/fill_$PART.log")"
+if [ "$rc" = 0 ]; then  # the later stages need the labels: after a failure they are skipped, never run on nothing
+  $PY -m optstereo.cli distill fill "$W/labels_$PART" "$W/maps" "$W/distill_$PART" --compression lzf --allow-missing \
+    > "$W/fill_$PART.log" 2>&1
+  rc=$?; [ "$rc" = 0 ] || failed+=(fill)
+  echo "fill: exit $rc at $(elapsed); $(tail -n 1 "$W/fill_$PART.log")"
+else
+  echo "fill, fills and training: skipped (the labels failed; $W/labels_$PART.log says why)"
+fi
+data_ok=0; [ "${#failed[@]}" = 0 ] && data_ok=1
+[ "$data_ok" = 1 ] || { FILLS=0; TRAIN=0; }
 [ "$FILLS" = 1 ] && ( $PY -m pipelines.studies.gpu.teacher_all fills "$W/labels_$PART" "$W/maps" "$W/fills_$PART" \
     && tar -cf "$W/fills_$PART.tar" -C "$W" "fills_$PART" && echo "fills tar $(du -m "$W/fills_$PART.tar" | cut -f1) MB" ) \
   > "$W/fills_$PART.log" 2>&1 &
@@ -96,20 +102,27 @@ filler=$!
 
 if [ "$TRAIN" = 1 ]; then
   keep=(); [ "$MISSING" = drop ] && keep=(--maps "$W/maps")
-  $PY -m pipelines.studies.gpu.teacher_all merge "$W/distill_all" "$W"/distill_? "${keep[@]}"
+  $PY -m pipelines.studies.gpu.teacher_all merge "$W/distill_all" "$W"/distill_? "${keep[@]}" \
+    || { failed+=(merge); TRAIN=0; echo "merge: failed at $(elapsed): $NAME not trained"; }
+fi
+if [ "$TRAIN" = 1 ]; then
   train() {  # out dir, steps, extra args
     $PY -m optstereo.cli train --config pipelines/studies/recipes/cpu_main.yaml --init "$INIT" --lambda-t 0 \
       --conf-weight --labels "$W/distill_all" --out "$1" --steps "$2" --lr "$LR" --seed "$SEED" --device "$DEVICE" \
       --amp "$AMP" --batch-size "$BATCH" --crop "$CROP" --iters "$ITERS" --workers "$WORKERS" --threads "$THREADS" \
       --scale-range 1.0,1.0 --schedule "$SCHEDULE" --quiet "${@:3}"
   }
-  rm -rf "$W/probe"
+  rm -rf "$W/probe"; step_s=
   train "$W/probe" "$PROBE" --log-every 2 --ckpt-every 100000 --schedule constant
   step_s=$($PY -c "
 import json, sys
 rows = [json.loads(line) for line in open('$W/probe/metrics.jsonl')]
 half = rows[len(rows) // 2:]
-print(sum(r['step_time_s'] for r in half) / len(half))" 2>/dev/null || echo 0.2)
+print(sum(r['step_time_s'] for r in half) / len(half))" 2>/dev/null)
+fi
+if [ "$TRAIN" = 1 ] && [ -z "$step_s" ]; then  # no made-up step time: the probe's failure is the call's
+  failed+=(probe); echo "probe: failed (no step times in $W/probe/metrics.jsonl): $NAME not trained"
+elif [ "$TRAIN" = 1 ]; then
   budget=$(( T0 + END_S - $(date +%s) - 30 ))  # 30 s: start-up, snapshots, copies
   steps=$($PY -c "print(min($STEPS_MAX, max(3, int(0.9 * $budget / $step_s) // 2 * 2)))")
   echo "probe: $step_s s/step; $budget s left -> $NAME: $steps steps at $(elapsed)"
