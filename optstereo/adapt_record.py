@@ -10,6 +10,7 @@ import dataclasses
 import json
 import logging
 import os
+import posixpath
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
@@ -50,7 +51,7 @@ def defining_options(cfg: Any) -> dict[str, Any]:
     """The options of an ``AdaptConfig`` that define its adaptation, JSON-ready: the rig's data options, the split,
     the start, the training (steps, or the minutes when the steps are not given; the learning rate it trains at)
     and the teacher's."""
-    reader = dict(sorted(cfg.reader_options.items()))  # paths inside --root: as given
+    reader = _same_paths(dict(sorted(cfg.reader_options.items())))  # paths inside --root: as given, normalised
     options = {"dataset": cfg.dataset, "root": _where(cfg.root), **reader, "limit": cfg.limit,
                "max_disp": cfg.max_disp, "holdout": cfg.holdout, "seed": cfg.seed, "init": _where(cfg.init),
                "steps": cfg.steps, "minutes": cfg.minutes if cfg.steps is None else None,
@@ -58,6 +59,17 @@ def defining_options(cfg: Any) -> dict[str, Any]:
                "teacher": _where(cfg.teacher), "teacher_only": cfg.teacher_only,
                "inference_scale": cfg.inference_scale, "train_overrides": cfg.train_overrides}
     return json.loads(json.dumps(options, default=str))
+
+
+#: Reader options that name folders or globs inside --root.
+PATH_OPTIONS = ("left", "right", "gt")
+
+
+def _same_paths(options: Mapping[str, Any]) -> dict[str, Any]:
+    """``options`` with each :data:`PATH_OPTIONS` value written one way (``cam0/``, ``./cam0`` and ``cam0`` alike;
+    globs kept), so that a re-run typing a folder another way resumes rather than being refused."""
+    return {k: posixpath.normpath(v) if k in PATH_OPTIONS and isinstance(v, str) and v else v
+            for k, v in options.items()}
 
 
 def report_config(cfg: Any) -> dict[str, Any]:
@@ -112,7 +124,7 @@ def record_options(cfg: Any) -> bool:
             old = json.loads(record.read_text())
         except (OSError, ValueError) as exc:
             raise ConfigError(f"{record}: unreadable ({exc}); use a fresh --out (or delete {out})") from exc
-        changed = differences(old, options)
+        changed = differences(_same_paths(old), options)  # an older record holds the paths as typed
         if changed:
             raise ConfigError(f"{out} holds an adaptation started with other options: {'; '.join(changed)}. A "
                               f"re-run resumes only the same adaptation: run it with those options, or use a fresh "

@@ -109,6 +109,24 @@ def test_a_rerun_with_other_options_is_refused_before_anything(fake: dict[str, A
     assert json.loads((cfg.out / "split.json").read_text()) == json.loads(before["split.json"])
 
 
+def test_a_folder_typed_another_way_is_the_same_option(fake: dict[str, Any]) -> None:
+    """`--left cam0/` then `--left ./cam0` (or a record of an older optstereo-adapt holding `cam0/`): the same folder,
+    so the re-run resumes; it was refused as "--left cam0/ -> ./cam0". Another folder is still refused."""
+    cfg: AdaptConfig = AdaptConfig(**{**vars(fake["cfg"]), "reader_options": {"left": "cam0/", "right": "cam1"}})
+    adapt.run(cfg)
+    record = cfg.out / adapt_record.RECORD
+    assert json.loads(record.read_text())["left"] == "cam0"
+    (cfg.out / adapt_record.REPORT).unlink()  # unfinished: a re-run resumes it
+    adapt.run(AdaptConfig(**{**vars(cfg), "reader_options": {"left": "./cam0", "right": "cam1/"}}))
+    older = {**json.loads(record.read_text()), "left": "cam0/"}  # as an older version recorded it
+    record.write_text(json.dumps(older))
+    (cfg.out / adapt_record.REPORT).unlink()
+    adapt.run(AdaptConfig(**{**vars(cfg), "reader_options": {"left": "cam0", "right": "cam1"}}))
+    assert len(fake["train"]) == 3
+    with pytest.raises(ConfigError, match="left cam0 -> cam2"):
+        adapt.run(AdaptConfig(**{**vars(cfg), "reader_options": {"left": "cam2", "right": "cam1"}}))
+
+
 def test_split_json_is_never_redrawn_under_a_started_run(tmp_path: Path) -> None:
     out = tmp_path / "out"
     adapt_record.write_split(out, ["a", "b"], ["c"])
