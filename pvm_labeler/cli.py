@@ -41,7 +41,7 @@ _LABELER_FLAGS = {"k": "k", "kappa1": "kappa1", "kappa2": "kappa2", "max_disp": 
 #: Job options that may come from --config YAML (same names as the flags, with underscores).
 _JOB_KEYS = ("recipe", "labels", "dataset", "root", "out", "split", "limit", "jobs", "backend", "scheduler",
              "shard_size", "resume", "overwrite", "quiet", "compression", "numba_threads", "left", "right", "gt",
-             "gt_scale", "sceneflow_pass")
+             "gt_scale", "sceneflow_pass", "skip_unusable")
 
 
 class _DefaultRunGroup(click.Group):
@@ -176,6 +176,7 @@ def build_spec(values: dict[str, Any], yaml_doc: dict[str, Any]) -> Any:
         compression=values["compression"],
         numba_threads=values.get("numba_threads"),
         label_fn=label_fn,
+        skip_unusable=bool(values.get("skip_unusable")),
     )
 
 

@@ -110,6 +110,11 @@ def job_options(pack_gt: bool = False) -> Callable[[F], F]:
                      help="Skip shards that are already complete and match this config."),
         click.option("--overwrite", is_flag=True, default=False,
                      help="Delete this job's previous files in OUT first."),
+        click.option("--skip-unusable", is_flag=True, default=False,
+                     help="Leave out the pairs the check before labelling refuses (a missing or unreadable file, "
+                          "left/right sizes that differ, an image too small for K and --max-disp), list them in "
+                          "OUT/failures.json (exit 1) and label the rest; without it they stop the job before "
+                          "anything is written. A re-run checks them again."),
         click.option("--quiet", is_flag=True, default=False,
                      help="No progress bar (it is also off when stderr is not a TTY)."),
         click.option("--compression", type=click.Choice(COMPRESSIONS), default=DEFAULT_COMPRESSION,

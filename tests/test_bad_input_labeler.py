@@ -73,6 +73,23 @@ def _labels(out: Path) -> dict[str, np.ndarray]:
     return labels
 
 
+def test_skip_unusable_from_the_command_line(tmp_path: Path) -> None:
+    """A truncated right image: without --skip-unusable the job stops before writing (exit 1, the flag named);
+    with it the others are labelled, the pair listed in the summary, exit 1; config.yaml records the flag."""
+    data = make_folder(tmp_path / "d", n=3)
+    (data / "right" / "001.png").write_bytes((data / "right" / "001.png").read_bytes()[:40])
+    args = ("--dataset", "folder", "--root", data, *SMALL)
+    stopped = invoke(*args, "--out", tmp_path / "a")
+    assert stopped.exit_code == 1 and "--skip-unusable labels the others" in stopped.output
+    assert not (tmp_path / "a").exists()
+    result = invoke(*args, "--out", tmp_path / "b", "--skip-unusable")
+    assert result.exit_code == 1, result.output
+    assert "labelled 2/3 pairs" in result.output and "1 pair FAILED" in result.output
+    assert "001: " in result.output and "right/001.png" in result.output
+    assert read_index(tmp_path / "b").num_samples == 2
+    assert yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["skip_unusable"] is True
+
+
 def test_disk_full_stops_the_job_naming_disk_and_shard_and_resume_finishes(tmp_path: Path) -> None:
     """RLIMIT_FSIZE as a full disk (20 kB: job.json fits, no shard does). The job stops before labelling a shard:
     exit 1, a message naming the shard and the disk, no shard or temporary file; re-run with room, it finishes

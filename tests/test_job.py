@@ -318,10 +318,38 @@ class TestBadInput:
     def test_size_mismatch_nothing_written(self, tmp_path: Path) -> None:
         self._folder(tmp_path / "d", [((200, 300), (200, 300)), ((200, 300), (200, 302))])
         out = tmp_path / "out"
-        match = r"(?s)1 of 2 pairs are unusable.*001: left/right sizes differ.*right/001.png"
+        match = (r"(?s)1 of 2 pairs are unusable.*--skip-unusable labels the others.*001: left/right sizes differ"
+                 r".*right/001.png")
         with pytest.raises(InputError, match=match):
             run(_spec(out, dataset="folder", root=tmp_path / "d"))
         assert not out.exists()
+
+    def test_skip_unusable_labels_the_others_and_lists_them(self, tmp_path: Path) -> None:
+        """--skip-unusable: the two unusable pairs (sizes differ; an unreadable file) are left out, listed in
+        failures.json and the summary (exit 1 at the CLI), the three others labelled; the pairs' count holds all
+        five. A re-run after the files are mended labels them (failures.json removed)."""
+        root = tmp_path / "d"
+        self._folder(root, [((200, 300), (200, 300))] * 3 + [((200, 300), (200, 302)), ((200, 300), (200, 300))])
+        good = (root / "right" / "004.png").read_bytes()
+        (root / "right" / "004.png").write_bytes(b"not a png")
+        out = tmp_path / "out"
+        summary = run(_spec(out, dataset="folder", root=root, skip_unusable=True))
+        assert summary.pairs_total == 5 and summary.pairs_labeled == 3 and summary.pairs_failed == 2
+        failures = json.loads((out / FAILURES_FILE).read_text())
+        assert [(f["frame_id"], f["stage"]) for f in failures] == [("003", "preflight"), ("004", "preflight")]
+        assert "sizes differ" in failures[0]["error"] and "right/004.png" in failures[1]["error"]
+        assert sorted(i for _, ids in read_index(out).shards for i in ids) == ["000", "001", "002"]
+        assert "2 pairs FAILED" in summary.format() and "003: left/right sizes differ" in summary.format()
+        write_image(root / "right" / "003.png", read_image(root / "left" / "003.png"))  # mended
+        (root / "right" / "004.png").write_bytes(good)
+        again = run(_spec(out, dataset="folder", root=root, skip_unusable=True))
+        assert again.pairs_labeled == 5 and not again.failures and not (out / FAILURES_FILE).exists()
+
+    def test_skip_unusable_with_no_usable_pair_writes_nothing(self, tmp_path: Path) -> None:
+        self._folder(tmp_path / "d", [((200, 300), (200, 302))])
+        with pytest.raises(InputError, match=r"1 of 1 pairs are unusable \(nothing was written\)"):
+            run(_spec(tmp_path / "out", dataset="folder", root=tmp_path / "d", skip_unusable=True))
+        assert not (tmp_path / "out").exists()
 
     def test_image_too_small(self, tmp_path: Path) -> None:
         self._folder(tmp_path / "d", [((40, 60), (40, 60))])

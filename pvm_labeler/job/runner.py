@@ -43,7 +43,12 @@ def run(spec: JobSpec) -> JobSummary:
         refs = refs[: spec.limit]
     if spec.label_fn == PACK_GT_LABELER:
         require_gt(refs)
-    work = preflight(refs, spec.config, matcher=spec.label_fn != PACK_GT_LABELER)
+    work, unusable = preflight(refs, spec.config, matcher=spec.label_fn != PACK_GT_LABELER, skip=spec.skip_unusable)
+    if unusable:
+        logger.warning("--skip-unusable: leaving out %s (listed in %s): %s", counted(len(unusable), "unusable pair"),
+                       spec.out / "failures.json", "; ".join(f"{u['frame_id']}: {u['error']}" for u in unusable[:3])
+                       + (" ..." if len(unusable) > 3 else ""))
+        refs = [ref for ref in refs if ref.frame_id in work]
     gt_warnings = first_gt_problems(refs)  # a wrong --gt-scale or byte order is every file's: one pair tells
     for warning in gt_warnings:
         logger.warning("GT looks wrong: %s", warning)
@@ -78,7 +83,7 @@ def run(spec: JobSpec) -> JobSummary:
     logger.info("%d pairs in %d shards: %d complete, %d to label (%s, %d jobs, %d numba threads each)",
                 len(refs), len(plan), len(outcomes), len(pending), spec.backend, spec.jobs, threads)
     _label_pending(spec, pending, outcomes, len(refs), len(plan))
-    return finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0, gt_warnings)
+    return finish(spec, refs, plan, outcomes, threads, time.perf_counter() - t0, gt_warnings, unusable)
 
 
 def _label_pending(spec: JobSpec, pending: list[ShardTask], outcomes: dict[int, ShardOutcome], pairs: int,

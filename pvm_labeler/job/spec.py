@@ -41,6 +41,8 @@ class JobSpec:
         compression: shard compression, one of shards.COMPRESSIONS (``blosc-lz4`` by default).
         numba_threads: threads per worker (default: cores // jobs, at least 1).
         label_fn: ``module:function`` with label_pair's signature (tests inject small fakes here).
+        skip_unusable: pairs the pre-flight check refuses (missing or unreadable files, sizes) are left out and
+            listed in OUT/failures.json (the job exits 1), instead of stopping the job before anything is written.
     """
 
     dataset: str
@@ -60,6 +62,7 @@ class JobSpec:
     compression: str = DEFAULT_COMPRESSION
     numba_threads: int | None = None
     label_fn: str = DEFAULT_LABELER
+    skip_unusable: bool = False
 
     def __post_init__(self) -> None:
         if self.label_fn == PACK_GT_LABELER:  # no labeler runs: its options change nothing (pack-gt --k 3's shards
@@ -115,6 +118,7 @@ class JobSpec:
             "shard_size": self.shard_size,
             "compression": self.compression,
             "numba_threads": self.numba_threads,
+            "skip_unusable": self.skip_unusable,
             "labeler": self.config.to_dict(),
         }
 
@@ -130,15 +134,20 @@ def _check_frame_size(height: int, width: int, cfg: LabelerConfig, frame_id: str
     return geometry
 
 
-def preflight(refs: list[PairRef], cfg: LabelerConfig, matcher: bool = True) -> dict[str, int]:
-    """Check every pair from file headers before anything is written; raise one InputError listing all problems.
-    ``matcher`` False (a GT pack: no matching) checks the files and sizes only, not the pyramid's needs.
+def preflight(refs: list[PairRef], cfg: LabelerConfig, matcher: bool = True,
+              skip: bool = False) -> tuple[dict[str, int], list[dict[str, Any]]]:
+    """Check every pair from file headers before anything is written. ``matcher`` False (a GT pack: no matching)
+    checks the files and sizes only, not the pyramid's needs.
 
     Returns:
-        {frame_id: predicted work} of every pair (:func:`predicted_work`, used to order the shards; the pixel count
-        without the matcher).
+        ({frame_id: predicted work} of every usable pair (:func:`predicted_work`, used to order the shards; the pixel
+        count without the matcher), the unusable pairs as failure records ({frame_id, error, type, files, stage:
+        "preflight"}; only with ``skip``)).
+
+    Raises:
+        InputError: listing every unusable pair, unless ``skip``; with ``skip``, when no pair is usable.
     """
-    problems = []
+    problems: list[tuple[PairRef, InputError]] = []
     work = {}
     for ref in refs:
         try:
@@ -146,12 +155,16 @@ def preflight(refs: list[PairRef], cfg: LabelerConfig, matcher: bool = True) -> 
             work[ref.frame_id] = (predicted_work(_check_frame_size(height, width, cfg, ref.frame_id)) if matcher
                                   else height * width)
         except InputError as exc:
-            problems.append(f"{ref.frame_id}: {exc}")
-    if problems:
+            problems.append((ref, exc))
+    if problems and (not skip or not work):
+        lines = [f"{ref.frame_id}: {exc}" for ref, exc in problems[:20]]
         more = f"\n  ... and {len(problems) - 20} more" if len(problems) > 20 else ""
-        raise InputError(f"{len(problems)} of {len(refs)} pairs are unusable (nothing was written):\n  "
-                         + "\n  ".join(problems[:20]) + more)
-    return work
+        hint = "" if skip else "; --skip-unusable labels the others and lists these in OUT/failures.json"
+        raise InputError(f"{len(problems)} of {len(refs)} pairs are unusable (nothing was written{hint}):\n  "
+                         + "\n  ".join(lines) + more)
+    unusable = [{"frame_id": ref.frame_id, "error": str(exc), "type": type(exc).__name__, "files": ref.to_dict(),
+                 "stage": "preflight"} for ref, exc in problems]
+    return work, unusable
 
 
 def predicted_work(geometry: list[tuple[int, int, float, int]]) -> int:

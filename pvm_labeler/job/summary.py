@@ -89,18 +89,21 @@ def _pooled(outcomes: list[ShardOutcome]) -> tuple[MetricAccumulator, MetricAccu
 
 
 def finish(spec: JobSpec, refs: list[PairRef], plan: list[list[PairRef]], outcomes: dict[int, ShardOutcome],
-           threads: int, seconds: float, gt_warnings: list[str] | None = None) -> JobSummary:
+           threads: int, seconds: float, gt_warnings: list[str] | None = None,
+           unusable: list[dict[str, Any]] | None = None) -> JobSummary:
     """Summarise the run, write (or remove) failures.json, and write index.json last. ``gt_warnings``: the GT
-    check's lines (``datasets.first_gt_problems``), repeated in the summary."""
+    check's lines (``datasets.first_gt_problems``), repeated in the summary. ``unusable``: the pairs the pre-flight
+    check left out (``--skip-unusable``), failures ahead of the labelling's; ``refs`` holds the others."""
     ordered = [outcomes[index] for index in range(len(plan))]
-    failures = [failure for outcome in ordered for failure in outcome.failures]
+    unusable = list(unusable or [])
+    failures = unusable + [failure for outcome in ordered for failure in outcome.failures]
     shards = [(o.file, o.sample_ids) for o in ordered if o.sample_ids]
     acc, acc_noc, labelled_px, total_px = _pooled(ordered)
     written = [o for o in outcomes.values() if not o.resumed]
     work_pairs = sum(len(o.sample_ids) for o in written)  # labelled now: a failed pair is no throughput
     summary = JobSummary(
         out=str(spec.out),
-        pairs_total=len(refs),
+        pairs_total=len(refs) + len(unusable),
         pairs_labeled=sum(len(ids) for _, ids in shards),
         pairs_failed=len(failures),
         shards_total=len(plan),
