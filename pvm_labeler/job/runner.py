@@ -11,7 +11,7 @@ from pvm_labeler.common.errors import counted
 from pvm_labeler.job.outdir import complete_shard, job_doc, plan_shards, prepare_out
 from pvm_labeler.job.progress import PairProgress, progress_bar
 from pvm_labeler.job.spec import JobSpec, absolute_paths, preflight
-from pvm_labeler.job.summary import JobSummary, finish
+from pvm_labeler.job.summary import FAILURES_FILE, JobSummary, finish
 from pvm_labeler.job.worker import ShardOutcome, ShardTask, label_shard
 from pvm_labeler.packgt import PACK_GT_LABELER, require_gt
 from pvm_labeler.parallel import numba_threads_per_worker, run_tasks
@@ -46,7 +46,7 @@ def run(spec: JobSpec) -> JobSummary:
     work, unusable = preflight(refs, spec.config, matcher=spec.label_fn != PACK_GT_LABELER, skip=spec.skip_unusable)
     if unusable:
         logger.warning("--skip-unusable: leaving out %s (listed in %s): %s", counted(len(unusable), "unusable pair"),
-                       spec.out / "failures.json", "; ".join(f"{u['frame_id']}: {u['error']}" for u in unusable[:3])
+                       spec.out / FAILURES_FILE, "; ".join(f"{u['frame_id']}: {u['error']}" for u in unusable[:3])
                        + (" ..." if len(unusable) > 3 else ""))
         refs = [ref for ref in refs if ref.frame_id in work]
     gt_warnings = first_gt_problems(refs)  # a wrong --gt-scale or byte order is every file's: one pair tells
