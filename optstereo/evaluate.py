@@ -38,7 +38,7 @@ import torch
 from torch import nn
 
 from optstereo.inference.engine import model_inference_config, run
-from optstereo.inference.outputs import colorize
+from optstereo.inference.outputs import check_pairs_fit, colorize
 from pvm_labeler.common.atomic import FAILURES_FILE, atomic_write_text, json_safe, remove_outputs
 from pvm_labeler.common.datasets import discover, gt_divisor, load_pair, safe_stem
 from pvm_labeler.common.errors import InputError, PVMError, counted
@@ -337,7 +337,10 @@ def evaluate_model(
     frame's final scale in its row).
     """
     config = model_inference_config(model, iters, scale, refine)
-    require_gt(dataset, root, split, limit, reader_options)
+    pairs = require_gt(dataset, root, split, limit, reader_options)
+    # every pair the network will run, from its image headers, before the first: a MemoryError naming the file
+    check_pairs_fit(config, [Path(r.left) for r in pairs if r.left is not None and (r.gt or r.gt_noc)],
+                    torch.device(device).type == "cuda")
     refs = {"scale_ref_disp": config.adaptive_ref_disp, "scale_ref_pixels": config.adaptive_ref_pixels} \
         if config.adaptive else None
     run_iters = config.iters if config.iters is not None else getattr(model, "iters", None)
@@ -363,16 +366,18 @@ def evaluate_model(
 
 
 def require_gt(dataset: str, root: Path | None, split: str, limit: int | None,
-                reader_options: dict[str, Any] | None) -> None:
+                reader_options: dict[str, Any] | None) -> list[Any]:
     """ValueError before any network pass when no pair of the dataset (its first ``limit``) has a GT file (the
-    embedded ``sample`` keeps its GT in memory: not checked here)."""
+    embedded ``sample`` keeps its GT in memory: not checked here). Returns the pairs (``PairRef``; [] for
+    ``sample``)."""
     if dataset == "sample":
-        return
+        return []
     pairs = discover(dataset, root, split=split, **(reader_options or {}))[:limit]
     if pairs and all(ref.gt is None and ref.gt_noc is None for ref in pairs):
         raise InputError(f"none of the {len(pairs)} pairs of {dataset} under {root} has ground truth (split {split!r}"
                          f"; a folder's GT: --gt DIR or ROOT/gt): optstereo-eval measures against GT; without it, "
                          f"score a model on a GT-free validation set (--valset) or just predict")
+    return pairs
 
 
 def evaluate_labels(

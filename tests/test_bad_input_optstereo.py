@@ -25,7 +25,7 @@ from optstereo import memory
 from optstereo.checkpoint import save_checkpoint
 from optstereo.cli import eval_main, export_main, predict_main, train_main
 from optstereo.models import build_model
-from pvm_labeler.common.io import write_image
+from pvm_labeler.common.io import write_image, write_kitti_disp
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = {**TINY_BASE, "iters": 1}
@@ -135,6 +135,26 @@ class TestPredictInputs:
                         *args)
         assert result.exit_code == 0, result.output
         assert sorted(p.name for p in (tmp_path / "o").rglob("*.npy")) == ["a.npy", "b.npy"]
+
+    def test_an_evaluation_too_large_for_memory_is_refused_before_any_frame(
+            self, ckpt: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        """optstereo-eval checks every pair with GT from its headers first, as predict --dataset does (a 9000 x 9000
+        pair failed inside torch's allocator with a RuntimeError); a pair without GT is not run, so not checked."""
+        rng = np.random.default_rng(0)
+        for name, (h, w) in {"a": (32, 64), "b": (64, 128), "c": (96, 192)}.items():
+            for side in ("left", "right"):
+                write_image(tmp_path / "rig" / side / f"{name}.png", rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+            if name != "c":  # c: no GT, never run
+                write_kitti_disp(tmp_path / "rig" / "gt" / f"{name}.png", np.full((h, w), 4.0, np.float32))
+        monkeypatch.setattr(memory, "available_bytes", lambda: memory.estimate_peak_bytes(48, 96))
+        args = ["--checkpoint", ckpt, "--dataset", "folder", "--root", tmp_path / "rig", "--out", tmp_path / "e",
+                "--quiet"]
+        result = invoke(eval_main, *args)
+        assert result.exit_code == 1 and "b.png: a 64 x 128 pair at input scale 1" in result.output, result.output
+        assert not (tmp_path / "e" / "summary.json").exists() and not (tmp_path / "e" / "metrics.csv").exists()
+        monkeypatch.setattr(memory, "available_bytes", lambda: memory.estimate_peak_bytes(64, 128))
+        result = invoke(eval_main, *args)
+        assert result.exit_code == 0 and "2 frames" in result.output, result.output
 
     def test_the_dataset_check_uses_the_files_input_scale(self, tmp_path: Path) -> None:
         # A file whose settings enlarge by 1.125 needs 1.125^2 the pixels of scale 1: refused where scale 1 would fit.

@@ -160,3 +160,16 @@ def test_fill_names_a_missing_map_and_allow_missing(tmp_path: Path) -> None:
     done = CliRunner().invoke(distill_main, ["fill", str(shards), str(maps), str(tmp_path / "filled"),
                                              "--allow-missing"])
     assert done.exit_code == 0, done.output
+
+
+def test_maps_takes_device_auto_as_every_command_does(tmp_path: Path) -> None:
+    """--device auto (the default now, as in eval / predict / train): it was refused as not one of cpu, cuda; without
+    CUDA, --device cuda says so naming the fix."""
+    root = _pairs(tmp_path / "pairs", ["a"])
+    teacher = _teacher(tmp_path / "t.safetensors", 0)
+    done = _maps(root, teacher, tmp_path / "maps", "--device", "auto", "--quiet")
+    assert done.exit_code == 0 and "1 new teacher map" in done.output, done.output
+    assert np.load(tmp_path / "maps" / "a.npz")["left"].shape == (32, 64)
+    if not torch.cuda.is_available():
+        refused = _maps(root, teacher, tmp_path / "maps2", "--device", "cuda", "--quiet")
+        assert refused.exit_code == 1 and "use device cpu (or auto)" in refused.output, refused.output

@@ -119,9 +119,9 @@ def setup_logging(quiet: bool) -> None:
 class GuardedCommand(click.Command):
     """A click command whose library errors become click's exits, the one error handler of every optstereo command:
     a ConfigError (a bad option or config value) exits 2 as a usage error, the project's other errors (PVMError,
-    CheckpointError, a non-finite loss) exit 1 with their message, which names the file and the problem, as
-    pvm-label's do; errors from elsewhere (ValueError, RuntimeError, OSError) with their type too. Like pvm-label,
-    each takes ``-h`` for ``--help`` and ``--version``."""
+    CheckpointError, a non-finite loss, the memory pre-flight's MemoryError) exit 1 with their message, which names
+    the file and the problem, as pvm-label's do; errors from elsewhere (ValueError, RuntimeError, OSError) with their
+    type too. Like pvm-label, each takes ``-h`` for ``--help`` and ``--version``."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs["context_settings"] = {"help_option_names": ["-h", "--help"], **(kwargs.get("context_settings") or {})}
@@ -135,6 +135,8 @@ class GuardedCommand(click.Command):
             raise click.UsageError(str(exc)) from exc
         except (PVMError, CheckpointError, NonFiniteLossError) as exc:
             raise click.ClickException(str(exc)) from exc
+        except MemoryError as exc:  # the memory pre-flight's names the pair and a --scale that fits
+            raise click.ClickException(str(exc) or "out of memory (MemoryError)") from exc
         except (ValueError, RuntimeError, OSError) as exc:
             raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
 

@@ -13,7 +13,8 @@ import click
 from optstereo import validation
 from optstereo.api import load_model
 from optstereo.choices import AMP_MODES
-from optstereo.cli.common import GuardedCommand
+from optstereo.cli.common import GuardedCommand, device_option
+from optstereo.distributed import resolve_device
 from optstereo.pretrained import resolve_checkpoint_spec
 from optstereo.training import distill
 from pvm_labeler.common.datasets import discover
@@ -40,7 +41,7 @@ def distill_main() -> None:
 @click.option("--left", default="left", show_default=True, help="folder reader: left images' sub-folder.")
 @click.option("--right", default="right", show_default=True, help="folder reader: right images' sub-folder.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder of the .npz maps.")
-@click.option("--device", type=click.Choice(("cpu", "cuda")), default="cpu", show_default=True)
+@device_option
 @click.option("--amp", type=click.Choice(AMP_MODES), default="none", show_default=True, help="fp16: CUDA only.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str, out: Path, device: str,
@@ -48,6 +49,7 @@ def maps(checkpoint: str, dataset: str, root: Path | None, left: str, right: str
     """Record the teacher in OUT (refusing another's maps), write the missing maps, list the unreadable pairs."""
     kwargs = {"left": left, "right": right} if dataset == "folder" else {}
     refs = discover(dataset, root, **kwargs)
+    device = resolve_device(device).type  # auto -> cuda when available, as every command takes it
     model = load_model(checkpoint, device)  # the engineered CPU pass, as every inference command loads it
     record = distill.teacher_record(model, checkpoint, resolve_checkpoint_spec(checkpoint),
                                     validation.weights_digest(model), amp)
@@ -102,14 +104,14 @@ def _percent(value: float | None) -> str:
 @click.option("--right", default="right", show_default=True, help="folder reader: right images' sub-folder.")
 @click.option("--teacher", default="pretrained-accurate", show_default=True, help="The teacher's checkpoint.")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="The validation set's folder.")
-@click.option("--device", type=click.Choice(("cpu", "cuda")), default="cpu", show_default=True)
+@device_option
 @click.option("--max-disp", type=click.IntRange(min=1), default=None, help="The labeler's search range (default 192).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def valset_command(dataset: str, root: Path | None, left: str, right: str, teacher: str, out: Path, device: str,
                    max_disp: int | None, quiet: bool) -> None:
     options = {"left": left, "right": right} if dataset == "folder" else {}
     try:
-        built = validation.build(dataset, root, out, teacher, options, device, quiet, max_disp)
+        built = validation.build(dataset, root, out, teacher, options, resolve_device(device).type, quiet, max_disp)
     except distill.TeacherMismatchError as exc:
         raise click.BadParameter(str(exc), param_hint="--out") from exc
     click.echo(f"validation set of {len(built.manifest['pairs'])} pairs in {out} (teacher {teacher})")
