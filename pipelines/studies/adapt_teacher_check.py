@@ -40,7 +40,7 @@ def frame_scores(model, sample, maps: Path) -> tuple[PairScore, dict[str, float]
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--adapt", type=Path, required=True, help="an optstereo-adapt --out folder")
     parser.add_argument("--maps", type=Path, required=True, help="the teacher's maps of its held-back frames")
     parser.add_argument("--out", type=Path, required=True)

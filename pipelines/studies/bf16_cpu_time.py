@@ -21,7 +21,7 @@ from pipelines.bench_models import THREADS, _frames, beside_sgbm
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--shared", type=Path, default=Path("../shared/data"))
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)

@@ -40,7 +40,7 @@ def write_jpeg_folder(dataset: str, root: Path | None, out: Path, quality: int =
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("out", type=Path)
     parser.add_argument("--dataset", default="kitti_unlabelled")
     parser.add_argument("--root", type=Path)

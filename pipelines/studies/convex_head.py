@@ -289,7 +289,7 @@ def train_hybrid(cache_dir: Path, labels: Path, run: Path, minutes: float, lr: f
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     sub = parser.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("cache")
     c.add_argument("--labels", type=Path, required=True)

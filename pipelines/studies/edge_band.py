@@ -65,7 +65,7 @@ def regions(valset: Path, checkpoint: str) -> dict[str, dict[str, float]]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--valset", type=Path, required=True)
     parser.add_argument("--checkpoint", default="pretrained")
     parser.add_argument("--name", default="v15")

@@ -54,7 +54,7 @@ def write_pack(shared: Path, fetched: Path | None, out: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("out", type=Path)
     parser.add_argument("--shared", type=Path, default=SHARED)
     parser.add_argument("--fetched", type=Path, help="DEST of fetch_unlabelled_more.sh (omit: the 144 shared pairs)")

@@ -135,7 +135,7 @@ def plot(rows: dict[str, dict[str, Any]], path: Path, keys: tuple[str, ...] = ("
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--valset", type=Path, required=True)
     parser.add_argument("--weights", type=Path, required=True, help="folder holding MODELS' files")
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data")

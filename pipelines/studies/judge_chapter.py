@@ -86,7 +86,7 @@ def gt_once(stamped: Path, shared: Path, calib_roots: list[Path] | None = None) 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("snapshots", type=Path, nargs="+")
     parser.add_argument("--valset", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)

@@ -56,7 +56,7 @@ def decide(base: dict[str, Any], cand: dict[str, Any], name: str, label: str) ->
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("run", type=Path)
     parser.add_argument("--valset", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)

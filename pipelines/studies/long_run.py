@@ -398,7 +398,7 @@ def _read_report(path: Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     sub = parser.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("chapter", help="run or resume the run's current chapter")
     c.add_argument("--run", type=Path, required=True)

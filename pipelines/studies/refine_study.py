@@ -136,7 +136,7 @@ def write(stem: Path, doc: dict[str, Any], markdown: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("step", choices=("dump", "choose", "score"))
     parser.add_argument("--checkpoint", default="pretrained", help="dump: the model to predict with")
     parser.add_argument("--radius", type=int, default=5)

@@ -80,7 +80,7 @@ def against_labels(disps: list[np.ndarray], labels: list[np.ndarray]) -> dict[st
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("--root", type=Path, default=DRIVE)
     parser.add_argument("--frames", type=int, default=10)
     parser.add_argument("--checkpoint", default="pretrained")

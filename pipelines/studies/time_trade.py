@@ -188,7 +188,7 @@ def _markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("cmd", choices=("stamp", "time", "score", "table", "gt"))
     parser.add_argument("--name", help="gt: the finalist's setting (its file stem)")
     parser.add_argument("--files", type=Path, default=Path("/work/runs/t1"))

@@ -28,7 +28,7 @@ def pick(labels: Path, maps: Path, match: str, every: int, count: int) -> set[st
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("checkpoints", nargs="+")
     parser.add_argument("--labels", type=Path, required=True, help="PVM shards of the training pack")
     parser.add_argument("--maps", type=Path, required=True, help="the teacher's maps of those pairs")

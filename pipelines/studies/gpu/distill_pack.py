@@ -150,7 +150,7 @@ def carry_budget_mb(repo: Path = REPO) -> float:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("out", type=Path)
     parser.add_argument("--part", choices=("shared", "more"), default="shared")
     parser.add_argument("--shared", type=Path, default=SHARED)

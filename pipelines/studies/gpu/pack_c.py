@@ -99,7 +99,7 @@ def build(out: Path, quality: int, every: int = 1, exclude: set[str] = frozenset
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     parser.add_argument("out", type=Path)
     parser.add_argument("--quality", type=int, default=88)
     parser.add_argument("--every", type=int, default=1)

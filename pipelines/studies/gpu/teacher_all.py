@@ -93,7 +93,7 @@ def snapshots(run: Path, out: Path, name: str) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     sub = parser.add_subparsers(dest="cmd", required=True)
     m = sub.add_parser("merge")
     m.add_argument("dest", type=Path)
