@@ -19,7 +19,7 @@ from typing import IO, Any, cast
 
 from optstereo.validation import label_command
 from pvm_labeler.common.atomic import FAILURES_FILE, read_failures
-from pvm_labeler.common.errors import ShardError, counted
+from pvm_labeler.common.errors import SKIP_UNUSABLE_HINT, ShardError, counted
 
 logger = logging.getLogger(__name__)
 
@@ -136,6 +136,7 @@ def label_rig(dataset: str, root: Path | None, out: Path, reader_options: dict[s
         raise LabelingError(f"{failed}\n{MEND_HINT}")
     if said:
         hint = f"\n{MEND_HINT}" if "pairs are unusable" in said else ""
+        said = said.replace(SKIP_UNUSABLE_HINT, "")  # pvm-label's own flag: an adaptation labels every pair or none
         raise LabelingError(f"{said}{hint}")
     tail = "\n".join(printed.strip().splitlines()[-20:])
     raise LabelingError(f"pvm-label run failed (exit {code}) for {dataset} {root}; its output is above"

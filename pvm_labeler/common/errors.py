@@ -33,3 +33,8 @@ def counted(n: int, noun: str, plural: str | None = None) -> str:
     """``n`` and ``noun`` in the number messages need: ``counted(1, "pair")`` = "1 pair", ``counted(3, "pair")`` =
     "3 pairs", ``counted(2, "shard", "shards")``; ``plural`` defaults to ``noun + "s"``."""
     return f"{n} {noun if n == 1 else plural or noun + 's'}"
+
+
+#: The pre-flight's pointer to `pvm-label run --skip-unusable`, appended to its "pairs are unusable" message;
+#: optstereo-adapt, which takes no such flag, removes it from the message it relays.
+SKIP_UNUSABLE_HINT = "; --skip-unusable labels the others and lists these in OUT/failures.json"

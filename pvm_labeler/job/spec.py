@@ -10,7 +10,7 @@ from typing import Any
 from pvm_labeler import multiscale
 from pvm_labeler.common.datasets import DATASETS, PairRef, check_pair_sizes
 from pvm_labeler.common.datasets.refs import META_FILES
-from pvm_labeler.common.errors import ConfigError, InputError
+from pvm_labeler.common.errors import SKIP_UNUSABLE_HINT, ConfigError, InputError
 from pvm_labeler.config import LabelerConfig
 from pvm_labeler.packgt import PACK_GT_LABELER
 from pvm_labeler.parallel import BACKENDS
@@ -159,7 +159,7 @@ def preflight(refs: list[PairRef], cfg: LabelerConfig, matcher: bool = True,
     if problems and (not skip or not work):
         lines = [f"{ref.frame_id}: {exc}" for ref, exc in problems[:20]]
         more = f"\n  ... and {len(problems) - 20} more" if len(problems) > 20 else ""
-        hint = "" if skip else "; --skip-unusable labels the others and lists these in OUT/failures.json"
+        hint = "" if skip else SKIP_UNUSABLE_HINT
         raise InputError(f"{len(problems)} of {len(refs)} pairs are unusable (nothing was written{hint}):\n  "
                          + "\n  ".join(lines) + more)
     unusable = [{"frame_id": ref.frame_id, "error": str(exc), "type": type(exc).__name__, "files": ref.to_dict(),
