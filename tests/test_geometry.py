@@ -150,6 +150,43 @@ def test_predict_cli_depth_and_ply(tmp_path: Path, shared_data: Path) -> None:
     assert missing.exit_code == 2 and "--calib" in missing.output
 
 
+def test_depth_and_ply_of_a_rigs_folder(tmp_path: Path) -> None:
+    """`--dataset folder --calib RIG --format depth-npy --format ply`: each pair gets its depth and point cloud, the
+    same as predicting it alone (it was refused: one LEFT RIGHT pair only); a pair of another size than the
+    calibration's stops the run before any pair is predicted."""
+    import torch
+    from conftest import TINY, make_folder
+
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.cli import predict_main
+    from optstereo.models import build_model
+
+    torch.manual_seed(0)
+    ckpt = export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", iters=1, **TINY))
+    rig = make_folder(tmp_path / "rig", n=2, size=(64, 128))
+    calib = tmp_path / "rig.yaml"
+    calib.write_text("fx: 100\ncx: 64\ncy: 32\nbaseline: 0.5\nwidth: 128\nheight: 64\n")
+    common = ["--checkpoint", str(ckpt), "--calib", str(calib), "--format", "npy", "--format", "depth-npy",
+              "--format", "ply", "--device", "cpu", "--quiet"]
+    result = CliRunner().invoke(predict_main, [*common, "--dataset", "folder", "--root", str(rig), "--out",
+                                               str(tmp_path / "all")])
+    assert result.exit_code == 0 and "wrote 2 frames" in result.output, result.output
+    one = CliRunner().invoke(predict_main, [*common, str(rig / "left/001.png"), str(rig / "right/001.png"), "--out",
+                                            str(tmp_path / "one")])
+    assert one.exit_code == 0, one.output
+    for name in ("000", "001"):
+        disp = np.load(tmp_path / "all" / f"{name}.npy")
+        expected = disparity_to_depth(disp, read_calibration(calib))
+        np.testing.assert_allclose(np.load(tmp_path / "all" / f"{name}_depth.npy"), expected, rtol=1e-6)
+        assert len(read_ply(tmp_path / "all" / f"{name}.ply")) == int(np.isfinite(expected).sum())
+    np.testing.assert_array_equal(np.load(tmp_path / "all/001_depth.npy"), np.load(tmp_path / "one/001_depth.npy"))
+    calib.write_text("fx: 100\ncx: 64\ncy: 32\nbaseline: 0.5\nwidth: 256\nheight: 128\n")
+    result = CliRunner().invoke(predict_main, [*common, "--dataset", "folder", "--root", str(rig), "--out",
+                                               str(tmp_path / "other")])
+    assert result.exit_code == 1 and "describes 256x128 images and the pair is 128x64" in result.output
+    assert not list(tmp_path.glob("other/*"))  # nothing predicted
+
+
 def test_kitti_submission_zip(tmp_path: Path, shared_data: Path, caplog: pytest.LogCaptureFixture) -> None:
     """--submission: only _10 frames, disp_0/<frame>_10.png, each 16-bit at its own image's size; checked."""
     import zipfile

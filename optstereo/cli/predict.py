@@ -41,9 +41,9 @@ logger = logging.getLogger(__name__)
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
               type=click.Choice(PREDICT_FORMATS),
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm; 0 = "
-                   "none or beyond 65.5 m), depth-pfm / depth-npy (m), ply (coloured point cloud): one LEFT RIGHT "
-                   "pair, no conf-*; conf-png (16-bit, confidence x 65535) / conf-npy (float32 in [0, 1]) "
-                   "(repeatable).")
+                   "none or beyond 65.5 m), depth-pfm / depth-npy (m), ply (coloured point cloud): one pair or "
+                   "a --dataset of one rig, no conf-*; conf-png (16-bit, confidence x 65535) / conf-npy (float32 in "
+                   "[0, 1]) (repeatable).")
 @click.option("--calib", type=common.EXISTING,
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or a .yaml/.yml "
                    "file (fx, cx, cy, baseline [m], doffs; width, height to have its size checked).")
@@ -85,8 +85,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
         return
     geometry = [f for f in formats if f in GEOMETRY_FORMATS]
-    if geometry and (calib is None or dataset is not None):
-        raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE and one LEFT RIGHT pair")
+    if geometry and calib is None:
+        raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE (one rig's, for every pair)")
     rig = None
     if (calib is not None or max_depth is not None) and not geometry:
         logger.warning("%s read by the depth and point-cloud formats only (--format depth-png, depth-pfm, "
@@ -124,7 +124,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
             written = outputs.predict_dataset(model, dataset, root, out, split=split, iters=iters, formats=formats,
                                               device=dev, limit=limit, amp=amp, submission=submission,
                                               reader_options=common.collect_reader_options(**reader), scale=scale,
-                                              refine=refine, progress=not quiet)
+                                              refine=refine, progress=not quiet, calib=rig,
+                                              max_depth=max_depth if max_depth is not None else float("inf"))
         except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {_frames(len(written))} into {out}"

@@ -192,15 +192,31 @@ def check_pairs_fit(config: InferenceConfig, lefts: Iterable[Path], cuda: bool =
         check_fits(str(left), *size, scale=first_scale(config, size), cuda=cuda, available=available)
 
 
+def check_calibration_fits(calib: Any, refs: Iterable[Any]) -> None:
+    """``calib.check_fits`` once per image size among ``refs`` (``PairRef``), from the headers (a file whose header
+    cannot be read is passed over: the loop skips and lists it); ValueError without a calibration."""
+    if calib is None:
+        raise ValueError("the depth and point-cloud formats need a calibration: pass --calib FILE")
+    sizes = set()
+    for ref in refs:
+        try:
+            sizes.add(image_size(ref.left))
+        except InputError:
+            continue
+    for size in sorted(sizes):
+        calib.check_fits(*size)
+
+
 def predict_dataset(
     model: nn.Module, dataset: str, root: Path | None, out_dir: Path, *, split: str = "training",
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
     limit: int | None = None, amp: str = "none", submission: Path | None = None,
     reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
-    progress: bool = False,
+    progress: bool = False, calib: Any = None, max_depth: float = float("inf"),
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset (``progress``: a progress bar); KITTI datasets get the submission layout
-    ``disp_0/<frame>_10.png``.
+    ``disp_0/<frame>_10.png``. Depth and PLY formats use ``calib``, one rig's calibration for every pair (checked
+    against each image size from the headers first).
 
     With ``submission`` only the ``_10`` frames are run (``limit`` counts them) and zipped (and checked) for the
     KITTI benchmark server. Every pair's memory need is checked from its image headers before the first is run
@@ -217,6 +233,8 @@ def predict_dataset(
     refs = refs[:limit]
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
                     torch.device(device).type == "cuda")
+    if any(f in GEOMETRY_FORMATS for f in formats):
+        check_calibration_fits(calib, refs)
     refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats,
                               dataset.startswith("kitti"))
     written, failed = [], {}
@@ -231,7 +249,9 @@ def predict_dataset(
             continue
         disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
                      refine=refine)
-        written.append(write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=dataset.startswith("kitti")))
+        kitti_layout = dataset.startswith("kitti")
+        written.append({**write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=kitti_layout),
+                        **write_geometry(out_dir, ref.frame_id, disp, sample.left, calib, formats, max_depth)})
     record_failures(Path(out_dir), failed, len(refs))
     if submission is not None:
         write_submission(out_dir, submission, refs)
