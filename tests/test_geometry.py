@@ -187,6 +187,35 @@ def test_depth_and_ply_of_a_rigs_folder(tmp_path: Path) -> None:
     assert not list(tmp_path.glob("other/*"))  # nothing predicted
 
 
+def test_a_point_cloud_of_the_confident_pixels(tmp_path: Path) -> None:
+    """`--min-confidence 0.5 --format conf-npy --format ply --format depth-npy`: the depth and the cloud hold exactly
+    the pixels whose confidence passes (they could not be combined: depth and PLY refused conf-* and the filter)."""
+    import torch
+    from conftest import TINY, make_folder
+
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.cli import predict_main
+    from optstereo.models import build_model
+
+    torch.manual_seed(0)
+    ckpt = export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", iters=1, **TINY))
+    rig = make_folder(tmp_path / "rig", n=1, size=(64, 128))
+    calib = tmp_path / "rig.yaml"
+    calib.write_text("fx: 100\ncx: 64\ncy: 32\nbaseline: 0.5\nwidth: 128\nheight: 64\n")
+    result = CliRunner().invoke(predict_main, [
+        "--checkpoint", str(ckpt), str(rig / "left/000.png"), str(rig / "right/000.png"), "--out", str(tmp_path / "o"),
+        "--calib", str(calib), "--min-confidence", "0.5", "--format", "npy", "--format", "conf-npy", "--format",
+        "depth-npy", "--format", "ply", "--device", "cpu", "--quiet"])
+    assert result.exit_code == 0, result.output
+    conf, disp = np.load(tmp_path / "o/000_conf.npy"), np.load(tmp_path / "o/000.npy")
+    kept = conf >= 0.5
+    assert 0 < kept.sum() < kept.size  # the filter acts on this pair
+    assert np.isnan(disp[~kept]).all() and np.isfinite(disp[kept]).all()
+    depth = np.load(tmp_path / "o/000_depth.npy")
+    np.testing.assert_allclose(depth, disparity_to_depth(disp, read_calibration(calib)), rtol=1e-6)
+    assert len(read_ply(tmp_path / "o/000.ply")) == int(np.isfinite(depth).sum()) <= int(kept.sum())
+
+
 def test_kitti_submission_zip(tmp_path: Path, shared_data: Path, caplog: pytest.LogCaptureFixture) -> None:
     """--submission: only _10 frames, disp_0/<frame>_10.png, each 16-bit at its own image's size; checked."""
     import zipfile

@@ -42,8 +42,8 @@ logger = logging.getLogger(__name__)
               type=click.Choice(PREDICT_FORMATS),
               help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm; 0 = "
                    "none or beyond 65.5 m), depth-pfm / depth-npy (m), ply (coloured point cloud): one pair or "
-                   "a --dataset of one rig, no conf-*; conf-png (16-bit, confidence x 65535) / conf-npy (float32 in "
-                   "[0, 1]) (repeatable).")
+                   "a --dataset of one rig (with --min-confidence: its confident pixels); conf-png (16-bit, "
+                   "confidence x 65535) / conf-npy (float32 in [0, 1]) (repeatable).")
 @click.option("--calib", type=common.EXISTING,
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or a .yaml/.yml "
                    "file (fx, cx, cy, baseline [m], doffs; width, height to have its size checked).")
@@ -99,14 +99,14 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         _check_sequence(model, checkpoint)
     more = MoreOptions(sequence, sequence_iters, min_confidence)
     if more.active(formats):  # optstereo.inference.predict_more: --sequence, confidence formats, --min-confidence
-        if geometry or submission is not None:
-            raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with depth, PLY or "
-                                   "--submission outputs")
+        if submission is not None:
+            raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with --submission")
         frames = frames_of(left, right, dataset, root, split, limit, common.collect_reader_options(**reader))
         try:
             written = predict_frames(model, frames, out, more, formats=formats, iters=iters, device=dev,
                                      amp=amp, scale=scale, refine=refine, progress=not quiet,
-                                     kitti_layout=bool(dataset and dataset.startswith("kitti")))
+                                     kitti_layout=bool(dataset and dataset.startswith("kitti")), calib=rig,
+                                     max_depth=max_depth if max_depth is not None else float("inf"))
         except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {_frames(len(written))} into {out}")

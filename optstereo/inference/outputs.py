@@ -192,15 +192,15 @@ def check_pairs_fit(config: InferenceConfig, lefts: Iterable[Path], cuda: bool =
         check_fits(str(left), *size, scale=first_scale(config, size), cuda=cuda, available=available)
 
 
-def check_calibration_fits(calib: Any, refs: Iterable[Any]) -> None:
-    """``calib.check_fits`` once per image size among ``refs`` (``PairRef``), from the headers (a file whose header
-    cannot be read is passed over: the loop skips and lists it); ValueError without a calibration."""
+def check_calibration_fits(calib: Any, lefts: Iterable[Path]) -> None:
+    """``calib.check_fits`` once per image size among the ``lefts`` image files, from their headers (a file whose
+    header cannot be read is passed over: the loop skips and lists it); ValueError without a calibration."""
     if calib is None:
         raise ValueError("the depth and point-cloud formats need a calibration: pass --calib FILE")
     sizes = set()
-    for ref in refs:
+    for left in lefts:
         try:
-            sizes.add(image_size(ref.left))
+            sizes.add(image_size(left))
         except InputError:
             continue
     for size in sorted(sizes):
@@ -234,7 +234,7 @@ def predict_dataset(
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
                     torch.device(device).type == "cuda")
     if any(f in GEOMETRY_FORMATS for f in formats):
-        check_calibration_fits(calib, refs)
+        check_calibration_fits(calib, [Path(ref.left) for ref in refs])
     refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats,
                               dataset.startswith("kitti"))
     written, failed = [], {}

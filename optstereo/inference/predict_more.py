@@ -20,10 +20,17 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from optstereo.choices import CONF_FORMATS
+from optstereo.choices import CONF_FORMATS, GEOMETRY_FORMATS
 from optstereo.inference.confidence import confidence_of, write_confidence
 from optstereo.inference.engine import model_inference_config, run
-from optstereo.inference.outputs import check_pairs_fit, forget_frame, refuse_overwriting_inputs, write_disparity
+from optstereo.inference.outputs import (
+    check_calibration_fits,
+    check_pairs_fit,
+    forget_frame,
+    refuse_overwriting_inputs,
+    write_disparity,
+    write_geometry,
+)
 from optstereo.inference.sequence import DEFAULT_SEQUENCE_ITERS, SequenceState, infer_next, natural_key
 from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover
@@ -65,7 +72,8 @@ def more_options(fn):
 def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], out_dir: Path, more: MoreOptions, *,
                    formats: Iterable[str], kitti_layout: bool = False, iters: int | None = None,
                    device: torch.device | str = "cpu", amp: str = "none", scale: float | None = None,
-                   refine: str | None = None, progress: bool = True) -> list[dict[str, Path]]:
+                   refine: str | None = None, progress: bool = True, calib: Any = None,
+                   max_depth: float = float("inf")) -> list[dict[str, Path]]:
     """Predict (name, left path, right path) frames in order and write each one's files; returns format -> path
     per frame. With ``more.sequence`` the frames run in the natural order of their names
     (``optstereo.inference.sequence.natural_key``: ``frame_2`` before ``frame_10``) and each frame after the first
@@ -74,13 +82,16 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     the one before
     (another drive of ``kitti_unlabelled``), of another size, or after a scene cut starts a new sequence. MemoryError
     naming the first pair that would not fit, from the image headers, before any frame is run or written (the
-    confidence's second pass is no larger)."""
+    confidence's second pass is no larger). Depth and PLY formats use ``calib`` (one rig's, checked against every
+    image size first) on the disparity as written: with ``--min-confidence``, its confident pixels only."""
     formats = tuple(formats)
     frames = sorted(frames, key=lambda frame: natural_key(frame[0])) if more.sequence else list(frames)
     state, folder = SequenceState(), None
     config = model_inference_config(model, iters, scale, refine)  # the same for every frame
     check_pairs_fit(config, [Path(frame[1]) for frame in frames], torch.device(device).type == "cuda")
     refuse_overwriting_inputs(out_dir, frames, formats, kitti_layout)
+    if any(f in GEOMETRY_FORMATS for f in formats):
+        check_calibration_fits(calib, [Path(frame[1]) for frame in frames])
     written, failed = [], {}
     # disable=None: tqdm's bar is off on a stream that is no terminal (a piped log)
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=None if progress else True):
@@ -109,7 +120,9 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
             disp, used_scale = result.disparity, result.input_scale
         conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale, config.iters)
         logger.info("%s: %.2f s", name, time.perf_counter() - t0)
-        written.append(_write(out_dir, name, disp, conf, more, formats, kitti_layout))
+        paths = _write(out_dir, name, disp, conf, more, formats, kitti_layout)
+        written.append({**paths, **write_geometry(out_dir, name, _confident(disp, conf, more), left, calib, formats,
+                                                  max_depth)})
     if len(frames) > 1:
         record_failures(Path(out_dir), failed, len(frames))
     return written
@@ -126,10 +139,17 @@ def _confidence(model: nn.Module, left: np.ndarray, right: np.ndarray, disp: npt
     return confidence_of(model, left, right, disp, device=device, amp=amp, scale=scale, iters=iters)
 
 
+def _confident(disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,
+               more: MoreOptions) -> npt.NDArray[np.float32]:
+    """(H, W) float32: ``disp`` with NaN where ``conf`` is under ``--min-confidence`` (as given without it)."""
+    if conf is None or more.min_confidence <= 0:
+        return disp
+    return np.where(conf >= more.min_confidence, disp, np.nan).astype(np.float32)
+
+
 def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,
            more: MoreOptions, formats: tuple[str, ...], kitti_layout: bool) -> dict[str, Path]:
-    if conf is not None and more.min_confidence > 0:
-        disp = np.where(conf >= more.min_confidence, disp, np.nan).astype(np.float32)
+    disp = _confident(disp, conf, more)
     paths = write_disparity(out_dir, name, disp, [f for f in formats if f not in CONF_FORMATS],
                             kitti_layout=kitti_layout)
     if conf is not None:
