@@ -119,12 +119,17 @@ def summarise(acc_all: MetricAccumulator, acc_noc: MetricAccumulator) -> dict[st
     }
 
 
-def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
-    """KITTI-style error map (the base's viz.error_map) with its legend below: (H + LEGEND_HEIGHT, W, 3) uint8."""
-    return with_legend(error_map(pred, gt), error_legend(gt.shape[1]))
+def error_picture(pred: npt.NDArray[np.float32], gt: npt.NDArray[np.float32],
+                  reference: str = "GT") -> npt.NDArray[np.uint8]:
+    """KITTI-style error map (the base's viz.error_map, each reference pixel dilated by 1 as `pvm-label report`
+    draws them: KITTI's LiDAR points alone were faint speckle) with its legend below: (H + LEGEND_HEIGHT, W, 3)
+    uint8. ``reference``: what ``gt`` is, named in the legend."""
+    return with_legend(error_map(pred, gt, dilate=1), error_legend(gt.shape[1], reference=reference))
 
 
-def _save_maps(out_dir: Path, frame: Frame | Skipped) -> None:
+def _save_maps(out_dir: Path, frame: Frame | Skipped, reference: str = "GT") -> None:
+    """OUT/maps/<frame>_disp.png (the scale: the reference's largest value, shared by every model's picture of the
+    frame; the legend counts the prediction beyond it) and _error.png against ``reference``."""
     maps = out_dir / "maps"
     if isinstance(frame, Skipped):  # an earlier run's maps of it would pass for this run's
         for kind in ("disp", "error"):
@@ -135,16 +140,19 @@ def _save_maps(out_dir: Path, frame: Frame | Skipped) -> None:
     vmax = float(np.nanmax(shown)) if np.isfinite(shown).any() else 1.0
     stem = safe_stem(frame.frame_id)  # a shard's ids come from files anyone can write
     disp = colorize(frame.pred, max_disp=vmax)
-    write_image(maps / f"{stem}_disp.png", with_legend(disp, disparity_legend(disp.shape[1], vmax)))
+    finite = frame.pred[np.isfinite(frame.pred)]
+    above = float((finite > vmax).mean()) if finite.size else 0.0
+    write_image(maps / f"{stem}_disp.png", with_legend(disp, disparity_legend(disp.shape[1], vmax, above=above)))
     if frame.gt is not None:
-        write_image(maps / f"{stem}_error.png", error_picture(frame.pred, frame.gt))
+        write_image(maps / f"{stem}_error.png", error_picture(frame.pred, frame.gt, reference))
 
 
-def map_writer(out_dir: Path) -> Callable[[str, npt.NDArray[np.float32], npt.NDArray[np.float32]], None]:
+def map_writer(out_dir: Path, reference: str = "PVM/teacher") -> Callable[[str, npt.NDArray[np.float32],
+                                                                          npt.NDArray[np.float32]], None]:
     """(frame id, prediction, reference) -> OUT/maps/<frame>_disp.png and _error.png, as a GT evaluation writes
-    them (the reference in place of GT: NaN where there is none)."""
+    them (the reference in place of GT: NaN where there is none; ``reference`` names it in the legends)."""
     def write(frame_id: str, pred: npt.NDArray[np.float32], ref: npt.NDArray[np.float32]) -> None:
-        _save_maps(Path(out_dir), Frame(frame_id, pred, ref, None))
+        _save_maps(Path(out_dir), Frame(frame_id, pred, ref, None), reference)
 
     return write
 

@@ -132,6 +132,20 @@ class TestViz:
         assert both.shape == (5 + LEGEND_HEIGHT, 300, 3) and (both[:5] == 7).all() and (both[5:] == strip).all()
 
 
+    def test_a_legends_words_fit_a_narrow_picture(self) -> None:
+        """On a 320 or 384 px picture (Tsukuba, the sample's scenes) the error legend's line started left of the
+        strip and lost its first words: it is drawn smaller, from x = 2, and ends inside the strip."""
+        from pvm_labeler.common.viz import LEGEND_HEIGHT, disparity_legend, error_legend
+
+        for width in (320, 384, 1242):
+            for strip in (error_legend(width), error_legend(width, reference="PVM/teacher"),
+                          disparity_legend(width, 60.0, above=0.084)):
+                words = np.nonzero(strip[28:LEGEND_HEIGHT].any(axis=(0, 2)))[0]  # the second line's columns
+                assert words.size and words.min() >= 1 and words.max() <= width - 2, (width, words.min())
+        # the count of values beyond the scale is drawn (the top tick reads ">=" and the line says how many)
+        assert (disparity_legend(400, 60.0, above=0.084) != disparity_legend(400, 60.0)).any()
+
+
 class TestReportRegions:
     def test_all_noc_occ(self, tmp_path) -> None:  # noqa: ANN001
         from pvm_labeler.report import build_report

@@ -89,35 +89,48 @@ LEGEND_HEIGHT = 40  # px of the strip a legend adds below a picture: colours, nu
 
 def _text(strip: npt.NDArray[np.uint8], text: str, x: int, y: int, rgb: tuple[int, int, int] = (255, 255, 255)
           ) -> None:
-    """Small Hershey text drawn into the (h, w, 3) uint8 RGB ``strip`` in place, its left end at x (kept inside)."""
-    (w, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)
-    cv2.putText(strip, text, (int(min(max(x, 1), strip.shape[1] - w - 1)), y), cv2.FONT_HERSHEY_SIMPLEX, 0.35, rgb, 1,
-                cv2.LINE_AA)
+    """Small Hershey text drawn into the (h, w, 3) uint8 RGB ``strip`` in place, its left end at x (kept inside); a
+    line wider than the strip is drawn smaller to fit (its start fell off the left edge of a narrow picture)."""
+    font_scale = 0.35
+    (w, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)
+    while w > strip.shape[1] - 4 and font_scale > 0.15:  # from x = 2, a pixel of antialiasing to spare; Hershey
+        font_scale *= 0.9  # sizes come in steps, so shrink until it fits
+        (w, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)
+    cv2.putText(strip, text, (int(max(1, min(x, strip.shape[1] - w - 1))), y), cv2.FONT_HERSHEY_SIMPLEX, font_scale,
+                rgb, 1, cv2.LINE_AA)
 
 
-def disparity_legend(width: int, max_disp: float, colormap: int = cv2.COLORMAP_TURBO) -> npt.NDArray[np.uint8]:
+def disparity_legend(width: int, max_disp: float, colormap: int = cv2.COLORMAP_TURBO,
+                     above: float = 0.0) -> npt.NDArray[np.uint8]:
     """(LEGEND_HEIGHT, width, 3) uint8 RGB strip: the colour ramp of :func:`colorize_disparity` from 0 to
-    ``max_disp`` px, ticks at 0, a half and the top, and "black: no disparity"."""
+    ``max_disp`` px, ticks at 0, a half and the top, and "black: no disparity". ``above``: the fraction of the
+    picture's values beyond ``max_disp`` (drawn in the top colour): the top tick then reads ">=" and the line says
+    how many."""
     strip = np.zeros((LEGEND_HEIGHT, width, 3), np.uint8)
     ramp = np.linspace(0, 255, width).astype(np.uint8)[None, :]
     strip[:12] = cv2.applyColorMap(np.repeat(ramp, 12, axis=0), colormap)[..., ::-1]
     for frac in (0.0, 0.5, 1.0):
-        _text(strip, f"{frac * max_disp:.3g} px", int(frac * width) - (0 if frac == 0 else 24), 24)
-    _text(strip, "disparity; black: none", 2, 37, (160, 160, 160))
+        mark = ">=" if frac == 1.0 and above > 0 else ""
+        _text(strip, f"{mark}{frac * max_disp:.3g} px", int(frac * width) - (0 if frac == 0 else 24 + 8 * len(mark)),
+              24)
+    more = f"; {above:.1%} of it beyond the scale, in its top colour" if above > 0 else ""
+    _text(strip, f"disparity; black: none{more}", 2, 37, (160, 160, 160))
     return strip
 
 
-def error_legend(width: int, tau: tuple[float, float] = (3.0, 0.05)) -> npt.NDArray[np.uint8]:
+def error_legend(width: int, tau: tuple[float, float] = (3.0, 0.05), reference: str = "GT") -> npt.NDArray[np.uint8]:
     """(LEGEND_HEIGHT, width, 3) uint8 RGB strip: :func:`error_map`'s ten bins side by side, each under its lower
-    bound in px (the bins of error / tau[0]; an error under tau[1] of the disparity counts as the smaller), with
-    grey = no prediction, black = no GT."""
+    bound in px. A pixel's bin is that of min(error / tau[0], error / (tau[1] x its ``reference`` disparity)) (the
+    KITTI devkit's rule), so where the reference exceeds tau[0] / tau[1] (60 px) every bound grows by reference /
+    60 px. Grey = no prediction, black = no ``reference`` (GT, or a GT-free set's PVM label)."""
     strip = np.zeros((LEGEND_HEIGHT, width, 3), np.uint8)
     step = width / len(KITTI_ERROR_BINS)
     for i, (low, _, rgb) in enumerate(KITTI_ERROR_BINS):
         strip[:12, int(i * step):int((i + 1) * step)] = rgb
         _text(strip, f"{low * tau[0]:.2g}", int(i * step) + 2, 24)
-    _text(strip, f"error in px, each bin from its lower bound (or {tau[1]:.0%} of the disparity if larger); grey: "
-          "no prediction, black: no GT", 2, 37, (160, 160, 160))
+    knee = tau[0] / tau[1]
+    _text(strip, f"error in px (bounds x {reference}/{knee:.0f} px where {reference} > {knee:.0f} px); grey: no "
+          f"prediction, black: no {reference}", 2, 37, (160, 160, 160))
     return strip
 
 
