@@ -11,12 +11,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pvm_labeler.common.atomic import atomic_write_text
+from pvm_labeler.common.atomic import atomic_write_text, json_safe
 from pvm_labeler.common.datasets import safe_stem
 from pvm_labeler.common.errors import ShardError
 from pvm_labeler.common.io import write_image
@@ -160,6 +161,18 @@ def markdown(runs: list[dict[str, Any]], per_frame: bool = True) -> str:
     return "\n".join(lines)
 
 
+def _picture_links(pictures: list[str], out: Path) -> str:
+    """Markdown embedding each picture (paths relative to ``out``, where report.md is), '' when there are none."""
+    if not pictures:
+        return ""
+    lines = ["", "", "### Pictures", "",
+             "Labels coloured by disparity and their errors against GT (KITTI devkit colours; legends below each)."]
+    for picture in pictures:
+        rel = Path(os.path.relpath(picture, out)).as_posix()
+        lines += ["", f"![{rel}]({rel})"]
+    return "\n".join(lines)
+
+
 def build_report(shard_dirs: list[Path], out: Path, pictures: int = 4) -> dict[str, Any]:
     """Evaluate every shard directory, write report.json/report.md/pictures into ``out``; returns the content.
 
@@ -173,16 +186,16 @@ def build_report(shard_dirs: list[Path], out: Path, pictures: int = 4) -> dict[s
         pic_dir = out / f"run{i:02d}-{Path(shard_dir).name}" if pictures else None
         runs.append(evaluate_dir(Path(shard_dir), pictures=pictures, picture_dir=pic_dir))
     pics = [p for run in runs for p in run["pictures"]]
-    plot_runs = [{"name": f"k1={r['config'].get('kappa1')},k2={r['config'].get('kappa2')}", **r["pooled"]["all"]}
-                 for r in runs if "all" in r["pooled"]]
-    if len(plot_runs) >= 2:
+    plot_runs = [{"name": r["name"], **r["pooled"]["all"]} for r in runs if "all" in r["pooled"]]
+    if len(plot_runs) >= 2:  # each point named by its run (folder and kappas: runs differing in K stay apart)
         plot_runs.sort(key=lambda r: r["density"])
-        pics.append(str(density_error_plot(plot_runs, out / "density_vs_error.png")))
+        pics.append(str(density_error_plot(plot_runs, out / "density_vs_error.png",
+                                           title="PVM labels: density vs error (region all, pooled)")))
     if not any(run["pooled"] for run in runs):
         logger.warning("no GT in %s: the report has densities only", [str(d) for d in shard_dirs])
-    text = markdown(runs)
+    text = markdown(runs) + _picture_links(pics, out)
     atomic_write_text(out / "report.md", "# PVM label quality\n\n" + text + "\n")
-    atomic_write_text(out / "report.json", json.dumps({"runs": runs}, indent=2, default=float))
+    atomic_write_text(out / "report.json", json.dumps(json_safe({"runs": runs}), indent=2, default=float))  # NaN: null
     if not runs:
         raise ShardError("no shard directories given")
     return {"runs": runs, "markdown": text, "pictures": pics}

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -164,3 +166,28 @@ class TestReportRegions:
         assert pooled["occ"]["n_valid"] == 2 and pooled["occ"]["bad3"] == 50.0
         assert (tmp_path / "rep/report.md").read_text().count("| f |") == 1
         assert len(result["pictures"]) == 2  # label map + error map (a single run: no trade-off plot)
+
+    def test_report_json_is_strict_and_report_md_shows_its_pictures(self, tmp_path) -> None:  # noqa: ANN001
+        """No label on the occluded pixels: the occ region's errors are NaN, written as null (report.json held a
+        bare NaN, which strict JSON readers refuse); report.md embeds the pictures it wrote beside it."""
+        from pvm_labeler.report import build_report
+        from pvm_labeler.shards import ShardRecord, write_shard_dir
+
+        img = np.zeros((1, 4, 3), np.uint8)
+        gt = np.array([[10.0, 20.0, 30.0, 40.0]], np.float32)
+        gt_noc = np.array([[10.0, 20.0, NAN, NAN]], np.float32)
+        label = np.array([[11.0, 20.0, NAN, NAN]], np.float32)
+        rec = ShardRecord("f", img, img, label, label, np.ones((1, 4), np.float32), gt=gt, gt_noc=gt_noc)
+        write_shard_dir(tmp_path / "s", [rec], config={"kappa1": 1.0, "kappa2": 0.1})
+        result = build_report([tmp_path / "s"], tmp_path / "rep", pictures=1)
+        assert math.isnan(result["runs"][0]["pooled"]["occ"]["epe"])
+
+        def refuse(constant: str) -> None:
+            raise ValueError(f"not JSON: {constant}")
+
+        doc = json.loads((tmp_path / "rep/report.json").read_text(), parse_constant=refuse)
+        assert doc["runs"][0]["pooled"]["occ"]["epe"] is None
+        text = (tmp_path / "rep/report.md").read_text()
+        for picture in result["pictures"]:
+            rel = Path(picture).relative_to(tmp_path / "rep").as_posix()
+            assert f"![{rel}]({rel})" in text and (tmp_path / "rep" / rel).is_file()
