@@ -271,9 +271,11 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
     clean = json_safe(result.summary)
     keys = [k for k in SUMMARY_KEYS if k in result.summary]
     n_noc = result.summary.get("n_frames_noc", result.summary["n_frames"])
-    noc = "" if n_noc == result.summary["n_frames"] else \
-        f" The *_noc columns cover the {n_noc} frame{'' if n_noc == 1 else 's'} with a non-occluded GT."
-    lines = [f"# {title}", "", f"{result.summary['n_frames']} frames; pixels pooled over frames. EPE in px, "
+    noc = "" if n_noc == result.summary["n_frames"] else (
+        f" The *_noc columns cover {counted(n_noc, 'frame')} with a non-occluded GT." if n_noc else
+        " No frame has a non-occluded GT: the *_noc columns are empty.")
+    lines = [f"# {title}", "", *_what_ran(result.summary),
+             f"{counted(result.summary['n_frames'], 'frame')}; pixels pooled over frames. EPE in px, "
              "the others in %; F1 = bad3 (> 3 px, the paper's definition); D1 = > 3 px and > 5 % (KITTI)." + noc, "",
              "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys),
              "| " + " | ".join(_fmt(result.summary[k]) for k in keys) + " |", "", *_problem_lines(result.summary),
@@ -287,6 +289,15 @@ def write_reports(result: EvalResult, out_dir: Path, title: str, write_csv: bool
     # crash midway leaves the streamed metrics.csv and no summary.json)
     atomic_write_text(files["json"], json.dumps(clean, indent=2, default=str))
     return files
+
+
+def _what_ran(summary: dict[str, Any]) -> list[str]:
+    """The line naming the checkpoint and the settings it ran with (three reports of one dataset had one title)."""
+    if "checkpoint" not in summary:
+        return []
+    inference = summary.get("inference") or {}
+    settings = ", ".join(f"{k} {inference[k]}" for k in ("scale", "iters", "refine", "coarse_start") if k in inference)
+    return [f"Checkpoint `{summary['checkpoint']}` ({summary.get('file', '')}); {settings or 'its own settings'}.", ""]
 
 
 # -- sources of frames ---------------------------------------------------------------------------------------------

@@ -55,7 +55,7 @@ class TestMetrics:
         s = evaluate_frames(frames, tmp_path).summary
         assert s["epe"] == pytest.approx(1.0) and s["n_frames"] == 2  # 4 px over 4 pixels, not mean(4, 0)
         assert math.isnan(s["d1_noc"]) and json.loads((tmp_path / "summary.json").read_text())["d1_noc"] is None
-        assert "The *_noc columns cover the 0 frames with a non-occluded GT." in (tmp_path / "summary.md").read_text()
+        assert "No frame has a non-occluded GT: the *_noc columns are empty." in (tmp_path / "summary.md").read_text()
 
     def test_exception_without_gt(self) -> None:
         with pytest.raises(ValueError, match="no frame with ground truth"):
@@ -268,6 +268,9 @@ class TestCli:
         assert "EPE" in res.output and (tmp_path / "eval" / "maps" / "000000_10_error.png").is_file()
         row = next(csv.DictReader(open(tmp_path / "eval" / "metrics.csv")))
         assert json.loads((tmp_path / "eval" / "summary.json").read_text())["file"] == str(tiny_ckpt)  # the file read
+        # summary.md says what ran (three reports of one dataset had one title), and "1 frame"
+        assert f"Checkpoint `{tiny_ckpt}` ({tiny_ckpt})" in (tmp_path / "eval" / "summary.md").read_text()
+        assert "\n1 frame; pixels pooled" in (tmp_path / "eval" / "summary.md").read_text()
         again = runner.invoke(eval_main, ["--checkpoint", str(tiny_ckpt), "--dataset", "kitti15", "--root", str(root),
                                           "--limit", "1", "--out", str(tmp_path / "eval"), "--no-save-maps"])
         assert again.exit_code == 0 and not (tmp_path / "eval" / "maps").exists()  # the earlier run's maps went
