@@ -509,6 +509,13 @@ def test_plot_curves_draws_the_logged_panels(tmp_path: Path, monkeypatch: pytest
     monkeypatch.setattr(matplotlib.axes.Axes, "set_title", lambda self, t, **k: drawn.append([t]))
     assert real(tmp_path) == tmp_path / log.CURVES_FILE
     assert [d[0] for d in drawn] == ["losses", "L_R, L_S", "GT-free validation (px)"]
+    drawn.clear()  # the training labels' EPE and the GT validation (--val-dataset) logged too: drawn too
+    more = [*records, *({"step": s, "label_epe": 1.0 / s} for s in range(1, 41)), {"step": 40, "val_epe": 1.2,
+                                                                                   "val_bad3": 7.5}]
+    (tmp_path / log.METRICS_FILE).write_text("".join(json.dumps(r) + "\n" for r in more))
+    real(tmp_path)
+    assert [d[0] for d in drawn] == ["losses", "L_R, L_S", "EPE against the training labels (px)",
+                                     "GT-free validation (px)", "GT validation (--val-dataset)"]
     drawn.clear()
     for r in records:  # a run without L_R / L_S logs them as 0: no panel for them
         r.update({"L_R": 0.0, "L_S": 0.0} if "L_R" in r else {})

@@ -23,7 +23,12 @@ METRICS_FILE = "metrics.jsonl"
 CURVES_FILE = "curves.png"
 #: Panels of curves.png: (title, keys); a panel none of whose keys was logged is left out.
 PANELS = (("losses", ("total", "L_P")), ("L_R, L_S", ("L_R", "L_S")),
-          ("GT-free validation (px)", ("gtfree_pvm_epe", "gtfree_teacher_epe")))
+          ("EPE against the training labels (px)", ("label_epe",)),
+          ("GT-free validation (px)", ("gtfree_pvm_epe", "gtfree_teacher_epe")),
+          ("GT validation (--val-dataset)", ("val_epe", "val_bad3")))
+#: The y axis of each panel.
+UNITS = {"losses": "loss", "L_R, L_S": "loss", "EPE against the training labels (px)": "px",
+         "GT-free validation (px)": "EPE px", "GT validation (--val-dataset)": "EPE px / bad-3 %"}
 
 
 class RunLogger:
@@ -89,8 +94,10 @@ def plot_curves(run_dir: Path) -> Path | None:
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt  # lazy: as above
+        from matplotlib.ticker import MaxNLocator  # lazy: as above
 
-        fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.3), squeeze=False)
+        fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.5), squeeze=False)
+        fig.suptitle(str(Path(run_dir).resolve()), fontsize=8)
         for ax, (title, series) in zip(axes[0], panels, strict=True):
             for i, (key, pts) in enumerate(series):
                 steps, values = (np.asarray(v, float) for v in zip(*pts, strict=True))
@@ -105,6 +112,8 @@ def plot_curves(run_dir: Path) -> Path | None:
                 ax.set_yscale("log")
             ax.set_title(title, fontsize=9)
             ax.set_xlabel("step")
+            ax.set_ylabel(UNITS.get(title, ""), fontsize=8)
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # steps are whole (it ticked 2.5, 7.5)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
         fig.tight_layout()
