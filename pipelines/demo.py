@@ -97,6 +97,8 @@ def overview(out: Path, pred_npy: Path, shipped_npy: dict[str, Path], minutes: f
         disp = np.load(path)
         panels.append((f"shipped {name}: {_motorcycle_metrics(disp, sample.gt)}", disp))
     panels += [(None, None)] * (6 - len(panels))
+    cmap = plt.get_cmap("turbo").with_extremes(bad="black")  # "no value" black, as every picture of the toolkit
+    shown = None
     for ax, (title, img) in zip(axes.ravel(), panels, strict=True):
         if title is None:
             ax.axis("off")
@@ -104,10 +106,13 @@ def overview(out: Path, pred_npy: Path, shipped_npy: dict[str, Path], minutes: f
         if img is not None and img.ndim == 3:
             ax.imshow(img)
         elif img is not None:
-            ax.imshow(np.ma.masked_invalid(img), cmap="turbo", vmin=0, vmax=vmax)
+            shown = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=0, vmax=vmax)
         ax.set_title(title, fontsize=10)
         ax.axis("off")
     fig.tight_layout()
+    if shown is not None:  # one scale for every disparity panel: the GT's range; beyond it, the top colour
+        bar = fig.colorbar(shown, ax=axes.ravel().tolist(), fraction=0.015, pad=0.01, extend="max")
+        bar.set_label("disparity (px); black: no value", fontsize=9)
     path = out / "overview.png"
     fig.savefig(path, dpi=80)
     plt.close(fig)

@@ -258,6 +258,28 @@ def tiny_ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 class TestCli:
+    def test_color_max_gives_every_frame_one_scale(self, tiny_ckpt: Path, tmp_path: Path) -> None:
+        """--color-max: each frame's `color` picture is colorize_disparity at that top, so a disparity has one colour
+        in every frame of a --dataset run (and in the per-frame loop); without it each frame uses its own largest
+        value, as before."""
+        from conftest import make_folder
+
+        from optstereo.inference.outputs import colorize, disparity_paths
+        from pvm_labeler.common.io import read_image
+
+        root = make_folder(tmp_path / "pairs", n=2)
+        base = ["--checkpoint", str(tiny_ckpt), "--dataset", "folder", "--root", str(root), "--format", "npy",
+                "--format", "color", "--quiet"]
+        for extra, out in (([], "own"), (["--color-max", "10"], "fixed"),
+                           (["--color-max", "10", "--format", "conf-npy"], "loop")):
+            res = CliRunner().invoke(predict_main, [*base, *extra, "--out", str(tmp_path / out)])
+            assert res.exit_code == 0, res.output
+            for name in ("000", "001"):
+                disp = np.load(tmp_path / out / f"{name}.npy")
+                top = None if out == "own" else 10.0
+                picture = disparity_paths(tmp_path / out, name, ["color"])["color"]
+                np.testing.assert_array_equal(read_image(picture), colorize(disp, top))
+
     def test_eval_on_kitti_matches_predicted_png(self, shared_data: Path, tiny_ckpt: Path, tmp_path: Path) -> None:
         """Network eval and predict --dataset agree through the KITTI PNG (quantised to 1/256 px)."""
         root = shared_data / "kitti15"

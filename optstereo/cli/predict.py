@@ -63,7 +63,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                  root: Path | None, split: str, limit: int | None, iters: int | None, formats: tuple[str, ...],
                  calib: Path | None, max_depth: float | None, backend: str, submission: Path | None, device: str,
                  amp: str, scale: float | None, refine: str | None, quiet: bool, sequence: bool,
-                 sequence_iters: int, min_confidence: float, **reader: Any) -> None:
+                 sequence_iters: int, min_confidence: float, color_max: float | None, **reader: Any) -> None:
     """Disparity maps: optstereo-predict --checkpoint CKPT LEFT RIGHT --out DIR (or --dataset NAME --root PATH)."""
     common.setup_logging(quiet)
     if dataset is None and (left is None or right is None):
@@ -82,7 +82,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                          formats=formats, calib=calib, max_depth=max_depth)
     common.check_out(out)
     if backend == "onnxruntime":
-        _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine)
+        _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine, color_max)
         return
     geometry = [f for f in formats if f in GEOMETRY_FORMATS]
     if geometry and calib is None:
@@ -97,7 +97,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
     model, dev = common.load_model(checkpoint, device)
     if sequence:
         _check_sequence(model, checkpoint)
-    more = MoreOptions(sequence, sequence_iters, min_confidence)
+    more = MoreOptions(sequence, sequence_iters, min_confidence, color_max)
     if more.active(formats):  # optstereo.inference.predict_more: --sequence, confidence formats, --min-confidence
         if submission is not None:
             raise click.UsageError("--sequence / conf-* / --min-confidence do not combine with --submission")
@@ -115,7 +115,7 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         _check_memory(left, right, inference.model_inference_config(model, iters, scale, refine), dev.type)
         paths = outputs.predict_pair(model, left, right, out, iters=iters, formats=formats, device=dev,
                              amp=amp, calib=rig, max_depth=max_depth if max_depth is not None else float("inf"),
-                             scale=scale, refine=refine)
+                             scale=scale, refine=refine, color_max=color_max)
         click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     else:
         if submission is not None and "png" not in formats:
@@ -125,7 +125,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
                                               device=dev, limit=limit, amp=amp, submission=submission,
                                               reader_options=common.collect_reader_options(**reader), scale=scale,
                                               refine=refine, progress=not quiet, calib=rig,
-                                              max_depth=max_depth if max_depth is not None else float("inf"))
+                                              max_depth=max_depth if max_depth is not None else float("inf"),
+                                              color_max=color_max)
         except MemoryError as exc:  # its pre-flight, from the headers: before any frame was run or written
             raise click.ClickException(str(exc)) from exc
         click.echo(f"wrote {_frames(len(written))} into {out}"
@@ -158,7 +159,7 @@ def _refuse_for_onnx(*, iters: int | None, amp: str, device: str, sequence: bool
 
 
 def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: Path, formats: tuple[str, ...],
-                  dataset: str | None, scale: float | None, refine: str | None) -> None:
+                  dataset: str | None, scale: float | None, refine: str | None, color_max: float | None) -> None:
     if dataset is not None or left is None or right is None or Path(onnx_file).suffix != ".onnx":
         raise click.UsageError("--backend onnxruntime takes an exported .onnx as --checkpoint and one LEFT RIGHT pair")
     if not Path(onnx_file).is_file():
@@ -167,7 +168,7 @@ def _predict_onnx(onnx_file: Path, left: Path | None, right: Path | None, out: P
     config = onnx_inference_config(session)
     _check_memory(left, right, config if scale is None else config.fixed(scale), "cpu")
     disp = infer_onnx(session, read_image(left), read_image(right), scale=scale, refine=refine)
-    paths = outputs.write_disparity(out, Path(left).stem, disp, formats)
+    paths = outputs.write_disparity(out, Path(left).stem, disp, formats, max_disp=color_max)
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
 
 

@@ -162,8 +162,10 @@ def predict_pair(
     model: nn.Module, left_path: Path, right_path: Path, out_dir: Path, *, iters: int | None = None,
     formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu", amp: str = "none",
     calib: Any = None, max_depth: float = float("inf"), scale: float | None = None, refine: str | None = None,
+    color_max: float | None = None,
 ) -> dict[str, Path]:
-    """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``)."""
+    """Predict one pair from image files and write ``<left stem>.<ext>`` files into out_dir (depth/PLY: ``calib``;
+    the ``color`` picture's top at ``color_max`` px, None = the map's own largest value)."""
     refuse_overwriting_inputs(out_dir, [(Path(left_path).stem, left_path, right_path)], formats)
     if calib is not None and any(f in GEOMETRY_FORMATS for f in formats):
         calib.check_fits(*image_size(left_path))  # before the network runs, not after
@@ -174,7 +176,7 @@ def predict_pair(
     disp = infer(model, left, right, iters=iters, device=device, amp=amp, scale=scale, refine=refine)
     logger.info("%s: %.2f s", left_path, time.perf_counter() - t0)
     stem = Path(left_path).stem
-    return {**write_disparity(out_dir, stem, disp, formats),
+    return {**write_disparity(out_dir, stem, disp, formats, max_disp=color_max),
             **write_geometry(out_dir, stem, disp, left, calib, formats, max_depth)}
 
 
@@ -212,7 +214,7 @@ def predict_dataset(
     iters: int | None = None, formats: Iterable[str] = DEFAULT_FORMATS, device: torch.device | str = "cpu",
     limit: int | None = None, amp: str = "none", submission: Path | None = None,
     reader_options: dict[str, Any] | None = None, scale: float | None = None, refine: str | None = None,
-    progress: bool = False, calib: Any = None, max_depth: float = float("inf"),
+    progress: bool = False, calib: Any = None, max_depth: float = float("inf"), color_max: float | None = None,
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset (``progress``: a progress bar); KITTI datasets get the submission layout
     ``disp_0/<frame>_10.png``. Depth and PLY formats use ``calib``, one rig's calibration for every pair (checked
@@ -250,7 +252,8 @@ def predict_dataset(
         disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
                      refine=refine)
         kitti_layout = dataset.startswith("kitti")
-        written.append({**write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=kitti_layout),
+        written.append({**write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=kitti_layout,
+                                          max_disp=color_max),
                         **write_geometry(out_dir, ref.frame_id, disp, sample.left, calib, formats, max_depth)})
     record_failures(Path(out_dir), failed, len(refs))
     if submission is not None:

@@ -48,6 +48,7 @@ class MoreOptions:
     sequence: bool = False
     sequence_iters: int = DEFAULT_SEQUENCE_ITERS
     min_confidence: float = 0.0
+    color_max: float | None = None  # the ``color`` picture's top (px); None: each frame's own largest value
 
     def active(self, formats: Iterable[str]) -> bool:
         """True when the plain path (``predict_pair`` / ``predict_dataset``) cannot serve the request."""
@@ -55,7 +56,11 @@ class MoreOptions:
 
 
 def more_options(fn):
-    """--sequence, --sequence-iters and --min-confidence for optstereo-predict."""
+    """--sequence, --sequence-iters, --min-confidence and --color-max for optstereo-predict."""
+    fn = click.option("--color-max", type=click.FloatRange(min=0, min_open=True), default=None,
+                      help="Disparity (px) at the top of the `color` picture's scale, the same for every frame (a "
+                           "video's colours no longer change with each frame's largest value).  [default: each "
+                           "frame's own largest value]")(fn)
     fn = click.option("--min-confidence", type=click.FloatRange(0, 1), default=0.0,
                       help="Semi-dense output: pixels whose confidence (optstereo.inference.confidence) is below "
                            "this get no value (0 in png, inf in pfm as Middlebury's, NaN in npy). 0 = dense.")(fn)
@@ -151,7 +156,7 @@ def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.ND
            more: MoreOptions, formats: tuple[str, ...], kitti_layout: bool) -> dict[str, Path]:
     disp = _confident(disp, conf, more)
     paths = write_disparity(out_dir, name, disp, [f for f in formats if f not in CONF_FORMATS],
-                            kitti_layout=kitti_layout)
+                            kitti_layout=kitti_layout, max_disp=more.color_max)
     if conf is not None:
         paths.update(write_confidence(Path(out_dir) / ("conf" if kitti_layout else ""), name, conf,
                                       [f for f in formats if f in CONF_FORMATS]))
