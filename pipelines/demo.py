@@ -114,7 +114,7 @@ def overview(out: Path, pred_npy: Path, shipped_npy: dict[str, Path], minutes: f
         bar = fig.colorbar(shown, ax=axes.ravel().tolist(), fraction=0.015, pad=0.01, extend="max")
         bar.set_label("disparity (px); black: no value", fontsize=9)
     path = out / "overview.png"
-    fig.savefig(path, dpi=80)
+    fig.savefig(path, dpi=80, bbox_inches="tight")  # the colour bar and its label inside the picture
     plt.close(fig)
     return path
 
