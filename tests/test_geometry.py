@@ -187,6 +187,36 @@ def test_depth_and_ply_of_a_rigs_folder(tmp_path: Path) -> None:
     assert not list(tmp_path.glob("other/*"))  # nothing predicted
 
 
+def test_a_datasets_own_calibrations_serve_its_pairs(tmp_path: Path, shared_data: Path) -> None:
+    """`--dataset middlebury --format depth-npy`: Motorcycle's depth follows its own calib.txt (each Middlebury scene
+    has its own focal length and baseline: one --calib for all gave wrong depths); pairs without one need --calib,
+    named when it is missing (exit 2, nothing predicted)."""
+    import torch
+    from conftest import TINY
+
+    from optstereo.checkpoint import export_safetensors
+    from optstereo.cli import predict_main
+    from optstereo.models import build_model
+
+    torch.manual_seed(0)
+    ckpt = export_safetensors(tmp_path / "tiny.safetensors", build_model("optstereo", iters=1, **TINY))
+    args = ["--checkpoint", str(ckpt), "--dataset", "middlebury", "--root", str(shared_data), "--format", "npy",
+            "--format", "depth-npy", "--device", "cpu", "--quiet", "--out"]
+    refused = CliRunner().invoke(predict_main, [*args, str(tmp_path / "none")])
+    assert refused.exit_code == 2, refused.output
+    assert "2 pairs (middlebury2001-tsukuba, middlebury2003-cones) have none of their own" in refused.output
+    assert not list(tmp_path.glob("none/*"))
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("fx: 400\ncx: 200\ncy: 160\nbaseline: 0.1\n")
+    done = CliRunner().invoke(predict_main, [*args, str(tmp_path / "o"), "--calib", str(rig)])
+    assert done.exit_code == 0, done.output
+    own = shared_data / "middlebury_eval3/trainingQ/Motorcycle/calib.txt"
+    for name, calib in (("middlebury_eval3-trainingQ-Motorcycle", own), ("middlebury2001-tsukuba", rig)):
+        disp = np.load(tmp_path / "o" / f"{name}.npy")
+        np.testing.assert_allclose(np.load(tmp_path / "o" / f"{name}_depth.npy"),
+                                   disparity_to_depth(disp, read_calibration(calib)), rtol=1e-6)
+
+
 def test_a_point_cloud_of_the_confident_pixels(tmp_path: Path) -> None:
     """`--min-confidence 0.5 --format conf-npy --format ply --format depth-npy`: the depth and the cloud hold exactly
     the pixels whose confidence passes (they could not be combined: depth and PLY refused conf-* and the filter)."""

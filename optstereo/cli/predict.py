@@ -40,9 +40,9 @@ logger = logging.getLogger(__name__)
               help="GRU iterations (default: the checkpoint's settings; `pretrained` 3).")
 @click.option("--format", "formats", multiple=True, default=("png", "color"),
               type=click.Choice(PREDICT_FORMATS),
-              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib: depth-png (16-bit mm; 0 = "
-                   "none or beyond 65.5 m), depth-pfm / depth-npy (m), ply (coloured point cloud): one pair or "
-                   "a --dataset of one rig (with --min-confidence: its confident pixels); conf-png (16-bit, "
+              help="Outputs: png = KITTI 16-bit (x256), pfm, npy, color; with --calib (or a --dataset's own "
+                   "calib.txt): depth-png (16-bit mm; 0 = none or beyond 65.5 m), depth-pfm / depth-npy (m), ply "
+                   "(coloured point cloud), with --min-confidence of its confident pixels only; conf-png (16-bit, "
                    "confidence x 65535) / conf-npy (float32 in [0, 1]) (repeatable).")
 @click.option("--calib", type=common.EXISTING,
               help="Rig calibration for depth/PLY: KITTI calib_cam_to_cam.txt, Middlebury calib.txt or a .yaml/.yml "
@@ -85,8 +85,8 @@ def predict_main(left: Path | None, right: Path | None, checkpoint: Path, out: P
         _predict_onnx(checkpoint, left, right, out, formats, dataset, scale, refine, color_max)
         return
     geometry = [f for f in formats if f in GEOMETRY_FORMATS]
-    if geometry and calib is None:
-        raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE (one rig's, for every pair)")
+    if geometry and calib is None and dataset is None:
+        raise click.UsageError(f"--format {' '.join(geometry)} needs --calib FILE")
     rig = None
     if (calib is not None or max_depth is not None) and not geometry:
         logger.warning("%s read by the depth and point-cloud formats only (--format depth-png, depth-pfm, "

@@ -21,7 +21,7 @@ from torch import nn
 from tqdm import tqdm
 
 from optstereo.choices import CONF_FORMATS, DISPARITY_FORMATS, GEOMETRY_FORMATS
-from optstereo.geometry import depth_to_points, disparity_to_depth, write_depth_png, write_ply
+from optstereo.geometry import depth_to_points, disparity_to_depth, read_calibration, write_depth_png, write_ply
 from optstereo.inference.confidence import confidence_paths
 from optstereo.inference.config import InferenceConfig
 from optstereo.inference.engine import first_scale, infer, model_inference_config
@@ -29,7 +29,7 @@ from optstereo.memory import check_fits
 from optstereo.submission import write_submission
 from pvm_labeler.common.atomic import record_failures
 from pvm_labeler.common.datasets import discover, load_pair, safe_stem
-from pvm_labeler.common.errors import ConfigError, InputError, PVMError
+from pvm_labeler.common.errors import ConfigError, InputError, PVMError, counted
 from pvm_labeler.common.io import (
     KITTI_SCALE,
     image_size,
@@ -194,11 +194,38 @@ def check_pairs_fit(config: InferenceConfig, lefts: Iterable[Path], cuda: bool =
         check_fits(str(left), *size, scale=first_scale(config, size), cuda=cuda, available=available)
 
 
+def pair_calibrations(calib: Any, refs: list[Any]) -> dict[str, Any]:
+    """{frame id: calibration} of a dataset's pairs (``PairRef``) for the depth and point-cloud formats: a pair's
+    own (a Middlebury or ETH3D scene's calib.txt, which differ from scene to scene) where the dataset has one, else
+    ``calib`` (``--calib``); each checked against its image size from the headers. ConfigError naming the pairs
+    with neither."""
+    own = {ref.frame_id: read_calibration(ref.meta["calib"]) for ref in refs if ref.meta.get("calib")}
+    missing = [ref.frame_id for ref in refs if ref.frame_id not in own and calib is None]
+    if missing:
+        raise ConfigError(f"the depth and point-cloud formats need a calibration: {counted(len(missing), 'pair')} "
+                          f"({', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}) have none of their own: "
+                          "pass --calib FILE")
+    if own and calib is not None:
+        logger.info("%s use their own calib.txt; --calib %s serves the others", counted(len(own), "pair"),
+                    calib.source)
+    calibs = {ref.frame_id: own.get(ref.frame_id, calib) for ref in refs}
+    checked = set()  # once per calibration and image size: its warning is not repeated for every pair
+    for ref in refs:
+        try:
+            size = image_size(ref.left)
+        except InputError:  # an unreadable header: the loop skips and lists the pair
+            continue
+        if (id(calibs[ref.frame_id]), size) not in checked:
+            calibs[ref.frame_id].check_fits(*size)
+            checked.add((id(calibs[ref.frame_id]), size))
+    return calibs
+
+
 def check_calibration_fits(calib: Any, lefts: Iterable[Path]) -> None:
     """``calib.check_fits`` once per image size among the ``lefts`` image files, from their headers (a file whose
-    header cannot be read is passed over: the loop skips and lists it); ValueError without a calibration."""
+    header cannot be read is passed over: the loop skips and lists it); ConfigError without a calibration."""
     if calib is None:
-        raise ValueError("the depth and point-cloud formats need a calibration: pass --calib FILE")
+        raise ConfigError("the depth and point-cloud formats need a calibration: pass --calib FILE")
     sizes = set()
     for left in lefts:
         try:
@@ -217,8 +244,8 @@ def predict_dataset(
     progress: bool = False, calib: Any = None, max_depth: float = float("inf"), color_max: float | None = None,
 ) -> list[dict[str, Path]]:
     """Predict every pair of a dataset (``progress``: a progress bar); KITTI datasets get the submission layout
-    ``disp_0/<frame>_10.png``. Depth and PLY formats use ``calib``, one rig's calibration for every pair (checked
-    against each image size from the headers first).
+    ``disp_0/<frame>_10.png``. Depth and PLY formats use each pair's own calibration where the dataset has one
+    (Middlebury, ETH3D), else ``calib`` (:func:`pair_calibrations`; checked against each image size first).
 
     With ``submission`` only the ``_10`` frames are run (``limit`` counts them) and zipped (and checked) for the
     KITTI benchmark server. Every pair's memory need is checked from its image headers before the first is run
@@ -235,8 +262,7 @@ def predict_dataset(
     refs = refs[:limit]
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
                     torch.device(device).type == "cuda")
-    if any(f in GEOMETRY_FORMATS for f in formats):
-        check_calibration_fits(calib, [Path(ref.left) for ref in refs])
+    calibs = pair_calibrations(calib, refs) if any(f in GEOMETRY_FORMATS for f in formats) else {}
     refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats,
                               dataset.startswith("kitti"))
     written, failed = [], {}
@@ -254,7 +280,8 @@ def predict_dataset(
         kitti_layout = dataset.startswith("kitti")
         written.append({**write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=kitti_layout,
                                           max_disp=color_max),
-                        **write_geometry(out_dir, ref.frame_id, disp, sample.left, calib, formats, max_depth)})
+                        **write_geometry(out_dir, ref.frame_id, disp, sample.left, calibs.get(ref.frame_id), formats,
+                                         max_depth)})
     record_failures(Path(out_dir), failed, len(refs))
     if submission is not None:
         write_submission(out_dir, submission, refs)
