@@ -140,8 +140,7 @@ def _save_maps(out_dir: Path, frame: Frame | Skipped, reference: str = "GT") -> 
     vmax = float(np.nanmax(shown)) if np.isfinite(shown).any() else 1.0
     stem = safe_stem(frame.frame_id)  # a shard's ids come from files anyone can write
     disp = colorize(frame.pred, max_disp=vmax)
-    finite = frame.pred[np.isfinite(frame.pred)]
-    above = float((finite > vmax).mean()) if finite.size else 0.0
+    above = np.count_nonzero(frame.pred > vmax) / max(1, np.count_nonzero(np.isfinite(frame.pred)))  # NaN: neither
     write_image(maps / f"{stem}_disp.png", with_legend(disp, disparity_legend(disp.shape[1], vmax, above=above)))
     if frame.gt is not None:
         write_image(maps / f"{stem}_error.png", error_picture(frame.pred, frame.gt, reference))

@@ -37,6 +37,7 @@ from optstereo.training.layering import merge
 from optstereo.training.loop import main
 from optstereo.training.stopping import TrainingInterrupted
 from pvm_labeler.common.errors import ConfigError
+from pvm_labeler.shards import INDEX_NAME
 
 logger = logging.getLogger(__name__)
 
@@ -168,13 +169,13 @@ def train_main(config_file: Path | None, resume: Path | None, init: Path | None,
 def _check_labels_folder(labels: Path) -> None:
     """UsageError (exit 2, before anything is written) when ``labels`` is no folder of PVM shards (no index.json):
     it was an error of the run (exit 1) like a broken shard, though it is a wrong argument."""
-    if (labels / "index.json").is_file():
+    if (labels / INDEX_NAME).is_file():
         return
     if not labels.is_dir():
         raise click.UsageError(f"--labels {labels} is not a folder (give the folder `pvm-label run --out` wrote)")
     unfinished = any(labels.glob("shard-*.h5"))
     raise click.UsageError(
-        f"--labels {labels} holds no shard index (index.json): "
+        f"--labels {labels} holds no shard index ({INDEX_NAME}): "
         + ("a labeling job that did not finish (it writes the index last): run its command again to resume"
            if unfinished else "give the folder `pvm-label run --out` wrote (index.json and shard-*.h5)"))
 

@@ -194,13 +194,15 @@ def check_pairs_fit(config: InferenceConfig, lefts: Iterable[Path], cuda: bool =
         check_fits(str(left), *size, scale=first_scale(config, size), cuda=cuda, available=available)
 
 
-def pair_calibrations(calib: Any, refs: list[Any]) -> dict[str, Any]:
-    """{frame id: calibration} of a dataset's pairs (``PairRef``) for the depth and point-cloud formats: a pair's
-    own (a Middlebury or ETH3D scene's calib.txt, which differ from scene to scene) where the dataset has one, else
-    ``calib`` (``--calib``); each checked against its image size from the headers. ConfigError naming the pairs
-    with neither."""
-    own = {ref.frame_id: read_calibration(ref.meta["calib"]) for ref in refs if ref.meta.get("calib")}
-    missing = [ref.frame_id for ref in refs if ref.frame_id not in own and calib is None]
+def pair_calibrations(calib: Any, pairs: Iterable[tuple[str, Path, str | None]]) -> dict[str, Any]:
+    """{frame id: calibration} for the depth and point-cloud formats of (frame id, left image, the pair's own
+    calibration file or None) ``pairs``: its own (a Middlebury or ETH3D scene's calib.txt, which differ from scene to
+    scene) where it has one, else ``calib`` (``--calib``). Each is checked against the pair's image size from the
+    headers, once per calibration and size (an unreadable header is passed over: the loop skips and lists the pair).
+    ConfigError naming the pairs with neither."""
+    pairs = list(pairs)
+    own = {name: read_calibration(path) for name, _, path in pairs if path}
+    missing = [name for name, _, _ in pairs if name not in own and calib is None]
     if missing:
         raise ConfigError(f"the depth and point-cloud formats need a calibration: {counted(len(missing), 'pair')} "
                           f"({', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}) have none of their own: "
@@ -208,32 +210,17 @@ def pair_calibrations(calib: Any, refs: list[Any]) -> dict[str, Any]:
     if own and calib is not None:
         logger.info("%s use their own calib.txt; --calib %s serves the others", counted(len(own), "pair"),
                     calib.source)
-    calibs = {ref.frame_id: own.get(ref.frame_id, calib) for ref in refs}
-    checked = set()  # once per calibration and image size: its warning is not repeated for every pair
-    for ref in refs:
+    calibs = {name: own.get(name, calib) for name, _, _ in pairs}
+    checked = set()  # its warning is not repeated for every pair
+    for name, left, _ in pairs:
         try:
-            size = image_size(ref.left)
-        except InputError:  # an unreadable header: the loop skips and lists the pair
-            continue
-        if (id(calibs[ref.frame_id]), size) not in checked:
-            calibs[ref.frame_id].check_fits(*size)
-            checked.add((id(calibs[ref.frame_id]), size))
-    return calibs
-
-
-def check_calibration_fits(calib: Any, lefts: Iterable[Path]) -> None:
-    """``calib.check_fits`` once per image size among the ``lefts`` image files, from their headers (a file whose
-    header cannot be read is passed over: the loop skips and lists it); ConfigError without a calibration."""
-    if calib is None:
-        raise ConfigError("the depth and point-cloud formats need a calibration: pass --calib FILE")
-    sizes = set()
-    for left in lefts:
-        try:
-            sizes.add(image_size(left))
+            size = image_size(left)
         except InputError:
             continue
-    for size in sorted(sizes):
-        calib.check_fits(*size)
+        if (id(calibs[name]), size) not in checked:
+            calibs[name].check_fits(*size)
+            checked.add((id(calibs[name]), size))
+    return calibs
 
 
 def predict_dataset(
@@ -262,9 +249,10 @@ def predict_dataset(
     refs = refs[:limit]
     check_pairs_fit(model_inference_config(model, iters, scale, refine), [Path(ref.left) for ref in refs],
                     torch.device(device).type == "cuda")
-    calibs = pair_calibrations(calib, refs) if any(f in GEOMETRY_FORMATS for f in formats) else {}
-    refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats,
-                              dataset.startswith("kitti"))
+    kitti_layout = dataset.startswith("kitti")
+    calibs = (pair_calibrations(calib, [(ref.frame_id, Path(ref.left), ref.meta.get("calib")) for ref in refs])
+              if any(f in GEOMETRY_FORMATS for f in formats) else {})
+    refuse_overwriting_inputs(out_dir, [(ref.frame_id, ref.left, ref.right) for ref in refs], formats, kitti_layout)
     written, failed = [], {}
     # disable=None: tqdm's bar is off on a stream that is no terminal (a piped log)
     for ref in tqdm(refs, desc="predict", unit="pair", disable=None if progress else True):
@@ -273,11 +261,10 @@ def predict_dataset(
         except PVMError as exc:
             logger.warning("skipped %s: %s", ref.frame_id, exc)
             failed[ref.frame_id] = str(exc)
-            forget_frame(Path(out_dir), ref.frame_id, formats, kitti_layout=dataset.startswith("kitti"))
+            forget_frame(Path(out_dir), ref.frame_id, formats, kitti_layout=kitti_layout)
             continue
         disp = infer(model, sample.left, sample.right, iters=iters, device=device, amp=amp, scale=scale,
                      refine=refine)
-        kitti_layout = dataset.startswith("kitti")
         written.append({**write_disparity(out_dir, ref.frame_id, disp, formats, kitti_layout=kitti_layout,
                                           max_disp=color_max),
                         **write_geometry(out_dir, ref.frame_id, disp, sample.left, calibs.get(ref.frame_id), formats,

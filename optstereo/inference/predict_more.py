@@ -24,9 +24,9 @@ from optstereo.choices import CONF_FORMATS, GEOMETRY_FORMATS
 from optstereo.inference.confidence import confidence_of, write_confidence
 from optstereo.inference.engine import model_inference_config, run
 from optstereo.inference.outputs import (
-    check_calibration_fits,
     check_pairs_fit,
     forget_frame,
+    pair_calibrations,
     refuse_overwriting_inputs,
     write_disparity,
     write_geometry,
@@ -95,8 +95,8 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
     config = model_inference_config(model, iters, scale, refine)  # the same for every frame
     check_pairs_fit(config, [Path(frame[1]) for frame in frames], torch.device(device).type == "cuda")
     refuse_overwriting_inputs(out_dir, frames, formats, kitti_layout)
-    if any(f in GEOMETRY_FORMATS for f in formats):
-        check_calibration_fits(calib, [Path(frame[1]) for frame in frames])
+    calibs = (pair_calibrations(calib, [(name, Path(left), None) for name, left, _ in frames])
+              if any(f in GEOMETRY_FORMATS for f in formats) else {})
     written, failed = [], {}
     # disable=None: tqdm's bar is off on a stream that is no terminal (a piped log)
     for name, left_path, right_path in tqdm(frames, desc="predict", unit="frame", disable=None if progress else True):
@@ -125,9 +125,9 @@ def predict_frames(model: nn.Module, frames: Iterable[tuple[str, Path, Path]], o
             disp, used_scale = result.disparity, result.input_scale
         conf = _confidence(model, left, right, disp, more, formats, device, amp, used_scale, config.iters)
         logger.info("%s: %.2f s", name, time.perf_counter() - t0)
-        paths = _write(out_dir, name, disp, conf, more, formats, kitti_layout)
-        written.append({**paths, **write_geometry(out_dir, name, _confident(disp, conf, more), left, calib, formats,
-                                                  max_depth)})
+        shown = _confident(disp, conf, more)  # what the disparity files, depth and cloud hold
+        written.append({**_write(out_dir, name, shown, conf, more, formats, kitti_layout),
+                        **write_geometry(out_dir, name, shown, left, calibs.get(name), formats, max_depth)})
     if len(frames) > 1:
         record_failures(Path(out_dir), failed, len(frames))
     return written
@@ -154,7 +154,7 @@ def _confident(disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | No
 
 def _write(out_dir: Path, name: str, disp: npt.NDArray[np.float32], conf: npt.NDArray[np.float32] | None,
            more: MoreOptions, formats: tuple[str, ...], kitti_layout: bool) -> dict[str, Path]:
-    disp = _confident(disp, conf, more)
+    """The disparity files of ``disp`` (already cut by --min-confidence: :func:`_confident`) and the confidence's."""
     paths = write_disparity(out_dir, name, disp, [f for f in formats if f not in CONF_FORMATS],
                             kitti_layout=kitti_layout, max_disp=more.color_max)
     if conf is not None:
